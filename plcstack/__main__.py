@@ -1,0 +1,3 @@
+from plcstack.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,245 @@
+"""What every protocol client shares: connection life cycle, single flight, deadlines, errors.
+
+None of our protocols has a transaction id, so the only way to never mix up replies is one request
+in flight per connection and a hard close when a deadline passes. That policy lives here once, and
+each protocol client only says how to build a request and what its reply means.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any, Generic, Protocol, Self, TypeVar
+
+from plcstack.codecs._common import NEED_DATA
+from plcstack.errors import (
+    ConnectFailed,
+    ConnectionLost,
+    PlcError,
+    PlcTimeout,
+    RemoteProtocolError,
+)
+from plcstack.transports.backoff import Backoff
+from plcstack.transports.base import Transport
+from plcstack.url import PlcUrl
+
+__all__ = ["Client", "ClientCodec", "ClientStats", "RequestClient", "Value"]
+
+#: what ``read`` returns per point: ``int`` for words/bytes, ``bool`` for bits
+Value = int | bool
+
+#: default request deadline in seconds; every client takes ``timeout=`` and ``?timeout=``
+DEFAULT_TIMEOUT = 2.0
+DEFAULT_CONNECT_TIMEOUT = 3.0
+
+
+class ClientCodec(Protocol):
+    """The client role of a request/response Sans-IO codec (E71, S5-LAN, FETCH/WRITE)."""
+
+    def send(self, request: Any) -> bytes: ...
+
+    def receive_data(self, data: bytes) -> None: ...
+
+    def next_event(self) -> Any: ...
+
+
+@dataclass
+class ClientStats:
+    """Counters a poller or a dashboard can read without wrapping every call."""
+
+    requests: int = 0
+    errors: int = 0
+    timeouts: int = 0
+    connects: int = 0
+    connect_failures: int = 0
+
+
+class Client(ABC):
+    """The API every protocol shares, so the CLI and the poller are protocol-agnostic.
+
+    Use as ``async with plcstack.connect(url) as plc:``. A client reconnects by itself when a
+    request finds the connection closed; while the PLC stays unreachable, reconnect attempts are
+    spaced by jittered exponential backoff and requests in between fail at once with
+    :class:`ConnectFailed` (saying when the next attempt is due) instead of piling up.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        transport: Transport,
+        *,
+        timeout: float = DEFAULT_TIMEOUT,
+        connect_timeout: float = DEFAULT_CONNECT_TIMEOUT,
+        backoff: Backoff | None = None,
+    ) -> None:
+        if timeout <= 0 or connect_timeout <= 0:
+            raise ValueError("timeouts must be positive")
+        self.name = name
+        self.transport = transport
+        self.timeout = timeout
+        self.connect_timeout = connect_timeout
+        self.backoff = backoff if backoff is not None else Backoff()
+        self.stats = ClientStats()
+        self._lock = asyncio.Lock()
+        self._next_attempt = 0.0
+        self._last_connect_error: PlcError | None = None
+        self._closed = False
+
+    # -- construction -----------------------------------------------------------------------
+    @classmethod
+    @abstractmethod
+    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
+        """Build from a parsed URL; keyword options override query options."""
+
+    @staticmethod
+    def common_options(url: PlcUrl, options: dict[str, Any]) -> dict[str, Any]:
+        """``timeout`` and ``connect_timeout`` from the URL unless given as keywords."""
+        out = dict(options)
+        out.setdefault("timeout", url.get_float("timeout", DEFAULT_TIMEOUT))
+        out.setdefault("connect_timeout", url.get_float("connect_timeout", DEFAULT_CONNECT_TIMEOUT))
+        return out
+
+    COMMON_URL_OPTIONS = frozenset({"timeout", "connect_timeout"})
+
+    # -- life cycle -------------------------------------------------------------------------
+    async def open(self) -> None:
+        """Connect now (``async with`` does this); raises ``ConnectFailed`` or ``PlcTimeout``."""
+        self._closed = False
+        async with self._lock:
+            await self._connect()
+
+    async def aclose(self) -> None:
+        self._closed = True
+        await self.transport.aclose()
+
+    async def __aenter__(self) -> Self:
+        await self.open()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.aclose()
+
+    def __repr__(self) -> str:
+        state = "open" if self.transport.is_open else "closed"
+        return f"<{type(self).__name__} {self.name} {state}>"
+
+    async def _connect(self) -> None:
+        try:
+            await self.transport.open(self.connect_timeout)
+        except PlcError as exc:
+            self.stats.connect_failures += 1
+            loop = asyncio.get_running_loop()
+            self._next_attempt = loop.time() + self.backoff.next_delay()
+            exc.bind(plc=self.name, request="connect")
+            self._last_connect_error = exc
+            raise
+        self.stats.connects += 1
+        self.backoff.reset()
+        self._last_connect_error = None
+        self.connection_made()
+
+    async def _ensure_open(self, what: str) -> None:
+        if self.transport.is_open:
+            return
+        if self._closed:
+            raise ConnectionLost("client is closed", plc=self.name, request=what)
+        loop = asyncio.get_running_loop()
+        wait = self._next_attempt - loop.time()
+        if wait > 0 and self._last_connect_error is not None:
+            raise ConnectFailed(
+                f"PLC unreachable ({self._last_connect_error.message}); "
+                f"next reconnect attempt in {wait:.1f} s",
+                plc=self.name,
+                request=what,
+            )
+        await self._connect()
+
+    def connection_made(self) -> None:
+        """Hook: a (re)connect succeeded; reset per-connection codec state here."""
+
+    def connection_dropped(self) -> None:
+        """Hook: the connection was closed because of an error or a deadline."""
+
+    def _drop(self) -> None:
+        self.transport.abort()
+        self.connection_dropped()
+
+    # -- the API ----------------------------------------------------------------------------
+    @abstractmethod
+    async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
+        """Read ``count`` points from ``address``: ints for words/bytes, bools for bits."""
+
+    @abstractmethod
+    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+        """Write ``values`` starting at ``address``; returns once the PLC confirmed it."""
+
+
+E = TypeVar("E")
+
+
+class RequestClient(Client, Generic[E]):
+    """A client whose codec is request/response with ``send``/``receive_data``/``next_event``."""
+
+    codec: ClientCodec
+
+    @abstractmethod
+    def new_codec(self) -> ClientCodec:
+        """A fresh client-role codec for a new connection."""
+
+    def connection_made(self) -> None:
+        self.codec = self.new_codec()
+
+    async def exchange(
+        self, request: Any, what: str, *, is_write: bool, timeout: float | None = None
+    ) -> E:
+        """Send one request and return the codec's reply event.
+
+        Holds the single-flight lock, (re)connects when needed, and turns every failure into a
+        bound :class:`PlcError`. On a deadline or malformed reply the connection is closed so
+        nothing stale can be read later. A write is never retried here.
+        """
+        async with self._lock:
+            await self._ensure_open(what)
+            self.stats.requests += 1
+            deadline = self.timeout if timeout is None else timeout
+            try:
+                payload = self.codec.send(request)
+                self.transport.discard_received()
+                self.transport.write(payload)
+                async with asyncio.timeout(deadline):
+                    while True:
+                        event = self.codec.next_event()
+                        if event is not NEED_DATA:
+                            return event  # type: ignore[no-any-return]
+                        self.codec.receive_data(await self.transport.read())
+            except TimeoutError:
+                self.stats.timeouts += 1
+                self.stats.errors += 1
+                self._drop()
+                outcome = "; the write may or may not have been executed" if is_write else ""
+                raise PlcTimeout(
+                    f"no complete answer within {deadline:g} s, connection closed{outcome}",
+                    plc=self.name,
+                    request=what,
+                ) from None
+            except (ConnectionLost, RemoteProtocolError) as exc:
+                self.stats.errors += 1
+                self._drop()
+                if is_write and isinstance(exc, ConnectionLost):
+                    exc.message += "; the write may or may not have been executed"
+                raise exc.bind(plc=self.name, request=what) from None
+            except PlcError as exc:
+                self.stats.errors += 1
+                raise exc.bind(plc=self.name, request=what) from None
+
+    def count_error(self) -> None:
+        """Count a PLC error response decoded by the subclass (the reply itself was fine)."""
+        self.stats.errors += 1

@@ -1,0 +1,78 @@
+"""Pieces every Sans-IO codec shares: the NEED_DATA sentinel and a receive buffer."""
+
+from __future__ import annotations
+
+import enum
+from typing import Final
+
+__all__ = ["NEED_DATA", "NeedData", "ReceiveBuffer"]
+
+
+class NeedData(enum.Enum):
+    """Returned by ``next_event()`` when more bytes must arrive before an event can be produced.
+
+    An enum member rather than ``object()`` so that type checkers can narrow ``Event | NeedData``.
+    """
+
+    NEED_DATA = "NEED_DATA"
+
+    def __repr__(self) -> str:
+        return "NEED_DATA"
+
+
+NEED_DATA: Final = NeedData.NEED_DATA
+
+
+class ReceiveBuffer:
+    """A byte buffer that consumes from the front without copying the tail each time.
+
+    Stream decoders take a frame off the front once they know its length; ``bytearray`` deletion
+    from the front is O(n), so we keep a read offset and compact only when it pays.
+    """
+
+    __slots__ = ("_buf", "_pos")
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self._pos = 0
+
+    def __len__(self) -> int:
+        return len(self._buf) - self._pos
+
+    def __bool__(self) -> bool:
+        return len(self._buf) > self._pos
+
+    def feed(self, data: bytes | bytearray | memoryview) -> None:
+        if self._pos and self._pos == len(self._buf):
+            self._buf.clear()
+            self._pos = 0
+        self._buf += data
+
+    def peek(self, n: int | None = None) -> bytes:
+        """Up to ``n`` bytes from the front (all if ``None``) without consuming them."""
+        end = len(self._buf) if n is None else min(len(self._buf), self._pos + n)
+        return bytes(self._buf[self._pos : end])
+
+    def __getitem__(self, index: int) -> int:
+        if index < 0 or self._pos + index >= len(self._buf):
+            raise IndexError(index)
+        return self._buf[self._pos + index]
+
+    def take(self, n: int) -> bytes:
+        """Remove and return exactly ``n`` bytes; the caller has checked ``len(self) >= n``."""
+        if n > len(self):
+            raise ValueError(f"take({n}) with only {len(self)} bytes buffered")
+        start = self._pos
+        self._pos += n
+        out = bytes(self._buf[start : self._pos])
+        if self._pos > 4096 and self._pos * 2 > len(self._buf):
+            del self._buf[: self._pos]
+            self._pos = 0
+        return out
+
+    def take_all(self) -> bytes:
+        return self.take(len(self))
+
+    def clear(self) -> None:
+        self._buf.clear()
+        self._pos = 0

@@ -1,0 +1,102 @@
+"""The one exception hierarchy of plcstack.
+
+Every failure a caller can see is a :class:`PlcError`, so a gateway can catch one type per PLC and
+keep polling the others. Messages are built to be read by an automation engineer at 3 a.m.: they
+name the PLC (its URL), the request, and for PLC error codes the meaning from the protocol manual.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "AddressError",
+    "ConnectFailed",
+    "ConnectionLost",
+    "LocalProtocolError",
+    "PlcError",
+    "PlcErrorResponse",
+    "PlcTimeout",
+    "RemoteProtocolError",
+]
+
+
+class PlcError(Exception):
+    """Base of every error plcstack raises.
+
+    ``plc`` and ``request`` are optional because the codecs, which know neither the PLC's URL nor
+    the caller's wording, raise these too; the client layer fills them in with :meth:`bind`.
+    """
+
+    def __init__(self, message: str, *, plc: str | None = None, request: str | None = None) -> None:
+        self.message = message
+        self.plc = plc
+        self.request = request
+        super().__init__(message)
+
+    def bind(self, *, plc: str | None = None, request: str | None = None) -> PlcError:
+        """Attach the PLC and request this error belongs to (first binding wins) and return self."""
+        if self.plc is None:
+            self.plc = plc
+        if self.request is None:
+            self.request = request
+        return self
+
+    def __str__(self) -> str:
+        parts = [p for p in (self.plc, self.request) if p]
+        parts.append(self.message)
+        return ": ".join(parts)
+
+
+class AddressError(PlcError, ValueError):
+    """A URL, address, count or value is not valid for this protocol; nothing was sent."""
+
+
+class LocalProtocolError(PlcError):
+    """Our own caller misused a codec or client (e.g. a second request while one is in flight)."""
+
+
+class RemoteProtocolError(PlcError):
+    """The peer sent bytes that do not follow the protocol. The connection is closed."""
+
+
+class PlcErrorResponse(PlcError):
+    """The PLC (or its communication module) answered the request with an error code.
+
+    ``code`` is the protocol's own number (an E71 end code, an S5-LAN Err value, ...), ``meaning``
+    the documented explanation; both go into the message so logs are self-explaining.
+    """
+
+    def __init__(
+        self,
+        code: int,
+        meaning: str,
+        *,
+        plc: str | None = None,
+        request: str | None = None,
+        code_text: str | None = None,
+    ) -> None:
+        self.code = code
+        self.meaning = meaning
+        self.code_text = code_text if code_text is not None else f"{code:02X}H"
+        super().__init__(
+            f"PLC answered with error code {self.code_text}: {meaning}", plc=plc, request=request
+        )
+
+
+class PlcTimeout(PlcError, TimeoutError):
+    """No (complete) answer within the deadline.
+
+    The connection has been closed, so a late answer can never be taken for the reply to the next
+    request. For a write, the outcome is unknown and the message says so.
+    """
+
+
+class ConnectionLost(PlcError, ConnectionError):
+    """The connection dropped, or could not be used, while a request needed it."""
+
+
+class ConnectFailed(ConnectionLost):
+    """A connection could not be (re)established.
+
+    A subclass of :class:`ConnectionLost` so code that only cares about "the PLC is not reachable"
+    catches both, while a caller that wants to tell "never got in" from "dropped mid-request" can.
+    """

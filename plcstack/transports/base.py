@@ -1,0 +1,110 @@
+"""The transport contract every protocol client is written against.
+
+A transport moves bytes and nothing else: it does not know where one message ends. Stream
+transports (TCP, serial) hand out whatever chunk arrived; datagram transports (UDP) hand out one
+datagram per ``read()``. Clients apply deadlines around ``read()`` with ``asyncio.timeout`` and call
+``abort()`` when a deadline passes, so a late reply dies with the connection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+from abc import ABC, abstractmethod
+from collections.abc import Awaitable
+from typing import TypeVar
+
+from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
+
+__all__ = ["QueueProtocolMixin", "Transport", "open_with_timeout"]
+
+T = TypeVar("T")
+
+
+class Transport(ABC):
+    """An open-able, re-open-able byte pipe to one peer."""
+
+    #: human-readable peer, e.g. ``127.0.0.1:5000`` or ``/dev/ttyS0``
+    peer: str
+
+    @property
+    @abstractmethod
+    def is_open(self) -> bool: ...
+
+    @abstractmethod
+    async def open(self, timeout: float | None) -> None:
+        """Connect; raises ``ConnectFailed`` or ``PlcTimeout``. Re-openable after a close."""
+
+    @abstractmethod
+    def write(self, data: bytes) -> None:
+        """Queue bytes (one datagram for UDP). Raises :class:`ConnectionLost` when not open."""
+
+    @abstractmethod
+    async def read(self) -> bytes:
+        """Next received chunk (stream) or datagram. Raises :class:`ConnectionLost` at EOF."""
+
+    @abstractmethod
+    def abort(self) -> None:
+        """Close now, dropping anything buffered in either direction. Idempotent."""
+
+    async def aclose(self) -> None:
+        """Close cleanly (flush what was written). The default is an abort."""
+        self.abort()
+
+    def discard_received(self) -> None:
+        """Drop what has been received and not yet read (used before a fresh request on UDP)."""
+
+
+class QueueProtocolMixin:
+    """asyncio protocol half shared by TCP, UDP and serial: a chunk queue and one waiting reader.
+
+    Hand-rolled instead of ``asyncio.StreamReader`` because the hot path of a poll is "write, wait
+    for one short reply": one future per wait and no extra buffering copies keep us close to the
+    raw-asyncio floor the benchmarks compare against.
+    """
+
+    def _init_queue(self, peer: str) -> None:
+        self._peer = peer
+        self._chunks: collections.deque[bytes] = collections.deque()
+        self._waiter: asyncio.Future[None] | None = None
+        self._closed_exc: BaseException | None = None
+
+    def _push(self, data: bytes) -> None:
+        self._chunks.append(data)
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+    def _fail(self, exc: BaseException) -> None:
+        if self._closed_exc is None:
+            self._closed_exc = exc
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+    async def _next_chunk(self, join: bool) -> bytes:
+        while not self._chunks:
+            if self._closed_exc is not None:
+                raise ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
+            loop = asyncio.get_running_loop()
+            self._waiter = loop.create_future()
+            try:
+                await self._waiter
+            finally:
+                self._waiter = None
+        if join and len(self._chunks) > 1:
+            data = b"".join(self._chunks)
+            self._chunks.clear()
+            return data
+        return self._chunks.popleft()
+
+
+async def open_with_timeout(peer: str, coro: Awaitable[T], timeout: float | None) -> T:
+    """Await a connect coroutine with a deadline, mapping failures to plcstack errors."""
+    try:
+        async with asyncio.timeout(timeout):
+            return await coro
+    except TimeoutError:
+        raise PlcTimeout(f"connect to {peer} timed out after {timeout} s") from None
+    except OSError as exc:
+        raise ConnectFailed(f"cannot connect to {peer}: {exc.strerror or exc}") from None

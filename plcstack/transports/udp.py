@@ -1,0 +1,87 @@
+"""UDP transport: one message per datagram, datagrams from other addresses ignored."""
+
+from __future__ import annotations
+
+import asyncio
+
+from plcstack.errors import ConnectionLost
+from plcstack.transports.base import QueueProtocolMixin, Transport, open_with_timeout
+
+__all__ = ["UdpTransport"]
+
+
+class _UdpProtocol(QueueProtocolMixin, asyncio.DatagramProtocol):
+    def __init__(self, peer: str) -> None:
+        self._init_queue(peer)
+        self.remote: tuple[str, int] | None = None
+
+    def datagram_received(self, data: bytes, addr: tuple[str | bytes, int]) -> None:
+        # A connected UDP socket already filters by source in the kernel; this check keeps the
+        # promise also where the OS delivers anyway (and documents it).
+        if self.remote is not None and (addr[0], addr[1]) != self.remote:
+            return
+        self._push(data)
+
+    def error_received(self, exc: Exception) -> None:
+        # ICMP port unreachable shows up here: a dead E71 port, reported now instead of a timeout.
+        self._fail(exc)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._fail(exc or EOFError("socket closed"))
+
+
+class UdpTransport(Transport):
+    """A connected UDP socket to ``host:port``. ``abort()`` + ``open()`` gets a new local port,
+    so a reply that arrives after a timeout can never be read as the answer to the next request."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self.host = host
+        self.port = port
+        self.peer = f"{host}:{port}"
+        self._transport: asyncio.DatagramTransport | None = None
+        self._protocol: _UdpProtocol | None = None
+
+    @property
+    def is_open(self) -> bool:
+        return (
+            self._transport is not None
+            and self._protocol is not None
+            and self._protocol._closed_exc is None
+            and not self._transport.is_closing()
+        )
+
+    async def open(self, timeout: float | None) -> None:
+        self.abort()
+        loop = asyncio.get_running_loop()
+        result = await open_with_timeout(
+            self.peer,
+            loop.create_datagram_endpoint(
+                lambda: _UdpProtocol(self.peer), remote_addr=(self.host, self.port)
+            ),
+            timeout,
+        )
+        transport, protocol = result
+        remote = transport.get_extra_info("peername")
+        protocol.remote = (remote[0], remote[1]) if remote else None
+        self._transport, self._protocol = transport, protocol
+
+    def write(self, data: bytes) -> None:
+        if not self.is_open:
+            raise ConnectionLost(f"not connected to {self.peer}")
+        assert self._transport is not None
+        self._transport.sendto(data)
+
+    async def read(self) -> bytes:
+        if self._protocol is None:
+            raise ConnectionLost(f"not connected to {self.peer}")
+        return await self._protocol._next_chunk(join=False)
+
+    def discard_received(self) -> None:
+        if self._protocol is not None:
+            self._protocol._chunks.clear()
+
+    def abort(self) -> None:
+        if self._transport is not None:
+            self._transport.abort()
+        self._transport = None
+        self._protocol = None
