@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import asyncio
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Generic, Protocol, Self, TypeVar
@@ -173,6 +173,23 @@ class Client(ABC):
         self.connection_dropped()
 
     # -- the API ----------------------------------------------------------------------------
+    def locate(self, address: str, count: int = 1) -> tuple[Hashable, int]:
+        """``(area, index)`` of ``address``, such that point ``k`` of a read is ``index + k``.
+
+        The poller merges tags of one PLC whose areas are equal into one request, so ``area``
+        must capture everything that has to match (device code, DB number, unit); ``count`` lets a
+        protocol refuse a span that cannot be one request. Raises :class:`AddressError`.
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not support request merging")
+
+    def address_at(self, area: Hashable, index: int) -> str:
+        """The address string for ``(area, index)``: the inverse of :meth:`locate`."""
+        raise NotImplementedError(f"{type(self).__name__} does not support request merging")
+
+    def max_points(self, area: Hashable) -> int:
+        """Most points of ``area`` one ``read`` sends as a single frame (the per-frame limit)."""
+        raise NotImplementedError(f"{type(self).__name__} does not support request merging")
+
     @abstractmethod
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
         """Read ``count`` points from ``address``: ints for words/bytes, bools for bits."""
