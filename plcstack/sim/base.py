@@ -1,0 +1,68 @@
+"""What every simulator offers to in-process users (tests, the demo, the benchmarks).
+
+Each ``plcstack.sim.NAME`` module has ``async def start(...) -> Simulator`` that binds (port 0 picks
+a free port) and returns once clients can connect. The object tells where it listens and the URL a
+client should use, so callers never assemble URLs by hand.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from abc import ABC, abstractmethod
+from types import TracebackType
+from typing import Self
+
+__all__ = ["Simulator", "TcpSimulator"]
+
+
+class Simulator(ABC):
+    """A running simulator. Close it with ``await sim.aclose()`` or ``async with``."""
+
+    #: the URL a plcstack client uses to reach this simulator, e.g. ``e71+tcp://127.0.0.1:40001``
+    url: str
+
+    @abstractmethod
+    async def aclose(self) -> None: ...
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.aclose()
+
+    async def serve_forever(self) -> None:
+        """Serve until cancelled (the CLI's ``plcstack sim``)."""
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await self.aclose()
+
+
+class TcpSimulator(Simulator):
+    """A simulator behind one ``asyncio.Server``; ``host``/``port`` are the bound address."""
+
+    def __init__(self, server: asyncio.Server, scheme: str, query: str = "") -> None:
+        self.server = server
+        sockname = server.sockets[0].getsockname()
+        self.host: str = sockname[0]
+        self.port: int = sockname[1]
+        self.url = f"{scheme}://{self.host}:{self.port}" + (f"?{query}" if query else "")
+        self._conn_tasks: set[asyncio.Task[None]] = set()
+
+    def track(self, task: asyncio.Task[None]) -> None:
+        """Remember a per-connection task so ``aclose`` can end it (no task outlives the sim)."""
+        self._conn_tasks.add(task)
+        task.add_done_callback(self._conn_tasks.discard)
+
+    async def aclose(self) -> None:
+        self.server.close()
+        for task in list(self._conn_tasks):
+            task.cancel()
+        if self._conn_tasks:
+            await asyncio.gather(*self._conn_tasks, return_exceptions=True)
+        await self.server.wait_closed()
