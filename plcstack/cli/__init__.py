@@ -19,6 +19,7 @@ from plcstack.errors import AddressError, PlcError
 COMMAND_MODULES = [
     "plcstack.cli.io",
     "plcstack.cli.sim",
+    "plcstack.cli.bench",
 ]
 
 
