@@ -19,6 +19,8 @@ __all__ = [
     "E71_DEVICE_CODES",
     "FloorJob",
     "ScriptJob",
+    "as511_b_info",
+    "as511_chain",
     "as511_read",
     "as511_stuff",
     "as511_write",
@@ -219,6 +221,21 @@ def as511_read(start: int, data: bytes) -> ScriptJob:
 def as511_write(start: int, data: bytes) -> ScriptJob:
     """Function 03h: write ``data`` at absolute ``start`` (no response data frame)."""
     return _as511_script(0x03, struct.pack(">H", start) + data, None)
+
+
+def as511_b_info(block_type: int, number: int, dw0: int, header: bytes) -> ScriptJob:
+    """Function 1Ah (B_INFO): the AG answers ``00``, the DW0 address and the 10-byte header."""
+    return _as511_script(
+        0x1A, bytes([block_type, number]), b"\x00" + struct.pack(">H", dw0) + header
+    )
+
+
+def as511_chain(*jobs: ScriptJob) -> ScriptJob:
+    """Several transactions replayed back to back as one job (e.g. B_INFO, then a write)."""
+    steps = tuple(step for job in jobs for step in job.steps)
+    expects = [job.expect for job in jobs]
+    expect = b"".join(e for e in expects if e is not None) if None not in expects else None
+    return ScriptJob(steps, expect)
 
 
 def as511_pg_stream(job: ScriptJob) -> bytes:

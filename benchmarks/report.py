@@ -124,7 +124,7 @@ def chart_series(results: Sequence[Result]) -> list[ChartSeries]:
             protocol, kind = parts[1], "stack"
         else:
             protocol, kind = parts[1], parts[2]
-        suffix = "" if r.loop == "asyncio" else f" {r.loop}"
+        suffix = "" if r.loop in ("asyncio", "threads") else f" {r.loop}"
         kinds = ["clients", "poll"] if r.group == "conn" else [kind]
         for k in kinds:
             key = f"{protocol} {k}{suffix}"

@@ -10,6 +10,7 @@ Memory layout used everywhere (so every side reads known values):
 
 from __future__ import annotations
 
+import importlib
 import struct
 from types import ModuleType
 from typing import Any
@@ -27,7 +28,7 @@ WRITE_SEED = 0x3003
 
 # -- memories --------------------------------------------------------------------------------------
 def e71_memory(sim: ModuleType) -> Any:
-    memory = sim.MelsecMemory()
+    memory = importlib.import_module("plcstack.sim.melsec_memory").MelsecMemory()
     memory.write_words("D", 0, sample_words())
     return memory
 
@@ -40,11 +41,12 @@ def s5_memory(sim: ModuleType | None = None) -> Any:
     return memory
 
 
-def _s5_dw0() -> int:
+def _s5_block() -> tuple[int, bytes]:
+    """``(DW0 address, 10-byte header)`` of the benchmark DB in the simulator's memory."""
     from plcstack.sim.s5memory import BlockType
 
-    address, _header = s5_memory().block_info(BlockType.DB, DB)
-    return int(address)
+    address, header = s5_memory().block_info(BlockType.DB, DB)
+    return int(address), bytes(header)
 
 
 # -- floor jobs ------------------------------------------------------------------------------------
@@ -93,27 +95,24 @@ def fw_mk_write() -> frames.FloorJob:
 
 
 def as511_read() -> frames.ScriptJob:
-    return frames.as511_read(_s5_dw0(), struct.pack(f">{WORDS}H", *sample_words()))
+    """One 04h transaction from the block header on: what plcstack's AS511 client sends for a DB
+    read with a cached address (it re-reads the 10-byte header to check that the block did not
+    move), so floor and stack do the same wire work."""
+    dw0, header = _s5_block()
+    return frames.as511_read(dw0 - 10, header + struct.pack(f">{WORDS}H", *sample_words()))
 
 
 def as511_write() -> frames.ScriptJob:
+    """B_INFO, then 03h: the client asks for the block address before every write (as
+    libnodave does), so the floor replays both transactions."""
+    dw0, header = _s5_block()
     data = struct.pack(f">{WORDS}H", *sample_words(seed=WRITE_SEED))
-    return frames.as511_write(_s5_dw0() + 2 * WORDS, data)
+    return frames.as511_chain(
+        frames.as511_b_info(0x01, DB, dw0, header), frames.as511_write(dw0 + 2 * WORDS, data)
+    )
 
 
 # -- cases -----------------------------------------------------------------------------------------
-def _with_query(query: str) -> Any:
-    def transform(url: str) -> str:
-        return url + ("&" if "?" in url else "?") + query
-
-    return transform
-
-
-def _as511_url(url: str) -> str:
-    # The AS511 simulator over TCP may announce itself as as511+tcp already; keep it if so.
-    return url if url.startswith("as511+tcp://") else "as511+tcp://" + url.split("://", 1)[1]
-
-
 PROTOCOLS: list[ProtocolCase] = [
     ProtocolCase(
         key="e71+tcp",
@@ -131,8 +130,7 @@ PROTOCOLS: list[ProtocolCase] = [
         modules=("plcstack.sim.e71", "plcstack.clients.e71", "plcstack.codecs.e71"),
         sim_module="plcstack.sim.e71",
         make_memory=e71_memory,
-        sim_kwargs={"udp": True},
-        client_url=lambda url: url.replace("e71+tcp://", "e71+udp://"),
+        sim_kwargs={"transport": "udp"},
         read_address="D0",
         write_address="D1000",
         floor_read=e71_read,
@@ -144,6 +142,8 @@ PROTOCOLS: list[ProtocolCase] = [
         modules=("plcstack.sim.s5lan", "plcstack.clients.s5lan", "plcstack.codecs.s5lan"),
         sim_module="plcstack.sim.s5lan",
         make_memory=s5_memory,
+        # the module takes one connection (A1.3); floor and stack are connected side by side
+        sim_kwargs={"max_connections": 2},
         read_address=f"DB{DB}.DW0",
         write_address=f"DB{DB}.DW{WORDS}",
         floor_read=s5lan_read,
@@ -175,7 +175,6 @@ PROTOCOLS: list[ProtocolCase] = [
         sim_module="plcstack.sim.fetchwrite",
         make_memory=s5_memory,
         sim_kwargs={"mk": True},
-        client_url=_with_query("mk=1"),
         read_address=f"DB{DB}.DW0",
         write_address=f"DB{DB}.DW{WORDS}",
         floor_read=fw_mk_read,
@@ -187,7 +186,6 @@ PROTOCOLS: list[ProtocolCase] = [
         modules=("plcstack.sim.as511", "plcstack.clients.as511", "plcstack.codecs.as511"),
         sim_module="plcstack.sim.as511",
         make_memory=s5_memory,
-        client_url=_as511_url,
         read_address=f"DB{DB}.DW0",
         write_address=f"DB{DB}.DW{WORDS}",
         floor_read=as511_read,
