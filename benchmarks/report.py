@@ -22,6 +22,10 @@ from benchmarks.runner import Result
 __all__ = ["chart_series", "format_table", "write_json", "write_plot"]
 
 
+#: notes longer than this are cut in the table (the JSON file keeps them whole)
+NOTE_WIDTH = 90
+
+
 def _num(value: float | None, digits: int = 0) -> str:
     if value is None:
         return "-"
@@ -47,8 +51,9 @@ def format_table(results: Sequence[Result]) -> str:
     ]
     rows: list[list[str]] = []
     for r in results:
+        note = r.note if len(r.note) <= NOTE_WIDTH else r.note[: NOTE_WIDTH - 3] + "..."
         if not r.ran:
-            rows.append([r.case, r.loop, str(r.n), "skipped", "", "", "", "", "", "", r.note])
+            rows.append([r.case, r.loop, str(r.n), "skipped", "", "", "", "", "", "", note])
             continue
         if r.us_per_op is not None:
             spread = f"{_num(r.us_per_op, 2)} us/op"

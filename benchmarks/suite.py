@@ -18,9 +18,9 @@ import importlib
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
-from typing import TextIO
+from typing import Any, TextIO, TypeVar
 
 from benchmarks.cases import WORDS, Unavailable
 from benchmarks.cases.conn import run_conn_case
@@ -32,6 +32,7 @@ from benchmarks.runner import Result, measure_sync
 __all__ = ["PLANS", "Plan", "available_loops", "run_suite"]
 
 LoopFactory = Callable[[], asyncio.AbstractEventLoop]
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -104,16 +105,21 @@ def run_suite(
                 for kind in plan.conn_kinds:
                     name = f"conn/{case.key}/{kind}{WORDS}"
                     say(f"{name} on {loop_name}")
+                    # a hung peer (or a simulator that broke on this loop) must not hang the run
+                    limit = 20.0 + 2 * plan.repeats * (plan.conn_duration + plan.warmup)
                     try:
                         results.append(
                             runner.run(
-                                run_conn_case(
-                                    case,
-                                    kind,  # type: ignore[arg-type]
-                                    loop_name=loop_name,
-                                    repeats=plan.repeats,
-                                    duration=plan.conn_duration,
-                                    warmup=plan.warmup,
+                                _bounded(
+                                    limit,
+                                    run_conn_case(
+                                        case,
+                                        kind,  # type: ignore[arg-type]
+                                        loop_name=loop_name,
+                                        repeats=plan.repeats,
+                                        duration=plan.conn_duration,
+                                        warmup=plan.warmup,
+                                    ),
                                 )
                             )
                         )
@@ -121,11 +127,25 @@ def run_suite(
                         results.append(Result.skipped(name, loop_name, 1, str(exc), group="conn"))
                     except Exception as exc:  # a broken case must not hide the others
                         results.append(
-                            Result.skipped(name, loop_name, 1, f"FAILED: {exc!r}", group="conn")
+                            Result.skipped(name, loop_name, 1, _failed(exc), group="conn")
                         )
         results += run_fanout(plan, loop_name, say)
     results += run_peers(plan, results, say)
     return results
+
+
+def _failed(exc: BaseException) -> str:
+    if isinstance(exc, TimeoutError):
+        return f"FAILED: timed out ({exc or 'the simulator did not answer'})"
+    return f"FAILED: {type(exc).__name__}: {exc}"
+
+
+async def _bounded(seconds: float, coro: Coroutine[Any, Any, T]) -> T:
+    try:
+        async with asyncio.timeout(seconds):
+            return await coro
+    except TimeoutError:
+        raise TimeoutError(f"case did not finish within {seconds:g} s") from None
 
 
 def run_codecs(plan: Plan, say: Callable[[str], None]) -> list[Result]:
@@ -142,7 +162,7 @@ def run_codecs(plan: Plan, say: Callable[[str], None]) -> list[Result]:
                 rows.append(Result.skipped(name, "-", 1, str(exc), group="codec"))
                 continue
             except Exception as exc:
-                rows.append(Result.skipped(name, "-", 1, f"FAILED: {exc!r}", group="codec"))
+                rows.append(Result.skipped(name, "-", 1, _failed(exc), group="codec"))
                 continue
             stack_fn = ops.stack_read if kind == "read" else ops.stack_write
             floor_fn = ops.floor_read if kind == "read" else ops.floor_write

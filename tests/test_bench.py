@@ -140,6 +140,24 @@ def test_fw_mk_job_renumbers_sequence_fields() -> None:
 
 
 # -- golden sequences: AS511 (siemens-s5.md B.11) -------------------------------------------------
+def test_as511_b_info_golden_b11_1() -> None:
+    header = h("70 70 41 05 00 00 00 00 00 15")
+    job = frames.as511_b_info(0x01, 5, 0x4A10, header)
+    assert frames.as511_pg_stream(job) == h("02 1A 10 06 10 06 01 05 10 04 10 06 10 06 10 06 10 06")
+    assert job.expect == h(
+        "10 06 02 16 10 03 10 06 02 00 4A 10 10 70 70 41 05 00 00 00 00 00 15 10 03 02 12 10 03"
+    )
+
+
+def test_as511_chain_concatenates_transactions() -> None:
+    info = frames.as511_b_info(0x01, 5, 0x4A10, h("70 70 41 05 00 00 00 00 00 15"))
+    write = frames.as511_write(0x4A14, h("01 02 10 03"))
+    both = frames.as511_chain(info, write)
+    assert both.steps == info.steps + write.steps
+    assert both.expect == (info.expect or b"") + (write.expect or b"")
+    assert frames.as511_chain(info, frames.ScriptJob(((b"x", 1),))).expect is None
+
+
 def test_as511_db_read_golden_b11_2() -> None:
     job = frames.as511_read(0x4A10, h("12 34 00 10 AB CD 10 10"))
     assert frames.as511_pg_stream(job) == h(

@@ -17,9 +17,12 @@ from benchmarks.cases import WORDS, ProtocolCase, sample_words
 from benchmarks.floor import FloorError, FloorTcp, FloorUdp, open_floor
 from benchmarks.runner import Result, Series, measure_workers
 
-__all__ = ["open_stack", "run_conn_case", "start_sim"]
+__all__ = ["CHECK_TIMEOUT", "open_stack", "run_conn_case", "start_sim"]
 
 Kind = Literal["read", "write"]
+
+#: seconds for the one checked exchange before timing (a simulator that fails fails fast)
+CHECK_TIMEOUT = 5.0
 
 
 async def start_sim(case: ProtocolCase, memory: Any = None) -> Any:
@@ -96,9 +99,11 @@ async def run_conn_case(
         url = plcstack.parse_url(sim.url)
         assert url.host is not None and url.port is not None
         floor = await open_floor(url.host, url.port, udp=case.udp)
-        await check_floor(floor, job)
+        async with asyncio.timeout(CHECK_TIMEOUT):
+            await check_floor(floor, job)
         client = await open_stack(case, sim.url)
-        await check_stack(client, case, kind)
+        async with asyncio.timeout(CHECK_TIMEOUT):
+            await check_stack(client, case, kind)
         fl = floor
         floor_series, stack_series = Series(), Series()
         op = stack_op(client, case, kind)

@@ -36,7 +36,7 @@ from typing import Any
 
 import plcstack
 from benchmarks.cases import ProtocolCase, Unavailable, sample_words
-from benchmarks.cases.conn import check_floor, check_stack, stack_op, start_sim
+from benchmarks.cases.conn import CHECK_TIMEOUT, check_floor, check_stack, stack_op, start_sim
 from benchmarks.floor import FloorTcp, FloorUdp, open_floor
 from benchmarks.runner import Sample, Series, measure_workers, read_rss_kib
 
@@ -67,7 +67,7 @@ def spawn(
     repeats: int,
     duration: float,
     warmup: float,
-    timeout: float = 300.0,
+    timeout: float = 120.0,
 ) -> dict[str, Any]:
     """Run one measurement in a child process; returns its JSON summary (or ``{"note": ...}``)."""
     env = dict(os.environ)
@@ -148,6 +148,11 @@ async def run_child(
     sim_mod = case.sim()
     memory = case.make_memory(sim_mod)
     sims = [await start_sim(case, memory) for _ in range(n)]
+    hsl_factory = None
+    if kind == "peer-hsl":  # import the peer library before the memory baseline
+        from benchmarks.cases import peers
+
+        hsl_factory = peers.hsl_reader(case)
     closers: list[Callable[[], Awaitable[None]]] = []
     try:
         gc.collect()
@@ -160,14 +165,15 @@ async def run_child(
             return await _run_poll(
                 case, sims, base, repeats=repeats, duration=duration, warmup=warmup
             )
-        elif kind == "peer-hsl":
+        elif hsl_factory is not None:
             return await _run_hsl(
-                case, sims, base, repeats=repeats, duration=duration, warmup=warmup
+                hsl_factory, sims, base, repeats=repeats, duration=duration, warmup=warmup
             )
         else:
             raise ValueError(f"unknown kind {kind!r}")
         # one round on every connection before the memory reading: buffers are allocated lazily
-        await asyncio.gather(*(op() for op in ops))
+        async with asyncio.timeout(30):
+            await asyncio.gather(*(op() for op in ops))
         gc.collect()
         after = read_rss_kib()
         per_conn = (after - base) / n if base is not None and after is not None else None
@@ -191,7 +197,8 @@ async def _open_floor_ops(
         floor: FloorTcp | FloorUdp = await open_floor(url.host, url.port, udp=case.udp)
         closers.append(floor.aclose)
         if index == 0:
-            await check_floor(floor, job)
+            async with asyncio.timeout(CHECK_TIMEOUT):
+                await check_floor(floor, job)
         ops.append(_bind_floor(floor, job))
     return ops
 
@@ -214,7 +221,8 @@ async def _open_client_ops(
         if case.prepare_client is not None:
             await case.prepare_client(client)
         if index == 0:
-            await check_stack(client, case, "read")
+            async with asyncio.timeout(CHECK_TIMEOUT):
+                await check_stack(client, case, "read")
         ops.append(stack_op(client, case, "read"))
     return ops
 
@@ -234,7 +242,7 @@ async def _run_poll(
 
 
 async def _run_hsl(
-    case: ProtocolCase,
+    make: Callable[[str, int], Callable[[], list[int]]],
     sims: list[Any],
     base: int | None,
     *,
@@ -242,16 +250,14 @@ async def _run_hsl(
     duration: float,
     warmup: float,
 ) -> dict[str, Any]:
-    from benchmarks.cases import peers
-
-    make = peers.hsl_reader(case)  # raises Unavailable when not installed / not supported
     readers = []
+    # Blocking calls go to threads: the simulators that must answer them run on this loop.
     for sim in sims:
         url = plcstack.parse_url(sim.url)
         assert url.host is not None and url.port is not None
-        readers.append(make(url.host, url.port))
+        readers.append(await asyncio.to_thread(make, url.host, url.port))
     expected = sample_words()
-    if readers[0]() != expected:
+    if await asyncio.to_thread(readers[0]) != expected:
         raise RuntimeError("hslcommunication read returned different values than the simulator")
     gc.collect()
     after = read_rss_kib()

@@ -12,6 +12,7 @@ connections, as the stack and the floor use; HSL's default is a new TCP connecti
 from __future__ import annotations
 
 import importlib
+import struct
 from collections.abc import Callable
 from typing import Any
 
@@ -38,10 +39,11 @@ def hsl_reader(case: ProtocolCase) -> Callable[[str, int], Callable[[], list[int
     except ImportError:
         raise Unavailable("hslcommunication not installed (optional peer)") from None
     if case.key == "e71+tcp":
-        cls, address = hsl.MelsecA1ENet, "D0"
+        cls, address, raw_bytes = hsl.MelsecA1ENet, "D0", False
     elif case.key == "fetchwrite":
-        # HSL's "DB10.0" puts 0 in the start field: DW0 on a Siemens-style (word) server.
-        cls, address = hsl.SiemensFetchWriteNet, "DB10.0"
+        # HSL's "DB10.0" puts 0 in the start field: DW0 on a Siemens-style (word) server. Its
+        # ReadUInt16 swaps the bytes of S5 words (1.2.0), so read bytes and unpack big-endian.
+        cls, address, raw_bytes = hsl.SiemensFetchWriteNet, "DB10.0", True
     else:
         raise Unavailable(f"no hslcommunication client for {case.key}")
 
@@ -52,9 +54,14 @@ def hsl_reader(case: ProtocolCase) -> Callable[[str, int], Callable[[], list[int
             raise RuntimeError(f"hslcommunication could not connect: {connected.Message}")
 
         def read() -> list[int]:
-            result = client.ReadUInt16(address, WORDS)
+            if raw_bytes:
+                result = client.Read(address, 2 * WORDS)
+            else:
+                result = client.ReadUInt16(address, WORDS)
             if not result.IsSuccess:
                 raise RuntimeError(f"hslcommunication read failed: {result.Message}")
+            if raw_bytes:
+                return list(struct.unpack(f">{WORDS}H", bytes(result.Content)))
             return list(result.Content)
 
         return read
