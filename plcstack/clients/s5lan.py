@@ -28,6 +28,7 @@ reports that as :class:`~plcstack.errors.ConnectFailed` saying so, not as a vagu
 
 from __future__ import annotations
 
+import asyncio
 import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Self
@@ -51,6 +52,7 @@ from plcstack.errors import (
     PlcErrorResponse,
 )
 from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
+from plcstack.transports.backoff import Backoff
 from plcstack.transports.tcp import TcpTransport
 from plcstack.url import PlcUrl
 
@@ -107,6 +109,8 @@ class S5LanClient(RequestClient[Response]):
         self.strict = strict
         self._seq = 0
         self._answers_on_connection = 0
+        b = self.backoff
+        self._refusal_backoff = Backoff(b.initial, b.maximum, b.factor, b.jitter)
         self.codec: ClientConnection = self.new_codec()
 
     @classmethod
@@ -204,11 +208,9 @@ class S5LanClient(RequestClient[Response]):
                     f"write {addr.area.value}{addr.db}.DW{addr.offset // 2} instead (a byte "
                     "write would be a non-atomic read-modify-write)"
                 )
-            last = addr.shifted(count - 1)
+            last_start = addr.offset + (count - 1) * addr.step
             if addr.area.is_block and addr.unit is S5Unit.BYTE:
-                last_start = last.offset // 2
-            else:
-                last_start = last.offset
+                last_start //= 2  # read through the covering data words
             if last_start > _MAX_START:
                 raise AddressError(
                     f"{count} points from {addr} go beyond the 16-bit Start field of S5-LAN"
@@ -255,15 +257,23 @@ class S5LanClient(RequestClient[Response]):
             raise
         except ConnectionLost as exc:
             if self._answers_on_connection == 0 and self.codec.bytes_received == 0:
-                raise ConnectFailed(
+                refused = ConnectFailed(
                     "the S5-LAN module closed the connection before answering the first request: "
                     "it allows only one connection at a time, so another client (or a stale "
                     f"session) is probably connected ({exc.message})",
                     plc=self.name,
                     request=what,
-                ) from None
+                )
+                # TCP got in, so the base class reset its backoff; a busy module must still not
+                # be hammered, so refusals back off on their own schedule.
+                self.stats.connect_failures += 1
+                loop = asyncio.get_running_loop()
+                self._next_attempt = loop.time() + self._refusal_backoff.next_delay()
+                self._last_connect_error = refused
+                raise refused from None
             raise
         self._answers_on_connection += 1
+        self._refusal_backoff.reset()
         if response.err != 0:
             self.count_error()
             raise PlcErrorResponse(
