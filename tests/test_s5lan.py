@@ -369,6 +369,27 @@ async def test_answer_to_another_request_is_rejected() -> None:
         await server.wait_closed()
 
 
+async def test_lenient_mode_accepts_and_logs_echo_differences(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    async def lower_case_cmd(data: bytes, writer: asyncio.StreamWriter) -> None:
+        h = Header.decode(data[:HEADER_LEN])
+        echo = Header("r", h.data_type, h.area, h.db, h.start, h.count, user_code=h.user_code)
+        writer.write(echo.response(0).encode() + b"\x34\x12")
+
+    server, url = await _fake_module(lower_case_cmd)
+    try:
+        async with plcstack.connect(url + "?strict=0") as plc:
+            assert await plc.read("MW0") == [0x1234]
+        assert "echoes cmd differently" in caplog.text
+        async with plcstack.connect(url) as plc:
+            with pytest.raises(RemoteProtocolError, match="cmd 'r' instead of 'R'"):
+                await plc.read("MW0")
+    finally:
+        server.close()
+        await server.wait_closed()
+
+
 async def test_header_byte_order_option_end_to_end() -> None:
     async with await s5lan.start(header_byte_order="big") as sim:
         async with client_for(sim, "header_byte_order=big") as plc:
@@ -444,6 +465,10 @@ def test_locate_address_at_max_points() -> None:
     assert plc.max_points(plc.locate("MB0")[0]) == 2048
     assert plc.max_points(plc.locate("DB1.DL0")[0]) == 2046
     assert plc.locate("MB0")[0] == (S5Area.FLAGS, S5Unit.BYTE, None, 0)
+    assert plc.point_bits(plc.locate("MB0")[0]) == 8
+    assert plc.point_bits(plc.locate("DB1.DL0")[0]) == 8
+    assert plc.point_bits(plc.locate("MW0")[0]) == 16
+    assert plc.point_bits(plc.locate("T0")[0]) == 16
     with pytest.raises(AddressError):
         plc.locate("X0")
     with pytest.raises(AddressError):

@@ -366,8 +366,14 @@ def _split(data: bytes, cuts: list[int]) -> list[bytes]:
 
 
 @settings(max_examples=100, deadline=None)
-@given(st.lists(requests(), min_size=1, max_size=3), st.lists(st.integers(0, 10_000), max_size=8))
-def test_round_trip_and_split_invariance(reqs: list[Request], cuts: list[int]) -> None:
+@given(
+    st.lists(requests(), min_size=1, max_size=3),
+    st.lists(st.integers(0, 10_000), max_size=8),
+    st.lists(st.sampled_from([0, 0, 2, 3, 6, 7, 9, 10, -1, 0x7FFF]), min_size=3, max_size=3),
+)
+def test_round_trip_and_split_invariance(
+    reqs: list[Request], cuts: list[int], errs: list[int]
+) -> None:
     server = ServerConnection()
     wire = b""
     for req in reqs:
@@ -380,17 +386,19 @@ def test_round_trip_and_split_invariance(reqs: list[Request], cuts: list[int]) -
             events.append(event)
     assert events == reqs
     # and back: the answer, split anywhere, gives the client the same response
-    for req in reqs:
+    for req, err in zip(reqs, errs, strict=False):
         client = ClientConnection()
         client.send(req)
-        data = bytes(req.header.data_len or 0) if req.header.is_read else b""
-        answer = server.send_response(req.header, 0, data)
+        ok_read = req.header.is_read and err == 0
+        data = bytes(range(256)) * 8 if ok_read else b""
+        data = data[: req.header.data_len or 0]
+        answer = server.send_response(req.header, err, data)
         got: list[object] = []
         for chunk in _split(answer, cuts):
             client.receive_data(chunk)
             while (event := client.next_event()) is not NEED_DATA:
                 got.append(event)
-        assert got == [Response(req.header.response(0), data)]
+        assert got == [Response(req.header.response(err), data)]
 
 
 @settings(max_examples=200, deadline=None)

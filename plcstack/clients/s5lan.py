@@ -29,6 +29,7 @@ reports that as :class:`~plcstack.errors.ConnectFailed` saying so, not as a vagu
 from __future__ import annotations
 
 import asyncio
+import logging
 import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Self
@@ -57,6 +58,8 @@ from plcstack.transports.tcp import TcpTransport
 from plcstack.url import PlcUrl
 
 __all__ = ["S5LanClient"]
+
+_log = logging.getLogger(__name__)
 
 _LETTER = {
     S5Area.DB: "D",
@@ -150,6 +153,10 @@ class S5LanClient(RequestClient[Response]):
             return MAX_DATA_BYTES // 2
         # DB/DX bytes go through words; an odd start needs one word more
         return MAX_DATA_BYTES - 2 if kind.is_block else MAX_DATA_BYTES
+
+    def point_bits(self, area: Hashable) -> int:
+        """Width of one point of ``area`` for the poller: 16 for words, 8 for bytes."""
+        return 16 if _area_key(area)[1] is S5Unit.WORD else 8
 
     # -- the API -------------------------------------------------------------------------------
     async def read(self, address: str, count: int = 1) -> list[int]:
@@ -274,6 +281,13 @@ class S5LanClient(RequestClient[Response]):
             raise
         self._answers_on_connection += 1
         self._refusal_backoff.reset()
+        if response.echo_mismatch:
+            _log.warning(
+                "%s: %s: answer echoes %s differently from the request (accepted, strict=0)",
+                self.name,
+                what,
+                ", ".join(response.echo_mismatch),
+            )
         if response.err != 0:
             self.count_error()
             raise PlcErrorResponse(
