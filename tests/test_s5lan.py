@@ -11,6 +11,8 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import plcstack
 from plcstack.clients.s5lan import S5LanClient
@@ -532,3 +534,55 @@ async def test_cli_sim_serves_until_stopped() -> None:
     finally:
         proc.terminate()
         await proc.wait()
+
+
+async def test_deadline_scales_with_the_size_of_the_request() -> None:
+    # 256 words = 512 bytes take the module 50 ms + 768 ms: longer than timeout=0.3, which is
+    # therefore stretched to 2 * 0.818 s + 1 s for this request instead of killing it.
+    async with await s5lan.start(realistic_timing=True) as sim:
+        sim.memory.write_db_words(10, 0, list(range(256)))
+        async with client_for(sim, timeout=0.3) as plc:
+            assert await plc.read("DB10.DW0", 256) == list(range(256))
+            assert await plc.read("MB0", 200) == [0] * 200
+            assert plc.stats.timeouts == 0
+
+
+_AREA_SPANS = {"MB": 256, "MW": 256, "EB": 128, "IW": 128, "AB": 128, "QW": 128}
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.data())
+def test_property_write_then_read_matches_the_s5_image(data: st.DataObject) -> None:
+    kind = data.draw(st.sampled_from(["MB", "MW", "EB", "IW", "AB", "QW", "DB", "T", "Z"]))
+    if kind in _AREA_SPANS:
+        unit = 2 if kind[1] == "W" else 1
+        size = _AREA_SPANS[kind]
+        start = data.draw(st.integers(0, size - unit))
+        count = data.draw(st.integers(1, (size - start) // unit))
+        address = f"{kind}{start}"
+        byte_offset = start
+        area = {"M": Area.FLAGS, "E": Area.INPUTS, "I": Area.INPUTS}.get(kind[0], Area.OUTPUTS)
+    elif kind == "DB":
+        unit, start = 2, data.draw(st.integers(0, 255))
+        count = data.draw(st.integers(1, 256 - start))
+        address, byte_offset, area = f"DB7.DW{start}", 2 * start, None
+    else:
+        unit, start = 2, data.draw(st.integers(0, 127))
+        count = data.draw(st.integers(1, 128 - start))
+        address, byte_offset = f"{kind}{start}", 2 * start
+        area = Area.TIMERS if kind == "T" else Area.COUNTERS
+    top = 0xFFFF if unit == 2 else 0xFF
+    values = data.draw(st.lists(st.integers(0, top), min_size=count, max_size=count))
+    image = b"".join(v.to_bytes(unit, "big") for v in values)
+
+    async def scenario() -> None:
+        async with await s5lan.start() as sim, client_for(sim) as plc:
+            await plc.write(address, values)
+            if area is None:
+                stored = sim.memory.read_block(BlockType.DB, 7, byte_offset, len(image))
+            else:
+                stored = sim.memory.read_area(area, byte_offset, len(image))
+            assert stored == image
+            assert await plc.read(address, count) == values
+
+    asyncio.run(scenario())
