@@ -398,8 +398,10 @@ async def test_header_byte_order_option_end_to_end() -> None:
             await plc.write("DB10.DW5", [0x0102])
             assert await plc.read("DB10.DW5") == [0x0102]
         async with client_for(sim) as plc:
-            with pytest.raises(RemoteProtocolError):
-                await plc.read("MB0", 1)
+            # DBNo 10 arrives as 0A00h (no such DB): Err 2 comes back as 0200h = 512
+            with pytest.raises(PlcErrorResponse, match="header_byte_order=big") as err:
+                await plc.read("DB10.DW5", 1)
+            assert err.value.code == 512
 
 
 async def test_realistic_timing_still_answers() -> None:

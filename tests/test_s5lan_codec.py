@@ -21,6 +21,7 @@ from plcstack.codecs.s5lan import (
     Response,
     ServerConnection,
     area_legal,
+    byte_order_hint,
     err_meaning,
     estimate_seconds,
     response_timeout,
@@ -117,12 +118,22 @@ def test_header_byte_order_constant_and_big_endian_variant() -> None:
         ClientConnection(header_byte_order="middle")  # type: ignore[arg-type]
 
 
-def test_big_endian_peer_is_diagnosed_not_accepted() -> None:
+def test_big_endian_peer_is_diagnosed_never_switched_to() -> None:
+    # a big-endian module decodes our read of 1 flag byte as Count 256 and answers 256 bytes
     client = ClientConnection()
-    client.send(Request.read("D", "W", 5, 20, db=10, user_code=UC))
-    client.receive_data(Header.decode(A1_RSP).response().encode("big"))
+    req = Request.read("M", "B", 0, 1)
+    wire = client.send(req)
+    as_seen = Header.decode(wire, "big")
+    assert as_seen.count == 256
+    client.receive_data(as_seen.response().encode("big") + bytes(256))
     with pytest.raises(RemoteProtocolError, match="header_byte_order=big"):
         client.next_event()
+    rsp = Header.decode(A1_RSP)
+    assert byte_order_hint(rsp) == ""
+    assert "byte-swapped" in byte_order_hint(Header.decode(rsp.response(2).encode("big")))
+    assert "header_byte_order=little" in byte_order_hint(
+        Header.decode(rsp.response(0).encode("little"), "big"), "big"
+    )
 
 
 # -- legality (A.4) and Err meanings (A.7) ----------------------------------------------------

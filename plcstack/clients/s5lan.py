@@ -42,6 +42,7 @@ from plcstack.codecs.s5lan import (
     ClientConnection,
     Request,
     Response,
+    byte_order_hint,
     err_meaning,
     estimate_seconds,
 )
@@ -292,7 +293,8 @@ class S5LanClient(RequestClient[Response]):
             self.count_error()
             raise PlcErrorResponse(
                 response.err,
-                err_meaning(response.err),
+                err_meaning(response.err)
+                + byte_order_hint(response.header, self.header_byte_order),
                 plc=self.name,
                 request=what,
                 code_text=f"Err {response.err}",

@@ -38,6 +38,7 @@ __all__ = [
     "Response",
     "ServerConnection",
     "area_legal",
+    "byte_order_hint",
     "err_meaning",
     "estimate_seconds",
     "response_timeout",
@@ -418,14 +419,16 @@ class ClientConnection:
         return self._finish(self._buf.take(n))
 
     def _finish(self, data: bytes) -> Response:
-        assert self._reply is not None
-        event = Response(self._reply, data, self._mismatch)
+        reply = self._reply
+        assert reply is not None
+        event = Response(reply, data, self._mismatch)
         self._request = self._reply = None
         self._mismatch = ()
         self.state = _ClientState.IDLE
         if self._buf:
             raise RemoteProtocolError(
                 f"{len(self._buf)} byte(s) more than the answer to the request"
+                + byte_order_hint(reply, self.byte_order)
             )
         return event
 
@@ -442,22 +445,35 @@ class ClientConnection:
             details = ", ".join(
                 f"{f} {getattr(reply, f)!r} instead of {getattr(request, f)!r}" for f in mismatch
             )
-            hint = ""
-            if "count" in mismatch and _swap16(reply.count) == request.count:
-                other = "big" if self.byte_order == "little" else "little"
-                hint = (
-                    f" (the count is our count byte-swapped: the module may use {other}-endian "
-                    f"headers, option header_byte_order={other})"
-                )
             raise RemoteProtocolError(
-                f"answer does not echo the request: {details}{hint}; it may be the answer to "
-                "another request"
+                f"answer does not echo the request: {details}; it may be the answer to "
+                "another request" + byte_order_hint(reply, self.byte_order)
             )
         self._mismatch = mismatch
 
 
 def _swap16(value: int) -> int:
     return ((value & 0xFF) << 8) | (value >> 8)
+
+
+def byte_order_hint(reply: Header, byte_order: ByteOrder = HEADER_BYTE_ORDER) -> str:
+    """A diagnostic suffix when the module's own fields look byte-swapped, else ``""``.
+
+    The echoed fields cannot show a byte-order mismatch (the module echoes our bytes), but
+    ``VersionNo`` (e.g. 104 read as 6800h) and ``Err`` (2 read as 512) can. This only words a
+    hint for an error message (A.3: never switch the byte order silently).
+    """
+    version_swapped = reply.version > 0xFF and reply.version & 0xFF == 0
+    err = reply.err & 0xFFFF
+    swapped_err = _swap16(err)
+    err_swapped = err not in ERR_MEANINGS and swapped_err in ERR_MEANINGS and swapped_err != 0
+    if not (version_swapped or err_swapped):
+        return ""
+    other = "big" if byte_order == "little" else "little"
+    return (
+        f" (VersionNo {reply.version:#06x} / Err {reply.err} look byte-swapped: the module may use "
+        f"{other}-endian header fields; try the option header_byte_order={other})"
+    )
 
 
 # -- server (module) role ----------------------------------------------------------------------

@@ -182,7 +182,7 @@ async def _handle(
     finally:
         state.active -= 1
         state.writers.discard(writer)
-        writer.transport.abort()
+        writer.close()  # not abort(): an Err 6 answer before a close must still go out
 
 
 async def _answer(
