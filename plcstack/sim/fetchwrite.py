@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 from collections.abc import Awaitable, Callable
 from typing import Literal
@@ -137,6 +138,9 @@ class FetchWriteSimulator(TcpSimulator):
                     timer.sent(loop.time())
                     if close:
                         return
+                if mk is not None:
+                    self.life_acks_received += mk.life_acks_received
+                    mk.life_acks_received = 0
                 if self.silent:
                     codec = ServerConnection("mk" if self.mk else "raw", mk=mk)
                 try:
@@ -158,8 +162,6 @@ class FetchWriteSimulator(TcpSimulator):
                     return
                 timer.received(loop.time())
                 codec.receive_data(data)
-                if mk is not None:
-                    self.life_acks_received = mk.life_acks_received
         except RemoteProtocolError as exc:
             # C.6.5: a malformed header closes the connection without an answer.
             log.info("fetchwrite sim: closing connection: %s", exc)
@@ -277,7 +279,10 @@ async def start(
         role: _Role,
     ) -> Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]:
         async def run(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-            await holder[0].handle(reader, writer, role)
+            # A connection task ends quietly when the simulator closes: asyncio's stream server
+            # would otherwise log the cancellation of its callback task as an error.
+            with contextlib.suppress(asyncio.CancelledError):
+                await holder[0].handle(reader, writer, role)
 
         return run
 
