@@ -474,3 +474,37 @@ def test_mk_connection_used_by_the_client_is_strict_when_asked() -> None:
     plc = connect("fetchwrite://127.0.0.1:5030?mk=1&strict=1")
     codec = plc.new_codec()
     assert isinstance(codec.mk, MkConnection) and codec.mk.strict
+
+
+async def test_idle_close_by_the_peer_is_not_an_error_with_keep_alive() -> None:
+    async with await fwsim.start(mk=True, life_ack=0.05, life_timeout=0.1) as sim:
+        plc = connect(f"fetchwrite://{sim.host}:{sim.port}?mk=1&life_ack=0.3")
+        async with plc:
+            await plc.read("MB0")
+            await wait_for(lambda: sim.dropped_dead == 1 and plc._keeper is None)
+            assert plc.dead_peers == 0
+            assert await plc.read("DB10.DW5") == [0x1000]  # reconnects, no error
+            assert sim.connections == 2
+
+
+async def test_raw_org_access(sim: fwsim.FetchWriteSimulator) -> None:
+    mem = sim.memory
+    async with connect(sim.url) as plc:
+        mem.write_area(Area.INPUTS, 2, b"\x42")
+        assert await plc.fetch_org(0x05, 0, 2, 1) == b"\x42"  # PB reads the input image [R]
+        await plc.write_org(0x05, 0, 3, b"\x24")  # PB writes go to the output image [R]
+        assert mem.read_area(Area.OUTPUTS, 3, 1) == b"\x24"
+        await plc.write_org(0x08, 0, 1, b"\x12\x34")  # BS: system data words
+        assert mem.read_area(Area.SYSTEM, 2, 2) == b"\x12\x34"
+        dw0, _ = mem.block_info(BlockType.DB, 10)
+        assert await plc.fetch_org(0x09, 0, dw0 + 10, 1) == b"\x10\x00"  # AS: DB10.DW5
+        for org in (0x10, 0x11):  # DE, QB: not modelled by the simulator -> error 01
+            with pytest.raises(PlcErrorResponse) as exc:
+                await plc.fetch_org(org, 1, 0, 1)
+            assert exc.value.code == 1 and "wrong ORG format" in str(exc.value)
+        with pytest.raises(AddressError, match="ORG"):
+            await plc.fetch_org(0x0B, 0, 0, 1)
+        with pytest.raises(AddressError):
+            await plc.fetch_org(0x01, 1, 0, 0)
+        with pytest.raises(AddressError):
+            await plc.write_org(0x01, 1, 0, b"\x00")

@@ -33,6 +33,8 @@ from plcstack.codecs.fetchwrite import (
     FetchResponse,
     WriteRequest,
     WriteResponse,
+    data_bytes,
+    encode_request,
     error_meaning,
 )
 from plcstack.codecs.mk import LifeAckTimer, MkConnection
@@ -188,7 +190,12 @@ class FetchWriteClient(RequestClient[Response]):
     async def open(self) -> None:
         await super().open()
         if self._writer is not None:
-            await self._writer.open()
+            try:
+                await self._writer.open()
+            except BaseException:
+                self._stop_keeper()
+                self.transport.abort()
+                raise
 
     async def aclose(self) -> None:
         self._stop_keeper()
@@ -204,6 +211,13 @@ class FetchWriteClient(RequestClient[Response]):
         Runs between jobs only (it takes the single-flight lock), so it never interleaves with a
         job's telegrams; during a job the job's own deadline supervises the peer.
         """
+        try:
+            await self._keep_alive_loop(timer)
+        finally:
+            if self._keeper is asyncio.current_task():
+                self._keeper = None
+
+    async def _keep_alive_loop(self, timer: LifeAckTimer) -> None:
         loop = asyncio.get_running_loop()
         while True:
             wake = timer.next_wakeup()
@@ -215,8 +229,13 @@ class FetchWriteClient(RequestClient[Response]):
                     return
                 try:
                     await self._consume_idle_input()
+                except ConnectionLost:
+                    # The peer closed the idle connection (e.g. its own life-ack supervision):
+                    # nothing was lost, the next job reconnects as it would without keep-alive.
+                    self._drop()
+                    return
                 except PlcError as exc:
-                    self._declare_broken(exc.message)
+                    self._declare_broken(f"protocol error between jobs: {exc.message}")
                     return
                 now = loop.time()
                 if timer.dead(now):
@@ -285,6 +304,28 @@ class FetchWriteClient(RequestClient[Response]):
             request = self._write_for(addr, _encode_values(addr.unit, values))
         except AddressError as exc:
             raise exc.bind(plc=self.name, request=what) from None
+        await self._job(request, what)
+
+    async def fetch_org(self, org: int, db: int, start: int, length: int) -> bytes:
+        """FETCH by raw header fields, for ORG ids S5 notation has no name for (PB, BS, AS, DE,
+        QB): ``length`` in the ORG's units (C.6.3); returns the data bytes as sent by the CP."""
+        what = f"fetch ORG {org:#04x} DBNR {db} start {start} length {length}"
+        try:
+            request = FetchRequest(org, db, start, length)
+            _check_raw(request)
+        except PlcError as exc:
+            raise AddressError(exc.message, plc=self.name, request=what) from None
+        response = await self._job(request, what)
+        return response.data if isinstance(response, FetchResponse) else b""
+
+    async def write_org(self, org: int, db: int, start: int, data: bytes) -> None:
+        """WRITE by raw header fields; ``data`` must be whole units of the ORG (C.6.3)."""
+        what = f"write ORG {org:#04x} DBNR {db} start {start} {len(data)} bytes"
+        try:
+            request = WriteRequest.of(org, db, start, bytes(data))
+            _check_raw(request)
+        except PlcError as exc:
+            raise AddressError(exc.message, plc=self.name, request=what) from None
         await self._job(request, what)
 
     # -- address mapping ----------------------------------------------------------------------
@@ -357,6 +398,12 @@ class FetchWriteClient(RequestClient[Response]):
     def max_points(self, area: Hashable) -> int:
         s5area, db, unit, _ = _area_key(area)
         return self._limit(S5Address(s5area, unit, 0, db))
+
+
+def _check_raw(request: FetchRequest | WriteRequest) -> None:
+    if request.length < 1 or data_bytes(request.org, request.length) > MAX_JOB_BYTES:
+        raise AddressError(f"length must be 1..{MAX_JOB_BYTES} bytes worth of units")
+    encode_request(request)  # field ranges
 
 
 def _area_key(area: Hashable) -> tuple[S5Area, int | None, S5Unit, int]:
