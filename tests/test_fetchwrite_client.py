@@ -508,3 +508,55 @@ async def test_raw_org_access(sim: fwsim.FetchWriteSimulator) -> None:
             await plc.fetch_org(0x01, 1, 0, 0)
         with pytest.raises(AddressError):
             await plc.write_org(0x01, 1, 0, b"\x00")
+
+
+# -- client against a scripted CP built from the spec's bytes, not from our codec --------------
+
+DATA_40 = b"".join(struct.pack(">H", 0x1000 + i) for i in range(20))
+SCRIPT_RAW = [
+    (H("53 35 10 01 03 05 03 08 01 0A 00 05 00 14 FF 02"),
+     H("53 35 10 01 03 06 0F 03 00 FF 07 00 00 00 00 00") + DATA_40),
+    (H("53 35 10 01 03 03 03 08 02 00 00 64 00 04 FF 02 DE AD BE EF"),
+     H("53 35 10 01 03 04 0F 03 00 FF 07 00 00 00 00 00")),
+    (H("53 35 10 01 03 05 03 08 01 63 00 00 00 01 FF 02"),
+     H("53 35 10 01 03 06 0F 03 02 FF 07 00 00 00 00 00")),
+    (H("53 35 10 01 03 03 03 08 01 0A 00 05 00 02 FF 02 12 34 10 03"),
+     H("53 35 10 01 03 04 0F 03 00 FF 07 00 00 00 00 00")),
+]  # fmt: skip
+
+
+def _mk(seq: int, payload: bytes) -> bytes:
+    return b"MK" + struct.pack("<HHH", len(payload), 0, seq) + payload
+
+
+@pytest.mark.parametrize("mk", [False, True], ids=["raw", "mk"])
+async def test_client_against_scripted_cp(mk: bool) -> None:
+    received: list[bytes] = []
+
+    async def cp(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        for seq, (request, answer) in enumerate(SCRIPT_RAW):
+            want = _mk(seq, request) if mk else request
+            received.append(await r.readexactly(len(want)))
+            # answer in two pieces to exercise reassembly across reads
+            wire = _mk(seq, answer) if mk else answer
+            w.write(wire[:5])
+            await w.drain()
+            w.write(wire[5:])
+        await r.read()
+        w.close()
+
+    server = await asyncio.start_server(cp, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        async with connect(f"fetchwrite://127.0.0.1:{port}" + ("?mk=1" if mk else "")) as plc:
+            assert await plc.read("DB10.DW5", 20) == [0x1000 + i for i in range(20)]
+            await plc.write("MB100", [0xDE, 0xAD, 0xBE, 0xEF])
+            with pytest.raises(PlcErrorResponse) as exc:
+                await plc.read("DB99.DW0")
+            assert exc.value.code == 2
+            await plc.write("DB10.DW5", [0x1234, 0x1003])
+    finally:
+        server.close()
+        await server.wait_closed()
+    expected = [_mk(i, req) if mk else req for i, (req, _) in enumerate(SCRIPT_RAW)]
+    assert received == expected
