@@ -206,7 +206,7 @@ class FetchWriteClient(RequestClient[Response]):
             await super().aclose()
 
     async def _keep_alive(self, timer: LifeAckTimer) -> None:
-        """MK keep-alive (C.3): send life acks when idle; a silent peer is declared dead.
+        """MK keep-alive, [R] C.3: send life acks when idle; a silent peer is declared dead.
 
         Runs between jobs only (it takes the single-flight lock), so it never interleaves with a
         job's telegrams; during a job the job's own deadline supervises the peer.
@@ -383,8 +383,11 @@ class FetchWriteClient(RequestClient[Response]):
 
     # -- poller hooks -------------------------------------------------------------------------
     def locate(self, address: str, count: int = 1) -> tuple[Hashable, int]:
-        addr = parse_s5_address(address)
-        self._check_count(addr, count)
+        try:
+            addr = parse_s5_address(address)
+            self._check_count(addr, count)
+        except AddressError as exc:
+            raise exc.bind(plc=self.name, request=f"locate {address} x{count}") from None
         if addr.step == 2:
             # M/E/A words advance by 2 bytes per point; MW10 and MW11 are different grids.
             return (addr.area, addr.db, addr.unit, addr.offset % 2), addr.offset // 2

@@ -332,7 +332,7 @@ class ClientConnection(_Framed):
         return self._pending
 
     def send(self, request: Request) -> bytes:
-        if self._pending is not None:
+        if self._pending is not None:  # [R] C.6.5: at most one job outstanding, no pipelining
             raise LocalProtocolError("a FETCH/WRITE job is already outstanding (no pipelining)")
         if not isinstance(request, FetchRequest | WriteRequest):
             raise LocalProtocolError(f"cannot send {type(request).__name__}")
@@ -390,7 +390,7 @@ class ClientConnection(_Framed):
         opcode, error = parse_ack_header(header)
         self._check_opcode(opcode)
         need = self._expected_data(error)
-        if framed and len(data) != need:
+        if framed and len(data) != need:  # [R] C.7: cross-check the MK message length
             raise RemoteProtocolError(
                 f"acknowledgement carries {len(data)} data bytes, the job needs {need}"
             )

@@ -113,7 +113,7 @@ class MkConnection:
         if not data:
             raise LocalProtocolError("an MK message cannot be empty (DataLen 0 is a life ack)")
         out = bytearray()
-        step = self.max_send_data
+        step = self.max_send_data  # [R] C.4: 512-byte telegrams, bit 0 set on all but the last
         for pos in range(0, len(data), step):
             chunk = data[pos : pos + step]
             out += encode_telegram(chunk, self.tx_seq, more=pos + step < len(data))
@@ -148,10 +148,11 @@ class MkConnection:
                     raise RemoteProtocolError(f"MK framing error: telegram starts {buf.peek(2)!r}")
                 return NEED_DATA
             magic, length, flags, seq = _HEADER.unpack(buf.peek(HEADER_LEN))
-            if magic != MAGIC:
+            if magic != MAGIC:  # [R] C.1: a framing error closes the connection
                 raise RemoteProtocolError(
                     f"MK framing error: telegram starts {magic.hex(' ')}, expected 4d 4b"
                 )
+            # [R] C.1/C.4: reserved flags and DataLen > 1460 are tolerated unless strict.
             if self.strict and flags & ~_FLAG_MORE:
                 raise RemoteProtocolError(f"MK telegram with reserved flag bits set ({flags:#06x})")
             if self.strict and length > MAX_RECEIVE_DATA:
@@ -171,7 +172,7 @@ class MkConnection:
                 self._first_seq = seq
             self._parts.append(data)
             self._parts_len += length
-            if self._parts_len > self.max_message:
+            if self._parts_len > self.max_message:  # [R] C.4 reassembly guard
                 raise RemoteProtocolError(
                     f"MK message exceeds {self.max_message} bytes (continuation never ended)"
                 )

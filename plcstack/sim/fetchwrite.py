@@ -182,7 +182,7 @@ class FetchWriteSimulator(TcpSimulator):
         def ack(error: int, data: bytes = b"") -> FetchResponse | WriteResponse:
             return FetchResponse(error, data) if is_fetch else WriteResponse(error)
 
-        if isinstance(event, BadRequest):
+        if isinstance(event, BadRequest):  # [R] C.6.4: bad ORG id / length / data amount -> 01
             return ack(event.error), event.close
         if self.inject_error is not None:
             return ack(self.inject_error), False
