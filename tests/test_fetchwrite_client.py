@@ -13,7 +13,8 @@ import pytest
 
 from plcstack import url as plcurl
 from plcstack.clients.fetchwrite import FetchWriteClient
-from plcstack.codecs.mk import MkConnection
+from plcstack.codecs import NEED_DATA
+from plcstack.codecs.mk import LifeAck, MkConnection
 from plcstack.errors import (
     AddressError,
     ConnectionLost,
@@ -352,10 +353,10 @@ async def test_write_port_failure_names_the_write_connection() -> None:
 
 
 async def test_life_acks_keep_an_idle_connection_alive() -> None:
-    async with await fwsim.start(mk=True, life_ack=0.05) as sim, connect(sim.url) as plc:
-        assert "life_ack=0.05" in sim.url and plc.life_timeout == pytest.approx(0.15)
+    async with await fwsim.start(mk=True, life_ack=0.1) as sim, connect(sim.url) as plc:
+        assert "life_ack=0.1" in sim.url and plc.life_timeout == pytest.approx(0.3)
         await plc.read("MB0")
-        await wait_for(lambda: sim.life_acks_received >= 5 and sim.life_acks_sent >= 5)
+        await wait_for(lambda: sim.life_acks_received >= 3 and sim.life_acks_sent >= 3)
         assert plc.codec.mk is not None and plc.codec.mk.life_acks_received >= 1
         assert await plc.read("DB10.DW5") == [0x1000]
         assert plc.dead_peers == 0 and sim.dropped_dead == 0 and sim.connections == 1
@@ -560,3 +561,30 @@ async def test_client_against_scripted_cp(mk: bool) -> None:
         await server.wait_closed()
     expected = [_mk(i, req) if mk else req for i, (req, _) in enumerate(SCRIPT_RAW)]
     assert received == expected
+
+
+async def test_life_ack_wire_format_both_sides() -> None:
+    """Life acks carry the sender's current counter (C.10-5) and are never answered."""
+    async with await fwsim.start(mk=True, life_ack=0.05) as sim:
+        proxy = Proxy(sim.port)
+        await proxy.start()
+        try:
+            async with connect(f"fetchwrite://127.0.0.1:{proxy.port}?mk=1&life_ack=0.05") as plc:
+                await plc.read("DB10.DW5")
+                await plc.write("MB100", [1])
+                await wait_for(lambda: proxy.c2s_bytes.endswith(H("4D 4B 00 00 00 00 02 00")))
+                await wait_for(lambda: proxy.s2c_bytes.endswith(H("4D 4B 00 00 00 00 02 00")))
+        finally:
+            await proxy.aclose()
+    for wire in (bytes(proxy.c2s_bytes), bytes(proxy.s2c_bytes)):
+        rx = MkConnection(strict=True)
+        rx.receive_data(wire)
+        data_seqs, ack_seqs = [], []
+        while (event := rx.next_event()) is not NEED_DATA:
+            if isinstance(event, LifeAck):
+                # the counter: the number of data telegrams this side sent before the ack
+                assert event.seq == len(data_seqs)
+                ack_seqs.append(event.seq)
+            else:
+                data_seqs.append(event.first_seq)
+        assert data_seqs == [0, 1] and ack_seqs and ack_seqs[-1] == 2
