@@ -588,3 +588,14 @@ async def test_life_ack_wire_format_both_sides() -> None:
             else:
                 data_seqs.append(event.first_seq)
         assert data_seqs == [0, 1] and ack_seqs and ack_seqs[-1] == 2
+
+
+async def test_life_timeout_alone_supervises_without_sending() -> None:
+    async with await fwsim.start(mk=True) as sim:
+        plc = connect(sim.url + "&life_timeout=0.1")
+        async with plc:
+            await plc.read("MB0")
+            await wait_for(lambda: plc.dead_peers == 1)
+            assert sim.life_acks_received == 0
+            with pytest.raises(ConnectionLost, match="peer dead"):
+                await plc.read("MB0")

@@ -176,7 +176,7 @@ class FetchWriteClient(RequestClient[Response]):
         if isinstance(self.transport, _MkTcpTransport):
             loop = asyncio.get_running_loop()
             self.transport.timer = LifeAckTimer(self.life_ack, self.life_timeout, loop.time())
-            if self.life_ack is not None:
+            if self.life_ack is not None or self.life_timeout is not None:
                 self._keeper = loop.create_task(self._keep_alive(self.transport.timer))
 
     def connection_dropped(self) -> None:
