@@ -21,6 +21,7 @@ Data are big-endian S5 words. Word reads return 0..65535, byte reads 0..255. Wri
 from __future__ import annotations
 
 import asyncio
+import copy
 import logging
 from collections.abc import Hashable, Sequence
 from typing import Any, Final, Literal, Self
@@ -145,7 +146,7 @@ class FetchWriteClient(RequestClient[Response]):
                 strict=strict,
                 timeout=timeout,
                 connect_timeout=connect_timeout,
-                backoff=backoff,
+                backoff=copy.copy(backoff),  # each connection backs off on its own
             )
             self._writer.stats = self.stats
 
