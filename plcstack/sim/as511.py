@@ -255,6 +255,10 @@ async def start(
             await machine.serve_line(lambda: reader.read(4096), writer.write)
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
+        except asyncio.CancelledError:
+            # aclose() ended this connection. Finishing normally keeps asyncio's start_server
+            # callback (which calls task.exception()) from logging a spurious error on 3.11.
+            pass
         finally:
             writer.close()
 

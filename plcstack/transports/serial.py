@@ -40,6 +40,8 @@ PARITIES = {
 
 #: Linux major device numbers of Unix98 pty slaves (/dev/pts/N): 136..143
 _PTY_MAJORS = range(136, 144)
+#: ptys we already warned about (the fallback repeats on every re-open; say it once)
+_WARNED: set[str] = set()
 
 
 def is_pty(path: str) -> bool:
@@ -138,7 +140,10 @@ class SerialTransport(Transport):
             if self.parity == "N" or not is_pty(self.path):
                 raise ConnectFailed(f"cannot open serial port {self.path}: {exc}") from None
             # Documented fallback (module docstring): ptys reject PARENB here.
-            log.warning(
+            level = logging.INFO if self.path in _WARNED else logging.WARNING
+            _WARNED.add(self.path)
+            log.log(
+                level,
                 "%s is a pseudo-terminal that rejects parity %s (%s); opened without parity",
                 self.path,
                 self.parity,
