@@ -97,9 +97,10 @@ class AS511Machine:
         self.busy = False
         self.mute = False
         self.running = True
-        #: number of completed transactions / refusals (tests and the benchmark read these)
-        self.transactions = 0
+        #: requests executed (answered or refused), refusals, completed transactions
+        self.requests = 0
         self.refusals = 0
+        self.transactions = 0
 
     @property
     def byte_time(self) -> float:
@@ -186,7 +187,6 @@ class AS511Machine:
         loop = asyncio.get_running_loop()
         ag = AGConnection(char_timeout=self.char_timeout, tx_byte_time=self.byte_time)
         while True:
-            ag.busy = self.busy
             try:
                 async with asyncio.timeout_at(ag.deadline):
                     data = await read()
@@ -200,6 +200,7 @@ class AS511Machine:
                 continue
             if self.byte_time:
                 await asyncio.sleep(len(data) * self.byte_time)  # the bytes' time on the line
+            ag.busy = self.busy
             ag.receive_data(data, loop.time())
             self._drain_events(ag, loop.time())
             out = ag.data_to_send()
@@ -211,6 +212,7 @@ class AS511Machine:
     def _drain_events(self, ag: AGConnection, now: float) -> None:
         while (event := ag.next_event()) is not NEED_DATA:
             if isinstance(event, Request):
+                self.requests += 1
                 try:
                     answer = self.execute(event.fn, event.params)
                 except Exception:  # the simulator must never die on input
