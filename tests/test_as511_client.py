@@ -449,3 +449,13 @@ async def test_simulator_answers_golden_dialogues_on_the_wire(name: str, wire: s
             pipe.close()
             os.close(fd)
         await s.aclose()
+
+
+async def test_largest_transactions_at_emulated_9600_baud() -> None:
+    """512-byte read and write take ~0.6 s of line time each: longer than the 500 ms character
+    timeout, so both sides must count line time, not just wait for whole frames."""
+    async with await sim_as511.start_pty(baud=9600) as s, client(s) as plc:
+        data = bytes(range(256)) * 2
+        await plc.write_absolute(0x6000, data)
+        assert await plc.read_absolute(0x6000, 512) == data
+        assert plc.stats.errors == 0

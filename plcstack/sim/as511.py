@@ -54,6 +54,8 @@ log = logging.getLogger(__name__)
 #: bits per character at 8E1 (start, 8 data, parity, stop)
 BITS_PER_BYTE = 11
 DEFAULT_MAX_READ = 4096
+#: bytes per step of the line-rate emulation (16 bytes = 18 ms at 9600 baud)
+_PACE_PIECE = 16
 #: offset of the mode byte in the system data (B.7.5)
 MODE_OFFSET = 0x0C
 
@@ -101,6 +103,7 @@ class AS511Machine:
         self.requests = 0
         self.refusals = 0
         self.transactions = 0
+        self._line_free_at = 0.0
 
     @property
     def byte_time(self) -> float:
@@ -198,16 +201,32 @@ class AS511Machine:
                 return
             if self.mute:
                 continue
-            if self.byte_time:
-                await asyncio.sleep(len(data) * self.byte_time)  # the bytes' time on the line
             ag.busy = self.busy
-            ag.receive_data(data, loop.time())
-            self._drain_events(ag, loop.time())
-            out = ag.data_to_send()
-            if out:
-                if self.byte_time:
-                    await asyncio.sleep(len(out) * self.byte_time)
-                write(out)
+            if not self.byte_time:
+                ag.receive_data(data, loop.time())
+                self._drain_events(ag, loop.time())
+                out = ag.data_to_send()
+                if out:
+                    write(out)
+                continue
+            # Line-rate emulation: bytes take their line time in pieces, as on a real line,
+            # so the peer sees a steady trickle and no artificial gap longer than a piece.
+            for i in range(0, len(data), _PACE_PIECE):
+                piece = data[i : i + _PACE_PIECE]
+                await self._line_time(len(piece))
+                ag.receive_data(piece, loop.time())
+                self._drain_events(ag, loop.time())
+                out = ag.data_to_send()
+                for j in range(0, len(out), _PACE_PIECE):
+                    chunk = out[j : j + _PACE_PIECE]
+                    await self._line_time(len(chunk))
+                    write(chunk)
+
+    async def _line_time(self, nbytes: int) -> None:
+        """Sleep until ``nbytes`` more bytes have passed the (half-duplex) emulated line."""
+        loop = asyncio.get_running_loop()
+        self._line_free_at = max(loop.time(), self._line_free_at) + nbytes * self.byte_time
+        await asyncio.sleep(max(0.0, self._line_free_at - loop.time()))
 
     def _drain_events(self, ag: AGConnection, now: float) -> None:
         while (event := ag.next_event()) is not NEED_DATA:
