@@ -192,9 +192,13 @@ async def test_cache_recovers_from_recreated_longer_block() -> None:
         assert await plc.read("DB2.DW30") == [1]
 
 
-async def test_stop_and_start(sim: Simulator) -> None:
+async def test_stop_and_start_and_block_list(sim: Simulator) -> None:
     m = machine(sim)
     async with client(sim) as plc:
+        listing = await plc.read_block_list("DB")
+        assert sorted(listing) == list(range(1, 11))
+        assert listing[5] == m.memory.block_info(BlockType.DB, 5)[0]
+        assert list(await plc.read_block_list("DX")) == [1]
         await plc.stop()
         assert not m.running
         assert m.memory.read_absolute(0xEA0C, 2) == b"\x88\x04"

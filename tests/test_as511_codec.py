@@ -397,13 +397,16 @@ def test_unstuffer_any_split(data: bytes, draw: st.DataObject) -> None:
     assert decoder.payload() == data
 
 
-def _transact(job: Job, payload: bytes, split_pg: list[int], split_ag: list[int]) -> object:
+def _transact(
+    job: Job, payload: bytes, split_pg: list[int], split_ag: list[int]
+) -> tuple[object, list[Request]]:
     """PG and AG machines wired back to back, each direction delivered in arbitrary pieces."""
     pg, ag = PGConnection(), AGConnection()
     now = 0.0
     pg.submit(job, now)
     to_ag, to_pg = bytearray(pg.data_to_send()), bytearray()
     splits = {"pg": list(split_pg), "ag": list(split_ag)}
+    requests: list[Request] = []
     for _ in range(10_000):
         if not to_ag and not to_pg:
             break
@@ -419,12 +422,13 @@ def _transact(job: Job, payload: bytes, split_pg: list[int], split_ag: list[int]
                 ag.receive_data(piece, now)
                 while (ev := ag.next_event()) is not NEED_DATA:
                     if isinstance(ev, Request):
+                        requests.append(ev)
                         ag.respond(payload if job.has_response else None, now)
                 to_pg += ag.data_to_send()
             else:
                 pg.receive_data(piece, now)
                 to_ag += pg.data_to_send()
-    return pg.next_event()
+    return pg.next_event(), requests
 
 
 @settings(max_examples=150, suppress_health_check=[HealthCheck.too_slow])
@@ -435,9 +439,13 @@ def _transact(job: Job, payload: bytes, split_pg: list[int], split_ag: list[int]
 )
 def test_pg_ag_any_split_same_result(data: bytes, split_pg: list[int], split_ag: list[int]) -> None:
     read = as511.read_job(0x1010, len(data))
-    assert _transact(read, bytes(5) + data, split_pg, split_ag) == Response(4, bytes(5) + data)
+    event, requests = _transact(read, bytes(5) + data, split_pg, split_ag)
+    assert event == Response(4, bytes(5) + data)
+    assert requests == [Request(4, struct.pack(">HH", 0x1010, 0x1010 + len(data) - 1))]
     write = as511.write_job(0x1010, data)
-    assert _transact(write, b"", split_pg, split_ag) == Response(3, b"")
+    event, requests = _transact(write, b"", split_pg, split_ag)
+    assert event == Response(3, b"")
+    assert requests == [Request(3, b"\x10\x10" + data)]  # the encoded request round-trips
 
 
 @settings(max_examples=200)

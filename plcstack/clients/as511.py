@@ -49,6 +49,7 @@ from plcstack.codecs.as511 import (
     SystemAddresses,
     Timeout,
     b_info_job,
+    block_list_job,
     header_matches,
     parse_b_info,
     parse_read,
@@ -524,6 +525,25 @@ class AS511Client(Client):
         what = f"write {area.value} bytes {offset}..{offset + len(data) - 1}"
         address = await self._area_address(area, offset, len(data), what)
         await self.write_absolute(address, data, what)
+
+    async def read_block_list(self, block_type: int | str) -> dict[int, int]:
+        """Function 1Bh: ``{block number: address}`` of the blocks of one type (B.7.6).
+
+        The meaning of the addresses is not verified on real CPUs (B.7.6); the simulator returns
+        the DW0 address that B_INFO would return.
+        """
+        code, name = _block_type(block_type)
+        what = f"read the {name} block list"
+        data = await self.transact(block_list_job(code), what)
+        if not data or data[0] != 0 or len(data) % 2 != 1:
+            self.stats.errors += 1
+            raise RemoteProtocolError(
+                f"block list answer of {len(data)} bytes is not 00 + words",
+                plc=self.name,
+                request=what,
+            )
+        words = struct.unpack(f">{len(data) // 2}H", data[1:])
+        return {number: address for number, address in enumerate(words) if address}
 
     async def stop(self) -> None:
         """Put a small CPU into STOP (B.7.5: 88 04 at system data + 0Ch)."""
