@@ -341,7 +341,7 @@ class AS511Client(Client):
         self.block_cache.pop((code, number), None)
         data = await self.transact(b_info_job(code, number), what, nak_meaning=missing)
         info = parse_b_info(data, code, number)
-        if info is None:
+        if info is None:  # [R] D.B3: a failed signature check means "block not found" too
             self.stats.errors += 1
             raise PlcErrorResponse(
                 0x15,
@@ -460,6 +460,7 @@ class AS511Client(Client):
 
     @staticmethod
     def _check_span(info: BlockInfo, name: str, offset: int, length: int, what: str) -> None:
+        # [R] B.7.3: the wire has no range check; refuse reads/writes beyond the block's data
         if offset + length > info.data_bytes:
             raise AddressError(
                 f"{what}: {name}{info.number} has {info.data_bytes // 2} data words "

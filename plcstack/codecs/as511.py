@@ -82,7 +82,7 @@ DLE = 0x10
 NAK = 0x15
 SYN = 0x16
 DC2 = 0x12
-#: terminate bytes a PG accepts (D.B4); the AG sends DC2
+#: [R] D.B4: the PG accepts 11h/12h/14h (or no byte) as terminate byte; the AG sends DC2
 TERMINATE_BYTES = frozenset({0x11, 0x12, 0x14})
 
 DLE_ACK = bytes([DLE, ACK])
@@ -97,9 +97,9 @@ FN_B_INFO = 0x1A
 FN_BLOCK_LIST = 0x1B
 FN_OPERATING_MODE = 0x1E
 
-DEFAULT_CHAR_TIMEOUT = 0.5  # B5.3 / B5.7
+DEFAULT_CHAR_TIMEOUT = 0.5  # [R] B5.7: 500 ms for every wait, first answer byte included
 DEFAULT_BACKOFF = 0.5  # B5.1 / B5.5
-#: client split limits (B.7.3 / B.7.4: [O-PS] caps at 512 bytes)
+#: [R] B.7.3/B.7.4: the client splits reads and writes into transactions of <= 512 bytes
 MAX_READ_BYTES = 512
 MAX_WRITE_BYTES = 512
 #: leading bytes of a 04h answer (B.7.3, D.B2)
@@ -313,6 +313,7 @@ def parse_read(payload: bytes, length: int, *, strict: bool = False) -> bytes:
             f"read answer has {len(payload)} bytes, expected {READ_PREFIX + length} "
             f"(5 leading bytes + {length} data bytes)"
         )
+    # [R] D.B2: skip the 5 leading bytes; only strict mode insists that they are zero
     if strict and any(payload[:READ_PREFIX]):
         raise RemoteProtocolError(f"read answer starts with {payload[:5].hex(' ')}, not 5 x 00")
     return bytes(payload[READ_PREFIX:])
@@ -358,6 +359,7 @@ class PGState(enum.Enum):
     W_END = "W_END"  # terminate byte + DLE ETX
 
 
+#: [R] B5.2/D.B5: DLE NAK is accepted at step 2 (busy), 4 (unsupported function), 9 (refused)
 _NAK_STEPS = {
     PGState.W_ACK1: "ready",
     PGState.W_STX1: "function",
@@ -405,7 +407,6 @@ class PGConnection:
         self._got_byte = False  # accept/terminate byte seen in W_ACCEPT / W_END
         self._rx: Unstuffer | None = None
         self._payload = b""
-        self._in_backoff = False
 
     # -- driver API --------------------------------------------------------------------------
     @property
@@ -421,7 +422,6 @@ class PGConnection:
                 f"the line must be silent until {self.ready_at:.3f} (back-off after an abort)"
             )
         self.job = job
-        self._in_backoff = False
         self._dle = False
         self._send(bytes([STX]))
         self._enter(PGState.W_ACK1, now, sent=1)
@@ -476,7 +476,7 @@ class PGConnection:
         self.deadline = None
         self._rx = None
         self._dle = False
-        self._in_backoff = True
+        # [R] B5.5: silence is measured from the later of the abort and the last received byte
         self.ready_at = max(self.ready_at, now + self.backoff)
 
     def _fail(self, now: float, message: str) -> None:
@@ -721,6 +721,7 @@ class AGConnection:
         self.deadline = now + self.char_timeout + sent * self.tx_byte_time
 
     def _idle(self, reason: str) -> None:
+        # [R] B5.6: on a gap or a wrong byte the AG silently returns to idle (no NAK)
         self.state = AGState.IDLE
         self.deadline = None
         self._dle = False

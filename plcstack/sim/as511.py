@@ -116,6 +116,7 @@ class AS511Machine:
         if fn == FN_SYSTEM_PARAMETERS:
             return b"\x00" + mem.params.to_bytes() if not params else False
         if fn == FN_B_INFO:
+            # [R] B.7.2/D.B3: a missing block or unknown type is refused with DLE NAK at step 9
             if len(params) != 2:
                 return False
             try:
@@ -128,6 +129,7 @@ class AS511Machine:
             if len(params) != 4:
                 return False
             start, end = struct.unpack(">HH", params)
+            # [R] B.7.3: up to max_read (4096) bytes, NAK above; answer = 5 zero bytes + data
             if end < start or end - start + 1 > self.max_read:
                 return False
             return bytes(5) + mem.read_absolute(start, end - start + 1)
@@ -152,6 +154,7 @@ class AS511Machine:
         end = start + len(data)
         if end > 0x10000:
             return False
+        # [R] B.7.4: outside 64 KiB or onto a block header -> NAK; else applied before DLE ACK
         if self.protect_headers and self._touches_header(start, end):
             return False
         if data:
@@ -171,6 +174,7 @@ class AS511Machine:
         return False
 
     def _block_list(self, type_code: int) -> bytes | bool:
+        # [R] B.7.6: one word per block number; the address is the one B_INFO returns
         try:
             btype = BlockType(type_code)
         except ValueError:
