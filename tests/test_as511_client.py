@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from plcstack.clients.as511 import AS511Client
-from plcstack.codecs.as511 import PGState
+from plcstack.codecs.as511 import Job, PGState
 from plcstack.errors import (
     AddressError,
     ConnectFailed,
@@ -463,3 +463,17 @@ async def test_largest_transactions_at_emulated_9600_baud() -> None:
         await plc.write_absolute(0x6000, data)
         assert await plc.read_absolute(0x6000, 512) == data
         assert plc.stats.errors == 0
+
+
+async def test_concurrent_requests_share_one_line(sim: Simulator) -> None:
+    async with client(sim) as plc:
+        results = await asyncio.gather(*(plc.read(f"DB{n}.DW{n}", 3) for n in range(1, 11)))
+        assert results == [[(n << 8) | (n + k) for k in range(3)] for n in range(1, 11)]
+        assert plc.stats.errors == 0
+
+
+async def test_unsupported_function_is_refused_at_step_4(sim: Simulator) -> None:
+    async with client(sim, nak_backoff=0.05) as plc:
+        with pytest.raises(PlcErrorResponse, match="does not support function 07h"):
+            await plc.transact(Job(0x07, b"", False), "compress memory")
+        assert await plc.read("MB0") == [0]
