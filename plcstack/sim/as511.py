@@ -20,7 +20,6 @@ import contextlib
 import logging
 import os
 import struct
-import tty
 from collections.abc import Awaitable, Callable
 
 from plcstack.codecs._common import NEED_DATA
@@ -302,6 +301,8 @@ class PtySimulator(Simulator):
     def __init__(self, machine: AS511Machine) -> None:
         self.machine = machine
         self.memory = machine.memory
+        import tty  # POSIX only: keep the module importable (TCP sim) elsewhere
+
         self._master, self._slave = os.openpty()
         # Raw slave from the start: no echo, no CR/LF mangling before a PG configures it. We keep
         # the slave open so the master never reads EIO while no PG has the port open.

@@ -18,7 +18,6 @@ import asyncio
 import logging
 import os
 import stat
-import termios
 from typing import Any
 
 import serial
@@ -28,6 +27,13 @@ from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
 from plcstack.transports.base import QueueProtocolMixin, Transport
 
 __all__ = ["PARITIES", "SerialTransport", "is_pty"]
+
+try:  # POSIX only; on Windows there are no ptys and pyserial reports errors as SerialException
+    import termios
+
+    _OPEN_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError, termios.error)
+except ImportError:  # pragma: no cover
+    _OPEN_ERRORS = (OSError, ValueError)
 
 log = logging.getLogger(__name__)
 
@@ -136,7 +142,7 @@ class SerialTransport(Transport):
         self.parity_fallback = False
         try:
             transport, protocol = await self._open_once(self.parity, timeout)
-        except (OSError, termios.error, ValueError) as exc:  # SerialException is an OSError
+        except _OPEN_ERRORS as exc:  # SerialException is an OSError
             if self.parity == "N" or not is_pty(self.path):
                 raise ConnectFailed(f"cannot open serial port {self.path}: {exc}") from None
             # Documented fallback (module docstring): ptys reject PARENB here.
@@ -151,7 +157,7 @@ class SerialTransport(Transport):
             )
             try:
                 transport, protocol = await self._open_once("N", timeout)
-            except (OSError, termios.error, ValueError) as exc2:
+            except _OPEN_ERRORS as exc2:
                 raise ConnectFailed(f"cannot open serial port {self.path}: {exc2}") from None
             self.parity_fallback = True
         self._transport, self._protocol = transport, protocol
