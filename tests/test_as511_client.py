@@ -276,6 +276,8 @@ def test_poller_hooks() -> None:
     assert plc.address_at(plc.locate("MW11")[0], 6) == "MW13"
     assert plc.max_points(area) == 251 and plc.max_points(plc.locate("MB0")[0]) == 512
     assert plc.address_at(*plc.locate("T5")) == "T5"
+    assert isinstance(plc, AS511Client)
+    assert plc.point_bits(area) == 16 and plc.point_bits(plc.locate("MB0")[0]) == 8
     with pytest.raises(AddressError):
         plc.locate("MB250", 10)
 

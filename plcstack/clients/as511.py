@@ -624,6 +624,10 @@ class AS511Client(Client):
         limit = MAX_READ_BYTES - 10 if letter in ("DB", "DX") else MAX_READ_BYTES
         return limit // per_point
 
+    def point_bits(self, area: Hashable) -> int:
+        """Width of one point of ``area`` for the poller: 16 for words, 8 for bytes."""
+        return 8 * S5Unit[_split_area(area)[2]].size
+
     @staticmethod
     def _area_limit(addr: S5Address) -> int:
         return 0x10000 if addr.area.is_block else AREA_BYTES[addr.area]

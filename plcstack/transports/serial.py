@@ -23,8 +23,8 @@ from typing import Any
 import serial
 import serial_asyncio
 
-from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
-from plcstack.transports.base import QueueProtocolMixin, Transport
+from plcstack.errors import ConnectFailed, PlcTimeout
+from plcstack.transports.base import ProtocolTransport, QueueProtocolMixin
 
 __all__ = ["PARITIES", "SerialTransport", "is_pty"]
 
@@ -72,7 +72,7 @@ class _SerialProtocol(QueueProtocolMixin, asyncio.Protocol):
         self._fail(exc or EOFError("serial port closed"))
 
 
-class SerialTransport(Transport):
+class SerialTransport(ProtocolTransport):
     """One serial port; ``open()`` again after a close re-opens the device.
 
     ``parity_fallback`` is set after ``open()`` when a pty refused the requested parity and the
@@ -92,30 +92,19 @@ class SerialTransport(Transport):
             raise ValueError(f"parity {parity!r} is not one of N, E, O")
         if stopbits not in (1, 1.5, 2):
             raise ValueError(f"stop bits {stopbits} is not 1, 1.5 or 2")
+        super().__init__(path)
         self.path = path
-        self.peer = path
         self.baudrate = baudrate
         self.bytesize = bytesize
         self.parity = parity
         self.stopbits = stopbits
         self.parity_fallback = False
-        self._transport: asyncio.Transport | None = None
-        self._protocol: _SerialProtocol | None = None
 
     @property
     def byte_time(self) -> float:
         """Line time of one character: start + data + parity + stop bits over the baud rate."""
         bits = 1 + self.bytesize + (0 if self.parity == "N" else 1) + self.stopbits
         return bits / self.baudrate
-
-    @property
-    def is_open(self) -> bool:
-        return (
-            self._transport is not None
-            and self._protocol is not None
-            and self._protocol._closed_exc is None
-            and not self._transport.is_closing()
-        )
 
     async def _create(self, parity: str) -> tuple[Any, _SerialProtocol]:
         loop = asyncio.get_running_loop()
@@ -162,26 +151,8 @@ class SerialTransport(Transport):
             self.parity_fallback = True
         self._transport, self._protocol = transport, protocol
 
-    def write(self, data: bytes) -> None:
-        if not self.is_open:
-            raise ConnectionLost(f"serial port {self.path} is not open")
-        assert self._transport is not None
-        self._transport.write(data)
-
-    async def read(self) -> bytes:
-        if self._protocol is None:
-            raise ConnectionLost(f"serial port {self.path} is not open")
-        return await self._protocol._next_chunk(join=True)
-
-    def discard_received(self) -> None:
-        if self._protocol is not None:
-            self._protocol._chunks.clear()
-
-    def abort(self) -> None:
-        if self._transport is not None:
-            self._transport.abort()
-        self._transport = None
-        self._protocol = None
+    def _send(self, data: bytes) -> None:
+        self._transport.write(data)  # type: ignore[union-attr]
 
     async def aclose(self) -> None:
         transport = self._transport
