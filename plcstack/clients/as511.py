@@ -257,9 +257,11 @@ class AS511Client(Client):
         self.stats.timeouts += 1
         self.stats.errors += 1
         state = PGState(event.state)
-        message = (
-            f"no answer within {self.pg.char_timeout:g} s while waiting for {_WAITING_FOR[state]}"
+        executing = state in (PGState.W_ACK2, PGState.W_STX2) or (
+            state is PGState.W_STX3 and not job.has_response
         )
+        wait = self.pg.response_timeout if executing else self.pg.char_timeout
+        message = f"no complete answer within {wait:g} s (waiting for {_WAITING_FOR[state]})"
         if is_write:
             message += "; " + self._write_outcome(state)
         if self._drop_on_error:
@@ -313,7 +315,7 @@ class AS511Client(Client):
             state = pg.state
             pg.reset(loop.time())
             raise PlcTimeout(
-                f"transaction not complete within {cap:.2f} s (AS511 state {state.value})"
+                f"no complete answer within {cap:.2f} s (AS511 transaction stuck in {state.value})"
             ) from None
         except (ConnectionLost, RemoteProtocolError):
             pg.reset(loop.time())
