@@ -204,6 +204,10 @@ async def test_stop_and_start_and_block_list(sim: Simulator) -> None:
         assert m.memory.read_absolute(0xEA0C, 2) == b"\x88\x04"
         await plc.start()
         assert m.running
+        assert await plc.change_operating_mode(0) is None and not m.running
+        assert await plc.change_operating_mode(1) == 0x25 and m.running
+        with pytest.raises(AddressError):
+            await plc.change_operating_mode(3)
 
 
 async def test_garbage_from_the_peer_is_a_remote_protocol_error() -> None:

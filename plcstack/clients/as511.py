@@ -51,6 +51,7 @@ from plcstack.codecs.as511 import (
     b_info_job,
     block_list_job,
     header_matches,
+    operating_mode_job,
     parse_b_info,
     parse_read,
     parse_system_parameters,
@@ -547,6 +548,18 @@ class AS511Client(Client):
             )
         words = struct.unpack(f">{len(data) // 2}H", data[1:])
         return {number: address for number, address in enumerate(words) if address}
+
+    async def change_operating_mode(self, mode: int) -> int | None:
+        """Function 1Eh of 135U/155U CPUs: 0 stop, 1 restart, 2 warm restart (B.7.5).
+
+        Returns the byte the CPU answers for modes 1 and 2 (25h/26h), ``None`` for stop.
+        """
+        if mode not in (0, 1, 2):
+            raise AddressError(f"operating mode {mode} is not 0, 1 or 2", plc=self.name)
+        data = await self.transact(
+            operating_mode_job(mode), f"change operating mode to {mode}", is_write=True
+        )
+        return data[0] if data else None
 
     async def stop(self) -> None:
         """Put a small CPU into STOP (B.7.5: 88 04 at system data + 0Ch)."""

@@ -62,6 +62,7 @@ __all__ = [
     "Unstuffer",
     "b_info_job",
     "block_list_job",
+    "operating_mode_job",
     "parse_b_info",
     "parse_read",
     "parse_system_parameters",
@@ -205,6 +206,13 @@ def write_job(start: int, data: bytes) -> Job:
 
 def block_list_job(block_type: int) -> Job:
     return Job(FN_BLOCK_LIST, bytes([block_type]), True, None)
+
+
+def operating_mode_job(mode: int) -> Job:
+    """1Eh (135U/155U): 00 stop, 01 restart, 02 warm restart; 01/02 answer one byte (B.7.5)."""
+    if mode not in (0, 1, 2):
+        raise LocalProtocolError(f"operating mode {mode} is not 0 (stop), 1 or 2 (restart)")
+    return Job(FN_OPERATING_MODE, bytes([mode]), mode != 0, 1 if mode else None)
 
 
 def stop_job(system_data: int) -> Job:
