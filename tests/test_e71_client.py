@@ -132,6 +132,8 @@ async def test_plc_errors_end_to_end(sim: sim_e71.E71TcpSimulator) -> None:
         assert err.value.code == 0x5B and err.value.code_text == "5BH/10H"
         assert "wrong PC number" in str(err.value) and sim.url in str(err.value)
         assert "read D100 x1" in str(err.value)
+        plc.pc = 0xFF  # the same connection goes on (the 00H after 5BH/10H is not misread)
+        assert await plc.read("D100") == [0]
     sim.memory.write_in_run = False
     async with client(sim.url) as plc:
         with pytest.raises(PlcErrorResponse) as err:

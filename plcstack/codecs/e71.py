@@ -26,7 +26,8 @@ call as exactly one datagram holding exactly one message (§4.1).
 from __future__ import annotations
 
 import enum
-import re
+import functools
+import struct
 from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -120,7 +121,6 @@ DEVICE_BY_CODE: Final[dict[int, Device]] = {d.code: d for d in Device}
 #: L (latch relay) and S (step relay) share the M address space on the A series (§5.1, §13 A9)
 _ALIASES: Final = {"L": Device.M, "S": Device.M}
 _NAMES: Final[dict[str, Device]] = {d.letters: d for d in Device} | _ALIASES
-_ADDRESS_RE: Final = re.compile(r"([A-Z]{1,2}?)([0-9A-F]+)")
 
 #: special relays / registers M9000-M9255, D9000-D9255 exist in every CPU group (§5.2)
 SPECIAL_FIRST: Final = 9000
@@ -208,6 +208,18 @@ def parse_address(text: str, *, last: dict[Device, int] | None = None) -> Device
 
     Numbers beyond the widest CPU group of §5.2 (or ``last``) are an :class:`AddressError`.
     """
+    if last is None and isinstance(text, str):
+        return _parse_cached(text)
+    return _parse(text, last)
+
+
+@functools.lru_cache(maxsize=4096)
+def _parse_cached(text: str) -> DeviceRef:
+    # pollers ask for the same few addresses over and over; DeviceRef is immutable
+    return _parse(text, None)
+
+
+def _parse(text: str, last: dict[Device, int] | None) -> DeviceRef:
     if not isinstance(text, str):
         raise AddressError(f"address {text!r} is not a string")
     upper = text.strip().upper()
@@ -474,18 +486,14 @@ def command_limit(command: int, device: Device | None) -> int:
 
     For 05H/07H with a mix of devices the smaller (entry) limit applies: 40 / 20 entries.
     """
-    bit = device is not None and device.is_bit
-    limits = {
-        0x00: 256,
-        0x01: 128 if bit else 256,
-        0x02: 256,
-        0x03: 40 if bit else 256,
-        0x04: 80,
-        0x05: 40,
-        0x06: 40,
-        0x07: 20,
-    }
-    return limits[command]
+    if device is not None and device.is_bit:
+        return _LIMITS_BIT[command]
+    return _LIMITS_WORD[command]
+
+
+_LIMITS_WORD: Final = {0x00: 256, 0x01: 256, 0x02: 256, 0x03: 256, 0x04: 80, 0x05: 40, 0x06: 40}
+_LIMITS_WORD[0x07] = 20
+_LIMITS_BIT: Final = {**_LIMITS_WORD, 0x01: 128, 0x03: 40}
 
 
 def _head_ok(ref: DeviceRef) -> bool:
@@ -588,9 +596,9 @@ class _Writer:
 
     def words(self, values: Sequence[int]) -> None:
         if self.ascii:
-            self.parts.append(b"".join(b"%04X" % v for v in values))
+            self.parts.append(struct.pack(f">{len(values)}H", *values).hex().upper().encode())
         else:
-            self.parts.append(b"".join(v.to_bytes(2, "little") for v in values))
+            self.parts.append(struct.pack(f"<{len(values)}H", *values))
 
     def raw(self, data: bytes) -> None:
         self.parts.append(data.hex().upper().encode() if self.ascii else data)
@@ -653,13 +661,13 @@ class _Reader:
     def words(self, count: int) -> tuple[int, ...]:
         if self.ascii:
             text = self._text(4 * count)
-            return tuple(int(text[i : i + 4], 16) for i in range(0, 4 * count, 4))
+            return struct.unpack(f">{count}H", bytes.fromhex(text.decode()))
         end = self.pos + 2 * count
         if end > len(self.data):
             raise _Malformed(0x57, "message shorter than its fields")
-        data = self.data[self.pos : end]
+        values = struct.unpack_from(f"<{count}H", self.data, self.pos)
         self.pos = end
-        return tuple(int.from_bytes(data[i : i + 2], "little") for i in range(0, 2 * count, 2))
+        return values
 
     def remaining(self) -> int:
         return len(self.data) - self.pos
@@ -675,9 +683,28 @@ def _check_word(value: int) -> None:
         raise LocalProtocolError(f"word value {value!r} outside 0..65535")
 
 
+_READ_FRAME: Final = struct.Struct("<BBHIHBB")
+
+
 def encode_request(req: Request, code: Code) -> bytes:
     """Encode one implemented request (§4.2, §7.3); raises :class:`LocalProtocolError` on misuse
     (counts outside the limits of §7.1, bad values, unknown request types)."""
+    cls = type(req)
+    if code is Code.BINARY and (cls is ReadWords or cls is ReadBits):
+        # The polling hot path: the same checks as below, inlined, and one struct call.
+        assert isinstance(req, (ReadBits, ReadWords))
+        ref, count = req.ref, req.count
+        dev = ref.device
+        if (
+            1 <= count <= command_limit(cls.COMMAND, dev)
+            and (dev.is_bit if cls is ReadBits else _head_ok(ref))
+            and 0 <= req.pc <= 0xFF
+            and 0 <= req.timer <= 0xFFFF
+            and 0 <= ref.number <= 0xFFFFFFFF
+        ):
+            return _READ_FRAME.pack(
+                cls.COMMAND, req.pc, req.timer, ref.number, dev.code, count & 0xFF, 0
+            )
     if not isinstance(req, REQUEST_TYPES):
         cmd = getattr(req, "command", None)
         what = f"command {cmd:02X}H" if isinstance(cmd, int) else f"request {req!r}"
@@ -689,11 +716,11 @@ def encode_request(req: Request, code: Code) -> bytes:
     problem = limit_error(req) or unit_error(req)
     if problem is not None:
         raise LocalProtocolError(problem)
+    n = point_count(req) & 0xFF  # 256 -> 00H (§6.4)
     w = _Writer(code is Code.ASCII)
     w.num(req.COMMAND, 1)
     w.num(req.pc, 1)
     w.num(req.timer, 2)
-    n = point_count(req) & 0xFF  # 256 -> 00H (§6.4)
     if isinstance(req, (ReadBits, ReadWords)):
         w.num(_dev_value(req.ref), 6)
         w.num(n, 1)
@@ -1092,6 +1119,8 @@ class E71ClientConnection:
         return 0
 
     def _finish(self, req: Request, body: bytes) -> Response:
+        if type(req) is ReadWords and self._unit == 1:
+            return WordsResponse(1, struct.unpack(f"<{req.count}H", body))
         r = _Reader(body, self.code is Code.ASCII)
         try:
             if isinstance(req, (ReadBits, MonitorBits)):
@@ -1112,6 +1141,10 @@ class E71ClientConnection:
 
     def _head(self, data: bytes, req: Request) -> tuple[int, int]:
         """Subheader check and end code from the first 2 units (§11.3)."""
+        if self._unit == 1:
+            sub, end = data[0], data[1]
+            if sub == req.COMMAND | 0x80:
+                return sub, end
         try:
             r = _Reader(data[: 2 * self._unit], self.code is Code.ASCII)
             sub, end = r.num(1), r.num(1)
