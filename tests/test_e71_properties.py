@@ -133,7 +133,7 @@ def test_request_round_trip(code: Code, req: Request) -> None:
     _monitor_sized(client, 1)
     wire = client.send(req)
     for transport in ("tcp", "udp"):
-        server = E71ServerConnection(code, transport=transport)  # type: ignore[arg-type]
+        server = E71ServerConnection(code, transport=transport)
         server.receive_data(wire)
         assert server.next_event() == req
         assert server.next_event() is NEED_DATA
@@ -147,7 +147,7 @@ def test_response_round_trip(code: Code, data: st.DataObject, m: int, trailer: b
     server = E71ServerConnection(code, abnormal_trailer=trailer)
     wire = server.send(resp)
     for transport in ("tcp", "udp"):
-        client = E71ClientConnection(code, transport=transport)  # type: ignore[arg-type]
+        client = E71ClientConnection(code, transport=transport)
         _monitor_sized(client, m)
         client.send(req)
         client.receive_data(wire)
