@@ -15,6 +15,7 @@ from plcstack.codecs.e71 import CpuGroup
 from plcstack.errors import (
     AddressError,
     ConnectionLost,
+    LocalProtocolError,
     PlcErrorResponse,
     PlcTimeout,
 )
@@ -98,6 +99,8 @@ async def test_int32_and_float(sim: sim_e71.E71TcpSimulator) -> None:
 
 async def test_test_and_monitor(sim: sim_e71.E71TcpSimulator) -> None:
     async with client(sim.url) as plc:
+        with pytest.raises(LocalProtocolError):
+            await plc.monitor_words()  # nothing registered through this client
         await plc.test_bits([("X94", True), ("M60", False), ("B26", True)])
         assert sim.memory.read_bits("X", 0x94, 1) == [True]
         assert sim.memory.read_bits("B", 0x26, 1) == [True]
