@@ -23,6 +23,7 @@ from collections.abc import Hashable, Sequence
 from typing import Any, Self
 
 from plcstack.clients.base import RequestClient
+from plcstack.clients.e71_commands import E71CommandsMixin
 from plcstack.codecs.e71 import (
     DEFAULT_PC,
     WIDEST_RANGES,
@@ -67,7 +68,7 @@ def _default_timer(timeout: float) -> int:
     return max(1, min(0xFFFF, int(timeout * 4) - 1))
 
 
-class E71Client(RequestClient[Response]):
+class E71Client(E71CommandsMixin, RequestClient[Response]):
     """Async client for one E71 connection. Use ``async with plcstack.connect(url) as plc``."""
 
     URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {"code", "pc", "monitoring_timer"}

@@ -28,6 +28,8 @@ from plcstack.codecs.e71 import (
     DeviceRef,
     E71ServerConnection,
     ErrorResponse,
+    ExtensionRequest,
+    ExtensionResponse,
     MonitorBits,
     MonitorWords,
     OpaqueRequest,
@@ -45,7 +47,9 @@ from plcstack.codecs.e71 import (
     limit_error,
     unit_error,
 )
+from plcstack.codecs.e71_commands import DECODERS
 from plcstack.sim.base import Simulator, TcpSimulator, UdpSimulator
+from plcstack.sim.e71_module import execute_extension
 from plcstack.sim.melsec_memory import CpuState, MelsecAccessError, MelsecMemory
 
 __all__ = ["MAX_CONNECTIONS", "E71TcpSimulator", "E71UdpSimulator", "execute", "start"]
@@ -62,8 +66,15 @@ def _span(ref: DeviceRef, word_units: bool) -> int:
     return 16 if word_units and ref.device.is_bit else 1
 
 
-def execute(memory: MelsecMemory, event: Request | OpaqueRequest | BadRequest) -> Response:
+def execute(
+    memory: MelsecMemory,
+    event: Request | OpaqueRequest | ExtensionRequest | BadRequest,
+    code: Code = Code.BINARY,
+) -> Response | ExtensionResponse:
     """What the E71 answers to one decoded request (shared by TCP and UDP)."""
+    if isinstance(event, ExtensionRequest):
+        # 0AH-21H, 39H-3CH, 60H-62H: plcstack.sim.e71_module (issue 3)
+        return execute_extension(memory, event, code)
     if isinstance(event, BadRequest):
         if event.pc is not None and event.pc != 0xFF:
             return ErrorResponse(event.command, 0x5B, 0x10)
@@ -141,7 +152,10 @@ class _TcpConnection(asyncio.Protocol):
     def __init__(self, sim: E71TcpSimulator) -> None:
         self.sim = sim
         self.codec = E71ServerConnection(
-            sim.code, lower_ok=sim.lower_ok, abnormal_trailer=sim.abnormal_trailer
+            sim.code,
+            lower_ok=sim.lower_ok,
+            abnormal_trailer=sim.abnormal_trailer,
+            extensions=DECODERS,
         )
         self.transport: asyncio.Transport | None = None
         self._partial_timer: asyncio.TimerHandle | None = None
@@ -168,7 +182,7 @@ class _TcpConnection(asyncio.Protocol):
             sim.requests += 1
             if sim.mute:
                 continue
-            out = codec.send(execute(sim.memory, event))
+            out = codec.send(execute(sim.memory, event, sim.code))
             if sim.delay > 0:
                 asyncio.get_running_loop().call_later(sim.delay, self._write_late, out)
             else:
@@ -231,7 +245,9 @@ class E71TcpSimulator(TcpSimulator):
 class _UdpEndpoint(asyncio.DatagramProtocol):
     def __init__(self, sim_ref: list[E71UdpSimulator], code: Code, lower_ok: bool) -> None:
         self.sim_ref = sim_ref
-        self.codec = E71ServerConnection(code, transport="udp", lower_ok=lower_ok)
+        self.codec = E71ServerConnection(
+            code, transport="udp", lower_ok=lower_ok, extensions=DECODERS
+        )
         self.transport: asyncio.DatagramTransport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -249,7 +265,7 @@ class _UdpEndpoint(asyncio.DatagramProtocol):
         sim.requests += 1
         if sim.mute:
             return
-        out = self.codec.send(execute(sim.memory, event))
+        out = self.codec.send(execute(sim.memory, event, sim.code))
         # §13 A14: reply to the datagram's source address.
         if sim.delay > 0:
             asyncio.get_running_loop().call_later(sim.delay, self.transport.sendto, out, addr)
