@@ -539,3 +539,20 @@ def test_error_meanings() -> None:
     assert ErrorResponse(1, 0x55).code_text == "55H"
     assert "RUN" in ErrorResponse(1, 0x55).meaning
     assert encode_response(ErrorResponse(2, 0x55), Code.ASCII) == b"8255"
+
+
+@pytest.mark.parametrize(
+    ("code", "datagram"),
+    [
+        (Code.BINARY, hx("81 5B 10 00")),
+        (Code.BINARY, hx("81 5B 10")),
+        (Code.ASCII, b"815B1000"),
+        (Code.ASCII, b"815B10"),
+    ],
+)
+def test_udp_5bh_with_and_without_trailer(code: Code, datagram: bytes) -> None:
+    """§13 A3: accept the A-series (…00H) and the Q-series form on UDP too."""
+    client = E71ClientConnection(code, transport="udp")
+    client.send(ReadWords(ref("D0"), 1, pc=5))
+    client.receive_data(datagram)
+    assert client.next_event() == ErrorResponse(1, 0x5B, 0x10)

@@ -13,6 +13,7 @@ from plcstack.codecs.e71 import (
     CpuGroup,
     DeviceRef,
     ErrorResponse,
+    MonitorBits,
     MonitorWords,
     OpaqueRequest,
     ReadBits,
@@ -135,6 +136,7 @@ def test_monitor_registration_is_shared_and_kind_checked() -> None:
     execute(mem, RegisterMonitorBits((ref("M0"),)))
     assert execute(mem, MonitorWords()) == ErrorResponse(9, 0x57)  # 09H after 06H: §13 A10
     execute(mem, RegisterMonitorWords((ref("D5"),)))
+    assert execute(mem, MonitorBits()) == ErrorResponse(8, 0x57)  # 08H after 07H
     mem.write_words("D", 5, [42])
     assert execute(mem, MonitorWords()).values == (42,)  # type: ignore[union-attr]
 

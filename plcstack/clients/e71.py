@@ -135,7 +135,7 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
 
     # -- plumbing -------------------------------------------------------------------------------
     def _hdr(self) -> dict[str, int]:
-        return {"pc": self.pc, "timer": self.monitoring_timer}
+        return {"pc": self.pc, "timer": self.monitoring_timer}  # pc may be changed at run time
 
     def _ref(self, address: str, what: str) -> DeviceRef:
         try:

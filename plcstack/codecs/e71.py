@@ -1168,6 +1168,8 @@ class E71ClientConnection:
     # -- decoding -----------------------------------------------------------------------------
     def _data_length(self, req: Request) -> int:
         """Binary length of the data after subheader + end code of a normal response (§11.2)."""
+        if type(req) is ReadWords:
+            return 2 * req.count
         if isinstance(req, ReadBits):
             return (req.count + 1) // 2
         if isinstance(req, ReadWords):
@@ -1226,19 +1228,23 @@ class E71ClientConnection:
     def next_event(self) -> Response | ExtensionResponse | NeedData:
         if self.transport == "udp":
             return self._next_datagram()
-        u = self._unit
         buf = self._buf
-        if self._skip_trailer and len(buf) >= u:
+        have = len(buf)
+        if not have:
+            return NEED_DATA
+        u = self._unit
+        if self._skip_trailer and have >= u:
             # §13 A3: 5BH may be followed by 00H (A series) or not (Q series). No response
             # starts with 00H, so a leading 00H here is the trailer of the previous answer.
             if buf.peek(u) == (b"00" if u == 2 else b"\x00"):
                 buf.take(u)
+                have -= u
             self._skip_trailer = False
-        if not buf:
-            return NEED_DATA
+            if not have:
+                return NEED_DATA
         if not self._pending:
-            raise RemoteProtocolError(f"{len(buf)} byte(s) received without a pending request")
-        if len(buf) < 2 * u:
+            raise RemoteProtocolError(f"{have} byte(s) received without a pending request")
+        if have < 2 * u:
             return NEED_DATA
         req = self._pending[0]
         if isinstance(req, ExtensionRequest):
@@ -1253,13 +1259,13 @@ class E71ClientConnection:
         _, end = self._head(buf.peek(2 * u), req)
         if end == 0:
             total = (2 + self._data_length(req)) * u
-            if len(buf) < total:
+            if have < total:
                 return NEED_DATA
             frame = buf.take(total)
             self._pending.popleft()
             return self._finish(req, frame[2 * u :])
         if end == 0x5B:
-            if len(buf) < 3 * u:
+            if have < 3 * u:
                 return NEED_DATA
             frame = buf.take(3 * u)
             self._pending.popleft()
