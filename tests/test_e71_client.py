@@ -254,8 +254,8 @@ async def test_simulator_answers_garbage_and_keeps_connection() -> None:
         assert await reader.readexactly(2) == bytes.fromhex("81 56")
         writer.write(bytes.fromhex("01 FF 0A 00 05 00 00 00 20 4D 01 00"))
         assert await reader.readexactly(2) == bytes.fromhex("81 58")
-        writer.write(bytes.fromhex("15 FF 0A 00"))  # defined, not implemented here: 50H
-        assert await reader.readexactly(2) == bytes.fromhex("95 50")
+        writer.write(bytes.fromhex("15 FF 0A 00"))  # issue 3: implemented (A3A-class model)
+        assert await reader.readexactly(4) == bytes.fromhex("95 00 94 00")
         writer.write(bytes.fromhex("08 FF 0A 00"))  # monitor without registration: 57H
         assert await reader.readexactly(2) == bytes.fromhex("88 57")
         # two requests in one segment, answered in order

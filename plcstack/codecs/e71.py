@@ -1233,7 +1233,9 @@ class E71ClientConnection:
         if not have:
             return NEED_DATA
         u = self._unit
-        if self._skip_trailer and have >= u:
+        if self._skip_trailer and have < u:
+            return NEED_DATA  # half of an ASCII "00" trailer: wait for its second character
+        if self._skip_trailer:
             # §13 A3: 5BH may be followed by 00H (A series) or not (Q series). No response
             # starts with 00H, so a leading 00H here is the trailer of the previous answer.
             if buf.peek(u) == (b"00" if u == 2 else b"\x00"):
