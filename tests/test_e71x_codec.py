@@ -621,7 +621,7 @@ def test_random_response_bytes_raise_only_remote_protocol_error(
     if isinstance(req, OpaqueCommand) and code is A:
         req = build(req.command, *_opaque_args(req), A)
     for transport in ("tcp", "udp"):
-        conn = E71ClientConnection(code, transport=transport)  # type: ignore[arg-type]
+        conn = E71ClientConnection(code, transport=transport)
         conn.send(req)
         conn.receive_data(data)
         with contextlib.suppress(RemoteProtocolError):
@@ -632,7 +632,7 @@ def test_random_response_bytes_raise_only_remote_protocol_error(
 @given(data=st.binary(max_size=64), code=st.sampled_from([B, A]))
 def test_random_request_bytes_never_raise_on_the_e71_side(data: bytes, code: Code) -> None:
     for transport in ("tcp", "udp"):
-        srv = E71ServerConnection(code, transport=transport, extensions=DECODERS)  # type: ignore[arg-type]
+        srv = E71ServerConnection(code, transport=transport, extensions=DECODERS)
         srv.receive_data(data)
         for _ in range(len(data) + 1):
             if srv.next_event() is NEED_DATA:
