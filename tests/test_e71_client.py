@@ -92,9 +92,8 @@ async def test_int32_and_float(sim: sim_e71.E71TcpSimulator) -> None:
         assert values == [0.75, -1.5]
         with pytest.raises(AddressError):
             await plc.read_int32("M0")
-        assert math.isnan(
-            (await plc.write_float("D30", [math.nan]), await plc.read_float("D30"))[1][0]
-        )
+        await plc.write_float("D30", [math.nan])
+        assert math.isnan((await plc.read_float("D30"))[0])
 
 
 async def test_test_and_monitor(sim: sim_e71.E71TcpSimulator) -> None:

@@ -17,6 +17,7 @@ from plcstack.codecs.e71 import (
     BadRequest,
     BitsResponse,
     Code,
+    CpuGroup,
     Device,
     DeviceRef,
     E71ClientConnection,
@@ -38,6 +39,8 @@ from plcstack.codecs.e71 import (
     WriteWords,
 )
 from plcstack.errors import RemoteProtocolError
+from plcstack.sim.e71 import execute
+from plcstack.sim.melsec_memory import CpuState, MelsecMemory
 
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -130,7 +133,7 @@ def test_request_round_trip(code: Code, req: Request) -> None:
     _monitor_sized(client, 1)
     wire = client.send(req)
     for transport in ("tcp", "udp"):
-        server = E71ServerConnection(code, transport=transport)  # type: ignore[arg-type]
+        server = E71ServerConnection(code, transport=transport)
         server.receive_data(wire)
         assert server.next_event() == req
         assert server.next_event() is NEED_DATA
@@ -144,7 +147,7 @@ def test_response_round_trip(code: Code, data: st.DataObject, m: int, trailer: b
     server = E71ServerConnection(code, abnormal_trailer=trailer)
     wire = server.send(resp)
     for transport in ("tcp", "udp"):
-        client = E71ClientConnection(code, transport=transport)  # type: ignore[arg-type]
+        client = E71ClientConnection(code, transport=transport)
         _monitor_sized(client, m)
         client.send(req)
         client.receive_data(wire)
@@ -271,3 +274,31 @@ def test_ascii_hex_garbage_is_framed_or_refused(code: Code, data: str) -> None:
 def test_every_defined_subheader_has_a_length_rule() -> None:
     defined = set(range(0x00, 0x22)) | set(range(0x39, 0x3D)) | {0x60, 0x61, 0x62}
     assert set(REQUEST_RULES) == defined
+
+
+@SETTINGS
+@given(
+    req=requests(),
+    state=st.sampled_from(list(CpuState)),
+    write_in_run=st.booleans(),
+    group=st.sampled_from(list(CpuGroup)),
+    code=codes,
+)
+def test_simulator_answers_every_request(
+    req: Request, state: CpuState, write_in_run: bool, group: CpuGroup, code: Code
+) -> None:
+    """Whatever a partner sends, the simulated E71 answers with an encodable response."""
+    mem = MelsecMemory(group, state=state, write_in_run=write_in_run)
+    resp = execute(mem, req)
+    assert resp.command == req.COMMAND
+    assert E71ServerConnection(code).send(resp)
+
+
+@SETTINGS
+@given(code=codes, data=st.binary(max_size=300))
+def test_simulator_answers_garbage(code: Code, data: bytes) -> None:
+    mem = MelsecMemory()
+    server = E71ServerConnection(code)
+    server.receive_data(data)
+    for event in _drain(server):
+        assert server.send(execute(mem, event))

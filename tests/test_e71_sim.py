@@ -20,6 +20,7 @@ from plcstack.codecs.e71 import (
     ReadWords,
     RegisterMonitorBits,
     RegisterMonitorWords,
+    Request,
     TestBits,
     TestWords,
     WriteBits,
@@ -79,13 +80,13 @@ def test_memory_group_ranges() -> None:
     assert MelsecMemory("IV").read_words("R", 8191, 1) == [0]
 
 
-WRITES = [
+WRITES: list[Request] = [
     WriteBits(ref("M0"), (True,)),
     WriteWords(ref("D0"), (1,)),
     TestBits(((ref("M0"), True),)),
     TestWords(((ref("D0"), 1),)),
 ]
-READS = [
+READS: list[Request] = [
     ReadBits(ref("M0"), 1),
     ReadWords(ref("D0"), 1),
     RegisterMonitorWords((ref("D0"),)),

@@ -30,7 +30,7 @@ import enum
 import functools
 import struct
 from collections import deque
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar, Final, Literal, NamedTuple
 
@@ -484,6 +484,8 @@ class ExtensionResponse(abc.ABC):
     """A response type defined by an extension module; it encodes itself (server side)."""
 
     __slots__ = ()
+    #: the request's command code (the response subheader is ``command | 80H``)
+    command: int
 
     @abc.abstractmethod
     def encode(self, code: Code) -> bytes: ...
@@ -523,6 +525,9 @@ def command_limit(command: int, device: Device | None) -> int:
     """Most points per request (§7.1). Word-unit commands on bit devices count words.
 
     For 05H/07H with a mix of devices the smaller (entry) limit applies: 40 / 20 entries.
+    [R] decision (§7.1 footnote): the "X counts twice" rule for non-AnA CPUs is not applied;
+    the client cannot know the CPU and the simulator defaults to an AnA group (VII). A count
+    field of 00H means 256 and is refused with 57H where the limit is lower (§13 A5).
     """
     if device is not None and device.is_bit:
         return _LIMITS_BIT[command]
@@ -707,9 +712,6 @@ class _Reader:
         self.pos = end
         return values
 
-    def remaining(self) -> int:
-        return len(self.data) - self.pos
-
 
 def _check_ref(ref: DeviceRef) -> None:
     if not isinstance(ref, DeviceRef) or not 0 <= ref.number <= 0xFFFFFFFF:
@@ -840,6 +842,7 @@ class _Rule(NamedTuple):
 
 
 #: Every defined subheader (§2, §7.1). Entries marked [R] follow the reconstructed layout of §7.8.
+#: [R] decision (§2): 22H-38H and everything else not listed here are undefined -> 50H.
 REQUEST_RULES: Final[dict[int, _Rule]] = {
     0x00: _Rule(12),
     0x01: _Rule(12),
@@ -976,6 +979,7 @@ def decode_request(
             if cmd == 0x01:
                 return ReadWords(ref, n, **hdr)
             if cmd == 0x02:
+                # §13 A8 decision: non-hex ASCII -> 54H (reader); otherwise the LSB decides.
                 data = r.raw((n + 1) // 2)
                 return WriteBits(ref, unpack_bits(data, n), **hdr)
             return WriteWords(ref, r.words(n), **hdr)
@@ -1318,8 +1322,3 @@ class E71ClientConnection:
         self._pending.clear()
         self._buf.clear()
         self._datagrams.clear()
-
-
-def iter_refs(first: DeviceRef, count: int) -> Iterable[DeviceRef]:
-    """``count`` consecutive points from ``first``."""
-    return (DeviceRef(first.device, first.number + i) for i in range(count))

@@ -121,7 +121,7 @@ def parse_request(req: OpaqueCommand, code: Code) -> ProgramAccess:
     data: tuple[int, ...] | None = None
     if PROGRAM_COMMANDS[command][1]:
         data = r.words(count) if command in WORD_COMMANDS else tuple(r.raw(count))
-    if r.remaining():
+    if r.pos != len(r.data):
         raise _Malformed(0x57, "data count does not match")
     return ProgramAccess(command, address, count, data)
 
