@@ -164,6 +164,7 @@ class FixedBufferConnection:
         u = self._u
         if len(head) < u:
             return None
+        sub = 0x7F  # [R] a non-hex ASCII subheader is answered FFH 54H, as in the core codec
         try:
             r = _Reader(head, self.code is Code.ASCII)
             sub = r.num(1)
@@ -176,7 +177,7 @@ class FixedBufferConnection:
             r.num(1)  # §13 A16: second subheader byte ignored
             n = r.num(2)
         except _Malformed as exc:
-            return self._fail(exc.end_code, exc.reason, 0x7F if exc.end_code == 0x54 else 0x60)
+            return self._fail(exc.end_code, exc.reason, sub)
         if not 1 <= n <= FIXED_BUFFER_MAX_WORDS[self.code]:
             return self._fail(
                 0x52, f"data length {n} words outside 1-{FIXED_BUFFER_MAX_WORDS[self.code]}"

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
+from collections.abc import Sequence
 from typing import Any, Literal
 
 from plcstack.codecs._common import NEED_DATA
@@ -85,7 +86,7 @@ class FixedBufferSimulator(Simulator):
         """Messages received and not yet taken by :meth:`receive`."""
         return self._inbox.qsize()
 
-    async def send(self, message: Message) -> int:
+    async def send(self, message: Sequence[int] | bytes) -> int:
         """Send from the PLC; with procedure wait for the partner's answer and return its end
         code (00H = taken). Raises ``TimeoutError`` (error 70H) without an answer, or
         ``ConnectionError`` with no partner."""
