@@ -394,3 +394,24 @@ async def test_undefined_subheaders_get_sub_or_80h_50h(
         expected = b"95009400" if code == "ascii" else bytes.fromhex("95 00 94 00")
         assert await reader.readexactly(len(expected)) == expected  # connection kept
         writer.close()
+
+
+async def test_remote_stop_closes_connections_unless_enabled() -> None:
+    """§1.3: without "communication in STOP" (buffer word 496) a STOP closes the connections;
+    the client reconnects on its next request."""
+    s = await sim_e71.start()
+    assert isinstance(s, sim_e71.E71TcpSimulator)
+    async with s, client(s.url) as plc:
+        module = module_of(s.memory)
+        await plc.remote_stop()
+        assert len(s.connections) == 1  # enabled (the simulator's default): kept
+        await plc.remote_run()
+        module.comm_in_stop = False
+        await plc.remote_stop()
+        for _ in range(500):  # the E71 closes after its answer; wait until the client saw it
+            if not s.connections and not plc.transport.is_open:
+                break
+            await asyncio.sleep(0.01)
+        assert not s.connections and not plc.transport.is_open
+        assert await plc.read_random_buffer(0, 1) == [0]  # reconnected
+        assert plc.stats.connects == 2

@@ -525,6 +525,124 @@ def test_program_layout_r(command: int, address: int, arg: Any, binary: str, asc
             assert access.data == tuple(arg)
 
 
+# Derived [R] golden vectors for every opaque command of §7.1 (request and answer, both codes):
+# (command, address, count or data, binary request, ASCII request, values, binary answer,
+#  ASCII answer). Reads answer words (0AH/0BH) or bytes; writes answer "cmd|80H 00".
+OPAQUE_GOLDEN: list[tuple[int, int, Any, str, str, tuple[int, ...], str, str]] = [
+    (
+        0x0A,
+        0,
+        2,
+        "0A FF 0A 00 00 00 02 00",
+        "0AFF000A00000200",
+        (0x1234, 0x5678),
+        "8A 00 34 12 78 56",
+        "8A0012345678",
+    ),
+    (
+        0x0B,
+        0xFF00,
+        1,
+        "0B FF 0A 00 00 FF 01 00",
+        "0BFF000AFF000100",
+        (0x8002,),
+        "8B 00 02 80",
+        "8B008002",
+    ),
+    (
+        0x0C,
+        5,
+        [0xABCD],
+        "0C FF 0A 00 05 00 01 00 CD AB",
+        "0CFF000A00050100ABCD",
+        (),
+        "8C 00",
+        "8C00",
+    ),
+    (0x0D, 5, [1], "0D FF 0A 00 05 00 01 00 01 00", "0DFF000A000501000001", (), "8D 00", "8D00"),
+    (
+        0x10,
+        0xBFE,
+        2,
+        "10 FF 0A 00 FE 0B 00 02 00",
+        "10FF000A000BFE0200",
+        (0x12, 0xAB),
+        "90 00 12 AB",
+        "900012AB",
+    ),
+    (0x11, 0, [0xFF], "11 FF 0A 00 00 00 00 01 00 FF", "11FF000A0000000100FF", (), "91 00", "9100"),
+    (
+        0x1C,
+        0x10,
+        3,
+        "1C FF 0A 00 10 00 03 00",
+        "1CFF000A00100300",
+        (0x41, 0x42, 0x43),
+        "9C 00 41 42 43",
+        "9C00414243",
+    ),
+    (0x1D, 0x10, [0x41], "1D FF 0A 00 10 00 01 00 41", "1DFF000A0010010041", (), "9D 00", "9D00"),
+    (
+        0x1E,
+        0xE7FE,
+        2,
+        "1E FF 0A 00 FE E7 02 00",
+        "1EFF000AE7FE0200",
+        (1, 2),
+        "9E 00 01 02",
+        "9E000102",
+    ),
+    (0x1F, 0, 1, "1F FF 0A 00 00 00 01 00", "1FFF000A00000100", (9,), "9F 00 09", "9F0009"),
+    (0x20, 0, [1, 2], "20 FF 0A 00 00 00 02 00 01 02", "20FF000A000002000102", (), "A0 00", "A000"),
+    (0x21, 0, [3], "21 FF 0A 00 00 00 01 00 03", "21FF000A0000010003", (), "A1 00", "A100"),
+    (0x39, 0x100, 1, "39 FF 0A 00 00 01 01 00", "39FF000A01000100", (0x7A,), "B9 00 7A", "B9007A"),
+    (0x3A, 0x100, [0x7A], "3A FF 0A 00 00 01 01 00 7A", "3AFF000A010001007A", (), "BA 00", "BA00"),
+]
+
+
+@pytest.mark.parametrize(
+    ("command", "address", "arg", "bq", "aq", "values", "br", "ar"),
+    OPAQUE_GOLDEN,
+    ids=[f"{c[0]:02X}H" for c in OPAQUE_GOLDEN],
+)
+@pytest.mark.parametrize("code", [B, A], ids=["binary", "ascii"])
+def test_golden_opaque_commands_both_ways(
+    code: Code,
+    command: int,
+    address: int,
+    arg: Any,
+    bq: str,
+    aq: str,
+    values: tuple[int, ...],
+    br: str,
+    ar: str,
+) -> None:
+    from plcstack.codecs.e71_programs import encode_answer
+
+    request_wire, answer_wire = _wire(code, bq, aq), _wire(code, br, ar)
+    req = build(command, address, arg, code)
+    client = E71ClientConnection(code)
+    assert client.send(req) == request_wire
+    server = E71ServerConnection(code, extensions=DECODERS)
+    server.receive_data(request_wire)
+    event = server.next_event()
+    assert event == req
+    answer = encode_answer(command, values, code) if values else Ack(command)
+    assert server.send(answer) == answer_wire
+    client.receive_data(answer_wire)
+    got = client.next_event()
+    assert isinstance(got, OpaqueResponse)
+    assert parse_response(req, got, code) == values
+
+
+def test_every_command_of_table_7_1_has_golden_vectors() -> None:
+    table_7_1 = {*range(0x00, 0x22), 0x39, 0x3A, 0x3B, 0x3C}
+    core = set(range(0x00, 0x0A))  # tests/test_e71_codec.py
+    here = {case[1].COMMAND for case in GOLDEN} | {c[0] for c in OPAQUE_GOLDEN}
+    assert table_7_1 - core - here == set()
+    assert {0x60, 0x61, 0x62} <= here
+
+
 def test_program_read_response_r() -> None:
     for code, data in ((B, hx("34 12 78 56")), (A, b"12345678")):
         req = build(0x0A, 0, 2, code)

@@ -7,8 +7,9 @@ the :class:`~plcstack.sim.melsec_memory.MelsecMemory` behind it (devices, CPU st
 Every request is answered as an E71 would (spec §10.3 precedence): undefined subheader 50H, ASCII
 conversion 54H, PC number other than FFH 5BH/10H (no MELSECNET here), 58H/57H for unit, range and
 count errors, 56H for unknown device codes, 55H for writes refused by the CPU state; the
-connection survives all of them. Commands of §7.1 this version does not implement (0AH-21H, 39H-3CH,
-60H-62H) are framed correctly and answered with 50H.
+connection survives all of them. The commands beyond 00H-09H (0AH-21H, 39H-3CH, 60H-62H) are
+executed by :mod:`plcstack.sim.e71_module` (CPU model, remote RUN/STOP, random access buffer,
+special modules, extended file registers, program areas).
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from plcstack.codecs.e71 import (
 )
 from plcstack.codecs.e71_commands import DECODERS
 from plcstack.sim.base import Simulator, TcpSimulator, UdpSimulator
-from plcstack.sim.e71_module import execute_extension
+from plcstack.sim.e71_module import execute_extension, module_of
 from plcstack.sim.melsec_memory import CpuState, MelsecAccessError, MelsecMemory
 
 __all__ = ["MAX_CONNECTIONS", "E71TcpSimulator", "E71UdpSimulator", "execute", "start"]
@@ -334,7 +335,20 @@ async def start(
         incomplete_timeout=incomplete_timeout,
     )
     sims.append(tsim)
+
+    def close_on_stop() -> None:
+        # §1.3: a remote STOP closes the connections unless buffer word 496 keeps them; the
+        # answer 94 00 is flushed first (close, not abort), after the write of this event
+        loop.call_soon(_close_all, tsim)
+
+    module_of(mem).stop_listeners.append(close_on_stop)
     return tsim
+
+
+def _close_all(sim: E71TcpSimulator) -> None:
+    for conn in list(sim.connections):
+        if conn.transport is not None:
+            conn.transport.close()
 
 
 # -- CLI: plcstack sim e71 ------------------------------------------------------------------

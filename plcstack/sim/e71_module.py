@@ -130,6 +130,12 @@ class E71Module:
         self.comments = bytearray(0x10000)
         self.ext_comments = bytearray(63 * 1024)
         self.parameter_analyses = 0
+        #: buffer memory word 496 (§1.3): keep the connections when the CPU stops. [R] The
+        #: simulator default is "enabled" (a real module's default 0 closes them on a STOP).
+        self.comm_in_stop = True
+        #: called after a remote STOP when ``comm_in_stop`` is off (the TCP simulator closes
+        #: its connections)
+        self.stop_listeners: list[Callable[[], None]] = []
         #: called with the 60H telegram words from a partner; returns the end code to answer
         self.fixed_buffer_handler: Callable[[tuple[int, ...]], int] | None = None
         self.fixed_buffer_received: list[tuple[int, ...]] = []
@@ -185,6 +191,9 @@ class E71Module:
             return 0x18
         self.remote_stop_by = by
         self._apply(stopped=True)
+        if not self.comm_in_stop:
+            for listener in list(self.stop_listeners):
+                listener()
         return 0
 
     def add_special_module(self, number: int, size: int = 0x1000) -> bytearray:
