@@ -15,6 +15,7 @@ from plcstack.codecs.e71 import CpuGroup
 from plcstack.errors import (
     AddressError,
     ConnectionLost,
+    LocalProtocolError,
     PlcErrorResponse,
     PlcTimeout,
 )
@@ -98,6 +99,8 @@ async def test_int32_and_float(sim: sim_e71.E71TcpSimulator) -> None:
 
 async def test_test_and_monitor(sim: sim_e71.E71TcpSimulator) -> None:
     async with client(sim.url) as plc:
+        with pytest.raises(LocalProtocolError):
+            await plc.monitor_words()  # nothing registered through this client
         await plc.test_bits([("X94", True), ("M60", False), ("B26", True)])
         assert sim.memory.read_bits("X", 0x94, 1) == [True]
         assert sim.memory.read_bits("B", 0x26, 1) == [True]
@@ -282,5 +285,37 @@ async def test_udp_simulator_replies_to_source_and_survives_garbage() -> None:
             async with asyncio.timeout(5):
                 assert await loop.sock_recv(sock, 100) == answer
         sock.close()
+    finally:
+        await s.aclose()
+
+
+async def test_slow_cpu_gives_60h_within_the_monitoring_timer(
+    sim: sim_e71.E71TcpSimulator,
+) -> None:
+    sim.cpu_time = 0.5
+    sep = "&" if "?" in sim.url else "?"
+    async with client(sim.url + sep + "monitoring_timer=1") as plc:  # 0.25 s
+        with pytest.raises(PlcErrorResponse) as err:
+            await plc.write("D0", [5])
+        assert err.value.code == 0x60 and "monitoring timer" in str(err.value)
+        assert sim.memory.read_words("D", 0, 1) == [0]  # not executed
+    async with client(sim.url) as plc:  # default timer 1.75 s > 0.5 s: the CPU answers
+        await plc.write("D0", [5])
+        assert await plc.read("D0") == [5]
+
+
+async def test_pipelined_requests_are_answered_in_order_with_cpu_time() -> None:
+    s = await sim_e71.start()
+    s.cpu_time = 0.3
+    try:
+        reader, writer = await asyncio.open_connection(s.host, s.port)
+        patient = bytes.fromhex("01 FF 00 00 64 00 00 00 20 44 01 00")  # timer 0: wait forever
+        hasty = bytes.fromhex("01 FF 01 00 64 00 00 00 20 44 01 00")  # 0.25 s < CPU: 60H
+        # the hasty answer (due sooner) must still come after the patient one (§4.1)
+        writer.write(patient + hasty + bytes.fromhex("15 FF 0A 00"))
+        got = await asyncio.wait_for(reader.readexactly(4 + 2 + 4), 5)
+        assert got == bytes.fromhex("81 00 00 00 81 60 95 00 94 00")  # 15H: issue 3
+        writer.close()
+        await writer.wait_closed()
     finally:
         await s.aclose()

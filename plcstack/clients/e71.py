@@ -52,7 +52,12 @@ from plcstack.codecs.e71 import (
     parse_address,
     unit_error,
 )
-from plcstack.errors import AddressError, PlcErrorResponse, RemoteProtocolError
+from plcstack.errors import (
+    AddressError,
+    LocalProtocolError,
+    PlcErrorResponse,
+    RemoteProtocolError,
+)
 from plcstack.transports.base import Transport
 from plcstack.transports.tcp import TcpTransport
 from plcstack.transports.udp import UdpTransport
@@ -359,13 +364,17 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
     async def monitor_bits(self) -> list[bool]:
         what = "monitor bits"
         if self._monitor[0] is None:
-            raise self._bad("register bit points first (register_monitor_bits)", what)
+            raise LocalProtocolError(
+                "register bit points first (register_monitor_bits)", plc=self.name, request=what
+            )
         return await self._read_bits(MonitorBits(**self._hdr()), what)
 
     async def monitor_words(self) -> list[int]:
         what = "monitor words"
         if self._monitor[1] is None:
-            raise self._bad("register words first (register_monitor_words)", what)
+            raise LocalProtocolError(
+                "register words first (register_monitor_words)", plc=self.name, request=what
+            )
         return await self._read_words(MonitorWords(**self._hdr()), what)
 
     def _checked(self, request: Request, what: str) -> Request:

@@ -21,6 +21,7 @@ from typing import Any, Literal, cast
 
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.e71 import (
+    REQUEST_TYPES,
     Ack,
     BadRequest,
     BitsResponse,
@@ -53,7 +54,14 @@ from plcstack.sim.base import Simulator, TcpSimulator, UdpSimulator
 from plcstack.sim.e71_module import execute_extension, module_of
 from plcstack.sim.melsec_memory import CpuState, MelsecAccessError, MelsecMemory
 
-__all__ = ["MAX_CONNECTIONS", "E71TcpSimulator", "E71UdpSimulator", "execute", "start"]
+__all__ = [
+    "MAX_CONNECTIONS",
+    "E71TcpSimulator",
+    "E71UdpSimulator",
+    "answer",
+    "execute",
+    "start",
+]
 
 #: the module has 8 connections (§1.1); a 9th TCP connection is closed at once
 MAX_CONNECTIONS = 8
@@ -149,6 +157,24 @@ def _execute(mem: MelsecMemory, req: Request) -> Response:
     return Ack(cmd)
 
 
+def answer(
+    memory: MelsecMemory,
+    event: Request | OpaqueRequest | ExtensionRequest | BadRequest,
+    cpu_time: float,
+    code: Code = Code.BINARY,
+) -> tuple[Response | ExtensionResponse, float]:
+    """The response and after how many seconds it is due, given the CPU needs ``cpu_time``.
+
+    App. B: the E71 waits for the CPU at most the request's ACPU monitoring timer (250 ms units,
+    0 = forever); when that expires first it answers 60H and the request is not executed.
+    """
+    if cpu_time > 0 and isinstance(event, REQUEST_TYPES) and event.pc == 0xFF:
+        limit = event.timer * 0.25
+        if event.timer and cpu_time > limit:
+            return ErrorResponse(event.COMMAND, 0x60), limit
+    return execute(memory, event, code), max(cpu_time, 0.0)
+
+
 class _TcpConnection(asyncio.Protocol):
     def __init__(self, sim: E71TcpSimulator) -> None:
         self.sim = sim
@@ -160,6 +186,7 @@ class _TcpConnection(asyncio.Protocol):
         )
         self.transport: asyncio.Transport | None = None
         self._partial_timer: asyncio.TimerHandle | None = None
+        self._busy_until = 0.0  # loop time when the last queued (delayed) answer goes out
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -183,16 +210,22 @@ class _TcpConnection(asyncio.Protocol):
             sim.requests += 1
             if sim.mute:
                 continue
-            out = codec.send(execute(sim.memory, event, sim.code))
-            if sim.delay > 0:
-                asyncio.get_running_loop().call_later(sim.delay, self._write_late, out)
-            else:
-                transport.write(out)
+            if sim.delay <= 0 and sim.cpu_time <= 0 and self._busy_until == 0.0:
+                transport.write(codec.send(execute(sim.memory, event, sim.code)))
+                continue
+            response, due = answer(sim.memory, event, sim.cpu_time, sim.code)
+            # requests are processed strictly one after another (§4.1): queue behind the last
+            loop = asyncio.get_running_loop()
+            at = max(loop.time(), self._busy_until) + due + max(sim.delay, 0.0)
+            self._busy_until = at
+            loop.call_at(at, self._write_late, codec.send(response))
         self._arm_partial_timer()
 
     def _write_late(self, data: bytes) -> None:
         if self.transport is not None and not self.transport.is_closing():
             self.transport.write(data)
+        if self._busy_until <= asyncio.get_running_loop().time():
+            self._busy_until = 0.0
 
     def _arm_partial_timer(self) -> None:
         if self._partial_timer is not None:
@@ -214,7 +247,11 @@ class _TcpConnection(asyncio.Protocol):
 class E71TcpSimulator(TcpSimulator):
     """An E71 on TCP: up to 8 connections at once, one :class:`MelsecMemory` behind all."""
 
+    #: seconds added to every answer (network latency); never turns into an end code
     delay = 0.0
+    #: seconds the CPU needs per request; beyond the request's monitoring timer -> 60H
+    cpu_time = 0.0
+    #: swallow requests without answering (a dead link, for timeout tests)
     mute = False
 
     def __init__(
@@ -266,10 +303,12 @@ class _UdpEndpoint(asyncio.DatagramProtocol):
         sim.requests += 1
         if sim.mute:
             return
-        out = self.codec.send(execute(sim.memory, event, sim.code))
+        response, due = answer(sim.memory, event, sim.cpu_time, sim.code)
+        out = self.codec.send(response)
         # §13 A14: reply to the datagram's source address.
-        if sim.delay > 0:
-            asyncio.get_running_loop().call_later(sim.delay, self.transport.sendto, out, addr)
+        wait = due + max(sim.delay, 0.0)
+        if wait > 0:
+            asyncio.get_running_loop().call_later(wait, self.transport.sendto, out, addr)
         else:
             self.transport.sendto(out, addr)
 
@@ -277,7 +316,11 @@ class _UdpEndpoint(asyncio.DatagramProtocol):
 class E71UdpSimulator(UdpSimulator):
     """An E71 on UDP: one message per datagram, answered to its source address."""
 
+    #: seconds added to every answer (network latency); never turns into an end code
     delay = 0.0
+    #: seconds the CPU needs per request; beyond the request's monitoring timer -> 60H
+    cpu_time = 0.0
+    #: swallow requests without answering (a dead link, for timeout tests)
     mute = False
 
     def __init__(
