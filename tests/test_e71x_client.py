@@ -360,9 +360,17 @@ async def test_program_write_in_run_conditions(
                 assert await error_code(plc.write_area(command, 0, [1])) == "55H"
 
 
-async def test_sub_program_only_on_a3_class() -> None:
+async def test_cpu_type_restrictions() -> None:
+    """§7.1: sub programs and microcomputer SUB only on A3-class CPUs, extended comments only on
+    AnA/AnU ([R] refused with 58H)."""
     async with await sim_e71.start(MelsecMemory(CpuGroup.V)) as s, client(s.url) as plc:
-        assert await error_code(plc.read_area(0x0B, 0, 1)) == "58H"
+        assert await error_code(plc.read_area(0x0B, 0, 1)) == "58H"  # A2A: no sub program
+        assert await error_code(plc.read_area(0x1F, 0, 1)) == "58H"
+        assert await plc.read_area(0x39, 0, 1) == [0]
+    async with await sim_e71.start(MelsecMemory(CpuGroup.IV)) as s, client(s.url) as plc:
+        assert await error_code(plc.read_area(0x39, 0, 1)) == "58H"  # A3: not AnA/AnU
+        assert await plc.read_area(0x0B, 0, 1) == [0]
+        assert await plc.read_area(0x1F, 0, 1) == [0]
 
 
 # -- PC number and undefined subheaders ---------------------------------------------------------
@@ -415,3 +423,16 @@ async def test_remote_stop_closes_connections_unless_enabled() -> None:
         assert not s.connections and not plc.transport.is_open
         assert await plc.read_random_buffer(0, 1) == [0]  # reconnected
         assert plc.stats.connects == 2
+
+
+async def test_fixed_buffer_telegram_on_the_mc_connection(sim: Sim) -> None:
+    """A with-procedure connection also carries 60H (§8.1); the simulated PLC program takes the
+    data at once (or answers the end code its handler returns)."""
+    module = module_of(sim.memory)
+    async with client(sim.url) as plc:
+        await plc.send_fixed_buffer([1, 2, 3])
+        assert module.fixed_buffer_received == [(1, 2, 3)]
+        module.fixed_buffer_handler = lambda words: 0x52 if len(words) > 2 else 0
+        assert await error_code(plc.send_fixed_buffer([1, 2, 3])) == "52H"
+        await plc.send_fixed_buffer([4])
+        assert (await plc.cpu_model())[0] == 0x94  # the connection is still in step

@@ -31,6 +31,7 @@ from plcstack.codecs.e71_commands import (
     RANDOM_BUFFER_WORDS,
     BytesResponse,
     CpuModelResponse,
+    FixedBufferData,
     Loopback,
     LoopbackResponse,
     MonitorExt,
@@ -300,6 +301,14 @@ class E71CommandsMixin:
     def _rab_span(self, address: int, count: int, what: str) -> None:
         self._xint(address, 0, RANDOM_BUFFER_WORDS - 1, "address", what)
         self._xint(count, 1, RANDOM_BUFFER_WORDS - address, "word count", what)
+
+    # -- fixed buffer telegram on this (with procedure) connection ---------------------------------
+    async def send_fixed_buffer(self, values: Sequence[int]) -> None:
+        """60H on this connection (a "with procedure" connection carries fixed buffer telegrams
+        too, §8.1); returns on ``E0 00``. PLC-initiated telegrams need their own connection:
+        :class:`plcstack.clients.e71_fixed.E71FixedBufferClient`."""
+        what = f"fixed buffer send x{len(values)}"
+        await self._xcall(FixedBufferData(self._xword_values(values, what)), what, is_write=True)
 
     # -- programs, parameters, comments (EXPERIMENTAL [R] layout, §7.8) ------------------------
     async def opaque(self, command: int, body: bytes, response_length: int) -> bytes:

@@ -82,6 +82,8 @@ GROUP_MODEL: Final = {
 }
 #: CPUs that may write programs in RUN under conditions (*) of §7.1: A3, A3N, A3A, A3U, A4U
 _A3_CLASS: Final = frozenset({0xA3, 0x94})
+#: AnA/AnU CPUs (model codes 92H, 93H, 94H)
+_AnA_AnU: Final = frozenset({0x92, 0x93, 0x94})
 #: microcomputer program area size by model code (§7.8, seed Tab. 10-47)
 _MICRO_SIZE: Final = {0xA1: 0x2800, 0x98: 0x3800, 0x9A: 0x3800, 0xA3: 0xE800, 0x94: 0xE800}
 
@@ -390,6 +392,11 @@ def _program(
         return Ack(cmd)
     access = parse_request(req, code)
     is_write = PROGRAM_COMMANDS[cmd][1]
+    # §7.1 CPU-type restrictions; [R] the refusal code is not documented, 58H is used
+    if cmd in (0x39, 0x3A) and module.model_code not in _AnA_AnU:
+        return ErrorResponse(cmd, 0x58)  # extended comments: AnA/AnU only (§13 A12)
+    if cmd in (0x1F, 0x21) and module.model_code not in _A3_CLASS:
+        return ErrorResponse(cmd, 0x58)  # microcomputer SUB: A3/A3N/A3A only
     area: bytearray | array[int]
     if cmd in WORD_COMMANDS:
         key = 0x0A if cmd in (0x0A, 0x0C) else 0x0B
