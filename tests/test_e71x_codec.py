@@ -755,3 +755,52 @@ def test_random_request_bytes_never_raise_on_the_e71_side(data: bytes, code: Cod
         for _ in range(len(data) + 1):
             if srv.next_event() is NEED_DATA:
                 break
+
+
+# -- the simulator answers every extension request with a response the client can decode ---------
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    req=requests,
+    code=st.sampled_from([B, A]),
+    state=st.sampled_from(["RUN", "STOP", "PAUSE"]),
+    write_in_run=st.booleans(),
+    group=st.sampled_from(["I", "IV", "V", "VII"]),
+)
+def test_simulator_answers_are_decodable(
+    req: ExtensionRequest, code: Code, state: str, write_in_run: bool, group: str
+) -> None:
+    from plcstack.sim.e71 import execute
+    from plcstack.sim.melsec_memory import CpuState, MelsecMemory
+
+    if isinstance(req, OpaqueCommand) and code is A:
+        req = build(req.command, *_opaque_args(req), A)
+    mem = MelsecMemory(group, state=CpuState(state), write_in_run=write_in_run)
+    server = E71ServerConnection(code, extensions=DECODERS)
+    client = E71ClientConnection(code)
+    server.receive_data(client.send(req))
+    event = server.next_event()
+    assert event == req
+    answer = server.send(execute(mem, event, code))
+    client.receive_data(answer)
+    got = client.next_event()
+    assert got is not NEED_DATA
+    assert getattr(got, "command", req.COMMAND) == req.COMMAND
+    assert client.pending == 0
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.binary(max_size=120), code=st.sampled_from([B, A]))
+def test_simulator_answers_garbage_with_extensions(data: bytes, code: Code) -> None:
+    from plcstack.sim.e71 import execute
+    from plcstack.sim.melsec_memory import MelsecMemory
+
+    mem = MelsecMemory()
+    server = E71ServerConnection(code, extensions=DECODERS)
+    server.receive_data(data)
+    for _ in range(len(data) + 1):
+        event = server.next_event()
+        if event is NEED_DATA:
+            break
+        assert server.send(execute(mem, event, code))
