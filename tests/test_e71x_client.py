@@ -149,10 +149,12 @@ async def test_random_buffer(sim: Sim) -> None:
 async def test_random_buffer_six_char_ascii_form() -> None:
     async with await sim_e71.start(code="ascii") as s:
         module_of(s.memory).rab_ascii_sub_chars = 4
-        async with client(s.url) as plc:
-            plc.rab_ascii_sub_chars = 4
+        async with client(s.url + "&rab_ascii_sub_chars=4") as plc:
+            assert plc.rab_ascii_sub_chars == 4
             await plc.write_random_buffer(10, [1, 2])
             assert await plc.read_random_buffer(10, 2) == [1, 2]
+        with pytest.raises(AddressError):
+            client(s.url + "&rab_ascii_sub_chars=3")
         reader, writer = await asyncio.open_connection(s.host, s.port)
         writer.write(b"610017FF0002")
         assert await reader.readexactly(6) == b"E10052"
