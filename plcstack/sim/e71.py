@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import weakref
 from collections.abc import Callable
 from typing import Any, Literal, cast
 
@@ -379,10 +380,14 @@ async def start(
     )
     sims.append(tsim)
 
+    sim_ref = weakref.ref(tsim)  # the module outlives no simulator through this listener
+
     def close_on_stop() -> None:
         # §1.3: a remote STOP closes the connections unless buffer word 496 keeps them; the
         # answer 94 00 is flushed first (close, not abort), after the write of this event
-        loop.call_soon(_close_all, tsim)
+        alive = sim_ref()
+        if alive is not None:
+            loop.call_soon(_close_all, alive)
 
     module_of(mem).stop_listeners.append(close_on_stop)
     return tsim
