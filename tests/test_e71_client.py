@@ -256,8 +256,8 @@ async def test_simulator_answers_garbage_and_keeps_connection() -> None:
         assert await reader.readexactly(2) == bytes.fromhex("81 56")
         writer.write(bytes.fromhex("01 FF 0A 00 05 00 00 00 20 4D 01 00"))
         assert await reader.readexactly(2) == bytes.fromhex("81 58")
-        writer.write(bytes.fromhex("15 FF 0A 00"))  # defined, not implemented here: 50H
-        assert await reader.readexactly(2) == bytes.fromhex("95 50")
+        writer.write(bytes.fromhex("15 FF 0A 00"))  # issue 3: implemented (A3A-class model)
+        assert await reader.readexactly(4) == bytes.fromhex("95 00 94 00")
         writer.write(bytes.fromhex("08 FF 0A 00"))  # monitor without registration: 57H
         assert await reader.readexactly(2) == bytes.fromhex("88 57")
         # two requests in one segment, answered in order
@@ -313,8 +313,8 @@ async def test_pipelined_requests_are_answered_in_order_with_cpu_time() -> None:
         hasty = bytes.fromhex("01 FF 01 00 64 00 00 00 20 44 01 00")  # 0.25 s < CPU: 60H
         # the hasty answer (due sooner) must still come after the patient one (§4.1)
         writer.write(patient + hasty + bytes.fromhex("15 FF 0A 00"))
-        got = await asyncio.wait_for(reader.readexactly(4 + 2 + 2), 5)
-        assert got == bytes.fromhex("81 00 00 00 81 60 95 50")
+        got = await asyncio.wait_for(reader.readexactly(4 + 2 + 4), 5)
+        assert got == bytes.fromhex("81 00 00 00 81 60 95 00 94 00")  # 15H: issue 3
         writer.close()
         await writer.wait_closed()
     finally:

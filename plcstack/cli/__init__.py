@@ -18,6 +18,7 @@ from plcstack.errors import AddressError, PlcError
 #: subcommand modules, in the order ``--help`` lists them
 COMMAND_MODULES = [
     "plcstack.cli.io",
+    "plcstack.cli.e71",
     "plcstack.cli.sim",
 ]
 

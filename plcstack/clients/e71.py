@@ -23,6 +23,7 @@ from collections.abc import Hashable, Sequence
 from typing import Any, Self
 
 from plcstack.clients.base import RequestClient
+from plcstack.clients.e71_commands import E71CommandsMixin
 from plcstack.codecs.e71 import (
     DEFAULT_PC,
     WIDEST_RANGES,
@@ -72,10 +73,15 @@ def _default_timer(timeout: float) -> int:
     return max(1, min(0xFFFF, int(timeout * 4) - 1))
 
 
-class E71Client(RequestClient[Response]):
+class E71Client(E71CommandsMixin, RequestClient[Response]):
     """Async client for one E71 connection. Use ``async with plcstack.connect(url) as plc``."""
 
-    URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {"code", "pc", "monitoring_timer"}
+    URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {
+        "code",
+        "pc",
+        "monitoring_timer",
+        "rab_ascii_sub_chars",  # issue 3: §13 A2, see clients/e71_commands.py
+    }
 
     def __init__(
         self,
@@ -120,6 +126,11 @@ class E71Client(RequestClient[Response]):
         timer = kw.pop("monitoring_timer", None)
         if timer is None and "monitoring_timer" in url.options:
             timer = url.get_int("monitoring_timer", 0, 0, 0xFFFF)
+        width = kw.pop("rab_ascii_sub_chars", None)  # issue 3: §13 A2
+        if width is None:
+            width = url.get_int("rab_ascii_sub_chars", 2, 2, 4)
+        if width not in (2, 4):
+            raise AddressError("rab_ascii_sub_chars must be 2 or 4", plc=url.raw)
         common = cls.common_options(url, kw)
         assert url.host is not None and url.port is not None
         transport: Transport
@@ -127,7 +138,9 @@ class E71Client(RequestClient[Response]):
             transport = UdpTransport(url.host, url.port)
         else:
             transport = TcpTransport(url.host, url.port)
-        return cls(url.raw, transport, code=code, pc=pc, monitoring_timer=timer, **common)
+        plc = cls(url.raw, transport, code=code, pc=pc, monitoring_timer=timer, **common)
+        plc.rab_ascii_sub_chars = width
+        return plc
 
     def new_codec(self) -> E71ClientConnection:
         codec = E71ClientConnection(self.code, transport="udp" if self._udp else "tcp")

@@ -25,11 +25,12 @@ call as exactly one datagram holding exactly one message (§4.1).
 
 from __future__ import annotations
 
+import abc
 import enum
 import functools
 import struct
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar, Final, Literal, NamedTuple
 
@@ -476,6 +477,45 @@ Response = Ack | BitsResponse | WordsResponse | ErrorResponse
 
 
 # ---------------------------------------------------------------------------------------------
+# Extension hook: commands beyond 00H-09H live in their own modules (e71_commands, e71_buffers)
+
+
+class ExtensionResponse(abc.ABC):
+    """A response type defined by an extension module; it encodes itself (server side)."""
+
+    __slots__ = ()
+    #: the request's command code (the response subheader is ``command | 80H``)
+    command: int
+
+    @abc.abstractmethod
+    def encode(self, code: Code) -> bytes: ...
+
+
+class ExtensionRequest(abc.ABC):
+    """A request type defined by an extension module (client side): it encodes itself and
+    sizes/decodes its own response, so the connection classes below stay protocol-generic."""
+
+    __slots__ = ()
+    COMMAND: ClassVar[int]
+
+    @abc.abstractmethod
+    def encode(self, code: Code) -> bytes: ...
+
+    @abc.abstractmethod
+    def response_size(self, head: bytes, code: Code) -> int | None:
+        """Wire length of the whole response that starts with ``head`` (at least its first 16
+        bytes when available); ``None`` = more bytes needed. Raises RemoteProtocolError."""
+
+    @abc.abstractmethod
+    def decode_response(self, frame: bytes, code: Code) -> Response | ExtensionResponse:
+        """Decode the complete response ``frame`` (5BH: with or without the trailing 00H)."""
+
+
+#: server side: command -> decoder of the complete frame (raises _Malformed with the end code)
+ExtensionDecoders = Mapping[int, Callable[[bytes, Code, bool], ExtensionRequest]]
+
+
+# ---------------------------------------------------------------------------------------------
 # Limits (§7.1) shared by the client (checked before sending) and the simulator (end codes)
 
 _BIT_ONLY: Final = frozenset({0x00, 0x02, 0x04, 0x06})
@@ -758,9 +798,13 @@ def encode_request(req: Request, code: Code) -> bytes:
     return w.getvalue()
 
 
-def encode_response(resp: Response, code: Code, *, abnormal_trailer: bool = True) -> bytes:
+def encode_response(
+    resp: Response | ExtensionResponse, code: Code, *, abnormal_trailer: bool = True
+) -> bytes:
     """Encode a response (§4.3). 5BH gets abnormal code + 00H (A-series, §13 A3) unless
     ``abnormal_trailer`` is false (the Q-series form)."""
+    if isinstance(resp, ExtensionResponse):
+        return resp.encode(code)
     w = _Writer(code is Code.ASCII)
     w.num((resp.command | 0x80) & 0xFF, 1)
     if isinstance(resp, ErrorResponse):
@@ -901,7 +945,13 @@ def _decode_ref(r: _Reader) -> DeviceRef:
     return DeviceRef(device, number)
 
 
-def decode_request(frame: bytes, code: Code, *, lower_ok: bool = True) -> Request | OpaqueRequest:
+def decode_request(
+    frame: bytes,
+    code: Code,
+    *,
+    lower_ok: bool = True,
+    extensions: ExtensionDecoders | None = None,
+) -> Request | OpaqueRequest | ExtensionRequest:
     """Decode one complete, correctly sized request frame (server side).
 
     Raises :class:`_Malformed` with the E71's end code for what it would refuse to parse.
@@ -910,6 +960,8 @@ def decode_request(frame: bytes, code: Code, *, lower_ok: bool = True) -> Reques
     r = _Reader(frame, ascii_, lower_ok=lower_ok)
     cmd = r.num(1)
     if cmd not in (0x00, 0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x07, 0x08, 0x09):
+        if extensions is not None and cmd in extensions:
+            return extensions[cmd](frame, code, lower_ok)
         if cmd in REQUEST_RULES:
             return OpaqueRequest(cmd, frame)
         raise _Malformed(0x50, f"undefined subheader {cmd:02X}H")
@@ -982,6 +1034,8 @@ class E71ServerConnection:
     (answer it with ``ErrorResponse(bad.command, bad.end_code)``) or ``NEED_DATA``. Never raises
     on input: the simulator must answer everything and keep the connection (§10).
     ``lower_ok=False`` is the strict mode of §13 A7 (lower-case hex answered with 54H).
+    ``extensions`` maps further commands to decoders (``plcstack.codecs.e71_commands``); their
+    frames come out as :class:`ExtensionRequest` objects instead of :class:`OpaqueRequest`.
     """
 
     def __init__(
@@ -991,11 +1045,13 @@ class E71ServerConnection:
         transport: Transport = "tcp",
         lower_ok: bool = True,
         abnormal_trailer: bool = True,
+        extensions: ExtensionDecoders | None = None,
     ) -> None:
         self.code = _code(code)
         self.transport = transport
         self.lower_ok = lower_ok
         self.abnormal_trailer = abnormal_trailer
+        self.extensions = extensions
         self._buf = ReceiveBuffer()
         self._datagrams: deque[bytes] = deque()
 
@@ -1014,7 +1070,7 @@ class E71ServerConnection:
         """Drop an incomplete request (the response monitoring time expired, error 71H)."""
         self._buf.clear()
 
-    def next_event(self) -> Request | OpaqueRequest | BadRequest | NeedData:
+    def next_event(self) -> Request | OpaqueRequest | ExtensionRequest | BadRequest | NeedData:
         if self.transport == "udp":
             if not self._datagrams:
                 return NEED_DATA
@@ -1032,7 +1088,7 @@ class E71ServerConnection:
             return NEED_DATA
         return self._parse(buf.take(sized.length))
 
-    def _one_datagram(self, data: bytes) -> Request | OpaqueRequest | BadRequest:
+    def _one_datagram(self, data: bytes) -> Request | OpaqueRequest | ExtensionRequest | BadRequest:
         try:
             sized = size_request(data, self.code, lower_ok=self.lower_ok)
         except _Malformed as exc:
@@ -1047,9 +1103,11 @@ class E71ServerConnection:
             )
         return self._parse(data)
 
-    def _parse(self, frame: bytes) -> Request | OpaqueRequest | BadRequest:
+    def _parse(self, frame: bytes) -> Request | OpaqueRequest | ExtensionRequest | BadRequest:
         try:
-            return decode_request(frame, self.code, lower_ok=self.lower_ok)
+            return decode_request(
+                frame, self.code, lower_ok=self.lower_ok, extensions=self.extensions
+            )
         except _Malformed as exc:
             return BadRequest(self._sub_of(frame), exc.end_code, exc.pc, exc.reason)
 
@@ -1062,7 +1120,7 @@ class E71ServerConnection:
         # [R] non-hex ASCII subheader: no byte to echo; answer FFH (7FH | 80H) with 54H.
         return 0x7F
 
-    def send(self, response: Response) -> bytes:
+    def send(self, response: Response | ExtensionResponse) -> bytes:
         return encode_response(response, self.code, abnormal_trailer=self.abnormal_trailer)
 
 
@@ -1080,7 +1138,7 @@ class E71ClientConnection:
         self._unit = 2 if self.code is Code.ASCII else 1
         self._buf = ReceiveBuffer()
         self._datagrams: deque[bytes] = deque()
-        self._pending: deque[Request] = deque()
+        self._pending: deque[Request | ExtensionRequest] = deque()
         self._skip_trailer = False
         #: points registered by the last acknowledged 06H / words by the last 07H
         self.monitor_bits: int | None = None
@@ -1090,7 +1148,11 @@ class E71ClientConnection:
     def pending(self) -> int:
         return len(self._pending)
 
-    def send(self, request: Request) -> bytes:
+    def send(self, request: Request | ExtensionRequest) -> bytes:
+        if isinstance(request, ExtensionRequest):
+            ext = request.encode(self.code)
+            self._pending.append(request)
+            return ext
         if isinstance(request, MonitorBits) and self.monitor_bits is None:
             raise LocalProtocolError("monitor 08H before a bit registration (06H) was acknowledged")
         if isinstance(request, MonitorWords) and self.monitor_words is None:
@@ -1167,7 +1229,7 @@ class E71ClientConnection:
         except _Malformed:
             raise RemoteProtocolError(f"malformed abnormal code {data!r}") from None
 
-    def next_event(self) -> Response | NeedData:
+    def next_event(self) -> Response | ExtensionResponse | NeedData:
         if self.transport == "udp":
             return self._next_datagram()
         buf = self._buf
@@ -1175,7 +1237,9 @@ class E71ClientConnection:
         if not have:
             return NEED_DATA
         u = self._unit
-        if self._skip_trailer and have >= u:
+        if self._skip_trailer and have < u:
+            return NEED_DATA  # half of an ASCII "00" trailer: wait for its second character
+        if self._skip_trailer:
             # §13 A3: 5BH may be followed by 00H (A series) or not (Q series). No response
             # starts with 00H, so a leading 00H here is the trailer of the previous answer.
             if buf.peek(u) == (b"00" if u == 2 else b"\x00"):
@@ -1189,6 +1253,15 @@ class E71ClientConnection:
         if have < 2 * u:
             return NEED_DATA
         req = self._pending[0]
+        if isinstance(req, ExtensionRequest):
+            size = req.response_size(buf.peek(16), self.code)
+            if size is None or len(buf) < size:
+                return NEED_DATA
+            frame = buf.take(size)
+            self._pending.popleft()
+            event = req.decode_response(frame, self.code)
+            self._skip_trailer = isinstance(event, ErrorResponse) and event.end_code == 0x5B
+            return event
         _, end = self._head(buf.peek(2 * u), req)
         if end == 0:
             total = (2 + self._data_length(req)) * u
@@ -1208,7 +1281,7 @@ class E71ClientConnection:
         self._pending.popleft()
         return ErrorResponse(req.COMMAND, end)
 
-    def _next_datagram(self) -> Response | NeedData:
+    def _next_datagram(self) -> Response | ExtensionResponse | NeedData:
         if not self._datagrams:
             return NEED_DATA
         data = self._datagrams.popleft()
@@ -1218,6 +1291,16 @@ class E71ClientConnection:
         if len(data) < 2 * u:
             raise RemoteProtocolError(f"datagram of {len(data)} byte(s) is too short")
         req = self._pending.popleft()
+        if isinstance(req, ExtensionRequest):
+            size = req.response_size(data, self.code)
+            # a 5BH answer may carry the trailing 00H or not (§13 A3): one unit of slack
+            slack = u if data[u : 2 * u] in (b"5B", b"5b", b"\x5b") else 0
+            if size is None or not size <= len(data) <= size + slack:
+                raise RemoteProtocolError(
+                    f"{req.COMMAND | 0x80:02X}H datagram of {len(data)} byte(s), "
+                    f"expected {'more' if size is None else size}"
+                )
+            return req.decode_response(data[:size], self.code)
         _, end = self._head(data, req)
         if end == 0:
             total = (2 + self._data_length(req)) * u

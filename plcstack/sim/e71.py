@@ -7,14 +7,16 @@ the :class:`~plcstack.sim.melsec_memory.MelsecMemory` behind it (devices, CPU st
 Every request is answered as an E71 would (spec §10.3 precedence): undefined subheader 50H, ASCII
 conversion 54H, PC number other than FFH 5BH/10H (no MELSECNET here), 58H/57H for unit, range and
 count errors, 56H for unknown device codes, 55H for writes refused by the CPU state; the
-connection survives all of them. Commands of §7.1 this version does not implement (0AH-21H, 39H-3CH,
-60H-62H) are framed correctly and answered with 50H.
+connection survives all of them. The commands beyond 00H-09H (0AH-21H, 39H-3CH, 60H-62H) are
+executed by :mod:`plcstack.sim.e71_module` (CPU model, remote RUN/STOP, random access buffer,
+special modules, extended file registers, program areas).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import weakref
 from collections.abc import Callable
 from typing import Any, Literal, cast
 
@@ -29,6 +31,8 @@ from plcstack.codecs.e71 import (
     DeviceRef,
     E71ServerConnection,
     ErrorResponse,
+    ExtensionRequest,
+    ExtensionResponse,
     MonitorBits,
     MonitorWords,
     OpaqueRequest,
@@ -46,7 +50,9 @@ from plcstack.codecs.e71 import (
     limit_error,
     unit_error,
 )
+from plcstack.codecs.e71_commands import DECODERS
 from plcstack.sim.base import Simulator, TcpSimulator, UdpSimulator
+from plcstack.sim.e71_module import execute_extension, module_of
 from plcstack.sim.melsec_memory import CpuState, MelsecAccessError, MelsecMemory
 
 __all__ = [
@@ -70,8 +76,15 @@ def _span(ref: DeviceRef, word_units: bool) -> int:
     return 16 if word_units and ref.device.is_bit else 1
 
 
-def execute(memory: MelsecMemory, event: Request | OpaqueRequest | BadRequest) -> Response:
+def execute(
+    memory: MelsecMemory,
+    event: Request | OpaqueRequest | ExtensionRequest | BadRequest,
+    code: Code = Code.BINARY,
+) -> Response | ExtensionResponse:
     """What the E71 answers to one decoded request (shared by TCP and UDP)."""
+    if isinstance(event, ExtensionRequest):
+        # 0AH-21H, 39H-3CH, 60H-62H: plcstack.sim.e71_module (issue 3)
+        return execute_extension(memory, event, code)
     if isinstance(event, BadRequest):
         if event.pc is not None and event.pc != 0xFF:
             return ErrorResponse(event.command, 0x5B, 0x10)
@@ -146,8 +159,11 @@ def _execute(mem: MelsecMemory, req: Request) -> Response:
 
 
 def answer(
-    memory: MelsecMemory, event: Request | OpaqueRequest | BadRequest, cpu_time: float
-) -> tuple[Response, float]:
+    memory: MelsecMemory,
+    event: Request | OpaqueRequest | ExtensionRequest | BadRequest,
+    cpu_time: float,
+    code: Code = Code.BINARY,
+) -> tuple[Response | ExtensionResponse, float]:
     """The response and after how many seconds it is due, given the CPU needs ``cpu_time``.
 
     App. B: the E71 waits for the CPU at most the request's ACPU monitoring timer (250 ms units,
@@ -157,14 +173,17 @@ def answer(
         limit = event.timer * 0.25
         if event.timer and cpu_time > limit:
             return ErrorResponse(event.COMMAND, 0x60), limit
-    return execute(memory, event), max(cpu_time, 0.0)
+    return execute(memory, event, code), max(cpu_time, 0.0)
 
 
 class _TcpConnection(asyncio.Protocol):
     def __init__(self, sim: E71TcpSimulator) -> None:
         self.sim = sim
         self.codec = E71ServerConnection(
-            sim.code, lower_ok=sim.lower_ok, abnormal_trailer=sim.abnormal_trailer
+            sim.code,
+            lower_ok=sim.lower_ok,
+            abnormal_trailer=sim.abnormal_trailer,
+            extensions=DECODERS,
         )
         self.transport: asyncio.Transport | None = None
         self._partial_timer: asyncio.TimerHandle | None = None
@@ -193,9 +212,9 @@ class _TcpConnection(asyncio.Protocol):
             if sim.mute:
                 continue
             if sim.delay <= 0 and sim.cpu_time <= 0 and self._busy_until == 0.0:
-                transport.write(codec.send(execute(sim.memory, event)))
+                transport.write(codec.send(execute(sim.memory, event, sim.code)))
                 continue
-            response, due = answer(sim.memory, event, sim.cpu_time)
+            response, due = answer(sim.memory, event, sim.cpu_time, sim.code)
             # requests are processed strictly one after another (§4.1): queue behind the last
             loop = asyncio.get_running_loop()
             at = max(loop.time(), self._busy_until) + due + max(sim.delay, 0.0)
@@ -265,7 +284,9 @@ class E71TcpSimulator(TcpSimulator):
 class _UdpEndpoint(asyncio.DatagramProtocol):
     def __init__(self, sim_ref: list[E71UdpSimulator], code: Code, lower_ok: bool) -> None:
         self.sim_ref = sim_ref
-        self.codec = E71ServerConnection(code, transport="udp", lower_ok=lower_ok)
+        self.codec = E71ServerConnection(
+            code, transport="udp", lower_ok=lower_ok, extensions=DECODERS
+        )
         self.transport: asyncio.DatagramTransport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -283,7 +304,7 @@ class _UdpEndpoint(asyncio.DatagramProtocol):
         sim.requests += 1
         if sim.mute:
             return
-        response, due = answer(sim.memory, event, sim.cpu_time)
+        response, due = answer(sim.memory, event, sim.cpu_time, sim.code)
         out = self.codec.send(response)
         # §13 A14: reply to the datagram's source address.
         wait = due + max(sim.delay, 0.0)
@@ -358,7 +379,24 @@ async def start(
         incomplete_timeout=incomplete_timeout,
     )
     sims.append(tsim)
+
+    sim_ref = weakref.ref(tsim)  # the module outlives no simulator through this listener
+
+    def close_on_stop() -> None:
+        # §1.3: a remote STOP closes the connections unless buffer word 496 keeps them; the
+        # answer 94 00 is flushed first (close, not abort), after the write of this event
+        alive = sim_ref()
+        if alive is not None:
+            loop.call_soon(_close_all, alive)
+
+    module_of(mem).stop_listeners.append(close_on_stop)
     return tsim
+
+
+def _close_all(sim: E71TcpSimulator) -> None:
+    for conn in list(sim.connections):
+        if conn.transport is not None:
+            conn.transport.close()
 
 
 # -- CLI: plcstack sim e71 ------------------------------------------------------------------
