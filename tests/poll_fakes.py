@@ -162,7 +162,7 @@ class FakeClient(Client):
             self.reads.append((address, count))
             first_bad = self.reject_above.get(area)
             if first_bad is not None and index + count > first_bad:
-                self.count_error()
+                self.stats.errors += 1
                 raise PlcErrorResponse(0x57, "points beyond the device range", plc=self.name)
             mem = self.memory[area]
             if BITS[area] == 1:
