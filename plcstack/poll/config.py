@@ -333,6 +333,8 @@ class _Loader:
 
     def _tag(self, name: str, spec: Any, group: str, groups: Mapping[str, float]) -> TagConfig:
         where = f"tag {name!r}"
+        if not name.strip():
+            raise self.error("a tag name must not be empty", "tags")
         if isinstance(spec, str):
             spec = {"address": spec}
         if not isinstance(spec, dict):

@@ -1,0 +1,99 @@
+"""``plcstack poll CONFIG.toml``: poll every configured PLC, one sample per line on stdout.
+
+stdout carries only samples (JSON lines or InfluxDB line protocol), so Telegraf's ``execd`` input
+or a pipe can consume it; the statistics go to stderr when polling ends (``--duration`` elapsed,
+Ctrl-C, SIGTERM, or the reader of stdout went away).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import signal
+import sys
+from typing import Any, TextIO
+
+from plcstack.poll.config import load_config
+from plcstack.poll.engine import Poller, format_stats
+from plcstack.poll.sinks import FORMATS
+
+
+def register(subparsers: Any) -> None:
+    poll = subparsers.add_parser(
+        "poll",
+        help="poll the PLCs of a TOML config; samples on stdout, statistics on stderr",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    poll.add_argument("config", help="TOML file with [[plc]] tables (see plcstack.poll.config)")
+    poll.add_argument(
+        "--format", choices=sorted(FORMATS), default="jsonl", help="output format (default jsonl)"
+    )
+    poll.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="stop after SECONDS (default: run until Ctrl-C)",
+    )
+    poll.set_defaults(func=run_poll)
+
+
+def install_stop_signals(stop: asyncio.Event) -> list[signal.Signals]:
+    """SIGINT/SIGTERM end polling gracefully (so the statistics still get printed)."""
+    loop = asyncio.get_running_loop()
+    installed = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop.set)
+            installed.append(sig)
+    return installed
+
+
+def remove_stop_signals(installed: list[signal.Signals]) -> None:
+    loop = asyncio.get_running_loop()
+    for sig in installed:
+        loop.remove_signal_handler(sig)
+
+
+async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    out = out if out is not None else sys.stdout
+    if args.duration is not None and not args.duration > 0:
+        print("plcstack poll: error: --duration must be greater than 0", file=sys.stderr)
+        return 2
+    config = load_config(args.config)
+    poller = Poller(config)  # every URL and address checked here, before anything is sent
+    line = FORMATS[args.format]
+    stop = asyncio.Event()
+    installed = install_stop_signals(stop)
+    try:
+        async with poller:
+            consumer = asyncio.create_task(_write_samples(poller, line, out, stop))
+            stopper = asyncio.create_task(stop.wait())
+            await asyncio.wait(
+                {consumer, stopper}, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
+            )
+            consumer.cancel()
+            stopper.cancel()
+            await asyncio.gather(consumer, stopper, return_exceptions=True)
+    finally:
+        remove_stop_signals(installed)
+    with contextlib.suppress(BrokenPipeError):
+        _flush(out)
+    print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
+    return 0
+
+
+def _flush(out: TextIO) -> None:
+    with contextlib.suppress(ValueError):
+        out.flush()
+
+
+async def _write_samples(poller: Poller, line: Any, out: TextIO, stop: asyncio.Event) -> None:
+    try:
+        async for sample in poller:
+            out.write(line(sample) + "\n")
+            if not poller.pending():
+                out.flush()  # a batch is written: hand it on before waiting for the next scan
+    except BrokenPipeError:
+        stop.set()  # the reader went away: stop polling, still report statistics on stderr
