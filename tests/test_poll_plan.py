@@ -178,7 +178,10 @@ def test_plan_reads_exactly_what_per_tag_reads_would(
         for r in alone.requests
     ]
     separate = alone.split(separate_replies, order)
-    assert [(r.tag.name, r.value) for r in merged] == [(r.tag.name, r.value) for r in separate]
+    # repr: a float32 bit pattern may be a NaN, which is not equal to itself
+    assert [(r.tag.name, repr(r.value)) for r in merged] == [
+        (r.tag.name, repr(r.value)) for r in separate
+    ]
     assert len(plan.requests) <= len(alone.requests)
 
 
@@ -249,3 +252,11 @@ def test_encode_refuses_values_that_do_not_fit(dtype: DataType, value: object) -
 
 def test_float_nan_decodes() -> None:
     assert math.isnan(DataType.FLOAT32.decode([0x7FC0, 0], 16, BIG))  # type: ignore[arg-type]
+
+
+def test_multi_bit_type_over_bool_points_is_a_bad_value_not_garbage() -> None:
+    client = FakeClient(merge=False)  # no hooks: the plan cannot know M is a bit area
+    plan = build_plan(client, [tag("x", "M0", "int16"), tag("ok", "M1", "bool")])
+    bad, good = plan.split([[True], [False]], BIG)
+    assert isinstance(bad.error, AddressError) and "bit area" in str(bad.error)
+    assert good.value is False

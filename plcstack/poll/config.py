@@ -7,6 +7,7 @@ queue = 10000           # samples held for a slow consumer; beyond that the olde
 max_gap = 8             # unused points one merged request may carry between two tags
 timeout = 2.0           # request deadline in seconds (a URL's ?timeout= wins)
 connect_timeout = 3.0
+backoff_max = 30.0      # longest wait between reconnect attempts to a dead PLC (seconds)
 interval = 1.0          # interval of the scan group "default"
 
 [groups]                # more scan groups: name = interval in seconds
@@ -88,6 +89,8 @@ class PlcConfig:
     word_order: WordOrder | None = None
     timeout: float | None = None
     connect_timeout: float | None = None
+    #: cap of the reconnect backoff (None: the client's default, 30 s)
+    backoff_max: float | None = None
 
     @property
     def order(self) -> WordOrder:
@@ -132,6 +135,10 @@ def validate(config: PollConfig) -> None:
             raise ConfigError(f"bad url: {exc}", plc=plc.name) from None
         if plc.max_gap < 0:
             raise ConfigError("max_gap must be 0 or more", plc=plc.name)
+        for name in ("timeout", "connect_timeout", "backoff_max"):
+            value = getattr(plc, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be greater than 0", plc=plc.name)
         tag_names: set[str] = set()
         for tag in plc.tags:
             where = f"tag {tag.name!r}"
@@ -229,7 +236,16 @@ class _Loader:
         if not isinstance(poll, dict):
             raise self.error("[poll] must be a table", "poll")
         unknown = self._unknown(
-            poll, {"concurrency", "queue", "max_gap", "timeout", "connect_timeout", "interval"}
+            poll,
+            {
+                "concurrency",
+                "queue",
+                "max_gap",
+                "timeout",
+                "connect_timeout",
+                "backoff_max",
+                "interval",
+            },
         )
         if unknown:
             raise self.error(f"unknown key(s) in [poll]: {', '.join(unknown)}", unknown[0])
@@ -241,6 +257,9 @@ class _Loader:
             self._number(poll, "connect_timeout", 3.0, "poll")
             if "connect_timeout" in poll
             else None
+        )
+        backoff_max = (
+            self._number(poll, "backoff_max", 30.0, "poll") if "backoff_max" in poll else None
         )
         groups: dict[str, float] = {
             DEFAULT_GROUP: self._number(poll, "interval", DEFAULT_INTERVAL, "poll")
@@ -258,7 +277,7 @@ class _Loader:
         for index, raw in enumerate(raw_plcs):
             self.plc_index = index
             self.plc_name = None
-            plc = self._plc(raw, groups, max_gap, timeout, connect_timeout)
+            plc = self._plc(raw, groups, max_gap, timeout, connect_timeout, backoff_max)
             if plc.name in names:
                 raise self.error(f"PLC name {plc.name!r} is used twice", "name")
             names.add(plc.name)
@@ -275,6 +294,7 @@ class _Loader:
         max_gap: int,
         timeout: float | None,
         connect_timeout: float | None,
+        backoff_max: float | None,
     ) -> PlcConfig:
         if not isinstance(raw, dict):
             raise self.error("each [[plc]] must be a table")
@@ -287,7 +307,17 @@ class _Loader:
             raise self.error('missing url (e.g. url = "e71+tcp://10.0.0.5:5000")', "url")
         unknown = self._unknown(
             raw,
-            {"name", "url", "group", "tags", "max_gap", "word_order", "timeout", "connect_timeout"},
+            {
+                "name",
+                "url",
+                "group",
+                "tags",
+                "max_gap",
+                "word_order",
+                "timeout",
+                "connect_timeout",
+                "backoff_max",
+            },
         )
         if unknown:
             raise self.error(f"unknown key(s) {', '.join(unknown)}", unknown[0])
@@ -329,6 +359,9 @@ class _Loader:
             word_order=order,
             timeout=plc_timeout,
             connect_timeout=plc_connect,
+            backoff_max=(
+                self._number(raw, "backoff_max", 0, "") if "backoff_max" in raw else backoff_max
+            ),
         )
 
     def _tag(self, name: str, spec: Any, group: str, groups: Mapping[str, float]) -> TagConfig:

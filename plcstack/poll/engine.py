@@ -48,6 +48,7 @@ from plcstack.errors import (
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.plan import ScanPlan, build_plan, describe
 from plcstack.poll.values import TagValue
+from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
 
 __all__ = ["PlcStats", "Poller", "Quality", "Sample", "format_stats"]
@@ -152,7 +153,10 @@ def default_client_factory(plc: PlcConfig) -> Client:
         options["timeout"] = plc.timeout
     if plc.connect_timeout is not None:
         options["connect_timeout"] = plc.connect_timeout
-    return connect(plc.url, **options)
+    client = connect(plc.url, **options)
+    if plc.backoff_max is not None:
+        client.backoff = Backoff(initial=min(0.2, plc.backoff_max), maximum=plc.backoff_max)
+    return client
 
 
 class Poller:

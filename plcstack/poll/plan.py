@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from plcstack.clients.base import Client
 from plcstack.errors import AddressError, PlcError, RemoteProtocolError
 from plcstack.poll.config import TagConfig
-from plcstack.poll.values import TagValue, WordOrder
+from plcstack.poll.values import DataType, TagValue, WordOrder
 
 __all__ = [
     "Piece",
@@ -105,6 +105,12 @@ class ScanPlan:
                     )
                     break
                 points.extend(reply[piece.offset : piece.offset + piece.length])
+            multi_bit = plan.tag.type not in (DataType.RAW, DataType.BOOL)
+            if error is None and multi_bit and any(isinstance(p, bool) for p in points):
+                error = AddressError(
+                    f"type {plan.tag.type.value} cannot be read from a bit area "
+                    f"(tag {plan.tag.name!r} at {plan.tag.address})"
+                )
             if error is not None:
                 out.append(TagResult(plan.tag, None, error))
                 continue
