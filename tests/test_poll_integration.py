@@ -1,0 +1,306 @@
+"""The poller and its CLI against real simulators over loopback sockets.
+
+One good PLC, one dead (a closed port), one slow (behind an asyncio delay proxy) and one that
+restarts mid-run, polled together; ``plcstack poll`` over 100 simulated PLCs; ``plcstack demo``.
+Protocols whose modules are not in this tree yet are skipped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import json
+import os
+import socket
+import subprocess
+import sys
+from argparse import Namespace
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.poll.demo import available_protocols
+from plcstack.poll.engine import Poller, Quality, Sample
+from plcstack.poll.values import DataType
+
+e71_sim = pytest.importorskip("plcstack.sim.e71", reason="E71 simulator not in this tree yet")
+pytest.importorskip("plcstack.clients.e71", reason="E71 client not in this tree yet")
+MelsecMemory: Any = pytest.importorskip("plcstack.sim.melsec_memory").MelsecMemory
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+class DelayProxy:
+    """A TCP proxy that holds every chunk from the server for ``delay`` seconds."""
+
+    def __init__(self, target: tuple[str, int], delay: float) -> None:
+        self.target = target
+        self.delay = delay
+        self.server: asyncio.Server | None = None
+        self.tasks: set[asyncio.Task[None]] = set()
+
+    async def start(self) -> int:
+        self.server = await asyncio.start_server(self._handle, "127.0.0.1", 0)
+        port: int = self.server.sockets[0].getsockname()[1]
+        return port
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        up_reader, up_writer = await asyncio.open_connection(*self.target)
+
+        async def pump(src: asyncio.StreamReader, dst: asyncio.StreamWriter, delay: float) -> None:
+            with contextlib.suppress(ConnectionError, asyncio.CancelledError):
+                while data := await src.read(4096):
+                    if delay:
+                        await asyncio.sleep(delay)
+                    dst.write(data)
+            dst.close()
+
+        for task in (
+            asyncio.create_task(pump(reader, up_writer, 0.0)),
+            asyncio.create_task(pump(up_reader, writer, self.delay)),
+        ):
+            self.tasks.add(task)
+            task.add_done_callback(self.tasks.discard)
+
+    async def aclose(self) -> None:
+        assert self.server is not None
+        self.server.close()
+        for task in list(self.tasks):
+            task.cancel()
+        await asyncio.gather(*self.tasks, return_exceptions=True)
+        await self.server.wait_closed()
+
+
+def closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+    return port  # nothing listens here any more: connects are refused
+
+
+TAGS = (
+    TagConfig("counter", "D0", DataType.UINT16),
+    TagConfig("temp", "D2", DataType.FLOAT32),
+    TagConfig("run", "M0", DataType.BOOL, 4),
+)
+
+
+def memory_with(counter: int) -> Any:
+    mem = MelsecMemory()
+    mem.write_words("D", 0, [counter, 0, 0x0000, 0x3FC0])  # temp 1.5, low word first
+    mem.write_bits("M", 0, [True, False, True, True])
+    return mem
+
+
+async def gather_until(
+    poller: Poller, done: Callable[[list[Sample]], bool], seen: list[Sample], limit: float = 20.0
+) -> None:
+    async with asyncio.timeout(limit):
+        async for sample in poller:
+            seen.append(sample)
+            if done(seen):
+                return
+
+
+async def test_dead_slow_and_restarting_plcs_do_not_disturb_a_good_one() -> None:
+    good = await e71_sim.start(memory_with(1))
+    slow_sim = await e71_sim.start(memory_with(2))
+    proxy = DelayProxy(("127.0.0.1", slow_sim.port), delay=0.6)
+    slow_port = await proxy.start()
+    restart_mem = memory_with(3)
+    restart = await e71_sim.start(restart_mem)
+    restart_port = restart.port
+    plcs = (
+        PlcConfig("good", good.url, TAGS),
+        PlcConfig("dead", f"e71+tcp://127.0.0.1:{closed_port()}", TAGS),
+        PlcConfig("slow", f"e71+tcp://127.0.0.1:{slow_port}", TAGS),
+        PlcConfig("restart", restart.url, TAGS),
+    )
+    config = PollConfig(
+        tuple(
+            PlcConfig(p.name, p.url, p.tags, timeout=0.3, connect_timeout=0.3, backoff_max=0.2)
+            for p in plcs
+        ),
+        {"default": 0.05},
+    )
+    seen: list[Sample] = []
+
+    def by(plc: str, quality: Quality | None = None) -> list[Sample]:
+        return [s for s in seen if s.plc == plc and (quality is None or s.quality is quality)]
+
+    try:
+        async with Poller(config) as poller:
+            await gather_until(poller, lambda s: len(by("restart", Quality.GOOD)) >= 6, seen)
+            await restart.aclose()
+            await gather_until(poller, lambda s: len(by("restart", Quality.BAD)) >= 6, seen)
+            restart_mem.write_words("D", 0, [33])
+            restart = await e71_sim.start(restart_mem, port=restart_port)
+            await gather_until(
+                poller,
+                lambda s: s[-1].plc == "restart" and s[-1].quality is Quality.GOOD,
+                seen,
+            )
+            await gather_until(poller, lambda s: len(by("slow")) >= 3, seen)
+            stats = poller.stats
+    finally:
+        await asyncio.gather(good.aclose(), slow_sim.aclose(), restart.aclose(), proxy.aclose())
+
+    # the good PLC: every sample good, values right, and it kept scanning through it all
+    assert by("good") and all(s.quality is Quality.GOOD for s in by("good"))
+    last = {s.tag: s.value for s in by("good")}
+    assert last == {"counter": 1, "temp": 1.5, "run": [True, False, True, True]}
+    assert len(by("good")) > 3 * len(by("slow"))
+    # dead: bad from the start, the message names the PLC's URL and why
+    dead = by("dead")
+    assert dead and all(s.quality is Quality.BAD for s in dead)
+    assert all("e71+tcp://127.0.0.1:" in (s.error or "") for s in dead)
+    assert stats["dead"].connect_failures >= 1 and stats["dead"].requests >= 1
+    # slow: answers come after the deadline, so every scan times out
+    assert all(s.quality is Quality.BAD for s in by("slow"))
+    assert any("no complete answer within 0.3 s" in (s.error or "") for s in by("slow"))
+    # restart: good, then bad, then good again with the new value; the reconnect is counted
+    qualities = [s.quality for s in by("restart") if s.tag == "counter"]
+    first_bad = qualities.index(Quality.BAD)
+    assert Quality.GOOD in qualities[:first_bad] and qualities[-1] is Quality.GOOD
+    assert (
+        by("restart")[-1].tag == "run"
+        or [s.value for s in by("restart") if s.tag == "counter"][-1] == 33
+    )
+    assert stats["restart"].reconnects >= 1
+    assert stats["good"].errors == 0 and stats["good"].reconnects == 0
+
+
+async def test_merged_reads_and_writes_through_the_poller() -> None:
+    mem = memory_with(5)
+    sim = await e71_sim.start(mem)
+    config = PollConfig((PlcConfig("p", sim.url, TAGS),), {"default": 0.02})
+    try:
+        async with Poller(config) as poller:
+            plan = poller.plan("p", "default")
+            assert [(r.address, r.count) for r in plan.requests] == [("D0", 4), ("M0", 4)]
+            await poller.write_tag("p", "temp", -2.25)
+            await poller.write_tag("p", "counter", 65535)
+            seen: list[Sample] = []
+            await gather_until(
+                poller,
+                lambda s: (
+                    any(x.tag == "temp" and x.value == -2.25 for x in s)
+                    and any(x.tag == "counter" and x.value == 65535 for x in s)
+                ),
+                seen,
+            )
+    finally:
+        await sim.aclose()
+    assert mem.read_words("D", 0, 4)[0] == 65535
+
+
+async def make_e71_plant(n: int) -> list[Any]:
+    return [await e71_sim.start(memory_with(i)) for i in range(n)]
+
+
+def write_config(path: Path, urls: list[str], interval: float) -> None:
+    lines = [f"[poll]\ninterval = {interval}\ntimeout = 2.0\n"]
+    for i, url in enumerate(urls):
+        lines.append(
+            f'[[plc]]\nname = "plc{i:03d}"\nurl = "{url}"\n[plc.tags]\n'
+            'counter = { address = "D0", type = "uint16" }\n'
+            'temp = { address = "D2", type = "float32" }\n'
+            'run = { address = "M0", type = "bool", count = 4 }\n'
+        )
+    path.write_text("\n".join(lines))
+
+
+@pytest.mark.slow
+async def test_cli_poll_100_simulated_plcs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from plcstack.cli.poll import run_poll
+
+    sims = await make_e71_plant(100)
+    try:
+        cfg = tmp_path / "plant.toml"
+        write_config(cfg, [s.url for s in sims], interval=0.2)
+        out = io.StringIO()
+        code = await run_poll(Namespace(config=str(cfg), format="jsonl", duration=2.0), out)
+    finally:
+        await asyncio.gather(*(s.aclose() for s in sims))
+    assert code == 0
+    records = [json.loads(line) for line in out.getvalue().splitlines()]
+    assert {r["plc"] for r in records} == {f"plc{i:03d}" for i in range(100)}
+    assert all(r["quality"] == "good" for r in records)
+    assert {r["value"] for r in records if r["plc"] == "plc007" and r["tag"] == "counter"} == {7}
+    err = capsys.readouterr().err
+    assert "TOTAL (100 PLCs)" in err and "p99 ms" in err
+
+
+async def test_cli_poll_influx_and_config_error_exit_codes(tmp_path: Path) -> None:
+    sim = await e71_sim.start(memory_with(9))
+    try:
+        cfg = tmp_path / "one.toml"
+        write_config(cfg, [sim.url], interval=0.05)
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-m",
+            "plcstack",
+            "poll",
+            str(cfg),
+            "--format",
+            "influx",
+            "--duration",
+            "1",
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        )
+        stdout, stderr = await proc.communicate()
+    finally:
+        await sim.aclose()
+    assert proc.returncode == 0, stderr.decode()
+    lines = stdout.decode().splitlines()
+    assert any(
+        line.startswith('plc,plc=plc000,tag=counter value=9i,quality="good" ') for line in lines
+    )
+    assert "plc000" in stderr.decode() and "requests" in stderr.decode()
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[plc]]\nname = "p"\nurl = "e71+tcp://127.0.0.1:1"\n[plc.tags]\nx = "Q99"\n')
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "plcstack",
+        "poll",
+        str(bad),
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    out_bytes, err_bytes = await proc.communicate()
+    result = Namespace(
+        returncode=proc.returncode, stdout=out_bytes.decode(), stderr=err_bytes.decode()
+    )
+    assert result.returncode == 2
+    assert "p" in result.stderr and "'x'" in result.stderr and result.stdout == ""
+
+
+def test_demo_in_a_pipe_prints_samples_of_every_protocol_and_exits_0() -> None:
+    protocols, _ = available_protocols()
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    result = subprocess.run(
+        [sys.executable, "-m", "plcstack", "demo", "--duration", "3"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+    )
+    assert result.returncode == 0, result.stderr
+    good = {
+        line.split()[1].rsplit("-", 1)[0] for line in result.stdout.splitlines() if " good " in line
+    }
+    assert good == {p.label for p in protocols}
+    assert "\x1b[" not in result.stdout  # plain lines, no ANSI, when stdout is not a terminal
+    assert "TOTAL" in result.stderr
