@@ -400,3 +400,27 @@ def test_demo_in_a_pipe_prints_samples_of_every_protocol_and_exits_0() -> None:
     assert good == {p.label for p in protocols}
     assert "\x1b[" not in result.stdout  # plain lines, no ANSI, when stdout is not a terminal
     assert "p99 ms" in result.stderr  # the statistics at the end
+
+
+async def test_demo_live_table_on_a_terminal() -> None:
+    """On a terminal the demo redraws a table in place: ANSI escapes, every PLC on a row."""
+    from plcstack.cli.demo import run_demo
+
+    protocols, _ = available_protocols()
+    master, slave = os.openpty()
+    chunks: list[bytes] = []
+    loop = asyncio.get_running_loop()
+    loop.add_reader(master, lambda: chunks.append(os.read(master, 65536)))
+    try:
+        with os.fdopen(slave, "w", closefd=True) as term:
+            args = Namespace(plcs=None, duration=1.5, interval=0.1)
+            assert await run_demo(args, term) == 0
+        await asyncio.sleep(0.05)
+    finally:
+        loop.remove_reader(master)
+        os.close(master)
+    screen = b"".join(chunks).decode(errors="replace")
+    assert "\x1b[H" in screen and "plcstack demo" in screen
+    for proto in protocols:
+        assert f"{proto.label}-1" in screen
+    assert "\x1b[32m" in screen  # good values are drawn in green
