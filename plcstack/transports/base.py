@@ -16,7 +16,7 @@ from typing import TypeVar
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
 
-__all__ = ["QueueProtocolMixin", "Transport", "open_with_timeout"]
+__all__ = ["ProtocolTransport", "QueueProtocolMixin", "Transport", "open_with_timeout"]
 
 T = TypeVar("T")
 
@@ -97,6 +97,55 @@ class QueueProtocolMixin:
             self._chunks.clear()
             return data
         return self._chunks.popleft()
+
+
+class ProtocolTransport(Transport):
+    """What TCP, UDP and serial share: an asyncio transport plus a :class:`QueueProtocolMixin`.
+
+    Subclasses implement ``open`` (setting ``_transport`` and ``_protocol``) and ``_send``;
+    ``_join`` says whether queued chunks may be merged on read: yes for byte streams, never for
+    datagrams.
+    """
+
+    _join = True
+
+    def __init__(self, peer: str) -> None:
+        self.peer = peer
+        self._transport: asyncio.BaseTransport | None = None
+        self._protocol: QueueProtocolMixin | None = None
+
+    @property
+    def is_open(self) -> bool:
+        return (
+            self._transport is not None
+            and self._protocol is not None
+            and self._protocol._closed_exc is None
+            and not self._transport.is_closing()
+        )
+
+    @abstractmethod
+    def _send(self, data: bytes) -> None: ...
+
+    def write(self, data: bytes) -> None:
+        if not self.is_open:
+            raise ConnectionLost(f"not connected to {self.peer}")
+        self._send(data)
+
+    async def read(self) -> bytes:
+        if self._protocol is None:
+            raise ConnectionLost(f"not connected to {self.peer}")
+        return await self._protocol._next_chunk(join=self._join)
+
+    def discard_received(self) -> None:
+        if self._protocol is not None:
+            self._protocol._chunks.clear()
+
+    def abort(self) -> None:
+        transport = self._transport
+        self._transport = None
+        self._protocol = None
+        if transport is not None:
+            transport.abort()  # type: ignore[attr-defined]
 
 
 async def open_with_timeout(peer: str, coro: Awaitable[T], timeout: float | None) -> T:
