@@ -331,7 +331,8 @@ async def test_cli_poll_100_simulated_plcs(
     assert "TOTAL (100 PLCs)" in err and "p99 ms" in err
 
 
-async def test_cli_poll_influx_and_config_error_exit_codes(proto: Proto, tmp_path: Path) -> None:
+async def test_cli_poll_influx_and_config_error_exit_codes(tmp_path: Path) -> None:
+    proto = AVAILABLE[0]  # the CLI is protocol-agnostic: one protocol is enough here
     sim = await proto.sim().start(proto.memory(9))
     try:
         cfg = tmp_path / "one.toml"
