@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, load_config, parse_config
 from plcstack.poll.values import DataType, WordOrder
@@ -136,3 +140,74 @@ def test_the_shipped_example_config_is_valid() -> None:
     config = load_config(Path(__file__).resolve().parent.parent / "examples" / "plant.toml")
     assert [p.name for p in config.plcs] == ["press1", "oven2"]
     assert dict(config.groups) == {"default": 1.0, "fast": 0.2}
+
+
+# -- bad input never crashes: only ConfigError, whatever the file holds ---------------------------
+
+_VALUES = st.one_of(
+    st.integers(-5, 5),
+    st.floats(allow_nan=True),
+    st.booleans(),
+    st.sampled_from(["D0", "M0", "DB10.DW0", "int16", "fast", "big", "", "e71+tcp://h:1", "x"]),
+)
+_KEYS = st.sampled_from(
+    ["name", "url", "group", "tags", "address", "type", "count", "interval", "max_gap", "timeout",
+     "word_order", "concurrency", "queue", "fast", "a", "b"]
+)  # fmt: skip
+
+
+def _toml(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value) if value == value and abs(value) != float("inf") else "nan"
+    if isinstance(value, str):
+        return '"' + value + '"'
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {_toml(v)}" for k, v in value.items()) + " }"
+    return str(value)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    poll=st.dictionaries(_KEYS, _VALUES, max_size=3),
+    plcs=st.lists(
+        st.tuples(
+            st.dictionaries(_KEYS, _VALUES, max_size=4),
+            st.dictionaries(_KEYS, st.one_of(_VALUES, st.dictionaries(_KEYS, _VALUES, max_size=3))),
+        ),
+        max_size=3,
+    ),
+)
+def test_any_structure_gives_a_config_or_a_config_error(
+    poll: dict[str, object], plcs: list[tuple[dict[str, object], dict[str, object]]]
+) -> None:
+    text = "[poll]\n" + "".join(f"{k} = {_toml(v)}\n" for k, v in poll.items())
+    for fields, tags in plcs:
+        text += "[[plc]]\n" + "".join(f"{k} = {_toml(v)}\n" for k, v in fields.items())
+        if "tags" not in fields:
+            text += "[plc.tags]\n" + "".join(f"{k} = {_toml(v)}\n" for k, v in tags.items())
+    try:
+        parse_config(text)
+    except ConfigError as exc:
+        assert str(exc)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.data())
+def test_mutated_example_gives_a_config_or_a_config_error(data: st.DataObject) -> None:
+    lines = GOOD.splitlines()
+    for _ in range(data.draw(st.integers(1, 4))):
+        i = data.draw(st.integers(0, len(lines) - 1))
+        action = data.draw(st.sampled_from(["drop", "garble", "dup"]))
+        if action == "drop":
+            del lines[i]
+        elif action == "dup":
+            lines.insert(i, lines[i])
+        else:
+            j = data.draw(st.integers(0, max(0, len(lines[i]) - 1)))
+            lines[i] = lines[i][:j] + data.draw(st.text(max_size=3)) + lines[i][j + 1 :]
+        if not lines:
+            break
+    with contextlib.suppress(ConfigError):
+        parse_config("\n".join(lines))
