@@ -230,9 +230,10 @@ class Poller:
         count = len(self._plcs)
         for i, plc in enumerate(self._plcs.values()):
             for group in plc.groups:
-                # Spread the first scans over one interval so hundreds of PLCs configured alike
-                # do not all send in the same millisecond, every interval, forever.
-                group.next_due = now + group.interval * (i / count if count > 1 else 0.0)
+                # Spread the first scans (over one interval, at most a second) so hundreds of PLCs
+                # configured alike do not all send in the same millisecond, every interval.
+                spread = min(group.interval, 1.0)
+                group.next_due = now + spread * (i / count if count > 1 else 0.0)
             plc.task = asyncio.create_task(self._run(plc), name=f"poll {plc.config.name}")
 
     async def aclose(self) -> None:
@@ -433,7 +434,7 @@ class Poller:
             times.append((sent, time.time()))
             if isinstance(error, PlcTimeout | ConnectionLost):
                 give_up = error
-            elif isinstance(error, PlcErrorResponse):
+            elif isinstance(error, PlcErrorResponse | AddressError):
                 names = [t.name for t in plan.tags_of(index)]
                 if len(names) > 1:
                     rejected.update(names)
