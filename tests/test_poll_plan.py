@@ -260,3 +260,25 @@ def test_multi_bit_type_over_bool_points_is_a_bad_value_not_garbage() -> None:
     bad, good = plan.split([[True], [False]], BIG)
     assert isinstance(bad.error, AddressError) and "bit area" in str(bad.error)
     assert good.value is False
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    dtype=st.sampled_from(list(DataType)),
+    area=st.sampled_from(["D", "B"]),
+    order=st.sampled_from([BIG, LITTLE]),
+    data=st.data(),
+)
+def test_split_fast_paths_agree_with_value_by_value_decoding(
+    dtype: DataType, area: str, order: WordOrder, data: st.DataObject
+) -> None:
+    bits = 16 if area == "D" else 8
+    count = data.draw(st.integers(1, 20))
+    n = dtype.points_per_value(bits)
+    points = data.draw(
+        st.lists(st.integers(0, (1 << bits) - 1), min_size=n * count, max_size=n * count)
+    )
+    plan = build_plan(FakeClient(), [tag("t", f"{area}0", dtype.value, count)])
+    (result,) = plan.split([points], order)
+    expected = [dtype.decode(points[i * n : (i + 1) * n], bits, order) for i in range(count)]
+    assert repr(result.value) == repr(expected[0] if count == 1 else expected)

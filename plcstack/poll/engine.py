@@ -47,7 +47,7 @@ from plcstack.errors import (
 )
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.plan import ScanPlan, build_plan, describe
-from plcstack.poll.values import TagValue
+from plcstack.poll.values import TagValue, WordOrder
 from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
 
@@ -141,6 +141,7 @@ class _Plc:
     groups: list[_Group]
     stats: PlcStats
     tags: dict[str, tuple[TagConfig, int]]  # name -> (tag, point bits)
+    order: WordOrder = WordOrder.BIG
     task: asyncio.Task[None] | None = None
 
 
@@ -204,7 +205,7 @@ class Poller:
             groups.append(_Group(name, interval, members, plan))
             for tag_plan in plan.tags:
                 tags[tag_plan.tag.name] = (tag_plan.tag, tag_plan.point_bits)
-        return _Plc(plc, client, groups, PlcStats(), tags)
+        return _Plc(plc, client, groups, PlcStats(), tags, plc.order)
 
     # -- life cycle -------------------------------------------------------------------------
     @property
@@ -360,7 +361,7 @@ class Poller:
                 request=f"write {tag}",
             )
         points: list[int | bool] = []
-        order = state.config.order
+        order = state.order
         for item in items:
             try:
                 points.extend(config.type.encode(item, bits, order))
@@ -438,7 +439,7 @@ class Poller:
                 names = [t.name for t in plan.tags_of(index)]
                 if len(names) > 1:
                     rejected.update(names)
-        for result, tag_plan in zip(plan.split(replies, plc.config.order), plan.tags, strict=True):
+        for result, tag_plan in zip(plan.split(replies, plc.order), plan.tags, strict=True):
             reqs = sorted(tag_plan.requests)
             source = min(times[r][0] for r in reqs) if reqs else time.time()
             received = max(times[r][1] for r in reqs) if reqs else source

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from plcstack.clients.base import Client
 from plcstack.errors import AddressError, PlcError, RemoteProtocolError
 from plcstack.poll.config import TagConfig
-from plcstack.poll.values import DataType, TagValue, WordOrder
+from plcstack.poll.values import DataType, Scalar, TagValue, WordOrder
 
 __all__ = [
     "Piece",
@@ -124,12 +124,26 @@ def _describe(request: ReadRequest) -> str:
 
 def _decode(plan: TagPlan, points: Sequence[int | bool], order: WordOrder) -> TagValue:
     dtype = plan.tag.type
-    n = dtype.points_per_value(plan.point_bits)
-    values = [
-        dtype.decode(points[i * n : (i + 1) * n], plan.point_bits, order)
-        for i in range(plan.tag.count)
-    ]
-    return values[0] if plan.tag.count == 1 else values
+    count = plan.tag.count
+    values: list[Scalar]
+    if dtype is DataType.RAW:
+        values = list(points)
+    elif dtype is DataType.BOOL:
+        values = [bool(p) for p in points]
+    elif dtype.points_per_value(plan.point_bits) == 1 and dtype is not DataType.FLOAT32:
+        # the common case (int16/uint16 on words, uint8/int8 on bytes): one point per value
+        mask = (1 << dtype.bits) - 1
+        if dtype.signed:
+            half, full = 1 << (dtype.bits - 1), 1 << dtype.bits
+            values = [v - full if v >= half else v for v in (int(p) & mask for p in points)]
+        else:
+            values = [int(p) & mask for p in points]
+    else:
+        n = dtype.points_per_value(plan.point_bits)
+        values = [
+            dtype.decode(points[i * n : (i + 1) * n], plan.point_bits, order) for i in range(count)
+        ]
+    return values[0] if count == 1 else values
 
 
 def point_bits(client: Client, area: Hashable | None) -> int:

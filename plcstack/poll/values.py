@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 from plcstack.errors import AddressError
 
-__all__ = ["DataType", "TagValue", "WordOrder", "default_word_order"]
+__all__ = ["DataType", "Scalar", "TagValue", "WordOrder", "default_word_order"]
 
 #: one decoded value of a tag element
 Scalar = int | float | bool
