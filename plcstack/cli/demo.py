@@ -11,6 +11,8 @@ import argparse
 import asyncio
 import contextlib
 import os
+import re
+import shutil
 import sys
 import time
 from typing import Any, TextIO
@@ -130,7 +132,10 @@ async def _live_table(poller: Poller, plant: DemoPlant, out: TextIO) -> None:
     out.write("\x1b[?25l\x1b[2J")  # hide the cursor, clear once
     try:
         while True:
-            out.write("\x1b[H" + render_table(poller, plant, latest, time.monotonic() - started))
+            table = render_table(
+                poller, plant, latest, time.monotonic() - started, _terminal_size(out)
+            )
+            out.write("\x1b[H" + table)
             out.write("\x1b[J")
             out.flush()
             await asyncio.sleep(REDRAW)
@@ -140,10 +145,46 @@ async def _live_table(poller: Poller, plant: DemoPlant, out: TextIO) -> None:
         out.write("\x1b[?25h")  # cursor back
 
 
+def _terminal_size(out: TextIO) -> tuple[int, int]:
+    try:
+        size = os.get_terminal_size(out.fileno())
+    except (OSError, ValueError):
+        size = shutil.get_terminal_size()
+    return (size.columns or 80, size.lines or 24)
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+
+
+def clip(line: str, width: int) -> str:
+    """Cut ``line`` to ``width`` visible characters, keeping (not counting) ANSI sequences."""
+    out: list[str] = []
+    visible = 0
+    pos = 0
+    for match in _ANSI.finditer(line):
+        text = line[pos : match.start()]
+        take = text[: max(0, width - visible)]
+        out.append(take)
+        visible += len(take)
+        out.append(match.group())
+        pos = match.end()
+    out.append(line[pos:][: max(0, width - visible)])
+    return "".join(out)
+
+
 def render_table(
-    poller: Poller, plant: DemoPlant, latest: dict[tuple[str, str], Sample], uptime: float
+    poller: Poller,
+    plant: DemoPlant,
+    latest: dict[tuple[str, str], Sample],
+    uptime: float,
+    size: tuple[int, int] = (200, 1000),
 ) -> str:
-    """The live table as text with ANSI colours; one row per PLC, one column per tag."""
+    """The live table as text with ANSI colours; one row per PLC, one column per tag.
+
+    ``size`` is the terminal's (columns, lines): rows that do not fit are summarised in one
+    line, and long lines are cut, so the redraw in place never scrolls.
+    """
+    columns, rows = size
     green, red, dim, bold, reset = "\x1b[32m", "\x1b[31m", "\x1b[2m", "\x1b[1m", "\x1b[0m"
     stats = poller.stats
     lines = [
@@ -154,7 +195,15 @@ def render_table(
     header = f"{'PLC':<18} {'counter':>8} {'sine':>6} {'temp':>8} {'light':>9}"
     header += f"  {'req':>6} {'err':>4} {'recon':>5} {'p50 ms':>7} {'p99 ms':>7}"
     lines.append(bold + header + reset)
-    for plc in plant.plcs:
+    footer: list[str] = []
+    errors = [s for s in latest.values() if s.quality is Quality.BAD and s.error is not None]
+    if errors:
+        footer.append("")
+        footer.append(red + str(errors[-1].error) + reset)
+    footer.extend(dim + note + reset for note in plant.notes)
+    room = max(1, rows - len(lines) - len(footer) - 1)
+    shown = plant.plcs if len(plant.plcs) <= room else plant.plcs[: room - 1]
+    for plc in shown:
         cells = []
         widths = (8, 6, 8, 9)
         for tag, width in zip(plc.protocol.tags, widths, strict=False):
@@ -162,7 +211,10 @@ def render_table(
             if sample is None:
                 cells.append(dim + "...".rjust(width) + reset)
             elif sample.quality is Quality.GOOD:
-                cells.append(green + _format_value(sample.value).rjust(width)[-width:] + reset)
+                value = sample.value
+                if tag.name == "light" and isinstance(value, int) and not isinstance(value, bool):
+                    value = [bool(value >> i & 1) for i in range(8)]  # S5 flag byte, bit 0 first
+                cells.append(green + _format_value(value).rjust(width)[-width:] + reset)
             else:
                 cells.append(red + "BAD".rjust(width) + reset)
         st = stats[plc.name]
@@ -173,10 +225,14 @@ def render_table(
             f"{'-' if p99 is None else f'{p99 * 1000:.2f}':>7}"
         )
         lines.append(f"{plc.name:<18} " + " ".join(cells) + tail)
-    errors = [s for s in latest.values() if s.quality is Quality.BAD and s.error is not None]
-    if errors:
-        lines.append("")
-        lines.append(red + errors[-1].error + reset)  # type: ignore[operator]
-    for note in plant.notes:
-        lines.append(dim + note + reset)
-    return "\x1b[K\n".join(lines) + "\x1b[K\n"
+    if len(shown) < len(plant.plcs):
+        hidden = plant.plcs[len(shown) :]
+        bad = sum(
+            1
+            for p in hidden
+            for t in p.protocol.tags
+            if (s := latest.get((p.name, t.name))) is not None and s.quality is Quality.BAD
+        )
+        lines.append(dim + f"... and {len(hidden)} more PLCs ({bad} bad values among them)" + reset)
+    lines.extend(footer)
+    return "".join(clip(line, columns - 1) + "\x1b[K\n" for line in lines)
