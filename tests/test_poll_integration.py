@@ -425,11 +425,3 @@ async def test_demo_live_table_on_a_terminal() -> None:
     for proto in protocols:
         assert f"{proto.label}-1" in screen
     assert "\x1b[32m" in screen  # good values are drawn in green
-
-
-def test_clip_keeps_ansi_and_cuts_visible_text() -> None:
-    from plcstack.cli.demo import clip
-
-    assert clip("\x1b[1mhello\x1b[0m world", 7) == "\x1b[1mhello\x1b[0m w"
-    assert clip("abc", 10) == "abc"
-    assert clip("\x1b[32mabc\x1b[0m", 0) == "\x1b[32m\x1b[0m"
