@@ -288,8 +288,7 @@ class AS511Client(Client):
                 # B5.1/B5.5: after an abort, wait for 500 ms of silence before the next STX.
                 while (wait := pg.ready_at - loop.time()) > 0:
                     try:
-                        async with asyncio.timeout(wait):
-                            data = await self.transport.read()
+                        data = await self.transport.read(loop.time() + wait)
                     except TimeoutError:
                         continue
                     pg.receive_data(data, loop.time())
@@ -303,8 +302,7 @@ class AS511Client(Client):
                     deadline = pg.deadline
                     self._last_state = pg.state
                     try:
-                        async with asyncio.timeout_at(deadline):
-                            data = await self.transport.read()
+                        data = await self.transport.read(deadline)
                     except TimeoutError:
                         pg.timer(max(loop.time(), deadline or 0.0))
                     else:

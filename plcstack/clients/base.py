@@ -228,15 +228,16 @@ class RequestClient(Client, Generic[E]):
             self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
             try:
-                payload = self.codec.send(request)
-                self.transport.discard_received()
-                self.transport.write(payload)
-                async with asyncio.timeout(deadline):
-                    while True:
-                        event = self.codec.next_event()
-                        if event is not NEED_DATA:
-                            return event  # type: ignore[no-any-return]
-                        self.codec.receive_data(await self.transport.read())
+                codec, transport = self.codec, self.transport
+                payload = codec.send(request)
+                transport.discard_received()
+                transport.write(payload)
+                expires = asyncio.get_running_loop().time() + deadline
+                while True:
+                    event = codec.next_event()
+                    if event is not NEED_DATA:
+                        return event  # type: ignore[no-any-return]
+                    codec.receive_data(await transport.read(expires))
             except TimeoutError:
                 self.stats.timeouts += 1
                 self.stats.errors += 1

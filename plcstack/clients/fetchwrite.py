@@ -79,8 +79,8 @@ class _MkTcpTransport(TcpTransport):
         if self.timer is not None:
             self.timer.sent(asyncio.get_running_loop().time())
 
-    async def read(self) -> bytes:
-        data = await super().read()
+    async def read(self, deadline: float | None = None) -> bytes:
+        data = await super().read(deadline)
         if self.timer is not None:
             self.timer.received(asyncio.get_running_loop().time())
         return data
