@@ -329,6 +329,8 @@ async def test_cli_poll_100_simulated_plcs(
     assert {r["value"] for r in records if r["plc"] == "plc007" and r["tag"] == "counter"} == {7}
     err = capsys.readouterr().err
     assert "TOTAL (100 PLCs)" in err and "p99 ms" in err
+    total = next(line for line in err.splitlines() if line.startswith("TOTAL"))
+    assert int(total.split()[-3]) == len(records)  # every sample taken was written out
 
 
 async def test_cli_poll_influx_and_config_error_exit_codes(tmp_path: Path) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import os
 import signal
 import sys
 from typing import Any, TextIO
@@ -78,10 +79,25 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
             await asyncio.gather(consumer, stopper, return_exceptions=True)
     finally:
         remove_stop_signals(installed)
-    with contextlib.suppress(BrokenPipeError):
+    try:
+        # samples of the last scans, taken after the consumer stopped: none is lost
+        for sample in poller.drain():
+            out.write(line(sample) + "\n")
         _flush(out)
+    except BrokenPipeError:
+        _silence_stdout(out)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
     return 0
+
+
+def _silence_stdout(out: TextIO) -> None:
+    """The reader of stdout went away: point fd 1 at /dev/null so the interpreter's final flush
+    does not print a traceback for a pipe nobody reads any more."""
+    if out is sys.stdout:
+        with contextlib.suppress(OSError, ValueError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
 
 
 def _flush(out: TextIO) -> None:
@@ -96,4 +112,5 @@ async def _write_samples(poller: Poller, line: Any, out: TextIO, stop: asyncio.E
             if not poller.pending():
                 out.flush()  # a batch is written: hand it on before waiting for the next scan
     except BrokenPipeError:
+        _silence_stdout(out)
         stop.set()  # the reader went away: stop polling, still report statistics on stderr
