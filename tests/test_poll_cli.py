@@ -22,6 +22,8 @@ def test_clip_keeps_ansi_and_cuts_visible_text() -> None:
 def test_plain_line() -> None:
     good = Sample("p1", "light", [True, False], Quality.GOOD, 0.0, 0.001)
     assert plain_line(good).endswith(" p1 light good #.")
+    s5 = Sample("p2", "light", 8, Quality.GOOD, 0.0, 0.001)  # an S5 flag byte
+    assert plain_line(s5).endswith(" p2 light good ...#....")
     bad = Sample("p1", "t", None, Quality.BAD, 0.0, 0.0, "p1: read D0 x1: no answer")
     assert plain_line(bad).endswith(" p1 t bad p1: read D0 x1: no answer")
 

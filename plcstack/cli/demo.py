@@ -59,10 +59,16 @@ def _format_value(value: Any) -> str:
     return str(value)
 
 
+def _display(tag: str, value: Any) -> str:
+    if tag == "light" and isinstance(value, int) and not isinstance(value, bool):
+        value = [bool(value >> i & 1) for i in range(8)]  # an S5 flag byte, bit 0 first
+    return _format_value(value)
+
+
 def plain_line(sample: Sample) -> str:
     stamp = time.strftime("%H:%M:%S", time.localtime(sample.source_time))
     millis = int(sample.source_time * 1000) % 1000
-    text = _format_value(sample.value) if sample.quality is Quality.GOOD else sample.error
+    text = _display(sample.tag, sample.value) if sample.quality is Quality.GOOD else sample.error
     return f"{stamp}.{millis:03d} {sample.plc} {sample.tag} {sample.quality.value} {text}"
 
 
@@ -211,10 +217,8 @@ def render_table(
             if sample is None:
                 cells.append(dim + "...".rjust(width) + reset)
             elif sample.quality is Quality.GOOD:
-                value = sample.value
-                if tag.name == "light" and isinstance(value, int) and not isinstance(value, bool):
-                    value = [bool(value >> i & 1) for i in range(8)]  # S5 flag byte, bit 0 first
-                cells.append(green + _format_value(value).rjust(width)[-width:] + reset)
+                text = _display(tag.name, sample.value)
+                cells.append(green + text.rjust(width)[-width:] + reset)
             else:
                 cells.append(red + "BAD".rjust(width) + reset)
         st = stats[plc.name]
