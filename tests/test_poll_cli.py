@@ -40,6 +40,10 @@ async def test_bad_arguments_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert await run_demo(Namespace(plcs=0, duration=None, interval=0.25)) == 2
     assert await run_demo(Namespace(plcs=None, duration=-1.0, interval=0.25)) == 2
     assert await run_poll(Namespace(config="x.toml", format="jsonl", duration=0.0)) == 2
+    assert (
+        await run_poll(Namespace(config="x.toml", format="jsonl", duration=1.0, stats_every=0.0))
+        == 2
+    )
     assert "must be" in capsys.readouterr().err
 
 

@@ -349,6 +349,8 @@ async def test_cli_poll_influx_and_config_error_exit_codes(tmp_path: Path) -> No
             "influx",
             "--duration",
             "1",
+            "--stats-every",
+            "0.4",
             cwd=ROOT,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -362,6 +364,7 @@ async def test_cli_poll_influx_and_config_error_exit_codes(tmp_path: Path) -> No
         line.startswith('plc,plc=plc000,tag=counter value=9i,quality="good" ') for line in lines
     )
     assert "plc000" in stderr.decode() and "requests" in stderr.decode()
+    assert stderr.decode().count("p99 ms") >= 2  # --stats-every, then the final statistics
 
     bad = tmp_path / "bad.toml"
     bad.write_text(

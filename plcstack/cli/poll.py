@@ -37,6 +37,13 @@ def register(subparsers: Any) -> None:
         default=None,
         help="stop after SECONDS (default: run until Ctrl-C)",
     )
+    poll.add_argument(
+        "--stats-every",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="also print the statistics on stderr every SECONDS (for long runs)",
+    )
     poll.set_defaults(func=run_poll)
 
 
@@ -59,9 +66,12 @@ def remove_stop_signals(installed: list[signal.Signals]) -> None:
 
 async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     out = out if out is not None else sys.stdout
-    if args.duration is not None and not args.duration > 0:
-        print("plcstack poll: error: --duration must be greater than 0", file=sys.stderr)
-        return 2
+    for option in ("duration", "stats_every"):
+        value = getattr(args, option, None)
+        if value is not None and not value > 0:
+            name = option.replace("_", "-")
+            print(f"plcstack poll: error: --{name} must be greater than 0", file=sys.stderr)
+            return 2
     config = load_config(args.config)
     poller = Poller(config)  # every URL and address checked here, before anything is sent
     line = FORMATS[args.format]
@@ -71,12 +81,16 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         async with poller:
             consumer = asyncio.create_task(_write_samples(poller, line, out, stop))
             stopper = asyncio.create_task(stop.wait())
+            helpers = {consumer, stopper}
+            every = getattr(args, "stats_every", None)
+            if every is not None:
+                helpers.add(asyncio.create_task(_report_stats(poller, every)))
             await asyncio.wait(
                 {consumer, stopper}, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
             )
-            consumer.cancel()
-            stopper.cancel()
-            await asyncio.gather(consumer, stopper, return_exceptions=True)
+            for task in helpers:
+                task.cancel()
+            await asyncio.gather(*helpers, return_exceptions=True)
     finally:
         remove_stop_signals(installed)
     try:
@@ -88,6 +102,12 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         _silence_stdout(out)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
     return 0
+
+
+async def _report_stats(poller: Poller, every: float) -> None:
+    while True:
+        await asyncio.sleep(every)
+        print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr, flush=True)
 
 
 def _silence_stdout(out: TextIO) -> None:
