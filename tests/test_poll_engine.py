@@ -6,6 +6,8 @@ import asyncio
 from collections.abc import Callable
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from plcstack.clients.base import Client
 from plcstack.errors import AddressError, ConnectionLost, PlcError
@@ -280,3 +282,28 @@ def test_bad_address_in_config_fails_before_anything_is_sent() -> None:
     with pytest.raises(PlcError) as err:
         make({"press": [tag("speed", "D0"), tag("oops", "Q1")]})
     assert "press" in str(err.value) and "oops" in str(err.value)
+
+
+@settings(max_examples=25, deadline=None)
+@given(queue=st.integers(1, 20), plcs=st.integers(1, 4), take=st.integers(0, 30))
+def test_every_sample_is_delivered_dropped_or_pending(queue: int, plcs: int, take: int) -> None:
+    """Accounting invariant: produced = consumed + dropped + still buffered, per PLC too."""
+
+    async def run() -> None:
+        tags = {f"p{i}": [tag("a", "D0"), tag("b", "D500")] for i in range(plcs)}
+        poller, _ = make(tags, queue=queue, interval=0.001)
+        consumed = 0
+        async with poller:
+            if take:
+                async for _ in poller:
+                    consumed += 1
+                    if consumed >= take:
+                        break
+            await asyncio.sleep(0.02)
+        stats = poller.stats
+        produced = sum(s.samples for s in stats.values())
+        assert produced == consumed + poller.dropped + poller.pending()
+        assert sum(s.drops for s in stats.values()) == poller.dropped
+        assert poller.pending() <= queue
+
+    asyncio.run(run())
