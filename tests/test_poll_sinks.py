@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from plcstack.poll.engine import Quality, Sample
 from plcstack.poll.sinks import FORMATS, influx_line, iso_time, jsonl_line
@@ -65,3 +67,28 @@ def test_formats_table() -> None:
     assert set(FORMATS) == {"jsonl", "influx"}
     for fmt in FORMATS.values():
         assert "\n" not in fmt(sample(None, Quality.BAD, "x\ny"))
+
+
+_SCALARS = st.one_of(st.integers(-(2**31), 2**32), st.booleans(), st.floats(width=32))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    plc=st.text(min_size=1),
+    tag=st.text(min_size=1),
+    value=st.one_of(st.none(), _SCALARS, st.lists(_SCALARS, min_size=1, max_size=5)),
+    error=st.one_of(st.none(), st.text()),
+    t=st.floats(0, 4e9),
+)
+def test_any_sample_is_one_well_formed_line(
+    plc: str, tag: str, value: object, error: str | None, t: float
+) -> None:
+    quality = Quality.GOOD if error is None and value is not None else Quality.BAD
+    s = Sample(plc, tag, value, quality, t, t, error)  # type: ignore[arg-type]
+    record = json.loads(jsonl_line(s))
+    assert (record["plc"], record["tag"], record["quality"]) == (plc, tag, quality.value)
+    assert record.get("error") == error
+    line = influx_line(s)
+    assert "\n" not in line and "\r" not in line
+    assert line.startswith("plc,plc=") and line.endswith(str(round(t * 1e6) * 1000))
+    assert f'quality="{quality.value}"' in line
