@@ -27,7 +27,7 @@ def register(subparsers: Any) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    poll.add_argument("config", help="TOML file with [[plc]] tables (see plcstack.poll.config)")
+    poll.add_argument("config", help="TOML file with [[plc]] tables (example: examples/plant.toml)")
     poll.add_argument(
         "--format", choices=sorted(FORMATS), default="jsonl", help="output format (default jsonl)"
     )
