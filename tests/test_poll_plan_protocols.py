@@ -74,17 +74,8 @@ S5_CASES = [
 
 
 def _s5(name: str) -> list[object]:
-    marks = []
-    if name == "fetchwrite":
-        marks.append(
-            pytest.mark.xfail(
-                reason="FetchWriteClient has no point_bits hook yet: byte areas are taken as "
-                "16-bit points, so an int16 over MB spans one point instead of two",
-                strict=True,
-            )
-        )
     return [
-        pytest.param(name, *case, id=f"{name}-{i}", marks=marks if i == 4 else [])
+        pytest.param(name, *case, id=f"{name}-{i}")
         for i, case in enumerate(S5_CASES)
     ]
 
@@ -131,3 +122,24 @@ def test_split_uses_the_family_word_order(protocol: str) -> None:
     }.get(protocol, [0xFFFF, 0x3FC0, 0x0000, 0x0001, 0x0002])  # S5: high word first
     values = [r.value for r in plan.split([reply], default_word_order(scheme))]
     assert values == [-1, 1.5, 0x00010002]
+
+
+@pytest.mark.parametrize(
+    ("url", "address", "bits"),
+    [
+        ("e71+tcp://h:1", "M0", 1),
+        ("e71+tcp://h:1", "X1F", 1),
+        ("e71+tcp://h:1", "D0", 16),
+        ("s5lan://h:1", "MB0", 8),
+        ("s5lan://h:1", "MW0", 16),
+        ("fetchwrite://h:1", "MB0", 8),
+        ("fetchwrite://h:1", "EB0", 8),
+        ("fetchwrite://h:1", "DB1.DW0", 16),
+        ("as511+tcp://h:1", "MB0", 8),
+        ("as511+tcp://h:1", "DB1.DW0", 16),
+    ],
+)
+def test_every_client_states_its_point_width(url: str, address: str, bits: int) -> None:
+    client = connect(url)
+    area, _ = client.locate(address)
+    assert client.point_bits(area) == bits

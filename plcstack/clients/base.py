@@ -190,6 +190,15 @@ class Client(ABC):
         """Most points of ``area`` one ``read`` sends as a single frame (the per-frame limit)."""
         raise NotImplementedError(f"{type(self).__name__} does not support request merging")
 
+    def point_bits(self, area: Hashable) -> int:
+        """Bits per point of ``area``: 1 for bit devices, 8 for byte areas, 16 for words.
+
+        The poller needs it to know how many points an int32 or float32 tag spans. Part of the
+        base (not an optional attribute) so a protocol with byte or bit areas cannot forget it
+        silently; the default is right only for word-only protocols.
+        """
+        return 16
+
     @abstractmethod
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
         """Read ``count`` points from ``address``: ints for words/bytes, bools for bits."""

@@ -340,6 +340,12 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
     def max_points(self, area: Hashable) -> int:
         return MAX_POINTS
 
+    def point_bits(self, area: Hashable) -> int:
+        """1 for bit devices (``read`` returns bools there), 16 for word devices."""
+        if not isinstance(area, Device):
+            raise AddressError(f"not an E71 area: {area!r}", plc=self.name)
+        return 1 if area.is_bit else 16
+
     # -- test and monitor (04H-09H) ------------------------------------------------------------
     async def test_bits(self, points: Sequence[tuple[str, bool]]) -> None:
         """04H: set/reset scattered bit points (at most 80)."""

@@ -403,6 +403,10 @@ class FetchWriteClient(RequestClient[Response]):
         s5area, db, unit, _ = _area_key(area)
         return self._limit(S5Address(s5area, unit, 0, db))
 
+    def point_bits(self, area: Hashable) -> int:
+        """Width of one point of ``area`` for the poller: 16 for words, 8 for bytes."""
+        return 8 * _area_key(area)[2].size
+
 
 def _check_raw(request: FetchRequest | WriteRequest) -> None:
     if request.length < 1 or data_bytes(request.org, request.length) > MAX_JOB_BYTES:

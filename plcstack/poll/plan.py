@@ -147,19 +147,13 @@ def _decode(plan: TagPlan, points: Sequence[int | bool], order: WordOrder) -> Ta
 
 
 def point_bits(client: Client, area: Hashable | None) -> int:
-    """Width of one point of ``area``: the client's optional ``point_bits(area)`` hook, else 16.
-
-    The hook is optional so protocols can add it when they have byte or bit areas; bool and raw
-    tags do not depend on it.
-    """
-    hook = getattr(client, "point_bits", None)
-    if hook is not None and area is not None:
-        try:
-            bits = int(hook(area))
-        except NotImplementedError:
-            return DEFAULT_POINT_BITS
-        return bits
-    return DEFAULT_POINT_BITS
+    """Width of one point of ``area`` (``Client.point_bits``); 16 for a client that cannot merge."""
+    if area is None:
+        return DEFAULT_POINT_BITS
+    try:
+        return int(client.point_bits(area))
+    except NotImplementedError:
+        return DEFAULT_POINT_BITS
 
 
 @dataclass(slots=True)
