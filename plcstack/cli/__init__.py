@@ -17,7 +17,10 @@ from plcstack.errors import AddressError, PlcError
 
 #: subcommand modules, in the order ``--help`` lists them
 COMMAND_MODULES = [
+    "plcstack.cli.demo",
+    "plcstack.cli.poll",
     "plcstack.cli.io",
+    "plcstack.cli.e71",
     "plcstack.cli.sim",
     "plcstack.cli.bench",
 ]

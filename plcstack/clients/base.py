@@ -190,6 +190,15 @@ class Client(ABC):
         """Most points of ``area`` one ``read`` sends as a single frame (the per-frame limit)."""
         raise NotImplementedError(f"{type(self).__name__} does not support request merging")
 
+    def point_bits(self, area: Hashable) -> int:
+        """Bits per point of ``area``: 1 for bit devices, 8 for byte areas, 16 for words.
+
+        The poller needs it to know how many points an int32 or float32 tag spans. Part of the
+        base (not an optional attribute) so a protocol with byte or bit areas cannot forget it
+        silently; the default is right only for word-only protocols.
+        """
+        return 16
+
     @abstractmethod
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
         """Read ``count`` points from ``address``: ints for words/bytes, bools for bits."""
@@ -228,15 +237,16 @@ class RequestClient(Client, Generic[E]):
             self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
             try:
-                payload = self.codec.send(request)
-                self.transport.discard_received()
-                self.transport.write(payload)
-                async with asyncio.timeout(deadline):
-                    while True:
-                        event = self.codec.next_event()
-                        if event is not NEED_DATA:
-                            return event  # type: ignore[no-any-return]
-                        self.codec.receive_data(await self.transport.read())
+                codec, transport = self.codec, self.transport
+                payload = codec.send(request)
+                transport.discard_received()
+                transport.write(payload)
+                expires = asyncio.get_running_loop().time() + deadline
+                while True:
+                    event = codec.next_event()
+                    if event is not NEED_DATA:
+                        return event  # type: ignore[no-any-return]
+                    codec.receive_data(await transport.read(expires))
             except TimeoutError:
                 self.stats.timeouts += 1
                 self.stats.errors += 1

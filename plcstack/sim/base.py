@@ -12,7 +12,7 @@ from abc import ABC, abstractmethod
 from types import TracebackType
 from typing import Self
 
-__all__ = ["Simulator", "TcpSimulator"]
+__all__ = ["Simulator", "TcpSimulator", "UdpSimulator"]
 
 
 class Simulator(ABC):
@@ -66,3 +66,18 @@ class TcpSimulator(Simulator):
         if self._conn_tasks:
             await asyncio.gather(*self._conn_tasks, return_exceptions=True)
         await self.server.wait_closed()
+
+
+class UdpSimulator(Simulator):
+    """A simulator on one bound UDP socket (``asyncio.DatagramTransport``); replies go to the
+    datagram's source address. ``host``/``port`` are the bound address."""
+
+    def __init__(self, transport: asyncio.DatagramTransport, scheme: str, query: str = "") -> None:
+        self.transport = transport
+        sockname = transport.get_extra_info("sockname")
+        self.host: str = sockname[0]
+        self.port: int = sockname[1]
+        self.url = f"{scheme}://{self.host}:{self.port}" + (f"?{query}" if query else "")
+
+    async def aclose(self) -> None:
+        self.transport.close()

@@ -6,7 +6,7 @@ import asyncio
 import socket
 
 from plcstack.errors import ConnectionLost
-from plcstack.transports.base import QueueProtocolMixin, Transport, open_with_timeout
+from plcstack.transports.base import ProtocolTransport, QueueProtocolMixin, open_with_timeout
 
 __all__ = ["TcpTransport"]
 
@@ -26,60 +26,30 @@ class _TcpProtocol(QueueProtocolMixin, asyncio.Protocol):
         self._fail(exc or EOFError("connection closed"))
 
 
-class TcpTransport(Transport):
+class TcpTransport(ProtocolTransport):
     """One TCP connection to ``host:port``; ``open()`` again after a close reconnects."""
 
     def __init__(self, host: str, port: int) -> None:
+        super().__init__(f"{host}:{port}")
         self.host = host
         self.port = port
-        self.peer = f"{host}:{port}"
-        self._transport: asyncio.Transport | None = None
-        self._protocol: _TcpProtocol | None = None
-
-    @property
-    def is_open(self) -> bool:
-        return (
-            self._transport is not None
-            and self._protocol is not None
-            and self._protocol._closed_exc is None
-            and not self._transport.is_closing()
-        )
 
     async def open(self, timeout: float | None) -> None:
         self.abort()
         loop = asyncio.get_running_loop()
-        result = await open_with_timeout(
+        transport, protocol = await open_with_timeout(
             self.peer,
             loop.create_connection(lambda: _TcpProtocol(self.peer), self.host, self.port),
             timeout,
         )
-        transport, protocol = result
         sock = transport.get_extra_info("socket")
         if sock is not None:
             # Requests are small and latency-bound: never let Nagle hold one back.
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._transport, self._protocol = transport, protocol
 
-    def write(self, data: bytes) -> None:
-        if not self.is_open:
-            raise ConnectionLost(f"not connected to {self.peer}")
-        assert self._transport is not None
-        self._transport.write(data)
-
-    async def read(self) -> bytes:
-        if self._protocol is None:
-            raise ConnectionLost(f"not connected to {self.peer}")
-        return await self._protocol._next_chunk(join=True)
-
-    def discard_received(self) -> None:
-        if self._protocol is not None:
-            self._protocol._chunks.clear()
-
-    def abort(self) -> None:
-        if self._transport is not None:
-            self._transport.abort()
-        self._transport = None
-        self._protocol = None
+    def _send(self, data: bytes) -> None:
+        self._transport.write(data)  # type: ignore[union-attr]
 
     async def aclose(self) -> None:
         transport, protocol = self._transport, self._protocol
@@ -97,4 +67,4 @@ class TcpTransport(Transport):
                     except ConnectionLost:
                         break
         except TimeoutError:
-            transport.abort()
+            transport.abort()  # type: ignore[attr-defined]

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
-from plcstack.errors import ConnectionLost
-from plcstack.transports.base import QueueProtocolMixin, Transport, open_with_timeout
+from plcstack.transports.base import ProtocolTransport, QueueProtocolMixin, open_with_timeout
 
 __all__ = ["UdpTransport"]
 
@@ -30,58 +29,30 @@ class _UdpProtocol(QueueProtocolMixin, asyncio.DatagramProtocol):
         self._fail(exc or EOFError("socket closed"))
 
 
-class UdpTransport(Transport):
+class UdpTransport(ProtocolTransport):
     """A connected UDP socket to ``host:port``. ``abort()`` + ``open()`` gets a new local port,
     so a reply that arrives after a timeout can never be read as the answer to the next request."""
 
+    _join = False  # one datagram is one message: never glue two together
+
     def __init__(self, host: str, port: int) -> None:
+        super().__init__(f"{host}:{port}")
         self.host = host
         self.port = port
-        self.peer = f"{host}:{port}"
-        self._transport: asyncio.DatagramTransport | None = None
-        self._protocol: _UdpProtocol | None = None
-
-    @property
-    def is_open(self) -> bool:
-        return (
-            self._transport is not None
-            and self._protocol is not None
-            and self._protocol._closed_exc is None
-            and not self._transport.is_closing()
-        )
 
     async def open(self, timeout: float | None) -> None:
         self.abort()
         loop = asyncio.get_running_loop()
-        result = await open_with_timeout(
+        transport, protocol = await open_with_timeout(
             self.peer,
             loop.create_datagram_endpoint(
                 lambda: _UdpProtocol(self.peer), remote_addr=(self.host, self.port)
             ),
             timeout,
         )
-        transport, protocol = result
         remote = transport.get_extra_info("peername")
         protocol.remote = (remote[0], remote[1]) if remote else None
         self._transport, self._protocol = transport, protocol
 
-    def write(self, data: bytes) -> None:
-        if not self.is_open:
-            raise ConnectionLost(f"not connected to {self.peer}")
-        assert self._transport is not None
-        self._transport.sendto(data)
-
-    async def read(self) -> bytes:
-        if self._protocol is None:
-            raise ConnectionLost(f"not connected to {self.peer}")
-        return await self._protocol._next_chunk(join=False)
-
-    def discard_received(self) -> None:
-        if self._protocol is not None:
-            self._protocol._chunks.clear()
-
-    def abort(self) -> None:
-        if self._transport is not None:
-            self._transport.abort()
-        self._transport = None
-        self._protocol = None
+    def _send(self, data: bytes) -> None:
+        self._transport.sendto(data)  # type: ignore[union-attr]

@@ -1,0 +1,242 @@
+"""``plcstack demo``: simulators of every protocol, polled concurrently, shown as a live table.
+
+On a terminal the table is redrawn in place (ANSI escapes, no curses); when stdout is not a
+terminal every sample is printed as one plain line. Runs until Ctrl-C unless ``--duration`` is
+given; the poller's statistics go to stderr at the end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import os
+import re
+import shutil
+import sys
+import time
+from typing import Any, TextIO
+
+from plcstack.cli.poll import install_stop_signals, remove_stop_signals
+from plcstack.poll.demo import DemoPlant, start_plant
+from plcstack.poll.engine import Poller, Quality, Sample, format_stats
+
+#: seconds between redraws of the live table
+REDRAW = 0.25
+
+
+def register(subparsers: Any) -> None:
+    demo = subparsers.add_parser(
+        "demo",
+        help="simulate PLCs of every protocol and poll them all (live table)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    demo.add_argument(
+        "--plcs",
+        type=int,
+        default=None,
+        help="number of simulated PLCs, spread over the protocols (default: one per protocol)",
+    )
+    demo.add_argument(
+        "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
+    )
+    demo.add_argument(
+        "--interval", type=float, default=0.25, help="scan interval in seconds (default 0.25)"
+    )
+    demo.set_defaults(func=run_demo)
+
+
+def _format_value(value: Any) -> str:
+    if isinstance(value, list):
+        if value and all(isinstance(v, bool) for v in value):
+            return "".join("#" if v else "." for v in value)
+        return " ".join(_format_value(v) for v in value)
+    if isinstance(value, bool):
+        return "ON" if value else "off"
+    if isinstance(value, float):
+        return f"{value:.3f}"
+    return str(value)
+
+
+def _display(tag: str, value: Any) -> str:
+    if tag == "light" and isinstance(value, int) and not isinstance(value, bool):
+        value = [bool(value >> i & 1) for i in range(8)]  # an S5 flag byte, bit 0 first
+    return _format_value(value)
+
+
+def plain_line(sample: Sample) -> str:
+    stamp = time.strftime("%H:%M:%S", time.localtime(sample.source_time))
+    millis = int(sample.source_time * 1000) % 1000
+    text = _display(sample.tag, sample.value) if sample.quality is Quality.GOOD else sample.error
+    return f"{stamp}.{millis:03d} {sample.plc} {sample.tag} {sample.quality.value} {text}"
+
+
+async def run_demo(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    out = out if out is not None else sys.stdout
+    if args.plcs is not None and args.plcs < 1:
+        print("plcstack demo: error: --plcs must be at least 1", file=sys.stderr)
+        return 2
+    for name in ("duration", "interval"):
+        value = getattr(args, name)
+        if value is not None and not value > 0:
+            print(f"plcstack demo: error: --{name} must be greater than 0", file=sys.stderr)
+            return 2
+    plant = await start_plant(args.plcs, interval=args.interval)
+    try:
+        for note in plant.notes:
+            print(f"note: {note}", file=sys.stderr)
+        if not plant.plcs:
+            print("plcstack demo: no simulator is available", file=sys.stderr)
+            return 1
+        poller = Poller(plant.config)
+        stop = asyncio.Event()
+        installed = install_stop_signals(stop)
+        live = out.isatty() and os.environ.get("TERM") != "dumb"
+        try:
+            async with poller:
+                show = _live_table(poller, plant, out) if live else _plain(poller, out, stop)
+                shower = asyncio.create_task(show)
+                stopper = asyncio.create_task(stop.wait())
+                await asyncio.wait(
+                    {shower, stopper}, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
+                )
+                shower.cancel()
+                stopper.cancel()
+                await asyncio.gather(shower, stopper, return_exceptions=True)
+        finally:
+            remove_stop_signals(installed)
+        if live:
+            out.write("\n")
+        with contextlib.suppress(BrokenPipeError, ValueError):
+            out.flush()
+        print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
+        return 0
+    finally:
+        await plant.aclose()
+
+
+async def _plain(poller: Poller, out: TextIO, stop: asyncio.Event) -> None:
+    try:
+        async for sample in poller:
+            out.write(plain_line(sample) + "\n")
+            if not poller.pending():
+                out.flush()
+    except BrokenPipeError:
+        stop.set()
+
+
+async def _live_table(poller: Poller, plant: DemoPlant, out: TextIO) -> None:
+    latest: dict[tuple[str, str], Sample] = {}
+    started = time.monotonic()
+
+    async def consume() -> None:
+        async for sample in poller:
+            latest[sample.plc, sample.tag] = sample
+
+    consumer = asyncio.create_task(consume())
+    out.write("\x1b[?25l\x1b[2J")  # hide the cursor, clear once
+    try:
+        while True:
+            table = render_table(
+                poller, plant, latest, time.monotonic() - started, _terminal_size(out)
+            )
+            out.write("\x1b[H" + table)
+            out.write("\x1b[J")
+            out.flush()
+            await asyncio.sleep(REDRAW)
+    finally:
+        consumer.cancel()
+        await asyncio.gather(consumer, return_exceptions=True)
+        out.write("\x1b[?25h")  # cursor back
+
+
+def _terminal_size(out: TextIO) -> tuple[int, int]:
+    try:
+        size = os.get_terminal_size(out.fileno())
+    except (OSError, ValueError):
+        size = shutil.get_terminal_size()
+    return (size.columns or 80, size.lines or 24)
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+
+
+def clip(line: str, width: int) -> str:
+    """Cut ``line`` to ``width`` visible characters, keeping (not counting) ANSI sequences."""
+    out: list[str] = []
+    visible = 0
+    pos = 0
+    for match in _ANSI.finditer(line):
+        text = line[pos : match.start()]
+        take = text[: max(0, width - visible)]
+        out.append(take)
+        visible += len(take)
+        out.append(match.group())
+        pos = match.end()
+    out.append(line[pos:][: max(0, width - visible)])
+    return "".join(out)
+
+
+def render_table(
+    poller: Poller,
+    plant: DemoPlant,
+    latest: dict[tuple[str, str], Sample],
+    uptime: float,
+    size: tuple[int, int] = (200, 1000),
+) -> str:
+    """The live table as text with ANSI colours; one row per PLC, one column per tag.
+
+    ``size`` is the terminal's (columns, lines): rows that do not fit are summarised in one
+    line, and long lines are cut, so the redraw in place never scrolls.
+    """
+    columns, rows = size
+    green, red, dim, bold, reset = "\x1b[32m", "\x1b[31m", "\x1b[2m", "\x1b[1m", "\x1b[0m"
+    stats = poller.stats
+    lines = [
+        f"{bold}plcstack demo{reset}  {len(plant.plcs)} simulated PLCs, scan every "
+        f"{plant.interval:g} s, up {uptime:5.1f} s   {dim}Ctrl-C to stop{reset}",
+        "",
+    ]
+    header = f"{'PLC':<18} {'counter':>8} {'sine':>6} {'temp':>8} {'light':>9}"
+    header += f"  {'req':>6} {'err':>4} {'recon':>5} {'p50 ms':>7} {'p99 ms':>7}"
+    lines.append(bold + header + reset)
+    footer: list[str] = []
+    errors = [s for s in latest.values() if s.quality is Quality.BAD and s.error is not None]
+    if errors:
+        footer.append("")
+        footer.append(red + str(errors[-1].error) + reset)
+    footer.extend(dim + note + reset for note in plant.notes)
+    room = max(1, rows - len(lines) - len(footer) - 1)
+    shown = plant.plcs if len(plant.plcs) <= room else plant.plcs[: room - 1]
+    for plc in shown:
+        cells = []
+        widths = (8, 6, 8, 9)
+        for tag, width in zip(plc.protocol.tags, widths, strict=False):
+            sample = latest.get((plc.name, tag.name))
+            if sample is None:
+                cells.append(dim + "...".rjust(width) + reset)
+            elif sample.quality is Quality.GOOD:
+                text = _display(tag.name, sample.value)
+                cells.append(green + text.rjust(width)[-width:] + reset)
+            else:
+                cells.append(red + "BAD".rjust(width) + reset)
+        st = stats[plc.name]
+        p50, p99 = st.percentile(50), st.percentile(99)
+        tail = (
+            f"  {st.requests:>6} {st.errors:>4} {st.reconnects:>5} "
+            f"{'-' if p50 is None else f'{p50 * 1000:.2f}':>7} "
+            f"{'-' if p99 is None else f'{p99 * 1000:.2f}':>7}"
+        )
+        lines.append(f"{plc.name:<18} " + " ".join(cells) + tail)
+    if len(shown) < len(plant.plcs):
+        hidden = plant.plcs[len(shown) :]
+        bad = sum(
+            1
+            for p in hidden
+            for t in p.protocol.tags
+            if (s := latest.get((p.name, t.name))) is not None and s.quality is Quality.BAD
+        )
+        lines.append(dim + f"... and {len(hidden)} more PLCs ({bad} bad values among them)" + reset)
+    lines.extend(footer)
+    return "".join(clip(line, columns - 1) + "\x1b[K\n" for line in lines)

@@ -1,0 +1,136 @@
+"""``plcstack poll CONFIG.toml``: poll every configured PLC, one sample per line on stdout.
+
+stdout carries only samples (JSON lines or InfluxDB line protocol), so Telegraf's ``execd`` input
+or a pipe can consume it; the statistics go to stderr when polling ends (``--duration`` elapsed,
+Ctrl-C, SIGTERM, or the reader of stdout went away).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import os
+import signal
+import sys
+from typing import Any, TextIO
+
+from plcstack.poll.config import load_config
+from plcstack.poll.engine import Poller, format_stats
+from plcstack.poll.sinks import FORMATS
+
+
+def register(subparsers: Any) -> None:
+    poll = subparsers.add_parser(
+        "poll",
+        help="poll the PLCs of a TOML config; samples on stdout, statistics on stderr",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    poll.add_argument("config", help="TOML file with [[plc]] tables (example: examples/plant.toml)")
+    poll.add_argument(
+        "--format", choices=sorted(FORMATS), default="jsonl", help="output format (default jsonl)"
+    )
+    poll.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="stop after SECONDS (default: run until Ctrl-C)",
+    )
+    poll.add_argument(
+        "--stats-every",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="also print the statistics on stderr every SECONDS (for long runs)",
+    )
+    poll.set_defaults(func=run_poll)
+
+
+def install_stop_signals(stop: asyncio.Event) -> list[signal.Signals]:
+    """SIGINT/SIGTERM end polling gracefully (so the statistics still get printed)."""
+    loop = asyncio.get_running_loop()
+    installed = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop.set)
+            installed.append(sig)
+    return installed
+
+
+def remove_stop_signals(installed: list[signal.Signals]) -> None:
+    loop = asyncio.get_running_loop()
+    for sig in installed:
+        loop.remove_signal_handler(sig)
+
+
+async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    out = out if out is not None else sys.stdout
+    for option in ("duration", "stats_every"):
+        value = getattr(args, option, None)
+        if value is not None and not value > 0:
+            name = option.replace("_", "-")
+            print(f"plcstack poll: error: --{name} must be greater than 0", file=sys.stderr)
+            return 2
+    config = load_config(args.config)
+    poller = Poller(config)  # every URL and address checked here, before anything is sent
+    line = FORMATS[args.format]
+    stop = asyncio.Event()
+    installed = install_stop_signals(stop)
+    try:
+        async with poller:
+            consumer = asyncio.create_task(_write_samples(poller, line, out, stop))
+            stopper = asyncio.create_task(stop.wait())
+            helpers = {consumer, stopper}
+            every = getattr(args, "stats_every", None)
+            if every is not None:
+                helpers.add(asyncio.create_task(_report_stats(poller, every)))
+            await asyncio.wait(
+                {consumer, stopper}, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
+            )
+            for task in helpers:
+                task.cancel()
+            await asyncio.gather(*helpers, return_exceptions=True)
+    finally:
+        remove_stop_signals(installed)
+    try:
+        # samples of the last scans, taken after the consumer stopped: none is lost
+        for sample in poller.drain():
+            out.write(line(sample) + "\n")
+        _flush(out)
+    except BrokenPipeError:
+        _silence_stdout(out)
+    print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
+    return 0
+
+
+async def _report_stats(poller: Poller, every: float) -> None:
+    while True:
+        await asyncio.sleep(every)
+        print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr, flush=True)
+
+
+def _silence_stdout(out: TextIO) -> None:
+    """The reader of stdout went away: point fd 1 at /dev/null so the interpreter's final flush
+    does not print a traceback for a pipe nobody reads any more."""
+    if out is sys.stdout:
+        with contextlib.suppress(OSError, ValueError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+
+
+def _flush(out: TextIO) -> None:
+    with contextlib.suppress(ValueError):
+        out.flush()
+
+
+async def _write_samples(poller: Poller, line: Any, out: TextIO, stop: asyncio.Event) -> None:
+    try:
+        async for sample in poller:
+            out.write(line(sample) + "\n")
+            if not poller.pending():
+                out.flush()  # a batch is written: hand it on before waiting for the next scan
+    except BrokenPipeError:
+        _silence_stdout(out)
+        stop.set()  # the reader went away: stop polling, still report statistics on stderr

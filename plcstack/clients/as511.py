@@ -1,0 +1,683 @@
+"""AS511 client (PG side) for S5-90U...115U CPUs over a serial line or a serial device server.
+
+``as511:///dev/ttyS0?baud=9600`` (8E1 by default; ``parity=``, ``stopbits=``) or
+``as511+tcp://HOST:PORT`` (a serial device server; ``baud=`` is the line rate behind it and only
+stretches deadlines for long frames). Further options: ``char_timeout`` (0.5 s, B5.7),
+``response_timeout`` (defaults to ``char_timeout``; D.B6), ``cache`` (block address cache, on),
+``strict`` (check the 5 leading zero bytes of read answers, off; D.B2), ``timeout`` (upper bound of
+one transaction on top of its line time) and ``connect_timeout``.
+
+AS511 talks byte by byte, so this client drives the :class:`~plcstack.codecs.as511.PGConnection`
+machine itself instead of ``RequestClient.exchange``; it keeps the base's single-flight lock,
+reconnect/backoff and error binding. Decisions:
+
+* Block addresses (DW0 from B_INFO) are cached per block. A read with a cached address also reads
+  the block's 10-byte header in the same transaction and checks its signature (``70 70``, type,
+  number, length); a mismatch, a NAK or an answer of the wrong length drops the entry and the read
+  is repeated once after a fresh B_INFO. A *write* always asks B_INFO first, as libnodave does:
+  writing to a stale address would corrupt whatever block moved there.
+* After a DLE NAK or any abort the next STX waits until the line was silent for 500 ms (B5.1,
+  B5.5); bytes arriving meanwhile are discarded, so a late answer is never taken for the next one.
+  On a serial line that rule is the resynchronisation and the port stays open; over TCP a
+  timeout or malformed answer also closes the connection (a device server may have gone away).
+* Reads are split into transactions of at most 512 bytes, writes likewise (B.7.3/B.7.4). A split
+  write that fails part-way says how many bytes were written.
+* I/Q/M/T/C use the base addresses of function 18h (read once per connection). Their sizes are
+  those of the S5-115U layout (I/Q 128 bytes, M 256 bytes, T/C 128 words) [R]; the system
+  parameters give the bases but no sizes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import struct
+from collections.abc import Hashable, Sequence
+from typing import Any, Self
+
+from plcstack.clients.base import Client
+from plcstack.codecs._common import NEED_DATA
+from plcstack.codecs.as511 import (
+    DEFAULT_CHAR_TIMEOUT,
+    MAX_READ_BYTES,
+    MAX_WRITE_BYTES,
+    BlockInfo,
+    Job,
+    Nak,
+    PGConnection,
+    PGState,
+    Response,
+    SystemAddresses,
+    Timeout,
+    b_info_job,
+    block_list_job,
+    header_matches,
+    operating_mode_job,
+    parse_b_info,
+    parse_read,
+    parse_system_parameters,
+    read_job,
+    run_job,
+    stop_job,
+    system_parameters_job,
+    write_job,
+)
+from plcstack.errors import (
+    AddressError,
+    ConnectionLost,
+    PlcError,
+    PlcErrorResponse,
+    PlcTimeout,
+    RemoteProtocolError,
+)
+from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
+from plcstack.transports.base import Transport
+from plcstack.transports.serial import SerialTransport
+from plcstack.transports.tcp import TcpTransport
+from plcstack.url import PlcUrl
+
+__all__ = ["AREA_BYTES", "BLOCK_TYPES", "AS511Client"]
+
+#: AS511 block type codes (B.6) by name
+BLOCK_TYPES: dict[str, int] = {
+    "DB": 0x01,
+    "SB": 0x02,
+    "PB": 0x04,
+    "FX": 0x05,
+    "FB": 0x08,
+    "DX": 0x0C,
+    "OB": 0x10,
+}
+
+#: bytes per area outside blocks (S5-115U layout) [R]
+AREA_BYTES: dict[S5Area, int] = {
+    S5Area.INPUTS: 128,
+    S5Area.OUTPUTS: 128,
+    S5Area.FLAGS: 256,
+    S5Area.TIMERS: 256,
+    S5Area.COUNTERS: 256,
+}
+
+_SYSPAR_FIELD = {
+    S5Area.INPUTS: "inputs",
+    S5Area.OUTPUTS: "outputs",
+    S5Area.FLAGS: "flags",
+    S5Area.TIMERS: "timers",
+    S5Area.COUNTERS: "counters",
+}
+
+_WAITING_FOR = {
+    PGState.W_ACK1: "DLE ACK after STX (is the PLC connected, powered and on this port?)",
+    PGState.W_STX1: "STX after the function code",
+    PGState.W_ACCEPT: "the accept frame",
+    PGState.W_ACK2: "DLE ACK after the parameters",
+    PGState.W_STX2: "the data frame",
+    PGState.RX_DATA: "the rest of the data frame",
+    PGState.W_STX3: "the terminate frame",
+    PGState.W_END: "the terminate frame",
+}
+
+_NAK_MEANING = {
+    "ready": "the PLC is busy and refused to start a transaction (DLE NAK after STX)",
+    "function": "the PLC does not support function {fn:02X}h (DLE NAK instead of STX)",
+    "params": "the PLC refused the operation (DLE NAK after the parameters)",
+}
+
+#: header bytes prepended to a cached block read for the signature check, if the gap is small
+_MAX_SIGNATURE_GAP = 64
+_BITS_PER_BYTE = 11  # 8E1
+
+
+class _BlockMoved(Exception):
+    """The header read with a cached address does not match: the block moved."""
+
+
+def _block_type(block_type: int | str) -> tuple[int, str]:
+    if isinstance(block_type, str):
+        name = block_type.upper()
+        if name not in BLOCK_TYPES:
+            raise AddressError(
+                f"unknown block type {block_type!r}; known: {', '.join(BLOCK_TYPES)}"
+            )
+        return BLOCK_TYPES[name], name
+    for name, code in BLOCK_TYPES.items():
+        if code == block_type:
+            return code, name
+    raise AddressError(f"unknown block type code {block_type:#04x}")
+
+
+class AS511Client(Client):
+    """Read and write an S5 CPU through its programming port (spec part B)."""
+
+    URL_OPTIONS = Client.COMMON_URL_OPTIONS | {
+        "baud",
+        "char_timeout",
+        "response_timeout",
+        "cache",
+        "strict",
+    }
+    SERIAL_URL_OPTIONS = URL_OPTIONS | {"parity", "stopbits"}
+
+    def __init__(
+        self,
+        name: str,
+        transport: Transport,
+        *,
+        char_timeout: float = DEFAULT_CHAR_TIMEOUT,
+        response_timeout: float | None = None,
+        nak_backoff: float = 0.5,
+        line_byte_time: float | None = None,
+        cache: bool = True,
+        strict: bool = False,
+        **base: Any,
+    ) -> None:
+        super().__init__(name, transport, **base)
+        if line_byte_time is None:
+            line_byte_time = (
+                transport.byte_time
+                if isinstance(transport, SerialTransport)
+                else _BITS_PER_BYTE / 9600
+            )
+        self.line_byte_time = line_byte_time
+        self.pg = PGConnection(
+            char_timeout=char_timeout,
+            response_timeout=response_timeout,
+            backoff=nak_backoff,
+            tx_byte_time=line_byte_time,
+        )
+        self.cache_enabled = cache
+        self.strict = strict
+        self.block_cache: dict[tuple[int, int], BlockInfo] = {}
+        self._sysparams: SystemAddresses | None = None
+        # A serial line resynchronises by the 500 ms silence rule; TCP may be half-open.
+        self._drop_on_error = not isinstance(transport, SerialTransport)
+        #: PG state when the last byte/deadline was processed (what a failed write had reached)
+        self._last_state = PGState.IDLE
+
+    # -- construction -----------------------------------------------------------------------
+    @classmethod
+    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
+        serial = url.transport == "serial"
+        url.check_options(cls.SERIAL_URL_OPTIONS if serial else cls.URL_OPTIONS)
+        opts = cls.common_options(url, options)
+        baud = url.get_int("baud", 9600, 50, 4_000_000)
+        transport: Transport
+        if serial:
+            assert url.path is not None
+            parity = url.get_str("parity", "E", ("N", "E", "O"))
+            stopbits = url.get_float("stopbits", 1.0)
+            if stopbits not in (1.0, 1.5, 2.0):
+                raise AddressError(f"option stopbits={stopbits:g} is not 1, 1.5 or 2", plc=url.raw)
+            transport = SerialTransport(url.path, baudrate=baud, parity=parity, stopbits=stopbits)
+        else:
+            assert url.host is not None and url.port is not None
+            transport = TcpTransport(url.host, url.port)
+            opts.setdefault("line_byte_time", _BITS_PER_BYTE / baud)
+        opts.setdefault("char_timeout", url.get_float("char_timeout", DEFAULT_CHAR_TIMEOUT))
+        if "response_timeout" in url.options:
+            opts.setdefault("response_timeout", url.get_float("response_timeout", 0.5))
+        opts.setdefault("cache", url.get_bool("cache", True))
+        opts.setdefault("strict", url.get_bool("strict", False))
+        return cls(url.raw, transport, **opts)
+
+    def connection_made(self) -> None:
+        self.pg.reset(asyncio.get_running_loop().time())
+        self._sysparams = None  # a re-plugged cable may lead to another CPU
+
+    # -- one transaction --------------------------------------------------------------------
+    async def transact(
+        self, job: Job, what: str, *, is_write: bool = False, nak_meaning: str | None = None
+    ) -> bytes:
+        """Run one AS511 transaction and return its unstuffed data frame (b"" without one)."""
+        async with self._lock:
+            await self._ensure_open(what)
+            self.stats.requests += 1
+            try:
+                event = await self._run(job)
+            except PlcTimeout as exc:
+                self.stats.timeouts += 1
+                self.stats.errors += 1
+                if is_write:
+                    exc.message += "; " + self._write_outcome()
+                if self._drop_on_error:
+                    self._drop()
+                raise exc.bind(plc=self.name, request=what) from None
+            except (ConnectionLost, RemoteProtocolError) as exc:
+                self.stats.errors += 1
+                self._drop()
+                if is_write:
+                    exc.message += "; " + self._write_outcome()
+                raise exc.bind(plc=self.name, request=what) from None
+        if isinstance(event, Response):
+            return event.data
+        if isinstance(event, Nak):
+            self.stats.errors += 1
+            meaning = _NAK_MEANING[event.step].format(fn=event.fn)
+            if event.step == "params" and nak_meaning:
+                meaning = nak_meaning
+            raise PlcErrorResponse(0x15, meaning, plc=self.name, request=what, code_text="DLE NAK")
+        self.stats.timeouts += 1
+        self.stats.errors += 1
+        state = PGState(event.state)
+        executing = state in (PGState.W_ACK2, PGState.W_STX2) or (
+            state is PGState.W_STX3 and not job.has_response
+        )
+        wait = self.pg.response_timeout if executing else self.pg.char_timeout
+        message = f"no complete answer within {wait:g} s (waiting for {_WAITING_FOR[state]})"
+        if is_write:
+            message += "; " + self._write_outcome(state)
+        if self._drop_on_error:
+            self._drop()
+        raise PlcTimeout(message, plc=self.name, request=what)
+
+    def _write_outcome(self, state: PGState | None = None) -> str:
+        state = state if state is not None else self._last_state
+        if state in (PGState.W_ACK1, PGState.W_STX1, PGState.W_ACCEPT):
+            return "the data had not been sent, nothing was written"
+        if state in (PGState.W_STX3, PGState.W_END):
+            return "the PLC had acknowledged the data (DLE ACK), so the write was executed"
+        return "the write may or may not have been executed"
+
+    async def _run(self, job: Job) -> Response | Nak | Timeout:
+        loop = asyncio.get_running_loop()
+        pg = self.pg
+        out_bytes = 20 + 2 * len(job.params)
+        in_bytes = 20 + 2 * (job.response_length or 64)
+        cap = self.timeout + (out_bytes + in_bytes) * self.line_byte_time + pg.backoff
+        try:
+            async with asyncio.timeout(cap):
+                # B5.1/B5.5: after an abort, wait for 500 ms of silence before the next STX.
+                while (wait := pg.ready_at - loop.time()) > 0:
+                    try:
+                        data = await self.transport.read(loop.time() + wait)
+                    except TimeoutError:
+                        continue
+                    pg.receive_data(data, loop.time())
+                pg.submit(job, max(loop.time(), pg.ready_at))
+                self._last_state = pg.state
+                self.transport.write(pg.data_to_send())
+                while True:
+                    event = pg.next_event()
+                    if event is not NEED_DATA:
+                        return event
+                    deadline = pg.deadline
+                    self._last_state = pg.state
+                    try:
+                        data = await self.transport.read(deadline)
+                    except TimeoutError:
+                        pg.timer(max(loop.time(), deadline or 0.0))
+                    else:
+                        pg.receive_data(data, loop.time())
+                    out = pg.data_to_send()
+                    if out:
+                        self.transport.write(out)
+        except TimeoutError:
+            state = pg.state
+            pg.reset(loop.time())
+            raise PlcTimeout(
+                f"no complete answer within {cap:.2f} s (AS511 transaction stuck in {state.value})"
+            ) from None
+        except (ConnectionLost, RemoteProtocolError):
+            pg.reset(loop.time())
+            raise
+
+    # -- functions --------------------------------------------------------------------------
+    async def read_system_parameters(self, *, refresh: bool = False) -> SystemAddresses:
+        """Function 18h: base addresses of I/Q/M/T/C and system data (cached per connection)."""
+        if self._sysparams is None or refresh:
+            data = await self.transact(system_parameters_job(), "read system parameters")
+            try:
+                self._sysparams = parse_system_parameters(data)
+            except RemoteProtocolError as exc:
+                self.stats.errors += 1
+                raise exc.bind(plc=self.name, request="read system parameters") from None
+        return self._sysparams
+
+    async def block_info(self, block_type: int | str, number: int) -> BlockInfo:
+        """Function 1Ah (B_INFO): DW0 address and length of a block; refreshes the cache."""
+        code, name = _block_type(block_type)
+        if not 1 <= number <= 255:
+            raise AddressError(f"block number {number} is outside 1..255", plc=self.name)
+        what = f"B_INFO {name}{number}"
+        missing = f"{name}{number} does not exist in the PLC (B_INFO answered DLE NAK)"
+        self.block_cache.pop((code, number), None)
+        data = await self.transact(b_info_job(code, number), what, nak_meaning=missing)
+        info = parse_b_info(data, code, number)
+        if info is None:  # [R] D.B3: a failed signature check means "block not found" too
+            self.stats.errors += 1
+            raise PlcErrorResponse(
+                0x15,
+                f"{name}{number} is not usable: the block header failed the signature check "
+                f"(answer {data.hex(' ')})",
+                plc=self.name,
+                request=what,
+                code_text="bad block header",
+            )
+        if self.cache_enabled:
+            self.block_cache[(code, number)] = info
+        return info
+
+    def invalidate(self, block_type: int | str | None = None, number: int | None = None) -> None:
+        """Forget cached block addresses (all, or one block)."""
+        if block_type is None:
+            self.block_cache.clear()
+            return
+        code, _ = _block_type(block_type)
+        if number is None:
+            for key in [k for k in self.block_cache if k[0] == code]:
+                del self.block_cache[key]
+        else:
+            self.block_cache.pop((code, number), None)
+
+    async def read_absolute(self, address: int, length: int, what: str | None = None) -> bytes:
+        """Function 04h over ``address .. address+length-1``, split into 512-byte transactions."""
+        if length < 1 or address < 0 or address + length > 0x10000:
+            raise AddressError(
+                f"absolute range {address:#06x}+{length} is outside 0..FFFFh", plc=self.name
+            )
+        what = what or f"read {length} bytes at {address:04X}h"
+        out = bytearray()
+        while len(out) < length:
+            start = address + len(out)
+            n = min(MAX_READ_BYTES, length - len(out))
+            out += await self._read_chunk(start, n, what)
+        return bytes(out)
+
+    async def _read_chunk(self, start: int, n: int, what: str) -> bytes:
+        data = await self.transact(read_job(start, n), what)
+        try:
+            return parse_read(data, n, strict=self.strict)
+        except RemoteProtocolError as exc:
+            self.stats.errors += 1
+            raise exc.bind(plc=self.name, request=what) from None
+
+    async def write_absolute(self, address: int, data: bytes, what: str | None = None) -> None:
+        """Function 03h at ``address``, split into 512-byte transactions."""
+        data = bytes(data)
+        if not data or address < 0 or address + len(data) > 0x10000:
+            raise AddressError(
+                f"absolute range {address:#06x}+{len(data)} is outside 0..FFFFh", plc=self.name
+            )
+        what = what or f"write {len(data)} bytes at {address:04X}h"
+        done = 0
+        while done < len(data):
+            chunk = data[done : done + MAX_WRITE_BYTES]
+            try:
+                await self.transact(
+                    write_job(address + done, chunk),
+                    what,
+                    is_write=True,
+                    nak_meaning="the PLC refused the write (DLE NAK after the data): "
+                    "address outside memory or protected",
+                )
+            except PlcError as exc:
+                if done:
+                    exc.message += f" (the first {done} of {len(data)} bytes were written)"
+                raise
+            done += len(chunk)
+
+    # -- blocks (DB, DX) --------------------------------------------------------------------
+    async def read_block_bytes(
+        self, block_type: int | str, number: int, offset: int, length: int
+    ) -> bytes:
+        """``length`` bytes from byte ``offset`` of a block's body (DW0 = offset 0)."""
+        code, name = _block_type(block_type)
+        what = f"read {name}{number} bytes {offset}..{offset + length - 1}"
+        if length < 1 or offset < 0:
+            raise AddressError(f"{what}: empty or negative range", plc=self.name)
+        for attempt in range(2):
+            cached = self.block_cache.get((code, number)) if self.cache_enabled else None
+            info = cached or await self.block_info(code, number)
+            if cached is not None and offset + length > info.data_bytes:
+                self.block_cache.pop((code, number), None)  # maybe re-created longer: ask again
+                continue
+            self._check_span(info, name, offset, length, what)
+            try:
+                if cached is not None and offset <= _MAX_SIGNATURE_GAP:
+                    return await self._read_verified(info, offset, length, what)
+                return await self.read_absolute(info.dw0 + offset, length, what)
+            except _BlockMoved:
+                self.block_cache.pop((code, number), None)
+                if attempt:
+                    raise RemoteProtocolError(
+                        f"{name}{number} keeps moving while it is read", plc=self.name
+                    ) from None
+            except (PlcErrorResponse, RemoteProtocolError):
+                self.block_cache.pop((code, number), None)  # any sign that the block moved
+                if cached is None or attempt:
+                    raise
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    async def _read_verified(self, info: BlockInfo, offset: int, length: int, what: str) -> bytes:
+        """Read with a cached address, the block header in the first transaction (signature)."""
+        first = min(length, MAX_READ_BYTES - 10 - offset)
+        head = await self._read_chunk(info.header_address, 10 + offset + first, what)
+        header = head[:10]
+        if not header_matches(header, info.block_type, info.number) or header != info.header:
+            raise _BlockMoved
+        out = bytearray(head[10 + offset :])
+        if len(out) < length:
+            out += await self.read_absolute(info.dw0 + offset + len(out), length - len(out), what)
+        return bytes(out)
+
+    @staticmethod
+    def _check_span(info: BlockInfo, name: str, offset: int, length: int, what: str) -> None:
+        # [R] B.7.3: the wire has no range check; refuse reads/writes beyond the block's data
+        if offset + length > info.data_bytes:
+            raise AddressError(
+                f"{what}: {name}{info.number} has {info.data_bytes // 2} data words "
+                f"({info.data_bytes} bytes)"
+            )
+
+    async def write_block_bytes(
+        self, block_type: int | str, number: int, offset: int, data: bytes
+    ) -> None:
+        """Write bytes into a block's body; B_INFO first, every time (see module docstring)."""
+        code, name = _block_type(block_type)
+        what = f"write {name}{number} bytes {offset}..{offset + len(data) - 1}"
+        if not data or offset < 0:
+            raise AddressError(f"{what}: empty or negative range", plc=self.name)
+        info = await self.block_info(code, number)
+        self._check_span(info, name, offset, len(data), what)
+        try:
+            await self.write_absolute(info.dw0 + offset, data, what)
+        except PlcErrorResponse:
+            self.block_cache.pop((code, number), None)
+            raise
+
+    async def read_db(self, number: int, dw: int, count: int, *, dx: bool = False) -> list[int]:
+        """``count`` data words from DW ``dw`` of DB (or DX) ``number``."""
+        if count < 1 or dw < 0:
+            raise AddressError(f"count {count} / DW{dw} out of range", plc=self.name)
+        raw = await self.read_block_bytes("DX" if dx else "DB", number, 2 * dw, 2 * count)
+        return list(struct.unpack(f">{count}H", raw))
+
+    async def write_db(
+        self, number: int, dw: int, words: Sequence[int], *, dx: bool = False
+    ) -> None:
+        """Write data words from DW ``dw`` of DB (or DX) ``number``; confirmed by the PLC."""
+        await self.write_block_bytes("DX" if dx else "DB", number, 2 * dw, _pack_words(words))
+
+    async def read_dx(self, number: int, dw: int, count: int) -> list[int]:
+        return await self.read_db(number, dw, count, dx=True)
+
+    async def write_dx(self, number: int, dw: int, words: Sequence[int]) -> None:
+        await self.write_db(number, dw, words, dx=True)
+
+    # -- areas ------------------------------------------------------------------------------
+    async def _area_address(self, area: S5Area, offset: int, length: int, what: str) -> int:
+        size = AREA_BYTES[area]
+        if offset < 0 or length < 1 or offset + length > size:
+            raise AddressError(
+                f"{what}: area {area.value} has {size} bytes; {offset}+{length} is outside it",
+                plc=self.name,
+            )
+        params = await self.read_system_parameters()
+        base: int = getattr(params, _SYSPAR_FIELD[area])
+        return base + offset
+
+    async def read_bytes(self, area: S5Area | str, offset: int, count: int) -> bytes:
+        """Bytes of I/Q/M/T/C (T/C: 2 bytes per timer/counter) from byte ``offset``."""
+        area = _area(area)
+        what = f"read {area.value} bytes {offset}..{offset + count - 1}"
+        address = await self._area_address(area, offset, count, what)
+        return await self.read_absolute(address, count, what)
+
+    async def write_bytes(self, area: S5Area | str, offset: int, data: bytes) -> None:
+        area = _area(area)
+        what = f"write {area.value} bytes {offset}..{offset + len(data) - 1}"
+        address = await self._area_address(area, offset, len(data), what)
+        await self.write_absolute(address, data, what)
+
+    async def read_block_list(self, block_type: int | str) -> dict[int, int]:
+        """Function 1Bh: ``{block number: address}`` of the blocks of one type (B.7.6).
+
+        The meaning of the addresses is not verified on real CPUs (B.7.6); the simulator returns
+        the DW0 address that B_INFO would return.
+        """
+        code, name = _block_type(block_type)
+        what = f"read the {name} block list"
+        data = await self.transact(block_list_job(code), what)
+        if not data or data[0] != 0 or len(data) % 2 != 1:
+            self.stats.errors += 1
+            raise RemoteProtocolError(
+                f"block list answer of {len(data)} bytes is not 00 + words",
+                plc=self.name,
+                request=what,
+            )
+        words = struct.unpack(f">{len(data) // 2}H", data[1:])
+        return {number: address for number, address in enumerate(words) if address}
+
+    async def change_operating_mode(self, mode: int) -> int | None:
+        """Function 1Eh of 135U/155U CPUs: 0 stop, 1 restart, 2 warm restart (B.7.5).
+
+        Returns the byte the CPU answers for modes 1 and 2 (25h/26h), ``None`` for stop.
+        """
+        if mode not in (0, 1, 2):
+            raise AddressError(f"operating mode {mode} is not 0, 1 or 2", plc=self.name)
+        data = await self.transact(
+            operating_mode_job(mode), f"change operating mode to {mode}", is_write=True
+        )
+        return data[0] if data else None
+
+    async def stop(self) -> None:
+        """Put a small CPU into STOP (B.7.5: 88 04 at system data + 0Ch)."""
+        params = await self.read_system_parameters()
+        await self.transact(stop_job(params.system_data), "stop the PLC", is_write=True)
+
+    async def start(self) -> None:
+        """Restart a small CPU (B.7.5: 68 00 at system data + 0Ch)."""
+        params = await self.read_system_parameters()
+        await self.transact(run_job(params.system_data), "start the PLC", is_write=True)
+
+    # -- the generic API --------------------------------------------------------------------
+    def _parse(self, address: str, count: int) -> S5Address:
+        try:
+            addr = parse_s5_address(address)
+        except AddressError as exc:
+            raise exc.bind(plc=self.name) from None
+        if not isinstance(count, int) or count < 1:
+            raise AddressError(f"count {count!r} must be a positive integer", plc=self.name)
+        return addr
+
+    async def read(self, address: str, count: int = 1) -> list[int]:
+        """Read in S5 notation: words (DBn.DWk, MW, IW, QW, T, C) or bytes (MB, IB, DL/DR)."""
+        addr = self._parse(address, count)
+        nbytes = addr.byte_length(count)
+        if addr.area.is_block:
+            raw = await self.read_block_bytes(
+                addr.area.value, addr.db or 0, addr.byte_offset, nbytes
+            )
+        else:
+            raw = await self.read_bytes(addr.area, addr.byte_offset, nbytes)
+        if addr.unit is S5Unit.WORD:
+            return list(struct.unpack(f">{count}H", raw))
+        return list(raw)
+
+    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+        """Write in S5 notation; returns once the PLC acknowledged every byte."""
+        addr = self._parse(address, max(1, len(values)))
+        if not values:
+            raise AddressError("no values to write", plc=self.name, request=f"write {address}")
+        try:
+            raw = (
+                _pack_words(values)
+                if addr.unit is S5Unit.WORD
+                else bytes(_check_byte(v) for v in values)
+            )
+        except AddressError as exc:
+            raise exc.bind(plc=self.name, request=f"write {address}") from None
+        if addr.area.is_block:
+            await self.write_block_bytes(addr.area.value, addr.db or 0, addr.byte_offset, raw)
+        else:
+            await self.write_bytes(addr.area, addr.byte_offset, raw)
+
+    # -- poller hooks -----------------------------------------------------------------------
+    def locate(self, address: str, count: int = 1) -> tuple[Hashable, int]:
+        addr = self._parse(address, count)
+        # M/E/A words step by 2 bytes (MW10, MW12, ...): odd and even starts are different grids.
+        parity = addr.offset % addr.step
+        area = (addr.area.value, addr.db, addr.unit.name, parity)
+        index = addr.offset // addr.step
+        if addr.byte_offset + addr.byte_length(count) > self._area_limit(addr):
+            raise AddressError(f"{address} x{count} is outside its area", plc=self.name)
+        return area, index
+
+    def address_at(self, area: Hashable, index: int) -> str:
+        letter, db, unit_name, parity = _split_area(area)
+        unit = S5Unit[unit_name]
+        s5area = S5Area(letter)
+        words_by_byte = (S5Area.FLAGS, S5Area.INPUTS, S5Area.OUTPUTS)
+        step = 2 if unit is S5Unit.WORD and s5area in words_by_byte else 1
+        return S5Address(s5area, unit, index * step + parity, db).to_str()
+
+    def max_points(self, area: Hashable) -> int:
+        letter, _, unit_name, _ = _split_area(area)
+        per_point = S5Unit[unit_name].size
+        # a cached block read carries the 10-byte header in its first transaction
+        limit = MAX_READ_BYTES - 10 if letter in ("DB", "DX") else MAX_READ_BYTES
+        return limit // per_point
+
+    def point_bits(self, area: Hashable) -> int:
+        """Width of one point of ``area`` for the poller: 16 for words, 8 for bytes."""
+        return 8 * S5Unit[_split_area(area)[2]].size
+
+    @staticmethod
+    def _area_limit(addr: S5Address) -> int:
+        return 0x10000 if addr.area.is_block else AREA_BYTES[addr.area]
+
+
+def _split_area(area: Hashable) -> tuple[str, int | None, str, int]:
+    """Undo the area key built by :meth:`AS511Client.locate`."""
+    if not (isinstance(area, tuple) and len(area) == 4):
+        raise AddressError(f"{area!r} is not an area key of AS511Client.locate")
+    letter, db, unit_name, parity = area
+    return str(letter), db if isinstance(db, int) else None, str(unit_name), int(parity)
+
+
+def _area(area: S5Area | str) -> S5Area:
+    if isinstance(area, S5Area):
+        if area.is_block:
+            raise AddressError("use read_db/read_block_bytes for DB and DX")
+        return area
+    letters = {"I": "E", "Q": "A", "C": "Z"}
+    try:
+        return _area(S5Area(letters.get(area.upper(), area.upper())))
+    except ValueError:
+        raise AddressError(f"unknown area {area!r}; use M, I/E, Q/A, T, C/Z") from None
+
+
+def _check_byte(value: int | bool) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFF:
+        raise AddressError(f"byte value {value!r} is not an integer in 0..255")
+    return value
+
+
+def _pack_words(values: Sequence[int] | Sequence[bool]) -> bytes:
+    out = bytearray()
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise AddressError(f"word value {value!r} is not an integer")
+        if not -0x8000 <= value <= 0xFFFF:
+            raise AddressError(f"word value {value} is outside -32768..65535")
+        out += struct.pack(">H", value & 0xFFFF)
+    return bytes(out)

@@ -1,0 +1,402 @@
+"""MELSEC A-series E71 client (1E frame) for ``e71+tcp://HOST:PORT`` and ``e71+udp://HOST:PORT``.
+
+URL options (besides ``timeout``/``connect_timeout``):
+
+* ``code=binary|ascii`` - must match the module's DIP switch SW2 (it cannot be detected, §11.4);
+* ``pc=FF`` - PC number in hex (FF = the CPU the E71 sits on; 00-40 = MELSECNET stations);
+* ``monitoring_timer=N`` - ACPU monitoring timer in 250 ms units. Default: just under the request
+  timeout (``4 * timeout - 1``, at least 1), so that a slow CPU is reported by the E71 as end code
+  60H before our own deadline closes the connection.
+
+Words are unsigned 16-bit ints (a negative value written is stored two's complement). 32-bit
+integers and floats occupy two consecutive words, **low word first at the lower address**, as the
+MELSEC CPUs store them (D0 = 0000H, D1 = 3F40H is 0.75, spec §3 rule 10).
+
+``read(address, count)`` is one frame: at most 256 points (bits via 00H, words via 01H);
+:meth:`E71Client.read_many` splits longer spans over several frames.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Hashable, Sequence
+from typing import Any, Self
+
+from plcstack.clients.base import RequestClient
+from plcstack.clients.e71_commands import E71CommandsMixin
+from plcstack.codecs.e71 import (
+    DEFAULT_PC,
+    WIDEST_RANGES,
+    BitsResponse,
+    Code,
+    Device,
+    DeviceRef,
+    E71ClientConnection,
+    ErrorResponse,
+    MonitorBits,
+    MonitorWords,
+    ReadBits,
+    ReadWords,
+    RegisterMonitorBits,
+    RegisterMonitorWords,
+    Request,
+    Response,
+    TestBits,
+    TestWords,
+    WordsResponse,
+    WriteBits,
+    WriteWords,
+    command_limit,
+    in_range,
+    limit_error,
+    parse_address,
+    unit_error,
+)
+from plcstack.errors import (
+    AddressError,
+    LocalProtocolError,
+    PlcErrorResponse,
+    RemoteProtocolError,
+)
+from plcstack.transports.base import Transport
+from plcstack.transports.tcp import TcpTransport
+from plcstack.transports.udp import UdpTransport
+from plcstack.url import PlcUrl
+
+__all__ = ["MAX_POINTS", "E71Client"]
+
+#: points one read frame carries: 256 bits (00H) or 256 words (01H) (§7.1)
+MAX_POINTS = 256
+
+
+def _default_timer(timeout: float) -> int:
+    return max(1, min(0xFFFF, int(timeout * 4) - 1))
+
+
+class E71Client(E71CommandsMixin, RequestClient[Response]):
+    """Async client for one E71 connection. Use ``async with plcstack.connect(url) as plc``."""
+
+    URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {
+        "code",
+        "pc",
+        "monitoring_timer",
+        "rab_ascii_sub_chars",  # issue 3: §13 A2, see clients/e71_commands.py
+    }
+
+    def __init__(
+        self,
+        name: str,
+        transport: Transport,
+        *,
+        code: Code | str = Code.BINARY,
+        pc: int = DEFAULT_PC,
+        monitoring_timer: int | None = None,
+        **common: Any,
+    ) -> None:
+        super().__init__(name, transport, **common)
+        try:
+            self.code = code if isinstance(code, Code) else Code(code)
+        except ValueError:
+            raise AddressError(f"code must be binary or ascii, not {code!r}", plc=name) from None
+        if not (0 <= pc <= 0x40 or pc == 0xFF):
+            raise AddressError(f"PC number {pc:#x} is not 00H-40H or FFH", plc=name)
+        self.pc = pc
+        timer = _default_timer(self.timeout) if monitoring_timer is None else monitoring_timer
+        if not 0 <= timer <= 0xFFFF:
+            raise AddressError(f"monitoring_timer {timer} outside 0..65535", plc=name)
+        self.monitoring_timer = timer
+        self._udp = isinstance(transport, UdpTransport)
+        # The monitor registration lives in the PLC, not in the connection: keep what we
+        # registered across reconnects so 88H/89H can still be sized.
+        self._monitor: tuple[int | None, int | None] = (None, None)
+        self.codec: E71ClientConnection = self.new_codec()
+
+    @classmethod
+    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
+        url.check_options(cls.URL_OPTIONS)
+        kw = dict(options)
+        code = kw.pop("code", None) or url.get_str("code", "binary", ("binary", "ascii"))
+        pc = kw.pop("pc", None)
+        if pc is None:
+            text = url.options.get("pc", "FF")
+            try:
+                pc = int(text, 16)
+            except ValueError:
+                raise AddressError(f"option pc={text!r} is not a hex number", plc=url.raw) from None
+        timer = kw.pop("monitoring_timer", None)
+        if timer is None and "monitoring_timer" in url.options:
+            timer = url.get_int("monitoring_timer", 0, 0, 0xFFFF)
+        width = kw.pop("rab_ascii_sub_chars", None)  # issue 3: §13 A2
+        if width is None:
+            width = url.get_int("rab_ascii_sub_chars", 2, 2, 4)
+        if width not in (2, 4):
+            raise AddressError("rab_ascii_sub_chars must be 2 or 4", plc=url.raw)
+        common = cls.common_options(url, kw)
+        assert url.host is not None and url.port is not None
+        transport: Transport
+        if url.transport == "udp":
+            transport = UdpTransport(url.host, url.port)
+        else:
+            transport = TcpTransport(url.host, url.port)
+        plc = cls(url.raw, transport, code=code, pc=pc, monitoring_timer=timer, **common)
+        plc.rab_ascii_sub_chars = width
+        return plc
+
+    def new_codec(self) -> E71ClientConnection:
+        codec = E71ClientConnection(self.code, transport="udp" if self._udp else "tcp")
+        codec.monitor_bits, codec.monitor_words = self._monitor
+        return codec
+
+    def connection_made(self) -> None:
+        self.codec = self.new_codec()
+
+    # -- plumbing -------------------------------------------------------------------------------
+    def _hdr(self) -> dict[str, int]:
+        return {"pc": self.pc, "timer": self.monitoring_timer}  # pc may be changed at run time
+
+    def _ref(self, address: str, what: str) -> DeviceRef:
+        try:
+            return parse_address(address)
+        except AddressError as exc:
+            raise exc.bind(plc=self.name, request=what) from None
+
+    def _bad(self, message: str, what: str) -> AddressError:
+        return AddressError(message, plc=self.name, request=what)
+
+    async def _call(self, request: Request, what: str, *, is_write: bool) -> Response:
+        event: Response = await self.exchange(request, what, is_write=is_write)
+        if isinstance(event, ErrorResponse):
+            self.count_error()
+            raise PlcErrorResponse(
+                event.end_code,
+                event.meaning,
+                plc=self.name,
+                request=what,
+                code_text=event.code_text,
+            )
+        return event
+
+    async def _read_bits(self, request: ReadBits | MonitorBits, what: str) -> list[bool]:
+        event = await self._call(request, what, is_write=False)
+        if not isinstance(event, BitsResponse):  # pragma: no cover - codec guarantees it
+            raise RemoteProtocolError("unexpected response", plc=self.name, request=what)
+        return list(event.values)
+
+    async def _read_words(self, request: ReadWords | MonitorWords, what: str) -> list[int]:
+        event = await self._call(request, what, is_write=False)
+        if not isinstance(event, WordsResponse):  # pragma: no cover - codec guarantees it
+            raise RemoteProtocolError("unexpected response", plc=self.name, request=what)
+        return list(event.values)
+
+    def _check_span(self, ref: DeviceRef, count: int, limit: int, what: str, unit: int = 1) -> None:
+        if not isinstance(count, int) or isinstance(count, bool) or not 1 <= count <= limit:
+            raise self._bad(
+                f"count must be 1..{limit} for {ref.device.letters}, got {count!r}", what
+            )
+        if not in_range(ref.device, ref.number, count * unit, WIDEST_RANGES):
+            raise self._bad(f"{ref} + {count * unit} points runs past the last device", what)
+
+    def _words_of(self, values: Sequence[int], what: str) -> tuple[int, ...]:
+        out = []
+        for v in values:
+            if isinstance(v, bool) or not isinstance(v, int) or not -0x8000 <= v <= 0xFFFF:
+                raise self._bad(f"word value {v!r} is not an integer in -32768..65535", what)
+            out.append(v & 0xFFFF)
+        return tuple(out)
+
+    def _bits_of(self, values: Sequence[bool] | Sequence[int], what: str) -> tuple[bool, ...]:
+        out = []
+        for v in values:
+            if v not in (0, 1) or not isinstance(v, int):
+                raise self._bad(f"bit value {v!r} is not true/false (or 1/0)", what)
+            out.append(bool(v))
+        return tuple(out)
+
+    # -- the common API -------------------------------------------------------------------------
+    async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
+        """Bits (``list[bool]``, 00H) of a bit device or words (``list[int]``, 01H); <= 256."""
+        what = f"read {address} x{count}"
+        ref = self._ref(address, what)
+        self._check_span(ref, count, MAX_POINTS, what)
+        if ref.device.is_bit:
+            return await self._read_bits(ReadBits(ref, count, **self._hdr()), what)
+        return await self._read_words(ReadWords(ref, count, **self._hdr()), what)
+
+    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+        """Bits to a bit device (02H) or words to a word device (03H); <= 256 points."""
+        what = f"write {address} x{len(values)}"
+        ref = self._ref(address, what)
+        self._check_span(ref, len(values), MAX_POINTS, what)
+        if ref.device.is_bit:
+            request: Request = WriteBits(ref, self._bits_of(values, what), **self._hdr())
+        else:
+            if any(isinstance(v, bool) for v in values):
+                raise self._bad(f"{ref.device.letters} is a word device: give integers", what)
+            request = WriteWords(ref, self._words_of(values, what), **self._hdr())
+        await self._call(request, what, is_write=True)
+
+    async def read_words(self, address: str, count: int = 1) -> list[int]:
+        """01H in word units, also for bit devices (16 points per word, bit 0 = head; the head
+        of a bit device must be a multiple of 16)."""
+        what = f"read words {address} x{count}"
+        ref = self._ref(address, what)
+        limit = command_limit(0x01, ref.device)
+        self._check_span(ref, count, limit, what, 16 if ref.device.is_bit else 1)
+        request = ReadWords(ref, count, **self._hdr())
+        problem = unit_error(request)
+        if problem:
+            raise self._bad(problem, what)
+        return await self._read_words(request, what)
+
+    async def write_words(self, address: str, values: Sequence[int]) -> None:
+        """03H in word units, also for bit devices (at most 40 words there)."""
+        what = f"write words {address} x{len(values)}"
+        ref = self._ref(address, what)
+        limit = command_limit(0x03, ref.device)
+        self._check_span(ref, len(values), limit, what, 16 if ref.device.is_bit else 1)
+        request = WriteWords(ref, self._words_of(values, what), **self._hdr())
+        problem = unit_error(request)
+        if problem:
+            raise self._bad(problem, what)
+        await self._call(request, what, is_write=True)
+
+    # -- 32-bit helpers (low word first) -------------------------------------------------------
+    def _word_device(self, address: str, what: str) -> None:
+        if self._ref(address, what).device.is_bit:
+            raise self._bad("32-bit values need a word device (D, W, R, TN, CN)", what)
+
+    async def read_int32(self, address: str, count: int = 1) -> list[int]:
+        """``count`` signed 32-bit integers from ``2 * count`` words, low word first."""
+        what = f"read int32 {address} x{count}"
+        self._word_device(address, what)
+        words = await self._read_words_checked(address, 2 * count, what)
+        raw = struct.pack(f"<{len(words)}H", *words)
+        return list(struct.unpack(f"<{count}i", raw))
+
+    async def write_int32(self, address: str, values: Sequence[int]) -> None:
+        what = f"write int32 {address} x{len(values)}"
+        self._word_device(address, what)
+        for v in values:
+            if isinstance(v, bool) or not isinstance(v, int) or not -(2**31) <= v < 2**32:
+                raise self._bad(f"value {v!r} does not fit 32 bits", what)
+        raw = struct.pack(f"<{len(values)}I", *(v & 0xFFFFFFFF for v in values))
+        await self.write(address, list(struct.unpack(f"<{2 * len(values)}H", raw)))
+
+    async def read_float(self, address: str, count: int = 1) -> list[float]:
+        """``count`` IEEE 754 single floats from ``2 * count`` words, low word first."""
+        what = f"read float {address} x{count}"
+        self._word_device(address, what)
+        words = await self._read_words_checked(address, 2 * count, what)
+        raw = struct.pack(f"<{len(words)}H", *words)
+        return list(struct.unpack(f"<{count}f", raw))
+
+    async def write_float(self, address: str, values: Sequence[float]) -> None:
+        what = f"write float {address} x{len(values)}"
+        self._word_device(address, what)
+        try:
+            raw = struct.pack(f"<{len(values)}f", *values)
+        except (struct.error, OverflowError, TypeError) as exc:
+            raise self._bad(f"values are not 32-bit floats: {exc}", what) from None
+        await self.write(address, list(struct.unpack(f"<{2 * len(values)}H", raw)))
+
+    async def _read_words_checked(self, address: str, count: int, what: str) -> list[int]:
+        if not 1 <= count <= MAX_POINTS:
+            raise self._bad(f"at most {MAX_POINTS // 2} 32-bit values per request", what)
+        values = await self.read(address, count)
+        return [int(v) for v in values]
+
+    # -- many spans ----------------------------------------------------------------------------
+    async def read_many(self, items: Sequence[tuple[str, int]]) -> list[list[int] | list[bool]]:
+        """Read several ``(address, count)`` spans; each is split into frames of at most 256
+        points (not atomic across frames). Returns one list per item."""
+        out: list[list[int] | list[bool]] = []
+        for address, count in items:
+            area, index = self.locate(address, count)
+            limit = self.max_points(area)
+            values: list[Any] = []
+            done = 0
+            while done < count:
+                n = min(limit, count - done)
+                values.extend(await self.read(self.address_at(area, index + done), n))
+                done += n
+            out.append(values)
+        return out
+
+    # -- poller hooks --------------------------------------------------------------------------
+    def locate(self, address: str, count: int = 1) -> tuple[Hashable, int]:
+        what = f"locate {address} x{count}"
+        ref = self._ref(address, what)
+        if not isinstance(count, int) or count < 1:
+            raise self._bad(f"count must be >= 1, got {count!r}", what)
+        if not in_range(ref.device, ref.number, count, WIDEST_RANGES):
+            raise self._bad(f"{ref} + {count} points runs past the last device", what)
+        return ref.device, ref.number
+
+    def address_at(self, area: Hashable, index: int) -> str:
+        if not isinstance(area, Device):
+            raise AddressError(f"not an E71 area: {area!r}", plc=self.name)
+        return area.format_number(index)
+
+    def max_points(self, area: Hashable) -> int:
+        return MAX_POINTS
+
+    def point_bits(self, area: Hashable) -> int:
+        """1 for bit devices (``read`` returns bools there), 16 for word devices."""
+        if not isinstance(area, Device):
+            raise AddressError(f"not an E71 area: {area!r}", plc=self.name)
+        return 1 if area.is_bit else 16
+
+    # -- test and monitor (04H-09H) ------------------------------------------------------------
+    async def test_bits(self, points: Sequence[tuple[str, bool]]) -> None:
+        """04H: set/reset scattered bit points (at most 80)."""
+        what = f"test bits x{len(points)}"
+        pairs = tuple((self._ref(a, what), v) for a, v in points)
+        bits = self._bits_of([v for _, v in pairs], what)
+        request = TestBits(
+            tuple((r, b) for (r, _), b in zip(pairs, bits, strict=True)), **self._hdr()
+        )
+        await self._call(self._checked(request, what), what, is_write=True)
+
+    async def test_words(self, points: Sequence[tuple[str, int]]) -> None:
+        """05H: write scattered words (at most 40; bit devices: 16-point heads)."""
+        what = f"test words x{len(points)}"
+        refs = [self._ref(a, what) for a, _ in points]
+        words = self._words_of([v for _, v in points], what)
+        request = TestWords(tuple(zip(refs, words, strict=True)), **self._hdr())
+        await self._call(self._checked(request, what), what, is_write=True)
+
+    async def register_monitor_bits(self, addresses: Sequence[str]) -> None:
+        """06H: register up to 40 bit points for :meth:`monitor_bits`."""
+        what = f"register monitor bits x{len(addresses)}"
+        request = RegisterMonitorBits(tuple(self._ref(a, what) for a in addresses), **self._hdr())
+        await self._call(self._checked(request, what), what, is_write=False)
+        self._monitor = (len(addresses), None)
+
+    async def register_monitor_words(self, addresses: Sequence[str]) -> None:
+        """07H: register up to 20 words (bit devices: 16-point heads) for :meth:`monitor_words`."""
+        what = f"register monitor words x{len(addresses)}"
+        request = RegisterMonitorWords(tuple(self._ref(a, what) for a in addresses), **self._hdr())
+        await self._call(self._checked(request, what), what, is_write=False)
+        self._monitor = (None, len(addresses))
+
+    async def monitor_bits(self) -> list[bool]:
+        what = "monitor bits"
+        if self._monitor[0] is None:
+            raise LocalProtocolError(
+                "register bit points first (register_monitor_bits)", plc=self.name, request=what
+            )
+        return await self._read_bits(MonitorBits(**self._hdr()), what)
+
+    async def monitor_words(self) -> list[int]:
+        what = "monitor words"
+        if self._monitor[1] is None:
+            raise LocalProtocolError(
+                "register words first (register_monitor_words)", plc=self.name, request=what
+            )
+        return await self._read_words(MonitorWords(**self._hdr()), what)
+
+    def _checked(self, request: Request, what: str) -> Request:
+        problem = limit_error(request) or unit_error(request)
+        if problem:
+            raise self._bad(problem, what)
+        return request

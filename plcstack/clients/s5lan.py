@@ -1,0 +1,331 @@
+"""Async client for the Siemens S5-LAN-LINK module: ``s5lan://HOST:PORT``.
+
+    async with plcstack.connect("s5lan://192.168.0.20:5010") as plc:
+        words = await plc.read("DB10.DW5", 20)      # list[int], 0..65535
+        await plc.write("MB100", [0xDE, 0xAD])
+
+Addresses are S5 notation (:mod:`plcstack.s5address`). Values:
+
+* words (``DB10.DW5``, ``MW10``, ``EW0``, ``T5``, ``Z5``) are read as **unsigned** 16-bit ints
+  0..65535; a write takes -32768..65535 and sends negatives as two's complement (INT), so
+  ``-1`` and ``65535`` write the same word. Timer/counter words are raw S5 words (no BCD decoding).
+* bytes (``MB100``, ``EB0``, ``AB0``, ``DB10.DL5``/``DR5``/``DBB3``) are read as 0..255; a write
+  takes -128..255 (negatives as two's complement).
+* DB/DX bytes are read through the covering data words (the module transfers D and X as words
+  only). Writing single DB bytes is refused: it would need a read-modify-write that another
+  writer could interleave with; write the whole data word instead.
+
+Requests larger than the module's 2048 data bytes are split into several requests. A split read
+returns all values or raises. A split write that fails part-way raises with a message saying how
+many values were confirmed written, because S5-LAN has no way to make it atomic.
+
+Each request's deadline is ``max(timeout, 2 * (50 ms + 1.5 ms/byte) + 1 s)`` (spec A.8 [R]):
+reading 2048 bytes takes the module about 3.1 s, so a fixed 2 s deadline would kill healthy reads.
+
+The module accepts one connection at a time and closes any further one at once; the client
+reports that as :class:`~plcstack.errors.ConnectFailed` saying so, not as a vague lost connection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import struct
+from collections.abc import Hashable, Sequence
+from typing import Any, Self
+
+from plcstack.clients.base import RequestClient
+from plcstack.codecs.s5lan import (
+    HEADER_BYTE_ORDER,
+    MAX_DATA_BYTES,
+    ByteOrder,
+    ClientConnection,
+    Request,
+    Response,
+    byte_order_hint,
+    err_meaning,
+    estimate_seconds,
+)
+from plcstack.errors import (
+    AddressError,
+    ConnectFailed,
+    ConnectionLost,
+    PlcError,
+    PlcErrorResponse,
+)
+from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
+from plcstack.transports.backoff import Backoff
+from plcstack.transports.tcp import TcpTransport
+from plcstack.url import PlcUrl
+
+__all__ = ["S5LanClient"]
+
+_log = logging.getLogger(__name__)
+
+_LETTER = {
+    S5Area.DB: "D",
+    S5Area.DX: "X",
+    S5Area.FLAGS: "M",
+    S5Area.INPUTS: "E",
+    S5Area.OUTPUTS: "A",
+    S5Area.TIMERS: "T",
+    S5Area.COUNTERS: "Z",
+}
+_MAX_START = 0xFFFF
+
+#: ``locate`` area key: (area, unit, DB number or None, byte parity of M/E/A words)
+AreaKey = tuple[S5Area, S5Unit, int | None, int]
+
+
+def _area_key(area: Hashable) -> AreaKey:
+    """Check that ``area`` came from :meth:`S5LanClient.locate`."""
+    if (
+        isinstance(area, tuple)
+        and len(area) == 4
+        and isinstance(area[0], S5Area)
+        and isinstance(area[1], S5Unit)
+    ):
+        return area
+    raise AddressError(f"{area!r} is not an S5-LAN area key from locate()")
+
+
+class S5LanClient(RequestClient[Response]):
+    """One S5-LAN module (and so one PLC). See the module docstring for values and limits."""
+
+    URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {"header_byte_order", "strict"}
+
+    def __init__(
+        self,
+        name: str,
+        host: str,
+        port: int,
+        *,
+        header_byte_order: ByteOrder = HEADER_BYTE_ORDER,
+        strict: bool = True,
+        **options: Any,
+    ) -> None:
+        super().__init__(name, TcpTransport(host, port), **options)
+        if header_byte_order not in ("little", "big"):
+            raise AddressError(
+                f"header_byte_order must be little or big, not {header_byte_order!r}"
+            )
+        self.header_byte_order: ByteOrder = header_byte_order
+        self.strict = strict
+        self._seq = 0
+        self._answers_on_connection = 0
+        b = self.backoff
+        self._refusal_backoff = Backoff(b.initial, b.maximum, b.factor, b.jitter)
+        self.codec: ClientConnection = self.new_codec()
+
+    @classmethod
+    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
+        """``s5lan://HOST:PORT[?timeout=S&connect_timeout=S&header_byte_order=little|big&strict=1]``."""
+        url.check_options(cls.URL_OPTIONS)
+        opts = cls.common_options(url, options)
+        opts.setdefault(
+            "header_byte_order", url.get_str("header_byte_order", "little", ("little", "big"))
+        )
+        opts.setdefault("strict", url.get_bool("strict", True))
+        assert url.host is not None and url.port is not None
+        return cls(url.raw, url.host, url.port, **opts)
+
+    def new_codec(self) -> ClientConnection:
+        return ClientConnection(header_byte_order=self.header_byte_order, strict=self.strict)
+
+    def connection_made(self) -> None:
+        super().connection_made()
+        self._answers_on_connection = 0
+
+    # -- poller hooks ------------------------------------------------------------------------
+    def locate(self, address: str, count: int = 1) -> tuple[Hashable, int]:
+        addr = self._parse(address, count)
+        phase = addr.offset % 2 if addr.step == 2 else 0
+        key: AreaKey = (addr.area, addr.unit, addr.db, phase)
+        return key, addr.offset // addr.step
+
+    def address_at(self, area: Hashable, index: int) -> str:
+        kind, unit, db, phase = _area_key(area)
+        probe = S5Address(kind, unit, 0, db)
+        return str(S5Address(kind, unit, index * probe.step + phase, db))
+
+    def max_points(self, area: Hashable) -> int:
+        kind, unit, _db, _phase = _area_key(area)
+        if unit is S5Unit.WORD:
+            return MAX_DATA_BYTES // 2
+        # DB/DX bytes go through words; an odd start needs one word more
+        return MAX_DATA_BYTES - 2 if kind.is_block else MAX_DATA_BYTES
+
+    def point_bits(self, area: Hashable) -> int:
+        """Width of one point of ``area`` for the poller: 16 for words, 8 for bytes."""
+        return 16 if _area_key(area)[1] is S5Unit.WORD else 8
+
+    # -- the API -------------------------------------------------------------------------------
+    async def read(self, address: str, count: int = 1) -> list[int]:
+        addr = self._parse(address, count)
+        what = f"read {addr} x{count}"
+        if addr.area.is_block and addr.unit is S5Unit.BYTE:
+            first, last = addr.offset // 2, (addr.offset + count - 1) // 2
+            words = S5Address(addr.area, S5Unit.WORD, first, addr.db)
+            wire = await self._read_wire(words, last - first + 1, what)
+            skip = addr.offset % 2
+            # wire words are low byte first; the DB byte DL n is the high byte of DW n
+            s5 = bytes(b for i in range(0, len(wire), 2) for b in (wire[i + 1], wire[i]))
+            return list(s5[skip : skip + count])
+        wire = await self._read_wire(addr, count, what)
+        if addr.unit is S5Unit.WORD:
+            return list(struct.unpack(f"<{count}H", wire))
+        return list(wire)
+
+    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+        addr = self._parse(address, len(values), write=True)
+        data = self._encode_values(addr, values)
+        what = f"write {addr} x{len(values)}"
+        per = MAX_DATA_BYTES // addr.unit.size
+        done = 0
+        for part, (start, units) in enumerate(self._chunks(addr, len(values))):
+            chunk = data[done * addr.unit.size : (done + units) * addr.unit.size]
+            req = Request.write(
+                _LETTER[addr.area],
+                "W" if addr.unit is S5Unit.WORD else "B",
+                start,
+                chunk,
+                db=addr.db or 0,
+                user_code=self._next_user_code(),
+            )
+            label = what if len(values) <= per else f"{what} (part {part + 1}: {units} at {start})"
+            try:
+                await self._request(req, label, is_write=True, total=what)
+            except PlcError as exc:
+                if done:
+                    exc.message += (
+                        f"; the first {done} of {len(values)} values were written and confirmed, "
+                        "the rest were not (S5-LAN cannot write more than 2048 bytes atomically)"
+                    )
+                raise
+            done += units
+
+    # -- internals -----------------------------------------------------------------------------
+    def _parse(self, address: str, count: int, *, write: bool = False) -> S5Address:
+        try:
+            addr = parse_s5_address(address)
+            if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+                raise AddressError(f"count must be a positive integer, not {count!r}")
+            if write and addr.area.is_block and addr.unit is S5Unit.BYTE:
+                raise AddressError(
+                    f"S5-LAN writes {addr.area.value} blocks only in whole data words; "
+                    f"write {addr.area.value}{addr.db}.DW{addr.offset // 2} instead (a byte "
+                    "write would be a non-atomic read-modify-write)"
+                )
+            last_start = addr.offset + (count - 1) * addr.step
+            if addr.area.is_block and addr.unit is S5Unit.BYTE:
+                last_start //= 2  # read through the covering data words
+            if last_start > _MAX_START:
+                raise AddressError(
+                    f"{count} points from {addr} go beyond the 16-bit Start field of S5-LAN"
+                )
+        except AddressError as exc:
+            raise exc.bind(plc=self.name, request=f"{address} x{count}") from None
+        return addr
+
+    @staticmethod
+    def _chunks(addr: S5Address, count: int) -> list[tuple[int, int]]:
+        """``(Start, Count)`` of each request for ``count`` points at ``addr`` (<= 2048 bytes)."""
+        per = MAX_DATA_BYTES // addr.unit.size
+        out = []
+        done = 0
+        while done < count:
+            units = min(per, count - done)
+            out.append((addr.offset + done * addr.step, units))
+            done += units
+        return out
+
+    async def _read_wire(self, addr: S5Address, count: int, what: str) -> bytes:
+        parts = []
+        chunks = self._chunks(addr, count)
+        for part, (start, units) in enumerate(chunks):
+            req = Request.read(
+                _LETTER[addr.area],
+                "W" if addr.unit is S5Unit.WORD else "B",
+                start,
+                units,
+                db=addr.db or 0,
+                user_code=self._next_user_code(),
+            )
+            label = what if len(chunks) == 1 else f"{what} (part {part + 1} of {len(chunks)})"
+            response = await self._request(req, label, is_write=False, total=what)
+            parts.append(response.data)
+        return b"".join(parts)
+
+    async def _request(self, req: Request, what: str, *, is_write: bool, total: str) -> Response:
+        n = req.header.data_len or 0
+        deadline = max(self.timeout, 2.0 * estimate_seconds(n) + 1.0)
+        try:
+            response: Response = await self.exchange(req, what, is_write=is_write, timeout=deadline)
+        except ConnectFailed:
+            raise
+        except ConnectionLost as exc:
+            if self._answers_on_connection == 0 and self.codec.bytes_received == 0:
+                refused = ConnectFailed(
+                    "the S5-LAN module closed the connection before answering the first request: "
+                    "it allows only one connection at a time, so another client (or a stale "
+                    f"session) is probably connected ({exc.message})",
+                    plc=self.name,
+                    request=what,
+                )
+                # TCP got in, so the base class reset its backoff; a busy module must still not
+                # be hammered, so refusals back off on their own schedule.
+                self.stats.connect_failures += 1
+                loop = asyncio.get_running_loop()
+                self._next_attempt = loop.time() + self._refusal_backoff.next_delay()
+                self._last_connect_error = refused
+                raise refused from None
+            raise
+        self._answers_on_connection += 1
+        self._refusal_backoff.reset()
+        if response.echo_mismatch:
+            _log.warning(
+                "%s: %s: answer echoes %s differently from the request (accepted, strict=0)",
+                self.name,
+                what,
+                ", ".join(response.echo_mismatch),
+            )
+        if response.err != 0:
+            self.count_error()
+            raise PlcErrorResponse(
+                response.err,
+                err_meaning(response.err)
+                + byte_order_hint(response.header, self.header_byte_order),
+                plc=self.name,
+                request=what,
+                code_text=f"Err {response.err}",
+            )
+        return response
+
+    def _next_user_code(self) -> bytes:
+        # The module echoes UserCode unchanged: a sequence number there proves that an answer
+        # belongs to this request, on top of the echoed area/start/count.
+        self._seq = (self._seq + 1) & 0xFFFFFFFF
+        return self._seq.to_bytes(4, "little")
+
+    def _encode_values(self, addr: S5Address, values: Sequence[int] | Sequence[bool]) -> bytes:
+        word = addr.unit is S5Unit.WORD
+        lo, hi = (-0x8000, 0xFFFF) if word else (-0x80, 0xFF)
+        out = bytearray()
+        for i, value in enumerate(values):
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise AddressError(
+                    f"value #{i} {value!r} is not an integer (S5-LAN has no bit access)",
+                    plc=self.name,
+                    request=f"write {addr}",
+                )
+            if not lo <= value <= hi:
+                raise AddressError(
+                    f"value #{i} {value} is outside {lo}..{hi} for a {'word' if word else 'byte'}",
+                    plc=self.name,
+                    request=f"write {addr}",
+                )
+            if word:
+                out += struct.pack("<H", value & 0xFFFF)  # low byte first on the wire (A.6)
+            else:
+                out.append(value & 0xFF)
+        return bytes(out)

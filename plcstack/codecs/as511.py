@@ -1,0 +1,829 @@
+"""Siemens S5 AS511 (programming port) as Sans-IO state machines (spec part B).
+
+AS511 is not a request/response framing: the PG (client) and the AG (PLC) answer each other
+byte by byte (STX, DLE ACK, accept frame, parameter frame, data frame, terminate frame; B.4). So
+both roles are machines that take received bytes *and the current time*, queue bytes to send
+(:meth:`data_to_send`) and expose the next ``deadline`` at which the driver must call
+:meth:`timer`. Nothing here reads a clock, sleeps or does I/O.
+
+* :class:`PGConnection` runs one transaction (:class:`Job`) at a time (B.9.1) and reports one
+  event per job: :class:`Response`, :class:`Nak` or :class:`Timeout`. Bytes that break the
+  protocol make :meth:`PGConnection.next_event` raise :class:`RemoteProtocolError` once. After any
+  abort the machine refuses to start the next job until the line was silent for ``backoff``
+  (500 ms; B5.1/B5.5); :attr:`PGConnection.ready_at` says when.
+* :class:`AGConnection` is the PLC side (B.9.2): it emits :class:`Request` and the owner answers
+  with :meth:`AGConnection.respond` or :meth:`AGConnection.refuse` (DLE NAK). On a gap or a
+  wrong byte it silently returns to idle, as a CPU does.
+
+Helpers build the parameter frames of the functions this library uses (18h, 1Ah, 04h, 03h, 1Bh,
+1Eh, stop/start through 03h; B.7) and parse their answers.
+"""
+
+from __future__ import annotations
+
+import enum
+import struct
+from collections import deque
+from dataclasses import dataclass
+
+from plcstack.codecs._common import NEED_DATA, NeedData
+from plcstack.errors import LocalProtocolError, RemoteProtocolError
+
+__all__ = [
+    "ACK",
+    "DEFAULT_BACKOFF",
+    "DEFAULT_CHAR_TIMEOUT",
+    "DLE",
+    "EOT",
+    "ETX",
+    "FN_BLOCK_LIST",
+    "FN_B_INFO",
+    "FN_OPERATING_MODE",
+    "FN_READ",
+    "FN_SYSTEM_PARAMETERS",
+    "FN_WRITE",
+    "MAX_READ_BYTES",
+    "MAX_WRITE_BYTES",
+    "NAK",
+    "STX",
+    "AGConnection",
+    "AGEvent",
+    "BlockInfo",
+    "Done",
+    "Idled",
+    "Job",
+    "Nak",
+    "PGConnection",
+    "PGEvent",
+    "Request",
+    "Response",
+    "SystemAddresses",
+    "Timeout",
+    "Unstuffer",
+    "b_info_job",
+    "block_list_job",
+    "operating_mode_job",
+    "parse_b_info",
+    "parse_read",
+    "parse_system_parameters",
+    "read_job",
+    "run_job",
+    "stop_job",
+    "stuff",
+    "system_parameters_job",
+    "unstuff",
+    "write_job",
+]
+
+STX = 0x02
+ETX = 0x03
+EOT = 0x04
+ACK = 0x06
+DLE = 0x10
+NAK = 0x15
+SYN = 0x16
+DC2 = 0x12
+#: [R] D.B4: the PG accepts 11h/12h/14h (or no byte) as terminate byte; the AG sends DC2
+TERMINATE_BYTES = frozenset({0x11, 0x12, 0x14})
+
+DLE_ACK = bytes([DLE, ACK])
+DLE_NAK = bytes([DLE, NAK])
+ACCEPT_FRAME = bytes([SYN, DLE, ETX])
+TERMINATE_FRAME = bytes([DC2, DLE, ETX])
+
+FN_WRITE = 0x03
+FN_READ = 0x04
+FN_SYSTEM_PARAMETERS = 0x18
+FN_B_INFO = 0x1A
+FN_BLOCK_LIST = 0x1B
+FN_OPERATING_MODE = 0x1E
+
+DEFAULT_CHAR_TIMEOUT = 0.5  # [R] B5.7: 500 ms for every wait, first answer byte included
+DEFAULT_BACKOFF = 0.5  # B5.1 / B5.5
+#: [R] B.7.3/B.7.4: the client splits reads and writes into transactions of <= 512 bytes
+MAX_READ_BYTES = 512
+MAX_WRITE_BYTES = 512
+#: leading bytes of a 04h answer (B.7.3, D.B2)
+READ_PREFIX = 5
+#: bytes an answer may exceed the expected length by before the PG gives up on it
+_SLACK = 16
+#: cap for answers of unknown length (18h, 1Bh)
+_UNKNOWN_LENGTH_CAP = 4096
+
+
+# -- DLE transparency (B.3) ------------------------------------------------------------------
+def stuff(data: bytes) -> bytes:
+    """Double every 10h data byte (B.3)."""
+    return bytes(data).replace(b"\x10", b"\x10\x10")
+
+
+def unstuff(frame: bytes, end: int = ETX) -> bytes:
+    """Decode one complete stuffed frame ending in ``DLE end``; raises RemoteProtocolError."""
+    decoder = Unstuffer(end)
+    for i, byte in enumerate(frame):
+        if decoder.feed(byte):
+            if i != len(frame) - 1:
+                raise RemoteProtocolError("bytes after the end of an AS511 frame")
+            return decoder.payload()
+    raise RemoteProtocolError("AS511 frame without DLE ETX/EOT end")
+
+
+class Unstuffer:
+    """Incremental de-stuffer of one frame: ``feed(byte)`` returns True at ``DLE end``."""
+
+    __slots__ = ("_buf", "_dle", "end", "limit")
+
+    def __init__(self, end: int, limit: int | None = None) -> None:
+        self.end = end
+        self.limit = limit
+        self._buf = bytearray()
+        self._dle = False
+
+    def feed(self, byte: int) -> bool:
+        if self._dle:
+            self._dle = False
+            if byte == DLE:
+                self._buf.append(DLE)
+            elif byte == self.end:
+                return True
+            else:
+                raise RemoteProtocolError(
+                    f"DLE followed by {byte:02X}h inside a frame (expected 10h or {self.end:02X}h)"
+                )
+        elif byte == DLE:
+            self._dle = True
+        else:
+            self._buf.append(byte)
+        if self.limit is not None and len(self._buf) > self.limit:
+            raise RemoteProtocolError(f"AS511 frame longer than {self.limit} bytes")
+        return False
+
+    def payload(self) -> bytes:
+        return bytes(self._buf)
+
+    def __len__(self) -> int:
+        return len(self._buf)
+
+
+# -- jobs and their answers (B.7) --------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Job:
+    """One AS511 transaction: function code, unstuffed parameters, whether a data frame follows.
+
+    ``response_length`` is the exact unstuffed length of the data frame when known (04h, 1Ah);
+    the PG aborts an answer that grows beyond it (plus a little slack) and the client checks it.
+    """
+
+    fn: int
+    params: bytes = b""
+    has_response: bool = True
+    response_length: int | None = None
+
+
+def system_parameters_job() -> Job:
+    return Job(FN_SYSTEM_PARAMETERS, b"", True, None)
+
+
+def b_info_job(block_type: int, number: int) -> Job:
+    if not (0 <= block_type <= 0xFF and 0 <= number <= 0xFF):
+        raise LocalProtocolError(f"block type {block_type} / number {number} out of range")
+    return Job(FN_B_INFO, bytes([block_type, number]), True, 13)
+
+
+def read_job(start: int, length: int) -> Job:
+    """04h: ``length`` bytes from absolute ``start`` (inclusive end address on the wire)."""
+    if length < 1 or start < 0 or start + length > 0x10000:
+        raise LocalProtocolError(f"read of {length} bytes at {start:#06x} is outside 64 KiB")
+    return Job(FN_READ, struct.pack(">HH", start, start + length - 1), True, READ_PREFIX + length)
+
+
+def write_job(start: int, data: bytes) -> Job:
+    """03h: write ``data`` at absolute ``start``; no data frame in the answer."""
+    if not data or start < 0 or start + len(data) > 0x10000:
+        raise LocalProtocolError(f"write of {len(data)} bytes at {start:#06x} is outside 64 KiB")
+    return Job(FN_WRITE, struct.pack(">H", start) + bytes(data), False, None)
+
+
+def block_list_job(block_type: int) -> Job:
+    return Job(FN_BLOCK_LIST, bytes([block_type]), True, None)
+
+
+def operating_mode_job(mode: int) -> Job:
+    """1Eh (135U/155U): 00 stop, 01 restart, 02 warm restart; 01/02 answer one byte (B.7.5)."""
+    if mode not in (0, 1, 2):
+        raise LocalProtocolError(f"operating mode {mode} is not 0 (stop), 1 or 2 (restart)")
+    return Job(FN_OPERATING_MODE, bytes([mode]), mode != 0, 1 if mode else None)
+
+
+def stop_job(system_data: int) -> Job:
+    """Stop a small CPU: libnodave's ``88 04`` at system data + 0Ch (B.7.5, B.11.4)."""
+    return write_job(system_data + 0x0C, b"\x88\x04")
+
+
+def run_job(system_data: int) -> Job:
+    """Start (restart) a small CPU: ``68 00`` at system data + 0Ch (B.7.5, B.11.4)."""
+    return write_job(system_data + 0x0C, b"\x68\x00")
+
+
+@dataclass(frozen=True, slots=True)
+class SystemAddresses:
+    """The part of the 18h answer the client uses (offsets 0-21 of B.7.1) and the raw block."""
+
+    esf: int
+    asf: int
+    inputs: int  # PAE
+    outputs: int  # PAA
+    flags: int
+    timers: int
+    counters: int
+    system_data: int
+    software_version: int
+    status: int
+    end_of_ram: int
+    raw: bytes
+
+
+def parse_system_parameters(payload: bytes) -> SystemAddresses:
+    """Decode an 18h data frame (``00`` + parameters); at least 00 + 44 bytes as libnodave."""
+    if len(payload) < 45:
+        raise RemoteProtocolError(
+            f"system parameter answer has {len(payload)} bytes, expected at least 45"
+        )
+    if payload[0] != 0:
+        raise RemoteProtocolError(f"system parameter answer starts with {payload[0]:02X}h, not 00")
+    esf, asf, pae, paa, flags, timers, counters, system, version, status, end_of_ram = (
+        struct.unpack_from(">8HBBH", payload, 1)
+    )
+    return SystemAddresses(
+        esf,
+        asf,
+        pae,
+        paa,
+        flags,
+        timers,
+        counters,
+        system,
+        version,
+        status,
+        end_of_ram,
+        raw=bytes(payload[1:]),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class BlockInfo:
+    """B_INFO (1Ah) of one block: where DW0 is and how long the block is (B.7.2)."""
+
+    block_type: int
+    number: int
+    dw0: int
+    length_words: int  # including the 5-word header
+    header: bytes
+
+    @property
+    def data_bytes(self) -> int:
+        return max(0, (self.length_words - 5) * 2)
+
+    @property
+    def header_address(self) -> int:
+        return self.dw0 - 10
+
+
+def header_matches(header: bytes, block_type: int, number: int) -> bool:
+    """The signature check of B.7.2: ``70 70``, ``40h + type``, number."""
+    return (
+        len(header) >= 10
+        and header[0] == 0x70
+        and header[1] == 0x70
+        and header[2] == 0x40 + block_type
+        and header[3] == number
+    )
+
+
+def parse_b_info(payload: bytes, block_type: int, number: int) -> BlockInfo | None:
+    """Decode a 1Ah answer; ``None`` when the signature check fails (block unusable, D.B3)."""
+    if len(payload) < 13 or payload[0] != 0:
+        return None
+    header = bytes(payload[3:13])
+    if not header_matches(header, block_type, number):
+        return None
+    dw0 = (payload[1] << 8) | payload[2]
+    length = (header[8] << 8) | header[9]
+    if length < 5:
+        return None
+    return BlockInfo(block_type, number, dw0, length, header)
+
+
+def parse_read(payload: bytes, length: int, *, strict: bool = False) -> bytes:
+    """The data of a 04h answer: skip the 5 leading bytes (zero in strict mode; D.B2)."""
+    if len(payload) != READ_PREFIX + length:
+        raise RemoteProtocolError(
+            f"read answer has {len(payload)} bytes, expected {READ_PREFIX + length} "
+            f"(5 leading bytes + {length} data bytes)"
+        )
+    # [R] D.B2: skip the 5 leading bytes; only strict mode insists that they are zero
+    if strict and any(payload[:READ_PREFIX]):
+        raise RemoteProtocolError(f"read answer starts with {payload[:5].hex(' ')}, not 5 x 00")
+    return bytes(payload[READ_PREFIX:])
+
+
+# -- PG (client) machine (B.9.1) --------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Response:
+    """The transaction completed; ``data`` is the unstuffed data frame (empty for writes)."""
+
+    fn: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Nak:
+    """The AG answered DLE NAK at ``step`` ("ready", "function" or "params"; B5.1/B5.2)."""
+
+    fn: int
+    step: str
+
+
+@dataclass(frozen=True, slots=True)
+class Timeout:
+    """The AG did not answer within the character timeout while the PG was in ``state``."""
+
+    fn: int
+    state: str
+
+
+PGEvent = Response | Nak | Timeout
+
+
+class PGState(enum.Enum):
+    IDLE = "IDLE"
+    W_ACK1 = "W_ACK1"  # after STX, expect DLE ACK
+    W_STX1 = "W_STX1"  # after fn, expect STX
+    W_ACCEPT = "W_ACCEPT"  # expect accept byte + DLE ETX
+    W_ACK2 = "W_ACK2"  # after the parameter frame, expect DLE ACK
+    W_STX2 = "W_STX2"  # expect STX of the data frame
+    RX_DATA = "RX_DATA"  # data frame until DLE ETX
+    W_STX3 = "W_STX3"  # expect STX of the terminate frame
+    W_END = "W_END"  # terminate byte + DLE ETX
+
+
+#: [R] B5.2/D.B5: DLE NAK is accepted at step 2 (busy), 4 (unsupported function), 9 (refused)
+_NAK_STEPS = {
+    PGState.W_ACK1: "ready",
+    PGState.W_STX1: "function",
+    PGState.W_ACK2: "params",
+}
+
+
+class PGConnection:
+    """The PG (client) side of AS511, one transaction at a time (B.9.1).
+
+    Drive it like this: ``submit(job, now)`` (only when ``now >= ready_at``), send
+    ``data_to_send()``, then until ``next_event()`` is not ``NEED_DATA``: wait for bytes until
+    ``deadline``; pass them to ``receive_data(data, now)`` or, when the deadline passed, call
+    ``timer(now)``; send ``data_to_send()`` after each call.
+
+    ``tx_byte_time`` is the line time of one byte (11 / baud for 8E1); deadlines that follow our
+    own sending are extended by the time our bytes need on the wire, so a 512-byte write at 9600
+    baud is not mistaken for a dead AG. ``response_timeout`` is the wait for the AG to execute a
+    request (DLE ACK after the parameters and the STX of the data frame; D.B6).
+    """
+
+    def __init__(
+        self,
+        *,
+        char_timeout: float = DEFAULT_CHAR_TIMEOUT,
+        response_timeout: float | None = None,
+        backoff: float = DEFAULT_BACKOFF,
+        tx_byte_time: float = 0.0,
+    ) -> None:
+        if char_timeout <= 0 or backoff < 0 or tx_byte_time < 0:
+            raise LocalProtocolError("char_timeout must be positive, backoff/tx_byte_time >= 0")
+        self.char_timeout = char_timeout
+        self.response_timeout = char_timeout if response_timeout is None else response_timeout
+        self.backoff = backoff
+        self.tx_byte_time = tx_byte_time
+        self.state = PGState.IDLE
+        self.job: Job | None = None
+        #: the PG may start the next transaction at this time (after NAK/abort: line silence)
+        self.ready_at = 0.0
+        #: when the current state times out; ``None`` when idle
+        self.deadline: float | None = None
+        self._out = bytearray()
+        self._events: deque[PGEvent | RemoteProtocolError] = deque()
+        self._dle = False
+        self._got_byte = False  # accept/terminate byte seen in W_ACCEPT / W_END
+        self._rx: Unstuffer | None = None
+        self._payload = b""
+
+    # -- driver API --------------------------------------------------------------------------
+    @property
+    def busy(self) -> bool:
+        return self.state is not PGState.IDLE
+
+    def submit(self, job: Job, now: float) -> None:
+        """Start ``job``: queues the STX. Misuse (busy, in back-off) is a LocalProtocolError."""
+        if self.state is not PGState.IDLE or self._events:
+            raise LocalProtocolError("an AS511 transaction is already in progress")
+        if now < self.ready_at:
+            raise LocalProtocolError(
+                f"the line must be silent until {self.ready_at:.3f} (back-off after an abort)"
+            )
+        self.job = job
+        self._dle = False
+        self._send(bytes([STX]))
+        self._enter(PGState.W_ACK1, now, sent=1)
+
+    def data_to_send(self) -> bytes:
+        out = bytes(self._out)
+        self._out.clear()
+        return out
+
+    def next_event(self) -> PGEvent | NeedData:
+        """The result of the current job, or NEED_DATA; raises RemoteProtocolError once."""
+        if not self._events:
+            return NEED_DATA
+        event = self._events.popleft()
+        if isinstance(event, RemoteProtocolError):
+            raise event
+        return event
+
+    def receive_data(self, data: bytes, now: float) -> None:
+        for byte in data:
+            self._receive_byte(byte, now)
+
+    def timer(self, now: float) -> None:
+        """Call when ``deadline`` has passed: aborts the transaction with a Timeout event."""
+        if self.deadline is None or now < self.deadline or self.state is PGState.IDLE:
+            return
+        job = self.job
+        assert job is not None
+        state = self.state.value
+        self._abort(now)
+        self._events.append(Timeout(job.fn, state))
+
+    def reset(self, now: float) -> None:
+        """The line was re-opened: forget any transaction; keep (and restart) the back-off."""
+        if self.state is not PGState.IDLE:
+            self._abort(now)
+        self._events.clear()
+        self._out.clear()
+
+    # -- internals ---------------------------------------------------------------------------
+    def _send(self, data: bytes) -> None:
+        self._out += data
+
+    def _enter(self, state: PGState, now: float, *, sent: int = 0, slow: bool = False) -> None:
+        self.state = state
+        self._dle = False
+        wait = self.response_timeout if slow else self.char_timeout
+        self.deadline = now + wait + sent * self.tx_byte_time
+
+    def _abort(self, now: float) -> None:
+        self.state = PGState.IDLE
+        self.deadline = None
+        self._rx = None
+        self._dle = False
+        # [R] B5.5: silence is measured from the later of the abort and the last received byte
+        self.ready_at = max(self.ready_at, now + self.backoff)
+
+    def _fail(self, now: float, message: str) -> None:
+        job = self.job
+        fn = f"function {job.fn:02X}h" if job is not None else "idle"
+        self._abort(now)
+        self._events.append(RemoteProtocolError(f"AS511 {fn}, {message}"))
+
+    def _nak(self, now: float) -> None:
+        job = self.job
+        assert job is not None
+        step = _NAK_STEPS[self.state]
+        self._abort(now)
+        self._events.append(Nak(job.fn, step))
+
+    def _receive_byte(self, byte: int, now: float) -> None:
+        state = self.state
+        if state is PGState.IDLE:
+            # B5.5: during back-off every byte extends the silence we wait for; a stray byte
+            # outside a transaction means the line is not quiet either [R].
+            self.ready_at = max(self.ready_at, now + self.backoff)
+            return
+        if self.deadline is not None and now > self.deadline:
+            self.timer(now)  # the byte came too late: the transaction is already dead
+            self.ready_at = max(self.ready_at, now + self.backoff)
+            return
+        job = self.job
+        assert job is not None
+        self.deadline = now + self.char_timeout  # re-armed on every byte (B.9.1)
+        if state in (PGState.W_ACK1, PGState.W_ACK2):
+            if not self._dle:
+                if byte == DLE:
+                    self._dle = True
+                else:
+                    self._fail(now, f"expected DLE ACK in {state.value}, got {byte:02X}h")
+                return
+            if byte == NAK:
+                self._nak(now)
+            elif byte != ACK:
+                self._fail(now, f"expected DLE ACK in {state.value}, got DLE {byte:02X}h")
+            elif state is PGState.W_ACK1:
+                self._send(bytes([job.fn]))
+                self._enter(PGState.W_STX1, now, sent=1)
+            elif job.has_response:
+                self._enter(PGState.W_STX2, now, slow=True)
+            else:
+                self._enter(PGState.W_STX3, now, slow=True)
+            return
+        if state is PGState.W_STX1:
+            if self._dle:
+                if byte == NAK:
+                    self._nak(now)
+                else:
+                    self._fail(now, f"expected STX after the function code, got DLE {byte:02X}h")
+            elif byte == DLE:
+                self._dle = True
+            elif byte == STX:
+                self._send(DLE_ACK)
+                self._enter(PGState.W_ACCEPT, now, sent=2)
+                self._got_byte = False
+            else:
+                self._fail(now, f"expected STX after the function code, got {byte:02X}h")
+            return
+        if state in (PGState.W_ACCEPT, PGState.W_END):
+            self._receive_short_frame(byte, now, job)
+            return
+        if state in (PGState.W_STX2, PGState.W_STX3):
+            if byte != STX:
+                self._fail(now, f"expected STX in {state.value}, got {byte:02X}h")
+                return
+            self._send(DLE_ACK)
+            if state is PGState.W_STX2:
+                limit = (
+                    job.response_length + _SLACK
+                    if job.response_length is not None
+                    else _UNKNOWN_LENGTH_CAP
+                )
+                self._rx = Unstuffer(ETX, limit)
+                self._enter(PGState.RX_DATA, now, sent=2)
+            else:
+                self._got_byte = False
+                self._enter(PGState.W_END, now, sent=2)
+            return
+        # RX_DATA
+        rx = self._rx
+        assert rx is not None
+        try:
+            done = rx.feed(byte)
+        except RemoteProtocolError as exc:
+            self._fail(now, f"data frame: {exc.message}")
+            return
+        if done:
+            self._payload = rx.payload()
+            self._rx = None
+            self._send(DLE_ACK)
+            self._enter(PGState.W_STX3, now, sent=2)
+
+    def _receive_short_frame(self, byte: int, now: float, job: Job) -> None:
+        """Accept frame (``16 10 03``) or terminate frame (``12 10 03``; lenient per D.B4)."""
+        accept = self.state is PGState.W_ACCEPT
+        what = "accept frame" if accept else "terminate frame"
+        if self._dle:
+            if byte != ETX:
+                self._fail(now, f"{what}: DLE followed by {byte:02X}h, expected DLE ETX")
+                return
+            if accept and not self._got_byte:
+                self._fail(now, "accept frame without the AG answer byte (16h)")
+                return
+            self._send(DLE_ACK)
+            if accept:
+                self._send(stuff(job.params) + bytes([DLE, EOT]))
+                sent = 4 + len(job.params) + job.params.count(DLE)
+                self._enter(PGState.W_ACK2, now, sent=sent, slow=True)
+            else:
+                self.state = PGState.IDLE
+                self.deadline = None
+                self._events.append(Response(job.fn, self._payload if job.has_response else b""))
+                self._payload = b""
+            return
+        if byte == DLE:
+            self._dle = True
+        elif self._got_byte or (not accept and byte not in TERMINATE_BYTES):
+            self._fail(now, f"{what}: unexpected byte {byte:02X}h")
+        else:
+            self._got_byte = True
+
+
+# -- AG (PLC) machine (B.9.2) ------------------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Request:
+    """The PG sent a complete parameter frame; answer with ``respond()`` or ``refuse()``."""
+
+    fn: int
+    params: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Done:
+    """The PG acknowledged the terminate frame: the transaction is complete."""
+
+    fn: int
+
+
+@dataclass(frozen=True, slots=True)
+class Idled:
+    """The AG dropped a transaction (gap, unexpected byte, bad frame; B5.6) and is idle again."""
+
+    reason: str
+
+
+AGEvent = Request | Done | Idled
+
+
+class AGState(enum.Enum):
+    IDLE = "IDLE"
+    W_FN = "W_FN"
+    W_ACK_A = "W_ACK_A"  # STX sent, expect DLE ACK, then send accept frame
+    W_ACK_B = "W_ACK_B"  # accept frame sent, expect DLE ACK
+    RX_PARAMS = "RX_PARAMS"
+    EXECUTE = "EXECUTE"  # Request emitted, waiting for respond()/refuse()
+    W_ACK_C = "W_ACK_C"  # STX sent, expect DLE ACK, then send the data frame
+    W_ACK_D = "W_ACK_D"  # data frame sent, expect DLE ACK, then send STX
+    W_ACK_E = "W_ACK_E"  # STX sent, expect DLE ACK, then send the terminate frame
+    W_ACK_F = "W_ACK_F"  # terminate frame sent, expect DLE ACK
+
+
+#: functions the simulator answers (B.7: 18h, 1Ah, 04h, 03h, and the optional 1Bh, 1Eh)
+DEFAULT_FUNCTIONS = frozenset(
+    {FN_WRITE, FN_READ, FN_SYSTEM_PARAMETERS, FN_B_INFO, FN_BLOCK_LIST, FN_OPERATING_MODE}
+)
+
+
+class AGConnection:
+    """The AG (PLC) side of AS511 (B.9.2). Never raises on received bytes.
+
+    ``busy`` makes it answer the next STX with DLE NAK (the "AG busy" case of B5.2).
+    """
+
+    def __init__(
+        self,
+        *,
+        functions: frozenset[int] = DEFAULT_FUNCTIONS,
+        char_timeout: float = DEFAULT_CHAR_TIMEOUT,
+        max_params: int = 4096 + 2,
+        tx_byte_time: float = 0.0,
+    ) -> None:
+        self.functions = functions
+        self.char_timeout = char_timeout
+        self.max_params = max_params
+        self.tx_byte_time = tx_byte_time
+        self.busy = False
+        self.state = AGState.IDLE
+        self.deadline: float | None = None
+        self.fn = 0
+        self._out = bytearray()
+        self._events: deque[AGEvent] = deque()
+        self._dle = False
+        self._rx: Unstuffer | None = None
+        self._response: bytes | None = None
+
+    def data_to_send(self) -> bytes:
+        out = bytes(self._out)
+        self._out.clear()
+        return out
+
+    def next_event(self) -> AGEvent | NeedData:
+        return self._events.popleft() if self._events else NEED_DATA
+
+    def timer(self, now: float) -> None:
+        if self.deadline is not None and now >= self.deadline and self.state is not AGState.IDLE:
+            self._idle(
+                f"no answer from the PG within {self.char_timeout:g} s in {self.state.value}"
+            )
+
+    def respond(self, data: bytes | None, now: float) -> None:
+        """Accept the pending Request: ``data`` is the data frame, ``None`` for "no data frame"."""
+        if self.state is not AGState.EXECUTE:
+            raise LocalProtocolError("respond() without a pending AS511 request")
+        self._response = data
+        self._send(DLE_ACK + bytes([STX]))
+        self._enter(AGState.W_ACK_C if data is not None else AGState.W_ACK_E, now, 3)
+
+    def refuse(self, now: float) -> None:
+        """Refuse the pending Request: DLE NAK instead of DLE ACK (step 9; B5.1)."""
+        if self.state is not AGState.EXECUTE:
+            raise LocalProtocolError("refuse() without a pending AS511 request")
+        self._send(DLE_NAK)
+        self.state = AGState.IDLE
+        self.deadline = None
+
+    def receive_data(self, data: bytes, now: float) -> None:
+        for byte in data:
+            self._receive_byte(byte, now)
+
+    # -- internals ---------------------------------------------------------------------------
+    def _send(self, data: bytes) -> None:
+        self._out += data
+
+    def _enter(self, state: AGState, now: float, sent: int = 0) -> None:
+        self.state = state
+        self._dle = False
+        self.deadline = now + self.char_timeout + sent * self.tx_byte_time
+
+    def _idle(self, reason: str) -> None:
+        # [R] B5.6: on a gap or a wrong byte the AG silently returns to idle (no NAK)
+        self.state = AGState.IDLE
+        self.deadline = None
+        self._dle = False
+        self._rx = None
+        self._events.append(Idled(reason))
+
+    def _stx(self, now: float) -> None:
+        if self.busy:
+            self._send(DLE_NAK)
+            self.state = AGState.IDLE
+            self.deadline = None
+            return
+        self._send(DLE_ACK)
+        self._enter(AGState.W_FN, now, 2)
+
+    def _receive_byte(self, byte: int, now: float) -> None:
+        state = self.state
+        if state is AGState.IDLE:
+            if byte == STX:
+                self._stx(now)
+            return  # anything else between transactions is ignored
+        if state is AGState.EXECUTE:
+            # The PG must wait for our answer; bytes now are a protocol breach (B5.6).
+            self._idle(f"unexpected byte {byte:02X}h while executing a request")
+            return
+        if self.deadline is not None and now > self.deadline:
+            self._idle(f"gap of more than {self.char_timeout:g} s in {state.value}")
+            if byte == STX:
+                self._stx(now)
+            return
+        self.deadline = now + self.char_timeout
+        if state is AGState.W_FN:
+            if self._dle:
+                self._dle = False
+                if byte != DLE:
+                    self._idle(f"function code DLE {byte:02X}h")
+                    return
+            elif byte == DLE:
+                self._dle = True  # D.B9: a function code 10h comes doubled
+                return
+            self.fn = byte
+            if byte in self.functions:
+                self._send(bytes([STX]))
+                self._enter(AGState.W_ACK_A, now, 1)
+            else:
+                self._send(DLE_NAK)
+                self.state = AGState.IDLE
+                self.deadline = None
+            return
+        if state is AGState.RX_PARAMS:
+            rx = self._rx
+            assert rx is not None
+            try:
+                done = rx.feed(byte)
+            except RemoteProtocolError as exc:
+                self._idle(f"parameter frame: {exc.message}")
+                return
+            if done:
+                self._rx = None
+                self.state = AGState.EXECUTE
+                self.deadline = None
+                self._events.append(Request(self.fn, rx.payload()))
+            return
+        # W_ACK_A .. W_ACK_F: expect DLE ACK
+        if not self._dle:
+            if byte == DLE:
+                self._dle = True
+            elif byte == STX:
+                self._idle(f"STX in {state.value}: the PG started over")  # B.9.2 [R]
+                self._stx(now)
+            else:
+                self._idle(f"expected DLE ACK in {state.value}, got {byte:02X}h")
+            return
+        if byte != ACK:
+            self._idle(f"expected DLE ACK in {state.value}, got DLE {byte:02X}h")
+            return
+        if state is AGState.W_ACK_A:
+            self._send(ACCEPT_FRAME)
+            self._enter(AGState.W_ACK_B, now, 3)
+        elif state is AGState.W_ACK_B:
+            self._rx = Unstuffer(EOT, self.max_params)
+            self._enter(AGState.RX_PARAMS, now)
+        elif state is AGState.W_ACK_C:
+            data = stuff(self._response or b"") + bytes([DLE, ETX])
+            self._send(data)
+            self._enter(AGState.W_ACK_D, now, len(data))
+        elif state is AGState.W_ACK_D:
+            self._send(bytes([STX]))
+            self._enter(AGState.W_ACK_E, now, 1)
+        elif state is AGState.W_ACK_E:
+            self._send(TERMINATE_FRAME)
+            self._enter(AGState.W_ACK_F, now, 3)
+        else:
+            self.state = AGState.IDLE
+            self.deadline = None
+            self._response = None
+            self._events.append(Done(self.fn))

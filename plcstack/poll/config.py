@@ -1,0 +1,402 @@
+"""The poller's configuration: PLCs, scan groups and tags, from TOML or built in Python.
+
+```toml
+[poll]
+concurrency = 32        # requests in flight at once across all PLCs
+queue = 10000           # samples held for a slow consumer; beyond that the oldest are dropped
+max_gap = 8             # unused points one merged request may carry between two tags
+timeout = 2.0           # request deadline in seconds (a URL's ?timeout= wins)
+connect_timeout = 3.0
+backoff_max = 30.0      # longest wait between reconnect attempts to a dead PLC (seconds)
+interval = 1.0          # interval of the scan group "default"
+
+[groups]                # more scan groups: name = interval in seconds
+fast = 0.1
+
+[[plc]]
+name = "press1"
+url = "e71+tcp://10.0.0.5:5000"
+group = "fast"          # scan group of this PLC's tags unless a tag names one
+word_order = "little"   # int32/float32 point order; default: little for E71, big for S5
+max_gap = 4
+
+[plc.tags]
+counter = "D100"                                          # type raw, count 1
+temp = { address = "D102", type = "float32", group = "default" }
+alarms = { address = "M0", type = "bool", count = 16 }
+```
+
+Every problem is a :class:`ConfigError` naming the PLC, the tag and, where it can be found, the
+TOML line, so a typo in a 500-PLC file is found at once and before anything is sent.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from plcstack.errors import AddressError
+from plcstack.poll.values import DataType, WordOrder, default_word_order
+from plcstack.url import parse_url
+
+__all__ = [
+    "ConfigError",
+    "PlcConfig",
+    "PollConfig",
+    "TagConfig",
+    "load_config",
+    "parse_config",
+]
+
+DEFAULT_GROUP = "default"
+DEFAULT_INTERVAL = 1.0
+DEFAULT_CONCURRENCY = 64
+DEFAULT_QUEUE = 10_000
+DEFAULT_MAX_GAP = 8
+
+
+class ConfigError(AddressError):
+    """The poll configuration is invalid; nothing was sent to any PLC.
+
+    An :class:`AddressError` so the CLI exits with the usage code 2, like any other bad input.
+    """
+
+
+@dataclass(frozen=True)
+class TagConfig:
+    """One tag: ``count`` values of ``type`` starting at ``address``, scanned in ``group``."""
+
+    name: str
+    address: str
+    type: DataType = DataType.RAW
+    count: int = 1
+    group: str = DEFAULT_GROUP
+
+
+@dataclass(frozen=True)
+class PlcConfig:
+    """One PLC: its URL, its tags and how to poll it."""
+
+    name: str
+    url: str
+    tags: tuple[TagConfig, ...]
+    max_gap: int = DEFAULT_MAX_GAP
+    word_order: WordOrder | None = None
+    timeout: float | None = None
+    connect_timeout: float | None = None
+    #: cap of the reconnect backoff (None: the client's default, 30 s)
+    backoff_max: float | None = None
+
+    @property
+    def order(self) -> WordOrder:
+        if self.word_order is not None:
+            return self.word_order
+        return default_word_order(parse_url(self.url).scheme)
+
+
+@dataclass(frozen=True)
+class PollConfig:
+    """Everything the :class:`~plcstack.poll.engine.Poller` needs."""
+
+    plcs: tuple[PlcConfig, ...]
+    groups: Mapping[str, float] = field(default_factory=lambda: {DEFAULT_GROUP: DEFAULT_INTERVAL})
+    concurrency: int = DEFAULT_CONCURRENCY
+    queue: int = DEFAULT_QUEUE
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+# -- validation shared by TOML and Python-built configs --------------------------------------
+
+
+def validate(config: PollConfig) -> None:
+    """Check a config built in Python the same way the TOML loader does."""
+    if config.concurrency < 1:
+        raise ConfigError("poll.concurrency must be at least 1")
+    if config.queue < 1:
+        raise ConfigError("poll.queue must be at least 1")
+    for name, interval in config.groups.items():
+        if not (isinstance(interval, int | float) and math.isfinite(interval) and interval > 0):
+            raise ConfigError(f"scan group {name!r}: interval must be a positive number of seconds")
+    seen: set[str] = set()
+    for plc in config.plcs:
+        if plc.name in seen:
+            raise ConfigError(f"PLC name {plc.name!r} is used twice", plc=plc.name)
+        seen.add(plc.name)
+        try:
+            parse_url(plc.url)
+        except AddressError as exc:
+            raise ConfigError(f"bad url: {exc}", plc=plc.name) from None
+        if plc.max_gap < 0:
+            raise ConfigError("max_gap must be 0 or more", plc=plc.name)
+        for name in ("timeout", "connect_timeout", "backoff_max"):
+            value = getattr(plc, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be greater than 0", plc=plc.name)
+        tag_names: set[str] = set()
+        for tag in plc.tags:
+            where = f"tag {tag.name!r}"
+            if tag.name in tag_names:
+                raise ConfigError(f"{where} is defined twice", plc=plc.name)
+            tag_names.add(tag.name)
+            if tag.count < 1:
+                raise ConfigError(f"{where}: count must be at least 1", plc=plc.name)
+            if tag.group not in config.groups:
+                raise ConfigError(
+                    f"{where}: unknown scan group {tag.group!r} "
+                    f"(groups: {', '.join(sorted(config.groups))})",
+                    plc=plc.name,
+                )
+
+
+# -- TOML ---------------------------------------------------------------------------------------
+
+
+def load_config(path: str | Path) -> PollConfig:
+    """Read and validate a TOML file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
+    return parse_config(text, source=str(path))
+
+
+def parse_config(text: str, *, source: str = "<config>") -> PollConfig:
+    """Parse and validate TOML text; errors name the PLC, the tag and the line if found."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    return _Loader(text, source).load(data)
+
+
+class _Loader:
+    def __init__(self, text: str, source: str) -> None:
+        self.lines = text.splitlines()
+        self.source = source
+        self.plc_index = -1
+        self.plc_name: str | None = None
+
+    # Where in the file: tomllib keeps no positions, so find the line by its key, searching only
+    # inside the current [[plc]] section. Good enough to point a person at the right place.
+    def _line_of(self, key: str | None) -> int | None:
+        starts = [i for i, line in enumerate(self.lines) if re.match(r"\s*\[\[\s*plc\s*\]\]", line)]
+        if self.plc_index < 0 or self.plc_index >= len(starts):
+            lo, hi = 0, len(self.lines)
+        else:
+            lo = starts[self.plc_index]
+            hi = starts[self.plc_index + 1] if self.plc_index + 1 < len(starts) else len(self.lines)
+        if key is None:
+            return lo + 1 if self.plc_index >= 0 else None
+        pattern = re.compile(r'\s*(?:["\']?' + re.escape(key) + r'["\']?)\s*=')
+        for i in range(lo, hi):
+            if pattern.match(self.lines[i]):
+                return i + 1
+        return lo + 1 if self.plc_index >= 0 else None
+
+    def error(self, message: str, key: str | None = None) -> ConfigError:
+        line = self._line_of(key)
+        where = f"{self.source}:{line}" if line else self.source
+        return ConfigError(f"{message} ({where})", plc=self.plc_name)
+
+    def _number(self, table: Mapping[str, Any], key: str, default: float, what: str) -> float:
+        value = table.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise self.error(f"{what} {key} must be a number, not {value!r}", key)
+        if not (math.isfinite(value) and value > 0):
+            raise self.error(f"{what} {key} must be greater than 0, got {value!r}", key)
+        return float(value)
+
+    def _int(self, table: Mapping[str, Any], key: str, default: int, lo: int, what: str) -> int:
+        value = table.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.error(f"{what} {key} must be an integer, not {value!r}", key)
+        if value < lo:
+            raise self.error(f"{what} {key} must be at least {lo}, got {value}", key)
+        return value
+
+    @staticmethod
+    def _unknown(table: Mapping[str, Any], allowed: set[str]) -> list[str]:
+        return sorted(set(table) - allowed)
+
+    def load(self, data: dict[str, Any]) -> PollConfig:
+        unknown = self._unknown(data, {"poll", "groups", "plc"})
+        if unknown:
+            raise self.error(
+                f"unknown top-level key(s) {', '.join(unknown)}; expected poll, groups, plc"
+            )
+        poll = data.get("poll", {})
+        if not isinstance(poll, dict):
+            raise self.error("[poll] must be a table", "poll")
+        unknown = self._unknown(
+            poll,
+            {
+                "concurrency",
+                "queue",
+                "max_gap",
+                "timeout",
+                "connect_timeout",
+                "backoff_max",
+                "interval",
+            },
+        )
+        if unknown:
+            raise self.error(f"unknown key(s) in [poll]: {', '.join(unknown)}", unknown[0])
+        concurrency = self._int(poll, "concurrency", DEFAULT_CONCURRENCY, 1, "poll")
+        queue = self._int(poll, "queue", DEFAULT_QUEUE, 1, "poll")
+        max_gap = self._int(poll, "max_gap", DEFAULT_MAX_GAP, 0, "poll")
+        timeout = self._number(poll, "timeout", 2.0, "poll") if "timeout" in poll else None
+        connect_timeout = (
+            self._number(poll, "connect_timeout", 3.0, "poll")
+            if "connect_timeout" in poll
+            else None
+        )
+        backoff_max = (
+            self._number(poll, "backoff_max", 30.0, "poll") if "backoff_max" in poll else None
+        )
+        groups: dict[str, float] = {
+            DEFAULT_GROUP: self._number(poll, "interval", DEFAULT_INTERVAL, "poll")
+        }
+        raw_groups = data.get("groups", {})
+        if not isinstance(raw_groups, dict):
+            raise self.error("[groups] must be a table of name = interval (seconds)", "groups")
+        for name in raw_groups:
+            groups[name] = self._number(raw_groups, name, 0, f"scan group {name!r}: interval")
+        raw_plcs = data.get("plc", [])
+        if not isinstance(raw_plcs, list):
+            raise self.error("plc must be an array of tables: write [[plc]]", "plc")
+        plcs: list[PlcConfig] = []
+        names: set[str] = set()
+        for index, raw in enumerate(raw_plcs):
+            self.plc_index = index
+            self.plc_name = None
+            plc = self._plc(raw, groups, max_gap, timeout, connect_timeout, backoff_max)
+            if plc.name in names:
+                raise self.error(f"PLC name {plc.name!r} is used twice", "name")
+            names.add(plc.name)
+            plcs.append(plc)
+        self.plc_index, self.plc_name = -1, None
+        if not plcs:
+            raise self.error("no PLC configured: add a [[plc]] table with name, url and tags")
+        return PollConfig(tuple(plcs), groups, concurrency, queue)
+
+    def _plc(
+        self,
+        raw: Any,
+        groups: Mapping[str, float],
+        max_gap: int,
+        timeout: float | None,
+        connect_timeout: float | None,
+        backoff_max: float | None,
+    ) -> PlcConfig:
+        if not isinstance(raw, dict):
+            raise self.error("each [[plc]] must be a table")
+        url = raw.get("url")
+        name = raw.get("name", url)
+        if not isinstance(name, str) or not name:
+            raise self.error("PLC name must be a non-empty string", "name")
+        self.plc_name = name
+        if not isinstance(url, str):
+            raise self.error('missing url (e.g. url = "e71+tcp://10.0.0.5:5000")', "url")
+        unknown = self._unknown(
+            raw,
+            {
+                "name",
+                "url",
+                "group",
+                "tags",
+                "max_gap",
+                "word_order",
+                "timeout",
+                "connect_timeout",
+                "backoff_max",
+            },
+        )
+        if unknown:
+            raise self.error(f"unknown key(s) {', '.join(unknown)}", unknown[0])
+        try:
+            parse_url(url)
+        except AddressError as exc:
+            raise self.error(f"bad url: {exc.message}", "url") from None
+        group = raw.get("group", DEFAULT_GROUP)
+        if group not in groups:
+            raise self.error(
+                f"unknown scan group {group!r} (groups: {', '.join(sorted(groups))})", "group"
+            )
+        order: WordOrder | None = None
+        if "word_order" in raw:
+            try:
+                order = WordOrder(raw["word_order"])
+            except ValueError:
+                raise self.error(
+                    f'word_order must be "big" or "little", not {raw["word_order"]!r}',
+                    "word_order",
+                ) from None
+        plc_timeout = self._number(raw, "timeout", 0, "") if "timeout" in raw else timeout
+        plc_connect = (
+            self._number(raw, "connect_timeout", 0, "")
+            if "connect_timeout" in raw
+            else connect_timeout
+        )
+        raw_tags = raw.get("tags")
+        if not isinstance(raw_tags, dict) or not raw_tags:
+            raise self.error('no tags: add a [plc.tags] table (name = "ADDRESS")', "tags")
+        tags = tuple(
+            self._tag(tag_name, spec, group, groups) for tag_name, spec in raw_tags.items()
+        )
+        return PlcConfig(
+            name=name,
+            url=url,
+            tags=tags,
+            max_gap=self._int(raw, "max_gap", max_gap, 0, ""),
+            word_order=order,
+            timeout=plc_timeout,
+            connect_timeout=plc_connect,
+            backoff_max=(
+                self._number(raw, "backoff_max", 0, "") if "backoff_max" in raw else backoff_max
+            ),
+        )
+
+    def _tag(self, name: str, spec: Any, group: str, groups: Mapping[str, float]) -> TagConfig:
+        where = f"tag {name!r}"
+        if not name.strip():
+            raise self.error("a tag name must not be empty", "tags")
+        if isinstance(spec, str):
+            spec = {"address": spec}
+        if not isinstance(spec, dict):
+            raise self.error(
+                f'{where}: expected "ADDRESS" or {{ address = ..., type = ..., count = ... }}',
+                name,
+            )
+        unknown = self._unknown(spec, {"address", "type", "count", "group"})
+        if unknown:
+            raise self.error(f"{where}: unknown key(s) {', '.join(unknown)}", name)
+        address = spec.get("address")
+        if not isinstance(address, str) or not address.strip():
+            raise self.error(f"{where}: missing address", name)
+        type_name = spec.get("type", "raw")
+        try:
+            dtype = DataType(type_name)
+        except ValueError:
+            raise self.error(
+                f"{where}: unknown type {type_name!r} "
+                f"(types: {', '.join(t.value for t in DataType)})",
+                name,
+            ) from None
+        count = spec.get("count", 1)
+        if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+            raise self.error(f"{where}: count must be a positive integer, not {count!r}", name)
+        tag_group = spec.get("group", group)
+        if tag_group not in groups:
+            raise self.error(
+                f"{where}: unknown scan group {tag_group!r} (groups: {', '.join(sorted(groups))})",
+                name,
+            )
+        return TagConfig(name, address.strip(), dtype, count, tag_group)

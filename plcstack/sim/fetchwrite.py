@@ -1,0 +1,352 @@
+"""FETCH/WRITE CP simulator (S5 16-byte header, optionally inside the Tani MK header).
+
+Serves the shared :class:`~plcstack.sim.s5memory.S5Memory` over TCP, with raw or MK framing, on
+one port (FETCH and WRITE) or on separate FETCH and WRITE ports, as real CPs are configured.
+Bad requests are answered with the protocol's error field (C.6.4); malformed headers close the
+connection without an answer (C.6.5). Life acks (MK only) are sent when idle and a client that
+stays silent beyond ``life_timeout`` is dropped (C.3).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+from collections.abc import Awaitable, Callable
+from typing import Literal
+
+from plcstack.codecs._common import NEED_DATA
+from plcstack.codecs.fetchwrite import (
+    BadRequest,
+    FetchRequest,
+    FetchResponse,
+    OpCode,
+    Org,
+    ServerConnection,
+    WriteRequest,
+    WriteResponse,
+)
+from plcstack.codecs.mk import LifeAckTimer, MkConnection
+from plcstack.errors import RemoteProtocolError
+from plcstack.sim.base import TcpSimulator
+from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
+
+__all__ = ["FetchWriteSimulator", "add_cli_arguments", "default_memory", "serve_cli", "start"]
+
+log = logging.getLogger(__name__)
+
+DbStartUnit = Literal["word", "byte"]
+_Role = Literal["both", "fetch", "write"]
+
+#: byte areas outside blocks, by ORG ID
+_BYTE_AREAS: dict[int, Area] = {Org.MB: Area.FLAGS, Org.EB: Area.INPUTS, Org.AB: Area.OUTPUTS}
+#: word areas outside blocks (one word per timer/counter/system data word)
+_WORD_AREAS: dict[int, Area] = {Org.ZB: Area.COUNTERS, Org.TB: Area.TIMERS, Org.BS: Area.SYSTEM}
+
+
+def default_memory() -> S5Memory:
+    """A CPU image that makes ``plcstack sim fetchwrite`` useful out of the box.
+
+    DB1 (64 words, zero), DB10 (256 words, ``DW(5+i) = 1000h + i`` as in the spec's goldens),
+    DB20 (512 words, ``DWn = n``), DX3 (32 words, zero).
+    """
+    mem = S5Memory(default_dbs={1: 64, 10: 256, 20: 512})
+    mem.write_db_words(10, 5, [0x1000 + i for i in range(20)])
+    mem.write_db_words(20, 0, list(range(512)))
+    mem.create_block(BlockType.DX, 3, 32)
+    return mem
+
+
+class FetchWriteSimulator(TcpSimulator):
+    """A running FETCH/WRITE simulator; ``write_port`` is set when WRITE has its own port.
+
+    Test hooks: ``inject_error`` answers every job with that error field; ``silent`` swallows jobs
+    (for client timeout tests); ``send_life_acks = False`` stops keep-alives (dead-peer tests).
+    """
+
+    def __init__(
+        self,
+        server: asyncio.Server,
+        memory: S5Memory,
+        *,
+        mk: bool,
+        db_start_unit: DbStartUnit,
+        life_ack: float | None,
+        life_timeout: float | None,
+        strict: bool,
+        write_server: asyncio.Server | None,
+    ) -> None:
+        query = []
+        if mk:
+            query.append("mk=1")
+        if db_start_unit == "byte":
+            query.append("db_start=byte")
+        self.write_server = write_server
+        self.write_port: int | None = None
+        if write_server is not None:
+            self.write_port = write_server.sockets[0].getsockname()[1]
+            query.append(f"write_port={self.write_port}")
+        if life_ack is not None:
+            query.append(f"life_ack={life_ack:g}")
+        super().__init__(server, "fetchwrite", "&".join(query))
+        self.memory = memory
+        self.mk = mk
+        self.db_start_unit: DbStartUnit = db_start_unit
+        self.life_ack = life_ack
+        self.life_timeout = life_timeout
+        self.strict = strict
+        self.inject_error: int | None = None
+        self.silent = False
+        self.send_life_acks = True
+        self.connections = 0
+        self.jobs = 0
+        self.life_acks_received = 0
+        self.life_acks_sent = 0
+        self.dropped_dead = 0
+
+    async def aclose(self) -> None:
+        if self.write_server is not None:
+            self.write_server.close()
+        await super().aclose()
+        if self.write_server is not None:
+            await self.write_server.wait_closed()
+
+    # -- one connection -----------------------------------------------------------------------
+    async def handle(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, role: _Role
+    ) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self.track(task)
+        self.connections += 1
+        loop = asyncio.get_running_loop()
+        mk = MkConnection(strict=self.strict) if self.mk else None
+        codec = ServerConnection("mk" if self.mk else "raw", mk=mk)
+        timer = LifeAckTimer(
+            self.life_ack if self.mk else None,
+            self.life_timeout if self.mk else None,
+            loop.time(),
+        )
+        try:
+            while True:
+                while (event := codec.next_event()) is not NEED_DATA:
+                    response, close = self.answer(event, role)
+                    if self.silent:
+                        continue
+                    writer.write(codec.send(response))
+                    timer.sent(loop.time())
+                    if close:
+                        return
+                if mk is not None:
+                    self.life_acks_received += mk.life_acks_received
+                    mk.life_acks_received = 0
+                if self.silent:
+                    codec = ServerConnection("mk" if self.mk else "raw", mk=mk)
+                try:
+                    async with asyncio.timeout_at(timer.next_wakeup()):
+                        data = await reader.read(65536)
+                except TimeoutError:
+                    now = loop.time()
+                    if timer.dead(now):
+                        self.dropped_dead += 1
+                        log.info("fetchwrite sim: no life ack for %s s, closing", timer.timeout)
+                        return
+                    if timer.ack_due(now):
+                        if self.send_life_acks:
+                            writer.write(codec.life_ack())
+                            self.life_acks_sent += 1
+                        timer.sent(now)
+                    continue
+                if not data:
+                    return
+                timer.received(loop.time())
+                codec.receive_data(data)
+        except RemoteProtocolError as exc:
+            # C.6.5: a malformed header closes the connection without an answer.
+            log.info("fetchwrite sim: closing connection: %s", exc)
+        except (ConnectionError, OSError):
+            pass
+        finally:
+            writer.transport.abort()
+
+    def answer(
+        self, event: FetchRequest | WriteRequest | BadRequest, role: _Role
+    ) -> tuple[FetchResponse | WriteResponse, bool]:
+        """The acknowledgement of one job and whether to close the connection afterwards."""
+        self.jobs += 1
+        is_fetch = isinstance(event, FetchRequest) or (
+            isinstance(event, BadRequest) and event.opcode == OpCode.FETCH_REQUEST
+        )
+
+        def ack(error: int, data: bytes = b"") -> FetchResponse | WriteResponse:
+            return FetchResponse(error, data) if is_fetch else WriteResponse(error)
+
+        if isinstance(event, BadRequest):  # [R] C.6.4: bad ORG id / length / data amount -> 01
+            return ack(event.error), event.close
+        if self.inject_error is not None:
+            return ack(self.inject_error), False
+        # [R] C.6.5: with separate ports, a job type the port does not serve is error 01.
+        if role == ("write" if is_fetch else "fetch"):
+            return ack(0x01), False
+        try:
+            if isinstance(event, FetchRequest):
+                return ack(0, self.fetch(event.org, event.db, event.start, event.length)), False
+            self.store(event.org, event.db, event.start, event.data)
+            return ack(0), False
+        except S5AccessError as exc:
+            return ack(exc.code), False
+        except _Unsupported:
+            return ack(0x01), False
+
+    def _span(self, org: int, db: int, start: int, length: int) -> tuple[object, int, int]:
+        """Where a job goes: (target, byte offset, byte length)."""
+        if org in (Org.DB, Org.DX):
+            if db == 0:
+                raise S5AccessError(2, "DB 0 is not a data block")
+            btype = BlockType.DB if org == Org.DB else BlockType.DX
+            # [R] C.6.3 / D.C6: DB start is a DW number (Siemens) or, optionally, a byte number.
+            offset = start if self.db_start_unit == "byte" else 2 * start
+            return (btype, db), offset, 2 * length
+        if org in _BYTE_AREAS:
+            return _BYTE_AREAS[org], start, length
+        if org in _WORD_AREAS:
+            return _WORD_AREAS[org], 2 * start, 2 * length
+        if org == Org.PB:
+            # [R] peripheral bytes: reads see the input image, writes go to the output image.
+            return "PB", start, length
+        if org == Org.AS:
+            # [R] absolute addressing: start is a byte address in the 64 KiB space, length words.
+            return "AS", start, 2 * length
+        raise _Unsupported(org)  # DE, QB: not modelled (D.C5 allows error 01)
+
+    def fetch(self, org: int, db: int, start: int, length: int) -> bytes:
+        target, offset, size = self._span(org, db, start, length)
+        mem = self.memory
+        if isinstance(target, tuple):
+            return mem.read_block(target[0], target[1], offset, size)
+        if isinstance(target, Area):
+            return mem.read_area(target, offset, size)
+        if target == "PB":
+            return mem.read_area(Area.INPUTS, offset, size)
+        return mem.read_absolute(offset, size)
+
+    def store(self, org: int, db: int, start: int, data: bytes) -> None:
+        target, offset, _ = self._span(org, db, start, 0)
+        mem = self.memory
+        if isinstance(target, tuple):
+            mem.write_block(target[0], target[1], offset, data)
+        elif isinstance(target, Area):
+            mem.write_area(target, offset, data)
+        elif target == "PB":
+            mem.write_area(Area.OUTPUTS, offset, data)
+        else:
+            mem.write_absolute(offset, data)
+
+
+class _Unsupported(Exception):
+    pass
+
+
+async def start(
+    memory: S5Memory | None = None,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    mk: bool = False,
+    db_start_unit: DbStartUnit = "word",
+    write_port: int | None = None,
+    life_ack: float | None = None,
+    life_timeout: float | None = None,
+    strict: bool = False,
+) -> FetchWriteSimulator:
+    """Start a FETCH/WRITE simulator; returns once it accepts connections.
+
+    ``write_port``: ``None`` serves FETCH and WRITE on ``port``; a number (``0`` = any free
+    port) serves FETCH on ``port`` and WRITE on ``write_port``. ``life_ack``: MK keep-alive
+    interval in seconds (default off); ``life_timeout`` defaults to 3 x ``life_ack`` (D.C4).
+    """
+    if db_start_unit not in ("word", "byte"):
+        raise ValueError("db_start_unit must be 'word' or 'byte'")
+    if life_ack is not None and not mk:
+        raise ValueError("life acks need the MK header (mk=True)")
+    if life_ack is not None and life_timeout is None:
+        life_timeout = 3 * life_ack
+    memory = memory if memory is not None else default_memory()
+    holder: list[FetchWriteSimulator] = []
+
+    def handler(
+        role: _Role,
+    ) -> Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]:
+        async def run(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            # A connection task ends quietly when the simulator closes: asyncio's stream server
+            # would otherwise log the cancellation of its callback task as an error.
+            with contextlib.suppress(asyncio.CancelledError):
+                await holder[0].handle(reader, writer, role)
+
+        return run
+
+    main_role: _Role = "both" if write_port is None else "fetch"
+    server = await asyncio.start_server(handler(main_role), host, port)
+    write_server = None
+    if write_port is not None:
+        try:
+            write_server = await asyncio.start_server(handler("write"), host, write_port)
+        except OSError:
+            server.close()
+            raise
+    sim = FetchWriteSimulator(
+        server,
+        memory,
+        mk=mk,
+        db_start_unit=db_start_unit,
+        life_ack=life_ack,
+        life_timeout=life_timeout,
+        strict=strict,
+        write_server=write_server,
+    )
+    holder.append(sim)
+    return sim
+
+
+# -- CLI -------------------------------------------------------------------------------------
+
+
+def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    parser.add_argument("--port", type=int, default=5030, help="TCP port (default 5030)")
+    parser.add_argument("--mk", action="store_true", help="use the Tani MK header (C.1)")
+    parser.add_argument(
+        "--db-start",
+        choices=("word", "byte"),
+        default="word",
+        help="unit of the DB start address: word (Siemens, default) or byte (VIPA-style)",
+    )
+    parser.add_argument(
+        "--write-port", type=int, default=None, help="serve WRITE on this separate port"
+    )
+    parser.add_argument(
+        "--life-ack",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="MK life ack interval (needs --mk; dead-peer timeout 3x this)",
+    )
+
+
+async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -> None:
+    if args.life_ack is not None and not args.mk:
+        raise SystemExit("plcstack sim fetchwrite: --life-ack needs --mk")
+    sim = await start(
+        host=args.host,
+        port=args.port,
+        mk=args.mk,
+        db_start_unit=args.db_start,
+        write_port=args.write_port,
+        life_ack=args.life_ack,
+    )
+    line = f"listening on {sim.host}:{sim.port}"
+    if sim.write_port is not None:
+        line += f" (FETCH), {sim.host}:{sim.write_port} (WRITE)"
+    announce(line)
+    await sim.serve_forever()

@@ -1,0 +1,267 @@
+"""Siemens S5-LAN-LINK module simulator (26-byte request block over TCP) on the shared S5Memory.
+
+Behaves like the module of spec part A: one connection at a time (a further connection is
+accepted and closed at once, D.A4), strict request/response in order, the Err codes of A.7 in the
+A.7 check order, and optionally the module's answer time of 50 ms + 1.5 ms per data byte.
+
+[R] A.11 mapping onto :class:`~plcstack.sim.s5memory.S5Memory`: D -> DB blocks, X -> DX blocks
+(``Start`` = data word number), M/E/I/A/O -> the flag, input and output areas (``Start`` = byte
+number, also for words: D.A3), T and Z/C -> timer/counter words (``Start`` = timer/counter number).
+Word data travel low byte first and are stored big-endian (the module swaps, A.6).
+
+The default memory (when ``start(memory=None)``) holds DB1...DB10 and DX1...DX2 with 256 data words
+each, all zero, so ``plcstack read s5lan://127.0.0.1:PORT DB10.DW5 20`` works out of the box.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import collections
+from collections.abc import Callable
+from typing import Any
+
+from plcstack.codecs._common import NEED_DATA
+from plcstack.codecs.s5lan import (
+    DEFAULT_VERSION,
+    ERR_NO_AREA,
+    ERR_OK,
+    BadRequest,
+    ByteOrder,
+    Header,
+    Request,
+    ServerConnection,
+    estimate_seconds,
+    swap_words,
+)
+from plcstack.sim.base import TcpSimulator
+from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
+
+__all__ = ["DEFAULT_DATA_WORDS", "S5LanSimulator", "add_cli_arguments", "default_memory", "start"]
+
+#: data words of each default DB/DX
+DEFAULT_DATA_WORDS = 256
+DEFAULT_CLI_PORT = 5010
+
+_AREAS: dict[str, Area] = {
+    "M": Area.FLAGS,
+    "E": Area.INPUTS,
+    "I": Area.INPUTS,
+    "A": Area.OUTPUTS,
+    "O": Area.OUTPUTS,
+    "T": Area.TIMERS,
+    "Z": Area.COUNTERS,
+    "C": Area.COUNTERS,
+}
+
+
+def default_memory() -> S5Memory:
+    """DB1..DB10 and DX1..DX2, 256 zero data words each."""
+    mem = S5Memory(default_dbs=dict.fromkeys(range(1, 11), DEFAULT_DATA_WORDS))
+    for number in (1, 2):
+        mem.create_block(BlockType.DX, number, DEFAULT_DATA_WORDS)
+    return mem
+
+
+class S5LanSimulator(TcpSimulator):
+    """A running module. ``memory`` is live: tests may read and change it while clients work."""
+
+    def __init__(
+        self,
+        server: asyncio.Server,
+        memory: S5Memory,
+        state: _State,
+    ) -> None:
+        super().__init__(server, "s5lan")
+        self.memory = memory
+        self._state = state
+
+    @property
+    def active_connections(self) -> int:
+        return self._state.active
+
+    @property
+    def refused_connections(self) -> int:
+        """Connections closed at once because ``max_connections`` were already in use."""
+        return self._state.refused
+
+    def inject_error(self, err: int, times: int = 1) -> None:
+        """Answer the next ``times`` well-formed requests with ``err`` (e.g. 9 = PLC timeout)."""
+        self._state.injected.extend([err] * times)
+
+    def close_clients(self) -> None:
+        """Drop every client connection now (like a module reset); the listener stays."""
+        for writer in list(self._state.writers):
+            writer.transport.abort()
+
+
+class _State:
+    def __init__(
+        self,
+        memory: S5Memory,
+        *,
+        max_connections: int,
+        realistic_timing: bool,
+        data_timeout: float,
+        header_byte_order: ByteOrder,
+        strict: bool,
+        version: int,
+    ) -> None:
+        self.memory = memory
+        self.max_connections = max_connections
+        self.realistic_timing = realistic_timing
+        self.data_timeout = data_timeout
+        self.header_byte_order: ByteOrder = header_byte_order
+        self.strict = strict
+        self.version = version
+        self.active = 0
+        self.refused = 0
+        self.injected: collections.deque[int] = collections.deque()
+        self.writers: set[asyncio.StreamWriter] = set()
+
+    # -- executing a valid request on the memory (A.7 steps 5..8) ------------------------------
+    def execute(self, req: Request) -> tuple[int, bytes]:
+        h = req.header
+        if self.injected:
+            return self.injected.popleft(), b""
+        n = h.data_len or 0
+        try:
+            if h.area in ("D", "X"):
+                btype = BlockType.DB if h.area == "D" else BlockType.DX
+                if not 1 <= h.db <= 255:
+                    return ERR_NO_AREA, b""  # DB 0 holds the block address list (A.5)
+                offset = 2 * h.start
+                if h.is_read:
+                    return ERR_OK, swap_words(self.memory.read_block(btype, h.db, offset, n))
+                self.memory.write_block(btype, h.db, offset, swap_words(req.data))
+                return ERR_OK, b""
+            area = _AREAS[h.area]
+            offset = 2 * h.start if area in (Area.TIMERS, Area.COUNTERS) else h.start
+            swap = h.data_type == "W"
+            if h.is_read:
+                raw = self.memory.read_area(area, offset, n)
+                return ERR_OK, swap_words(raw) if swap else raw
+            self.memory.write_area(area, offset, swap_words(req.data) if swap else req.data)
+            return ERR_OK, b""
+        except S5AccessError as exc:
+            return exc.code, b""
+
+
+async def _handle(
+    state: _State, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+) -> None:
+    if state.active >= state.max_connections:
+        # D.A4: the module supports one connection; the extra one is closed at once so the
+        # second client fails fast instead of waiting for an answer that never comes.
+        state.refused += 1
+        writer.close()
+        return
+    state.active += 1
+    state.writers.add(writer)
+    codec = ServerConnection(
+        header_byte_order=state.header_byte_order, strict=state.strict, version=state.version
+    )
+    try:
+        while True:
+            timeout = state.data_timeout if codec.awaiting_data else None
+            try:
+                async with asyncio.timeout(timeout):
+                    data = await reader.read(65536)
+            except TimeoutError:
+                if not await _answer(state, codec, writer, codec.data_timeout()):
+                    return
+                continue
+            if not data:
+                return
+            codec.receive_data(data)
+            while (event := codec.next_event()) is not NEED_DATA:
+                if not await _answer(state, codec, writer, event):
+                    return
+    except (ConnectionError, OSError):
+        return
+    finally:
+        state.active -= 1
+        state.writers.discard(writer)
+        writer.close()  # not abort(): an Err 6 answer before a close must still go out
+
+
+async def _answer(
+    state: _State, codec: ServerConnection, writer: asyncio.StreamWriter, event: object
+) -> bool:
+    """Answer one event; ``False`` when the connection must be closed."""
+    if isinstance(event, BadRequest):
+        writer.write(codec.send_response(event.header, event.err))
+        await writer.drain()
+        return not event.close
+    assert isinstance(event, Request)
+    err, data = state.execute(event)
+    if state.realistic_timing:
+        await asyncio.sleep(estimate_seconds(event.header.data_len or 0))
+    header: Header = event.header
+    writer.write(codec.send_response(header, err, data))
+    await writer.drain()
+    return True
+
+
+async def start(
+    memory: S5Memory | None = None,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    realistic_timing: bool = False,
+    max_connections: int = 1,
+    data_timeout: float = 1.0,
+    header_byte_order: ByteOrder = "little",
+    strict: bool = False,
+    version: int = DEFAULT_VERSION,
+) -> S5LanSimulator:
+    """Start a module simulator; returns once it accepts clients (``sim.url`` says where).
+
+    ``realistic_timing`` delays each answer by 50 ms + 1.5 ms per data byte (A.8);
+    ``data_timeout`` is how long write data may take before Err 10 ([R] 1 s);
+    ``strict`` accepts only PLCType 35h (D.A2).
+    """
+    mem = memory if memory is not None else default_memory()
+    state = _State(
+        mem,
+        max_connections=max_connections,
+        realistic_timing=realistic_timing,
+        data_timeout=data_timeout,
+        header_byte_order=header_byte_order,
+        strict=strict,
+        version=version,
+    )
+    sim: S5LanSimulator | None = None
+    early: list[asyncio.Task[None]] = []  # accepted before start_server() returned
+
+    def on_connect(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        task = asyncio.ensure_future(_handle(state, reader, writer))
+        if sim is not None:
+            sim.track(task)
+        else:
+            early.append(task)
+
+    server = await asyncio.start_server(on_connect, host, port)
+    sim = S5LanSimulator(server, mem, state)
+    for task in early:
+        sim.track(task)
+    return sim
+
+
+# -- CLI ---------------------------------------------------------------------------------------
+def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
+    parser.add_argument(
+        "--port", type=int, default=DEFAULT_CLI_PORT, help=f"TCP port (default {DEFAULT_CLI_PORT})"
+    )
+    parser.add_argument(
+        "--realistic-timing",
+        action="store_true",
+        help="delay answers like the module: 50 ms + 1.5 ms per data byte",
+    )
+
+
+async def serve_cli(args: argparse.Namespace, announce: Callable[[str], Any]) -> None:
+    sim = await start(host=args.host, port=args.port, realistic_timing=args.realistic_timing)
+    announce(f"listening on {sim.host}:{sim.port}")
+    await sim.serve_forever()

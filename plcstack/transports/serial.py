@@ -1,0 +1,164 @@
+"""Serial transport on pyserial-asyncio (AS511 at 9600 8E1 by default).
+
+Pseudo-terminal parity fallback
+-------------------------------
+Tests and the simulator connect over a pseudo-terminal pair instead of a cable. A pty has no line
+discipline for parity. This kernel drops ``PARENB`` on a pty silently when other flags change in
+the same ``tcsetattr`` (a first open "succeeds" without parity), and rejects it with
+``termios.error: EINVAL`` when parity is the only change (every re-open of the same pty).
+Parity means nothing on a pty (bytes are passed through, never framed), so when the device is a
+pseudo-terminal and setting the requested parity fails, we open it again with ``PARITY_NONE`` and
+log one warning. A real serial device that rejects the settings is an error (``ConnectFailed``):
+silently dropping parity on a real line would garble every byte the CPU sends.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import stat
+from typing import Any
+
+import serial
+import serial_asyncio
+
+from plcstack.errors import ConnectFailed, PlcTimeout
+from plcstack.transports.base import ProtocolTransport, QueueProtocolMixin
+
+__all__ = ["PARITIES", "SerialTransport", "is_pty"]
+
+try:  # POSIX only; on Windows there are no ptys and pyserial reports errors as SerialException
+    import termios
+
+    _OPEN_ERRORS: tuple[type[BaseException], ...] = (OSError, ValueError, termios.error)
+except ImportError:  # pragma: no cover
+    _OPEN_ERRORS = (OSError, ValueError)
+
+log = logging.getLogger(__name__)
+
+#: URL spelling -> pyserial constant
+PARITIES = {
+    "N": serial.PARITY_NONE,
+    "E": serial.PARITY_EVEN,
+    "O": serial.PARITY_ODD,
+}
+
+#: Linux major device numbers of Unix98 pty slaves (/dev/pts/N): 136..143
+_PTY_MAJORS = range(136, 144)
+#: ptys we already warned about (the fallback repeats on every re-open; say it once)
+_WARNED: set[str] = set()
+
+
+def is_pty(path: str) -> bool:
+    """True when ``path`` is the slave end of a pseudo-terminal (``/dev/pts/N`` or a link to it)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    if not stat.S_ISCHR(st.st_mode):
+        return False
+    return os.major(st.st_rdev) in _PTY_MAJORS or os.path.realpath(path).startswith("/dev/pts/")
+
+
+class _SerialProtocol(QueueProtocolMixin, asyncio.Protocol):
+    def __init__(self, peer: str) -> None:
+        self._init_queue(peer)
+
+    def data_received(self, data: bytes) -> None:
+        self._push(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._fail(exc or EOFError("serial port closed"))
+
+
+class SerialTransport(ProtocolTransport):
+    """One serial port; ``open()`` again after a close re-opens the device.
+
+    ``parity_fallback`` is set after ``open()`` when a pty refused the requested parity and the
+    port was opened without it (see the module docstring).
+    """
+
+    def __init__(
+        self,
+        path: str,
+        *,
+        baudrate: int = 9600,
+        bytesize: int = 8,
+        parity: str = "E",
+        stopbits: float = 1,
+    ) -> None:
+        if parity not in PARITIES:
+            raise ValueError(f"parity {parity!r} is not one of N, E, O")
+        if stopbits not in (1, 1.5, 2):
+            raise ValueError(f"stop bits {stopbits} is not 1, 1.5 or 2")
+        super().__init__(path)
+        self.path = path
+        self.baudrate = baudrate
+        self.bytesize = bytesize
+        self.parity = parity
+        self.stopbits = stopbits
+        self.parity_fallback = False
+
+    @property
+    def byte_time(self) -> float:
+        """Line time of one character: start + data + parity + stop bits over the baud rate."""
+        bits = 1 + self.bytesize + (0 if self.parity == "N" else 1) + self.stopbits
+        return bits / self.baudrate
+
+    async def _create(self, parity: str) -> tuple[Any, _SerialProtocol]:
+        loop = asyncio.get_running_loop()
+        result: tuple[Any, _SerialProtocol] = await serial_asyncio.create_serial_connection(
+            loop,
+            lambda: _SerialProtocol(self.peer),
+            self.path,
+            baudrate=self.baudrate,
+            bytesize=self.bytesize,
+            parity=PARITIES[parity],
+            stopbits=self.stopbits,
+        )
+        return result
+
+    async def _open_once(self, parity: str, timeout: float | None) -> tuple[Any, _SerialProtocol]:
+        try:
+            async with asyncio.timeout(timeout):
+                return await self._create(parity)
+        except TimeoutError:
+            raise PlcTimeout(f"opening {self.path} timed out after {timeout} s") from None
+
+    async def open(self, timeout: float | None) -> None:
+        self.abort()
+        self.parity_fallback = False
+        try:
+            transport, protocol = await self._open_once(self.parity, timeout)
+        except _OPEN_ERRORS as exc:  # SerialException is an OSError
+            if self.parity == "N" or not is_pty(self.path):
+                raise ConnectFailed(f"cannot open serial port {self.path}: {exc}") from None
+            # Documented fallback (module docstring): ptys reject PARENB here.
+            level = logging.INFO if self.path in _WARNED else logging.WARNING
+            _WARNED.add(self.path)
+            log.log(
+                level,
+                "%s is a pseudo-terminal that rejects parity %s (%s); opened without parity",
+                self.path,
+                self.parity,
+                exc,
+            )
+            try:
+                transport, protocol = await self._open_once("N", timeout)
+            except _OPEN_ERRORS as exc2:
+                raise ConnectFailed(f"cannot open serial port {self.path}: {exc2}") from None
+            self.parity_fallback = True
+        self._transport, self._protocol = transport, protocol
+
+    def _send(self, data: bytes) -> None:
+        self._transport.write(data)  # type: ignore[union-attr]
+
+    async def aclose(self) -> None:
+        transport = self._transport
+        self._transport = None
+        self._protocol = None
+        if transport is None:
+            return
+        transport.close()
+        await asyncio.sleep(0)  # let the serial transport run its close callbacks
