@@ -7,6 +7,7 @@ No test asserts a duration or a rate: benchmark numbers are results, not pass/fa
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import json
 import struct
 import zlib
@@ -478,12 +479,23 @@ def test_compact_numbers() -> None:
 
 
 # -- the CLI ---------------------------------------------------------------------------------------
-@pytest.mark.slow
 def test_cli_smoke_writes_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from plcstack.cli import main
 
     out, plot = tmp_path / "b.json", tmp_path / "b.png"
-    code = main(["bench", "--smoke", "--quiet", "--json", str(out), "--plot", str(plot)])
+    code = main(
+        [
+            "bench",
+            "--smoke",
+            "--quiet",
+            "--loop",
+            "asyncio",
+            "--json",
+            str(out),
+            "--plot",
+            str(plot),
+        ]
+    )
     assert code == 0
     document = json.loads(out.read_text())
     assert document["meta"]["plan"] == "smoke"
@@ -496,5 +508,10 @@ def test_cli_smoke_writes_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFi
         else:
             assert row["ops_per_s"] > 0
         assert not row["note"].startswith("FAILED"), row
+    ran = {row["case"] for row in rows if row["ops_per_s"] is not None}
+    if importlib.util.find_spec("plcstack.sim.e71") is not None:
+        # with the protocols merged, the smoke run really measures (nothing silently skipped)
+        assert {"codec/e71+tcp/read64", "conn/e71+tcp/read64", "conn/e71+udp/write64"} <= ran
+        assert any(case.startswith("fanout/e71+tcp/") for case in ran)
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "case" in capsys.readouterr().out
