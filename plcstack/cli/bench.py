@@ -2,9 +2,9 @@
 
 The suite's code is the top-level ``benchmarks`` package of the source tree, beside ``plcstack/``;
 it is deliberately not installed with the wheel (it is a development tool with its own cases and
-fixtures). This command finds it in this order: an importable ``benchmarks`` package, else the
-directory that contains the ``plcstack`` package being run (a source checkout, also after
-``pip install -e .``). From an installed wheel without the source tree it says so and exits 2.
+fixtures). This command finds it in this order: the directory that contains the ``plcstack``
+package being run (a source checkout, also after ``pip install -e .``), else an importable
+``benchmarks`` package. From an installed wheel without the source tree it says so and exits 2.
 
 The measurements run in a worker thread with their own event loop per loop kind (asyncio, and
 uvloop when installed), so both loops are measured the same way; fan-out cases run in child
@@ -47,20 +47,21 @@ def register(subparsers: Any) -> None:
 
 
 def load_benchmarks() -> ModuleType:
-    """Import ``benchmarks.suite`` from the environment or from the source tree."""
+    """Import ``benchmarks.suite``: the source tree's own first, else an importable one."""
+    root = Path(__file__).resolve().parents[2]
+    if (root / "benchmarks" / "suite.py").is_file():
+        if str(root) not in sys.path:
+            sys.path.insert(0, str(root))
+        return importlib.import_module("benchmarks.suite")
     try:
         return importlib.import_module("benchmarks.suite")
     except ModuleNotFoundError as exc:
         if exc.name not in ("benchmarks", "benchmarks.suite"):
             raise
-    root = Path(__file__).resolve().parents[2]
-    if not (root / "benchmarks" / "suite.py").is_file():
-        raise AddressError(
-            "plcstack bench needs the source tree: the benchmarks/ package was not found next to "
-            f"{root / 'plcstack'} (run it from a git checkout, e.g. after pip install -e .)"
-        )
-    sys.path.insert(0, str(root))
-    return importlib.import_module("benchmarks.suite")
+    raise AddressError(
+        "plcstack bench needs the source tree: the benchmarks/ package was not found next to "
+        f"{root / 'plcstack'} (run it from a git checkout, e.g. after pip install -e .)"
+    )
 
 
 async def run_bench(args: argparse.Namespace) -> int:
