@@ -130,7 +130,8 @@ class Canvas:
 class ChartSeries:
     label: str
     points: list[tuple[float, float]]  # (N, ops/s)
-    dashed: bool = False
+    #: 0 = solid, else the length in pixels of the dashes
+    dash: int = 0
     color: RGB | None = None
 
 
@@ -206,13 +207,11 @@ def line_chart(
         points = sorted((n, v) for n, v in s.points if n > 0 and v > 0)
         coords = [(px(n), py(v)) for n, v in points]
         for (x0, y0), (x1, y1) in itertools.pairwise(coords):
-            canvas.line(x0, y0, x1, y1, color, width=2, dash=6 if s.dashed else 0)
+            canvas.line(x0, y0, x1, y1, color, width=2, dash=s.dash)
         for x0, y0 in coords:
             canvas.rect(x0 - 3, y0 - 3, x0 + 3, y0 + 3, color)
         lx = left + plot_w + 16
-        canvas.line(
-            lx, legend_y + 5, lx + 24, legend_y + 5, color, width=2, dash=6 if s.dashed else 0
-        )
+        canvas.line(lx, legend_y + 5, lx + 24, legend_y + 5, color, width=2, dash=s.dash)
         canvas.text(lx + 32, legend_y, s.label[:30], black, 2)
         legend_y += 18
     return canvas.png()

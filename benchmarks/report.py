@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks.png import ChartSeries, line_chart
+from benchmarks.png import PALETTE, RGB, ChartSeries, line_chart
 from benchmarks.runner import Result
 
 __all__ = ["chart_series", "format_table", "write_json", "write_plot"]
@@ -113,34 +113,42 @@ def write_json(path: str | Path, results: Sequence[Result], extra: dict[str, Any
     Path(path).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
 
 
+#: line style per kind of measurement: the colour says which protocol (and loop)
+KIND_DASH = {"poll": 0, "clients": 3, "stack": 0, "floor": 8, "hsl-threads": 14}
+
+
 def chart_series(results: Sequence[Result]) -> list[ChartSeries]:
-    """ops/s against N: one line per (protocol, kind, loop); floors dashed.
+    """ops/s against N: one line per (protocol, loop, kind); colour = protocol and loop,
+    line style = kind (poll solid, clients dotted, floor dashed, peers long dashes).
 
     The one-connection read row of the same protocol is the N = 1 point of each fan-out line.
     """
     lines: dict[str, ChartSeries] = {}
+    colours: dict[str, RGB] = {}
+
+    def add(protocol: str, loop: str, kind: str, n: int, rate: float) -> None:
+        suffix = "" if loop in ("asyncio", "threads") else f" {loop}"
+        key = f"{protocol} {kind}{suffix}"
+        colour = colours.setdefault(f"{protocol}{suffix}", PALETTE[len(colours) % len(PALETTE)])
+        series = lines.setdefault(key, ChartSeries(key, [], KIND_DASH.get(kind, 0), colour))
+        if all(point_n != n for point_n, _ in series.points):
+            series.points.append((n, rate))
+
     for r in results:
         if not r.ran or r.group not in ("conn", "fanout", "peer") or r.ops_per_s is None:
             continue
         parts = r.case.split("/")
+        protocol = parts[1]
         if r.group == "conn":
             if not parts[-1].startswith("read"):
                 continue
-            protocol, kind = parts[1], "stack"
+            kinds = ["clients", "poll"]
         else:
-            protocol, kind = parts[1], parts[2]
-        suffix = "" if r.loop in ("asyncio", "threads") else f" {r.loop}"
-        kinds = ["clients", "poll"] if r.group == "conn" else [kind]
-        for k in kinds:
-            key = f"{protocol} {k}{suffix}"
-            lines.setdefault(key, ChartSeries(key, [])).points.append((r.n, r.ops_per_s))
-            if r.floor_ops_per_s:
-                fkey = f"{protocol} floor{suffix}"
-                series = lines.setdefault(fkey, ChartSeries(fkey, [], dashed=True))
-                if (r.n, r.floor_ops_per_s) not in series.points and all(
-                    n != r.n for n, _ in series.points
-                ):
-                    series.points.append((r.n, r.floor_ops_per_s))
+            kinds = [parts[2]]
+        for kind in kinds:
+            add(protocol, r.loop, kind, r.n, r.ops_per_s)
+        if r.floor_ops_per_s and r.group != "peer":
+            add(protocol, r.loop, "floor", r.n, r.floor_ops_per_s)
     # a line with only its N = 1 point (no fan-out of that kind ran) says nothing
     return [s for s in lines.values() if len(s.points) > 1]
 

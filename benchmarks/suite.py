@@ -4,7 +4,8 @@ Plans:
 
 * ``quick`` -- every case once with short repeats; must finish in < 60 s on a 2-core machine
   (about 25 s per event loop here). Fan-out N = 10, 100, 1000 for E71 TCP.
-* ``full``  -- longer repeats, fan-out also for FETCH/WRITE and S5-LAN, both stack kinds.
+* ``full``  -- longer repeats, fan-out also for FETCH/WRITE and S5-LAN, both stack kinds
+  (poller and plain clients); about 5 minutes per event loop.
 * ``smoke`` -- tiny sizes for the test suite: exercises every code path, measures nothing useful.
 
 Failures never abort the run: a case that cannot run (protocol not merged, peer not installed) or
@@ -64,9 +65,9 @@ PLANS: dict[str, Plan] = {
         fanout_kinds=("poll",), fanout_duration=0.25, fanout_repeats=3, peer_ns=(10,),
     ),
     "full": Plan(
-        name="full", repeats=5, conn_duration=1.0, warmup=0.3, codec_time=0.2,
+        name="full", repeats=5, conn_duration=0.5, warmup=0.2, codec_time=0.2,
         conn_kinds=("read", "write"), fanout_protocols=("e71+tcp", "fetchwrite", "s5lan"),
-        fanout_ns=(10, 100, 1000), fanout_kinds=("poll", "clients"), fanout_duration=2.0,
+        fanout_ns=(10, 100, 1000), fanout_kinds=("poll", "clients"), fanout_duration=1.0,
         fanout_repeats=5, peer_ns=(10, 100, 1000),
     ),
 }  # fmt: skip
