@@ -57,7 +57,7 @@ PLANS: dict[str, Plan] = {
     "smoke": Plan(
         name="smoke", repeats=1, conn_duration=0.02, warmup=0.0, codec_time=0.001,
         conn_kinds=("read", "write"), fanout_protocols=("e71+tcp",), fanout_ns=(2,),
-        fanout_kinds=("poll",), fanout_duration=0.05, fanout_repeats=1, peer_ns=(2,),
+        fanout_kinds=("poll", "clients"), fanout_duration=0.05, fanout_repeats=1, peer_ns=(2,),
     ),
     "quick": Plan(
         name="quick", repeats=3, conn_duration=0.1, warmup=0.05, codec_time=0.02,
