@@ -17,11 +17,15 @@ import argparse
 import asyncio
 import importlib
 import sys
+import threading
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import Any, TypeVar
 
 from plcstack.errors import AddressError
+
+T = TypeVar("T")
 
 
 def register(subparsers: Any) -> None:
@@ -64,6 +68,40 @@ def load_benchmarks() -> ModuleType:
     )
 
 
+async def _in_daemon_thread(work: Callable[[], T]) -> T:
+    """Run ``work`` in a daemon thread and await its result.
+
+    A thread of its own because the suite creates one event loop per loop kind
+    (``asyncio.Runner``), which cannot nest in this one; a daemon thread (not the default
+    executor, whose threads are joined at exit) so that Ctrl-C ends a long run at once.
+    """
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[T] = loop.create_future()
+
+    def deliver(result: T | None, error: BaseException | None) -> None:
+        if done.cancelled():
+            return
+        if error is not None:
+            done.set_exception(error)
+        else:
+            done.set_result(result)  # type: ignore[arg-type]
+
+    def target() -> None:
+        try:
+            result = work()
+        except BaseException as exc:  # handed to the awaiting coroutine
+            loop.call_soon_threadsafe(deliver, None, exc)
+        else:
+            loop.call_soon_threadsafe(deliver, result, None)
+
+    threading.Thread(target=target, name="plcstack-bench", daemon=True).start()
+    # Wake up now and then: the kernel may deliver SIGINT to the worker thread, and Python runs
+    # its handler only when the main thread executes bytecode (it would sleep in epoll forever).
+    while not done.done():
+        await asyncio.wait({done}, timeout=0.2)
+    return done.result()
+
+
 async def run_bench(args: argparse.Namespace) -> int:
     suite = load_benchmarks()
     report = importlib.import_module("benchmarks.report")
@@ -74,8 +112,7 @@ async def run_bench(args: argparse.Namespace) -> int:
         if not loops:
             raise AddressError(f"event loop {args.loop!r} is not installed")
     log = None if args.quiet else sys.stderr
-    # A thread of its own: the suite creates one event loop per loop kind (asyncio.Runner).
-    results = await asyncio.to_thread(suite.run_suite, plan, loops=loops, log=log)
+    results = await _in_daemon_thread(lambda: suite.run_suite(plan, loops=loops, log=log))
     print(report.format_table(results))
     if args.json:
         report.write_json(args.json, results, {"plan": plan.name, "loops": [n for n, _ in loops]})
