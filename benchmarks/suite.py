@@ -2,8 +2,9 @@
 
 Plans:
 
-* ``quick`` -- every case once with short repeats; must finish in < 60 s on a 2-core machine
-  (about 25 s per event loop here). Fan-out N = 10, 100, 1000 for E71 TCP.
+* ``quick`` -- every case with short repeats; must finish in < 60 s on a 2-core machine
+  (about 20 s per event loop here, 40-50 s with uvloop and the peer). Fan-out N = 10, 100,
+  1000 for E71 TCP through the poller.
 * ``full``  -- longer repeats, fan-out also for FETCH/WRITE and S5-LAN, both stack kinds
   (poller and plain clients); about 5 minutes per event loop.
 * ``smoke`` -- tiny sizes for the test suite: exercises every code path, measures nothing useful.
