@@ -31,7 +31,7 @@ def make(
     interval: float = 0.01,
     groups: dict[str, float] | None = None,
     queue: int = 10_000,
-    concurrency: int = 64,
+    concurrency: int | None = None,
     max_gap: int = 8,
 ) -> tuple[Poller, dict[str, FakeClient]]:
     fakes: dict[str, FakeClient] = {}
@@ -235,6 +235,23 @@ async def test_concurrency_limit_bounds_requests_in_flight() -> None:
         assert sum(f.in_flight for f in fakes.values()) == 3
         gate.set()
         await collect(poller, lambda s: len({x.plc for x in s}) == 8)
+
+
+async def test_by_default_many_hung_plcs_do_not_hold_up_a_healthy_one() -> None:
+    # 100 PLCs that never answer (each would hold a slot of a global cap for a whole deadline)
+    # next to one healthy PLC: with the default config the healthy one keeps its schedule.
+    poller, fakes = make(
+        {f"hung{i}": [tag("a", "D0")] for i in range(100)} | {"ok": [tag("a", "D0")]}
+    )
+    hang = asyncio.Event()
+    for name, fake in fakes.items():
+        if name != "ok":
+            fake.gate = hang
+            fake.timeout = 60.0
+    async with poller:
+        samples = await collect(poller, lambda s: len(of(s, "ok")) >= 5)
+        assert sum(f.in_flight for name, f in fakes.items() if name != "ok") == 100
+    assert {s.plc for s in samples} == {"ok"}
 
 
 async def test_scan_groups_run_on_their_own_intervals() -> None:

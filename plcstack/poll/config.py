@@ -2,7 +2,7 @@
 
 ```toml
 [poll]
-concurrency = 32        # requests in flight at once across all PLCs
+concurrency = 32        # optional cap on requests in flight across all PLCs (default: none)
 queue = 10000           # samples held for a slow consumer; beyond that the oldest are dropped
 max_gap = 8             # unused points one merged request may carry between two tags
 timeout = 2.0           # request deadline in seconds (a URL's ?timeout= wins)
@@ -55,7 +55,9 @@ __all__ = [
 
 DEFAULT_GROUP = "default"
 DEFAULT_INTERVAL = 1.0
-DEFAULT_CONCURRENCY = 64
+#: no global cap by default: each PLC already has one request in flight at most, and a cap lets
+#: a crowd of dead or slow PLCs (each holding a slot for a whole timeout) delay the healthy ones
+DEFAULT_CONCURRENCY: int | None = None
 DEFAULT_QUEUE = 10_000
 DEFAULT_MAX_GAP = 8
 
@@ -105,7 +107,7 @@ class PollConfig:
 
     plcs: tuple[PlcConfig, ...]
     groups: Mapping[str, float] = field(default_factory=lambda: {DEFAULT_GROUP: DEFAULT_INTERVAL})
-    concurrency: int = DEFAULT_CONCURRENCY
+    concurrency: int | None = DEFAULT_CONCURRENCY
     queue: int = DEFAULT_QUEUE
 
     def __post_init__(self) -> None:
@@ -117,7 +119,7 @@ class PollConfig:
 
 def validate(config: PollConfig) -> None:
     """Check a config built in Python the same way the TOML loader does."""
-    if config.concurrency < 1:
+    if config.concurrency is not None and config.concurrency < 1:
         raise ConfigError("poll.concurrency must be at least 1")
     if config.queue < 1:
         raise ConfigError("poll.queue must be at least 1")
@@ -249,7 +251,11 @@ class _Loader:
         )
         if unknown:
             raise self.error(f"unknown key(s) in [poll]: {', '.join(unknown)}", unknown[0])
-        concurrency = self._int(poll, "concurrency", DEFAULT_CONCURRENCY, 1, "poll")
+        concurrency = (
+            self._int(poll, "concurrency", 1, 1, "poll")
+            if "concurrency" in poll
+            else DEFAULT_CONCURRENCY
+        )
         queue = self._int(poll, "queue", DEFAULT_QUEUE, 1, "poll")
         max_gap = self._int(poll, "max_gap", DEFAULT_MAX_GAP, 0, "poll")
         timeout = self._number(poll, "timeout", 2.0, "poll") if "timeout" in poll else None

@@ -11,9 +11,11 @@ How it behaves, and why:
 * One task per PLC and one client (one connection) per PLC. The client's lock keeps one request
   in flight per connection, so replies are never mixed up; the consumer's writes go through the
   same client and simply take the next turn.
-* A semaphore bounds how many requests are in flight across all PLCs (``poll.concurrency``).
-  It is held only around one request, never while a task sleeps, so a dead PLC costs a slot for at
-  most one connect attempt, and while its client backs off, its requests fail at once.
+* An optional semaphore bounds how many requests are in flight across all PLCs
+  (``poll.concurrency``; no cap by default, since a cap lets enough hung PLCs, each holding a slot
+  for a whole deadline, delay the healthy ones). It is held only around one request, never
+  while a task sleeps, so a dead PLC costs a slot for at most one connect attempt, and while
+  its client backs off, its requests fail at once.
 * When a request fails on the connection (timeout, connection lost, connect failed), the rest of
   that scan is not attempted: those tags get the same error, and a slow PLC costs one deadline
   per scan instead of one per request.
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import enum
 import time
 from collections.abc import Callable, Sequence
@@ -174,7 +177,11 @@ class Poller:
         self.dropped = 0
         self._queue: collections.deque[Sample] = collections.deque()
         self._wakeup = asyncio.Event()
-        self._semaphore = asyncio.Semaphore(config.concurrency)
+        self._semaphore: asyncio.Semaphore | contextlib.nullcontext[None] = (
+            asyncio.Semaphore(config.concurrency)
+            if config.concurrency is not None
+            else contextlib.nullcontext()
+        )
         self._running = False
         self._closed = False
         self._plcs: dict[str, _Plc] = {}
