@@ -77,7 +77,6 @@ async def _poller(urls: list[str], key: str, seconds: float) -> tuple[Any, int]:
     config = PollConfig(
         plcs=tuple(PlcConfig(name=f"plc{i}", url=u, tags=(tag,)) for i, u in enumerate(urls)),
         groups={config_mod.DEFAULT_GROUP: INTERVAL},
-        concurrency=len(urls),
         queue=max(1000, 4 * len(urls)),
     )
     poller = engine_mod.Poller(config)

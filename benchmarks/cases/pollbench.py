@@ -1,7 +1,7 @@
 """Fan-out through ``plcstack.poll``: the adapter between the benchmark and the poller's API.
 
 One :class:`~plcstack.poll.engine.Poller` over the N simulated PLCs, one tag of 64 words each (so
-one request per scan), ``concurrency = N`` (no artificial bound) and a scan interval far shorter
+one request per scan), the default concurrency (no global cap) and a scan interval far shorter
 than a round trip, so every PLC's task starts its next scan as soon as the last one finished: the
 poller's maximum rate, the same closed loop the floor runs. A consumer task takes the samples off
 the poller (``drain``), as an application would. ops = requests completed (from the poller's own
@@ -65,7 +65,7 @@ async def run(
         for i, sim in enumerate(sims)
     )
     poll_config = config.PollConfig(
-        plcs=plcs, groups={config.DEFAULT_GROUP: INTERVAL}, concurrency=n, queue=max(1000, 4 * n)
+        plcs=plcs, groups={config.DEFAULT_GROUP: INTERVAL}, queue=max(1000, 4 * n)
     )
     poller = engine.Poller(poll_config)
     # Latency is timed around each client read with perf_counter_ns: the poller's own window
