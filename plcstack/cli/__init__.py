@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "plcstack.cli.io",
     "plcstack.cli.e71",
     "plcstack.cli.sim",
+    "plcstack.cli.bench",
 ]
 
 

@@ -1,0 +1,186 @@
+"""Where a request's time goes: cProfile of the one-connection stack path, client side only.
+
+    python -m benchmarks.profile e71+tcp [--seconds 3] [--kind read|write] [--top 25]
+    python -m benchmarks.profile e71+tcp --poll 100     # the poller over 100 PLCs instead
+
+The simulator runs in a **child process** (``python -m benchmarks.profile --serve KEY``, which
+prints the URL once it accepts clients), so the profile shows only what the client side costs:
+plcstack's client, codec and transport plus the event loop. The output is the usual ``pstats``
+table sorted by own time, then a summary per layer (own time of functions grouped by file), in
+microseconds per request.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import cProfile
+import importlib
+import os
+import pstats
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import plcstack
+from benchmarks.cases.conn import Kind, check_stack, open_stack, stack_op, start_sim
+from benchmarks.cases.fanout import REPO_ROOT
+from benchmarks.cases.protocols import by_key
+from benchmarks.runner import measure_workers
+
+__all__ = ["layer_of", "main"]
+
+
+def layer_of(filename: str) -> str:
+    """Group a profiled file into a layer for the per-layer summary."""
+    path = filename.replace("\\", "/")
+    for marker in ("plcstack/codecs/", "plcstack/clients/", "plcstack/transports/",
+                   "plcstack/poll/", "benchmarks/"):  # fmt: skip
+        if marker in path:
+            return marker.rstrip("/") + "/" + path.split(marker, 1)[1]
+    if "asyncio/" in path or "uvloop" in path:
+        return "asyncio (event loop, futures, timeouts, locks)"
+    if path.startswith("~") or path.startswith("<"):
+        return "builtins (struct, bytes, socket calls, ...)"
+    return "other python"
+
+
+async def _serve(key: str, count: int) -> None:
+    case = by_key(key)
+    memory = case.make_memory(case.sim())
+    sims = [await start_sim(case, memory) for _ in range(count)]
+    print(" ".join(sim.url for sim in sims), flush=True)
+    try:
+        await asyncio.Event().wait()
+    finally:
+        for sim in sims:
+            await sim.aclose()
+
+
+async def _poller(urls: list[str], key: str, seconds: float) -> tuple[Any, int]:
+    """The poller over ``len(urls)`` PLCs, one 64-word tag each, as the fan-out case runs it."""
+    config_mod: Any = importlib.import_module("plcstack.poll.config")
+    engine_mod: Any = importlib.import_module("plcstack.poll.engine")
+    PlcConfig, PollConfig, TagConfig = (
+        config_mod.PlcConfig,
+        config_mod.PollConfig,
+        config_mod.TagConfig,
+    )
+
+    from benchmarks.cases import WORDS
+    from benchmarks.cases.pollbench import INTERVAL
+
+    case = by_key(key)
+    tag = TagConfig(name="words", address=case.read_address, count=WORDS)
+    config = PollConfig(
+        plcs=tuple(PlcConfig(name=f"plc{i}", url=u, tags=(tag,)) for i, u in enumerate(urls)),
+        groups={config_mod.DEFAULT_GROUP: INTERVAL},
+        queue=max(1000, 4 * len(urls)),
+    )
+    poller = engine_mod.Poller(config)
+
+    async def consume() -> None:
+        async for _first in poller:
+            poller.drain()
+
+    consumer = asyncio.create_task(consume())
+    await poller.start()
+    await asyncio.sleep(1.0)  # connect and warm up, unprofiled
+    before = sum(s.requests for s in poller.stats.values())
+    profiler = cProfile.Profile()
+    profiler.enable()
+    await asyncio.sleep(seconds)
+    profiler.disable()
+    done = sum(s.requests for s in poller.stats.values()) - before
+    await poller.aclose()
+    consumer.cancel()
+    await asyncio.gather(consumer, return_exceptions=True)
+    return profiler, done
+
+
+async def _client(url: str, key: str, kind: Kind, seconds: float) -> tuple[Any, int]:
+    case = by_key(key)
+    client = await open_stack(case, url)
+    try:
+        await check_stack(client, case, kind)
+        op = stack_op(client, case, kind)
+        await measure_workers([op], duration=0.3)  # warm-up, unprofiled
+        profiler = cProfile.Profile()
+        profiler.enable()
+        sample = await measure_workers([op], duration=seconds)
+        profiler.disable()
+    finally:
+        await client.aclose()
+    return profiler, sample.ops
+
+
+def report(profiler: Any, requests: int, top: int) -> str:
+    stats = pstats.Stats(profiler)
+    lines = [f"{requests} requests profiled"]
+    per_layer: dict[str, float] = defaultdict(float)
+    rows = []
+    raw: dict[Any, Any] = stats.stats  # type: ignore[attr-defined]
+    for (filename, line, func), (_cc, ncalls, tottime, cumtime, _callers) in raw.items():
+        per_layer[layer_of(filename)] += tottime
+        rows.append((tottime, ncalls, cumtime, f"{Path(filename).name}:{line}({func})"))
+    total = sum(per_layer.values())
+    lines.append(
+        f"own time per request: {total / requests * 1e6:.1f} us (profiler overhead included)"
+    )
+    lines.append("")
+    lines.append("top functions by own time, us per request:")
+    for tottime, ncalls, cumtime, name in sorted(rows, reverse=True)[:top]:
+        lines.append(
+            f"  {tottime / requests * 1e6:8.2f}  cum {cumtime / requests * 1e6:8.2f}  "
+            f"calls/req {ncalls / requests:5.1f}  {name}"
+        )
+    lines.append("")
+    lines.append("own time by layer, us per request:")
+    for layer, seconds in sorted(per_layer.items(), key=lambda kv: -kv[1]):
+        share = seconds / total * 100 if total else 0.0
+        lines.append(f"  {seconds / requests * 1e6:8.2f}  {share:5.1f}%  {layer}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.profile")
+    parser.add_argument("protocol", help="e.g. e71+tcp, fetchwrite, s5lan, as511+tcp")
+    parser.add_argument("--kind", choices=("read", "write"), default="read")
+    parser.add_argument("--seconds", type=float, default=3.0)
+    parser.add_argument("--top", type=int, default=25)
+    parser.add_argument("--poll", type=int, metavar="N", help="profile the poller over N PLCs")
+    parser.add_argument("--serve", type=int, metavar="N", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.serve:
+        asyncio.run(_serve(args.protocol, args.serve))
+        return 0
+    path = [str(REPO_ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(path))
+    server = subprocess.Popen(
+        [sys.executable, "-m", "benchmarks.profile", args.protocol, "--serve", str(args.poll or 1)],
+        stdout=subprocess.PIPE, text=True, env=env, cwd=str(REPO_ROOT),
+    )  # fmt: skip
+    try:
+        assert server.stdout is not None
+        urls = server.stdout.readline().split()
+        for url in urls:
+            plcstack.parse_url(url)
+        if args.poll:
+            profiler, requests = asyncio.run(_poller(urls, args.protocol, args.seconds))
+        else:
+            profiler, requests = asyncio.run(
+                _client(urls[0], args.protocol, args.kind, args.seconds)
+            )
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
+    what = f"poller over {args.poll} PLCs" if args.poll else f"{args.kind} x64"
+    print(f"{args.protocol} {what}, simulator(s) in another process")
+    print(report(profiler, max(1, requests), args.top))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,277 @@
+"""Which cases run, how long, on which event loops: the whole of ``plcstack bench``.
+
+Plans:
+
+* ``quick`` -- every case with short repeats; must finish in < 60 s on a 2-core machine
+  (about 20 s per event loop here, 40-50 s with uvloop and the peer). Fan-out N = 10, 100,
+  1000 for E71 TCP through the poller.
+* ``full``  -- longer repeats, fan-out also for FETCH/WRITE and S5-LAN, both stack kinds
+  (poller and plain clients); about 5 minutes per event loop.
+* ``smoke`` -- tiny sizes for the test suite: exercises every code path, measures nothing useful.
+
+Failures never abort the run: a case that cannot run (protocol not merged, peer not installed) or
+that fails becomes a row with a note, so one broken protocol does not hide the others' numbers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+import statistics
+import sys
+import time
+from collections.abc import Callable, Coroutine
+from dataclasses import dataclass
+from typing import Any, TextIO, TypeVar
+
+from benchmarks.cases import WORDS, Unavailable
+from benchmarks.cases.conn import run_conn_case
+from benchmarks.cases.fanout import series_from_summary, spawn
+from benchmarks.cases.peers import PEER_PROTOCOLS, hsl_available
+from benchmarks.cases.protocols import PROTOCOLS, by_key
+from benchmarks.runner import Result, measure_sync
+
+__all__ = ["PLANS", "Plan", "available_loops", "run_suite"]
+
+LoopFactory = Callable[[], asyncio.AbstractEventLoop]
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Plan:
+    name: str
+    repeats: int
+    conn_duration: float
+    warmup: float
+    codec_time: float
+    conn_kinds: tuple[str, ...]
+    fanout_protocols: tuple[str, ...]
+    fanout_ns: tuple[int, ...]
+    #: stack kinds measured against the floor; "poll" falls back to "clients" when unavailable
+    fanout_kinds: tuple[str, ...]
+    fanout_duration: float
+    fanout_repeats: int
+    peer_ns: tuple[int, ...]
+
+
+PLANS: dict[str, Plan] = {
+    "smoke": Plan(
+        name="smoke", repeats=1, conn_duration=0.02, warmup=0.0, codec_time=0.001,
+        conn_kinds=("read", "write"), fanout_protocols=("e71+tcp",), fanout_ns=(2,),
+        fanout_kinds=("poll", "clients"), fanout_duration=0.05, fanout_repeats=1, peer_ns=(2,),
+    ),
+    "quick": Plan(
+        name="quick", repeats=3, conn_duration=0.1, warmup=0.05, codec_time=0.02,
+        conn_kinds=("read", "write"), fanout_protocols=("e71+tcp",), fanout_ns=(10, 100, 1000),
+        fanout_kinds=("poll",), fanout_duration=0.25, fanout_repeats=3, peer_ns=(10,),
+    ),
+    "full": Plan(
+        name="full", repeats=5, conn_duration=0.5, warmup=0.2, codec_time=0.2,
+        conn_kinds=("read", "write"), fanout_protocols=("e71+tcp", "fetchwrite", "s5lan"),
+        fanout_ns=(10, 100, 1000), fanout_kinds=("poll", "clients"), fanout_duration=1.0,
+        fanout_repeats=5, peer_ns=(10, 100, 1000),
+    ),
+}  # fmt: skip
+
+
+def available_loops() -> list[tuple[str, LoopFactory]]:
+    """asyncio's default loop, plus uvloop when importable (optional extra ``plcstack[uvloop]``)."""
+    loops: list[tuple[str, LoopFactory]] = [("asyncio", asyncio.new_event_loop)]
+    try:
+        uvloop = importlib.import_module("uvloop")
+    except ImportError:
+        return loops
+    loops.append(("uvloop", uvloop.new_event_loop))
+    return loops
+
+
+def run_suite(
+    plan: Plan,
+    *,
+    loops: list[tuple[str, LoopFactory]] | None = None,
+    log: TextIO | None = sys.stderr,
+) -> list[Result]:
+    """Run every case of ``plan``; returns the rows in report order."""
+    loops = loops if loops is not None else available_loops()
+    started = time.perf_counter()
+
+    def say(text: str) -> None:
+        if log is not None:
+            print(f"[{time.perf_counter() - started:5.1f}s] {text}", file=log, flush=True)
+
+    results: list[Result] = []
+    results += run_codecs(plan, say)
+    for loop_name, factory in loops:
+        with asyncio.Runner(loop_factory=factory) as runner:
+            for case in PROTOCOLS:
+                for kind in plan.conn_kinds:
+                    name = f"conn/{case.key}/{kind}{WORDS}"
+                    say(f"{name} on {loop_name}")
+                    # a hung peer (or a simulator that broke on this loop) must not hang the run
+                    limit = 20.0 + 2 * plan.repeats * (plan.conn_duration + plan.warmup)
+                    try:
+                        results.append(
+                            runner.run(
+                                _bounded(
+                                    limit,
+                                    run_conn_case(
+                                        case,
+                                        kind,  # type: ignore[arg-type]
+                                        loop_name=loop_name,
+                                        repeats=plan.repeats,
+                                        duration=plan.conn_duration,
+                                        warmup=plan.warmup,
+                                    ),
+                                )
+                            )
+                        )
+                    except Unavailable as exc:
+                        results.append(Result.skipped(name, loop_name, 1, str(exc), group="conn"))
+                    except Exception as exc:  # a broken case must not hide the others
+                        results.append(
+                            Result.skipped(name, loop_name, 1, _failed(exc), group="conn")
+                        )
+        results += run_fanout(plan, loop_name, say)
+    results += run_peers(plan, results, say)
+    return results
+
+
+def _failed(exc: BaseException) -> str:
+    if isinstance(exc, TimeoutError):
+        return f"FAILED: timed out ({exc or 'the simulator did not answer'})"
+    return f"FAILED: {type(exc).__name__}: {exc}"
+
+
+async def _bounded(seconds: float, coro: Coroutine[Any, Any, T]) -> T:
+    try:
+        async with asyncio.timeout(seconds):
+            return await coro
+    except TimeoutError:
+        raise TimeoutError(f"case did not finish within {seconds:g} s") from None
+
+
+def run_codecs(plan: Plan, say: Callable[[str], None]) -> list[Result]:
+    rows: list[Result] = []
+    for case in PROTOCOLS:
+        if case.codec is None:
+            continue
+        for kind in plan.conn_kinds:
+            name = f"codec/{case.key}/{kind}{WORDS}"
+            say(name)
+            try:
+                ops = case.codec()
+            except Unavailable as exc:
+                rows.append(Result.skipped(name, "-", 1, str(exc), group="codec"))
+                continue
+            except Exception as exc:
+                rows.append(Result.skipped(name, "-", 1, _failed(exc), group="codec"))
+                continue
+            stack_fn = ops.stack_read if kind == "read" else ops.stack_write
+            floor_fn = ops.floor_read if kind == "read" else ops.floor_write
+            stack = measure_sync(stack_fn, repeats=plan.repeats, min_time=plan.codec_time)
+            floor = measure_sync(floor_fn, repeats=plan.repeats, min_time=plan.codec_time)
+            row = Result.from_series(name, "-", 1, stack, floor, group="codec")
+            row.us_per_op = 1e6 / row.ops_per_s if row.ops_per_s else None
+            row.floor_us_per_op = 1e6 / row.floor_ops_per_s if row.floor_ops_per_s else None
+            rows.append(row)
+    return rows
+
+
+def run_fanout(plan: Plan, loop_name: str, say: Callable[[str], None]) -> list[Result]:
+    rows: list[Result] = []
+    for protocol in plan.fanout_protocols:
+        case = by_key(protocol)
+        try:
+            case.check()
+        except Unavailable as exc:
+            for n in plan.fanout_ns:
+                rows.append(
+                    Result.skipped(
+                        f"fanout/{protocol}/stack", loop_name, n, str(exc), group="fanout"
+                    )
+                )
+            continue
+        for n in plan.fanout_ns:
+            common = {
+                "loop": loop_name,
+                "repeats": plan.fanout_repeats,
+                "duration": plan.fanout_duration,
+                "warmup": plan.warmup,
+            }
+            say(f"fanout/{protocol} N={n} floor on {loop_name}")
+            floor_summary = spawn(protocol, "floor", n, **common)  # type: ignore[arg-type]
+            floor = series_from_summary(floor_summary)
+            kinds = list(plan.fanout_kinds)
+            while kinds:
+                kind = kinds.pop(0)
+                name = f"fanout/{protocol}/{kind}"
+                say(f"{name} N={n} on {loop_name}")
+                summary = spawn(protocol, kind, n, **common)  # type: ignore[arg-type]
+                if "samples" not in summary:
+                    note = str(summary.get("note", "no result"))
+                    rows.append(Result.skipped(name, loop_name, n, note, group="fanout"))
+                    unavailable = not note.startswith("child failed")
+                    if kind == "poll" and unavailable and "clients" not in plan.fanout_kinds:
+                        kinds.insert(0, "clients")  # no poller: still a stack number for this N
+                    continue
+                stack = series_from_summary(summary)
+                row = Result.from_series(name, loop_name, n, stack, floor, group="fanout")
+                row.p50_ms, row.p99_ms = summary.get("p50_ms"), summary.get("p99_ms")
+                row.floor_p99_ms = floor_summary.get("p99_ms")
+                if "note" in floor_summary:
+                    row.note = f"floor: {floor_summary['note']}"
+                rows.append(row)
+    return rows
+
+
+def run_peers(plan: Plan, results: list[Result], say: Callable[[str], None]) -> list[Result]:
+    if not hsl_available():
+        return [
+            Result.skipped(
+                "peer/hslcommunication",
+                "-",
+                0,
+                "hslcommunication not installed (optional, never a dependency)",
+                group="peer",
+            )
+        ]
+    rows: list[Result] = []
+    for protocol in PEER_PROTOCOLS:
+        ns = [1, *plan.peer_ns]
+        for n in ns:
+            name = f"peer/{protocol}/hsl-threads"
+            say(f"{name} N={n}")
+            summary = spawn(
+                protocol,
+                "peer-hsl",
+                n,
+                loop="asyncio",
+                repeats=plan.fanout_repeats,
+                duration=plan.fanout_duration,
+                warmup=plan.warmup,
+            )
+            if "samples" not in summary:
+                rows.append(
+                    Result.skipped(name, "threads", n, str(summary.get("note")), group="peer")
+                )
+                continue
+            row = Result.from_series(
+                name, "threads", n, series_from_summary(summary), None, group="peer"
+            )
+            row.p50_ms, row.p99_ms = summary.get("p50_ms"), summary.get("p99_ms")
+            # the floor of the same N (asyncio loop) from the fan-out or one-connection rows
+            floors = [
+                r.floor_ops_per_s
+                for r in results
+                if r.loop == "asyncio"
+                and r.n == n
+                and r.floor_ops_per_s
+                and f"/{protocol}/" in r.case
+                and r.group in ("fanout", "conn")
+                and (r.group == "fanout" or r.case.endswith(f"read{WORDS}"))
+            ]
+            if floors and row.ops_per_s is not None:
+                row.floor_ops_per_s = statistics.median(floors)
+                row.ratio = row.ops_per_s / row.floor_ops_per_s
+            rows.append(row)
+    return rows
