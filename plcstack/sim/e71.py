@@ -189,8 +189,9 @@ class _TcpConnection(asyncio.Protocol):
         self._partial_timer: asyncio.TimerHandle | None = None
         self._busy_until = 0.0  # loop time when the last queued (delayed) answer goes out
 
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
+    def connection_made(self, transport_: asyncio.BaseTransport) -> None:
+        # cast, not isinstance: uvloop's transports are not subclasses of asyncio.Transport
+        transport = cast(asyncio.Transport, transport_)
         if len(self.sim.connections) >= MAX_CONNECTIONS:
             transport.abort()  # all 8 connections in use
             return

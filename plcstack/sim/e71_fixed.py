@@ -25,7 +25,7 @@ from __future__ import annotations
 import asyncio
 import socket
 from collections.abc import Sequence
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.e71 import Code
@@ -203,8 +203,9 @@ class _TcpConn(asyncio.Protocol):
         )
         self.transport: asyncio.Transport | None = None
 
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
+    def connection_made(self, transport_: asyncio.BaseTransport) -> None:
+        # cast, not isinstance: uvloop's transports are not subclasses of asyncio.Transport
+        transport = cast(asyncio.Transport, transport_)
         if self.sim._tcp is not None:
             transport.abort()  # the E71 connection has one partner
             return
