@@ -386,3 +386,18 @@ async def test_receive_time_is_source_time_plus_the_measured_latency() -> None:
         elapsed = s.receive_time - s.source_time
         # the same perf_counter interval, once as float32 in the window: equal to ~1e-6 s
         assert any(abs(elapsed - x) < 1e-6 for x in latencies)
+
+
+# -- the overhead benchmark -----------------------------------------------------------------------
+def test_pollcost_benchmark_measures_both_sides(capsys: pytest.CaptureFixture[str]) -> None:
+    from benchmarks import pollcost
+
+    assert pollcost.main(["--plcs", "3", "--seconds", "0.05", "--repeats", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "bare closed loops" in out and "poller's own cost" in out
+    result = asyncio.run(
+        pollcost.measure(3, words=8, dtype=DataType.INT16, seconds=0.05, repeats=1)
+    )
+    assert len(result["bare"]) == len(result["poll"]) == 1
+    for cpu, gc_seconds in result["bare"] + result["poll"]:
+        assert cpu > 0 and gc_seconds >= 0

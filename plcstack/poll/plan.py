@@ -224,6 +224,17 @@ def _make_decoder(dtype: DataType, count: int, bits: int) -> Decoder:
     # words, say) makes ``pack`` fail, and the value-by-value path masks it as before.
     value_code = _VALUE_CODE[dtype]
     pack_big = struct.Struct(f">{n * count}{point_code}").pack
+    if value_code == point_code:
+        # uint16 in words, uint8 in bytes: the values are the points once they are in range
+        # (pack checks that in C); no new int objects.
+        def same(points: Sequence[int | bool], order: WordOrder) -> TagValue:
+            try:
+                pack_big(*points)
+            except struct.error:
+                return slow(points, order)
+            return points[0] if scalar else list(points)
+
+        return same
     pack_little = struct.Struct(f"<{n * count}{point_code}").pack
     unpack_big = struct.Struct(f">{count}{value_code}").unpack
     unpack_little = struct.Struct(f"<{count}{value_code}").unpack
