@@ -133,12 +133,12 @@ async def _bare_window(clients: list[MemoryClient], words: int, seconds: float) 
 
 
 async def _poll_window(
-    clients: list[MemoryClient], tag: TagConfig, seconds: float, gc_clock: _GcClock
+    clients: list[MemoryClient], tags: tuple[TagConfig, ...], seconds: float, gc_clock: _GcClock
 ) -> tuple[float, float]:
     by_name = {f"plc{i}": c for i, c in enumerate(clients)}
     config = PollConfig(
         plcs=tuple(
-            PlcConfig(name=name, url="e71+tcp://127.0.0.1:1", tags=(tag,)) for name in by_name
+            PlcConfig(name=name, url="e71+tcp://127.0.0.1:1", tags=tags) for name in by_name
         ),
         groups={DEFAULT_GROUP: INTERVAL},
         queue=max(1000, 4 * len(clients)),
@@ -167,22 +167,31 @@ async def _poll_window(
 
 
 async def measure(
-    plcs: int, *, words: int, dtype: DataType, seconds: float, repeats: int
+    plcs: int, *, words: int, dtype: DataType, seconds: float, repeats: int, tags: int = 1
 ) -> dict[str, list[tuple[float, float]]]:
-    """Alternating bare and poller windows: (CPU, GC) seconds per request of each window."""
-    values = [(1000 + i) & 0xFFFF for i in range(words)]
+    """Alternating bare and poller windows: (CPU, GC) seconds per request of each window.
+
+    ``tags`` adjacent tags of ``words`` points per PLC, merged by the poller into one request
+    of ``tags * words`` points (the bare loops read the same).
+    """
+    span = words * dtype.points_per_value(16)  # points of one tag
+    points = span * tags
+    values = [(1000 + i) & 0xFFFF for i in range(points)]
     clients = [MemoryClient(f"mem{i}", values) for i in range(plcs)]
-    tag = TagConfig(name="words", address="D0", type=dtype, count=words)
+    configs = tuple(
+        TagConfig(name=f"t{k}", address=f"D{k * span}", type=dtype, count=words)
+        for k in range(tags)
+    )
     gc_clock = _GcClock()
     bare: list[tuple[float, float]] = []
     poll: list[tuple[float, float]] = []
     try:
-        await _bare_window(clients, words, min(seconds, 0.2))  # warm-up
+        await _bare_window(clients, points, min(seconds, 0.2))  # warm-up
         for _ in range(repeats):
             c0, g0 = time.process_time(), gc_clock.seconds
-            n = max(1, await _bare_window(clients, words, seconds))
+            n = max(1, await _bare_window(clients, points, seconds))
             bare.append(((time.process_time() - c0) / n, (gc_clock.seconds - g0) / n))
-            poll.append(await _poll_window(clients, tag, seconds, gc_clock))
+            poll.append(await _poll_window(clients, configs, seconds, gc_clock))
     finally:
         gc_clock.close()
     return {"bare": bare, "poll": poll}
@@ -209,7 +218,8 @@ def report(result: dict[str, list[tuple[float, float]]], plcs: int, what: str) -
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.pollcost")
     parser.add_argument("--plcs", type=int, default=1000)
-    parser.add_argument("--words", type=int, default=64)
+    parser.add_argument("--words", type=int, default=64, help="points of each tag")
+    parser.add_argument("--tags", type=int, default=1, help="adjacent tags per PLC (one request)")
     parser.add_argument("--type", default="raw", choices=[t.value for t in DataType])
     parser.add_argument("--seconds", type=float, default=1.0)
     parser.add_argument("--repeats", type=int, default=5)
@@ -217,10 +227,16 @@ def main(argv: list[str] | None = None) -> int:
     dtype = DataType(args.type)
     result = asyncio.run(
         measure(
-            args.plcs, words=args.words, dtype=dtype, seconds=args.seconds, repeats=args.repeats
+            args.plcs,
+            words=args.words,
+            dtype=dtype,
+            seconds=args.seconds,
+            repeats=args.repeats,
+            tags=args.tags,
         )
     )
-    print(report(result, args.plcs, f"one {args.words}-word {dtype.value} tag each"))
+    what = f"{args.tags} x {args.words}-value {dtype.value} tags each, one request"
+    print(report(result, args.plcs, what))
     return 0
 
 

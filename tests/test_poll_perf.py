@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import dataclasses
 import math
 import struct
 import sys
@@ -28,6 +29,7 @@ from plcstack.poll.engine import (
     Poller,
     Quality,
     Sample,
+    _sample,
     timer_resolution,
 )
 from plcstack.poll.plan import build_plan, decoder
@@ -193,6 +195,17 @@ def test_tag_split_over_frames_with_bits_in_a_later_piece_is_refused() -> None:
     assert result.value is None and "bit area" in str(result.error)
     (good,) = plan.split([[1] * 64, [0xFFFF] * 64, [2] * 22], BIG)
     assert good.value == [1] * 64 + [-1] * 64 + [2] * 22
+
+
+# -- samples -------------------------------------------------------------------------------------
+def test_fast_sample_constructor_builds_the_same_frozen_sample() -> None:
+    args = ("p", "t", [1, 2], Quality.GOOD, 1.5, 2.5, None)
+    fast, slow = _sample(*args), Sample(*args)
+    assert fast == slow and repr(fast) == repr(slow) and type(fast) is Sample
+    bad = _sample("p", "t", None, Quality.BAD, 1.0, 1.0, "why")
+    assert bad == Sample("p", "t", None, Quality.BAD, 1.0, 1.0, "why")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        fast.value = 3  # type: ignore[misc]
 
 
 # -- latency window -------------------------------------------------------------------------------
@@ -396,7 +409,7 @@ def test_pollcost_benchmark_measures_both_sides(capsys: pytest.CaptureFixture[st
     out = capsys.readouterr().out
     assert "bare closed loops" in out and "poller's own cost" in out
     result = asyncio.run(
-        pollcost.measure(3, words=8, dtype=DataType.INT16, seconds=0.05, repeats=1)
+        pollcost.measure(3, words=4, dtype=DataType.FLOAT32, seconds=0.05, repeats=1, tags=3)
     )
     assert len(result["bare"]) == len(result["poll"]) == 1
     for cpu, gc_seconds in result["bare"] + result["poll"]:

@@ -37,7 +37,7 @@ import enum
 import itertools
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from types import TracebackType
 from typing import Any, Self
 
@@ -124,6 +124,37 @@ class Sample:
     source_time: float
     receive_time: float
     error: str | None = None
+
+
+_new_object = object.__new__
+(_set_plc, _set_tag, _set_value, _set_quality, _set_source, _set_receive, _set_error) = (
+    getattr(Sample, name).__set__ for name in (f.name for f in fields(Sample))
+)
+
+
+def _sample(
+    plc: str,
+    tag: str,
+    value: TagValue | None,
+    quality: Quality,
+    source_time: float,
+    receive_time: float,
+    error: str | None,
+) -> Sample:
+    """``Sample(...)`` for the hot path: the same frozen object, built in ~60 % of the time.
+
+    A frozen dataclass's ``__init__`` goes through ``object.__setattr__`` once per field; the
+    slot descriptors set the fields directly (what ``object.__setattr__`` ends up doing).
+    """
+    sample: Sample = _new_object(Sample)
+    _set_plc(sample, plc)
+    _set_tag(sample, tag)
+    _set_value(sample, value)
+    _set_quality(sample, quality)
+    _set_source(sample, source_time)
+    _set_receive(sample, receive_time)
+    _set_error(sample, error)
+    return sample
 
 
 @dataclass(slots=True)
@@ -602,6 +633,7 @@ class Poller:
         order = plc.order
         extract = plan.extract
         queue = self._queue
+        good, bad_q = Quality.GOOD, Quality.BAD
         bad = 0
         for tag_plan in plan.tags:
             if sent is not None and received is not None:
@@ -612,10 +644,10 @@ class Poller:
             if isinstance(result, PlcError):
                 bad += 1
                 queue.append(
-                    Sample(name, tag_plan.tag.name, None, Quality.BAD, source, receive, str(result))
+                    _sample(name, tag_plan.tag.name, None, bad_q, source, receive, str(result))
                 )
             else:
-                queue.append(Sample(name, tag_plan.tag.name, result, Quality.GOOD, source, receive))
+                queue.append(_sample(name, tag_plan.tag.name, result, good, source, receive, None))
         stats = plc.stats
         stats.samples += len(plan.tags)
         stats.bad_samples += bad
