@@ -294,6 +294,31 @@ def test_timer_resolution_of_asyncio_and_other_loops() -> None:
     assert timer_resolution(OtherLoop()) == 1e-3  # type: ignore[abstract]
 
 
+@pytest.mark.parametrize(("resolution", "expect_timers"), [(1.0, False), (1e-9, True)])
+async def test_no_timer_for_a_delay_below_the_timer_resolution(
+    monkeypatch: pytest.MonkeyPatch, resolution: float, expect_timers: bool
+) -> None:
+    # A scan due within the loop's timer resolution starts at once: such a timer would fire in
+    # the next loop pass anyway (uvloop: 1 ms). With a fine resolution the poller does sleep.
+    import plcstack.poll.engine as engine
+
+    monkeypatch.setattr(engine, "timer_resolution", lambda loop: resolution)
+    real_sleep = asyncio.sleep
+    timers: list[float] = []
+
+    async def sleep(delay: float) -> None:
+        if delay > 0:
+            timers.append(delay)
+        await real_sleep(delay)
+
+    monkeypatch.setattr(engine.asyncio, "sleep", sleep)
+    poller, _ = make({"p": [tag("a", "D0")]}, interval=0.02)
+    async with poller:
+        samples = await take(poller, 5)
+    assert len(samples) == 5
+    assert bool(timers) is expect_timers
+
+
 # -- yielding -------------------------------------------------------------------------------------
 async def test_a_client_that_never_suspends_cannot_starve_the_loop() -> None:
     ticker = Ticker()
