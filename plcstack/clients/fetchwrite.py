@@ -23,9 +23,11 @@ from __future__ import annotations
 import asyncio
 import copy
 import logging
+import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Final, Literal, Self
 
+from plcstack.clients._values import pack_ints
 from plcstack.clients.base import RequestClient
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.fetchwrite import (
@@ -55,6 +57,11 @@ MAX_JOB_BYTES: Final = 4096
 
 DbStart = Literal["word", "byte"]
 Response = FetchResponse | WriteResponse
+
+#: a read's cached plan: the FETCH job, data bytes to skip, whether the points are words
+_ReadPlan = tuple[FetchRequest, int, bool]
+#: most (address, count) read plans a client keeps (a poller reads a fixed set of tags)
+_PLAN_CACHE: Final = 1024
 
 _URL_OPTIONS: Final = frozenset(
     {"mk", "db_start", "write_port", "life_ack", "life_timeout", "strict"}
@@ -134,6 +141,7 @@ class FetchWriteClient(RequestClient[Response]):
         self._keeper: asyncio.Task[None] | None = None
         self._pending_error: PlcError | None = None
         self._writer: FetchWriteClient | None = None
+        self._read_plans: dict[tuple[str, int], _ReadPlan] = {}
         if write_port is not None:
             self._writer = FetchWriteClient(
                 f"{name} [write connection, port {write_port}]",
@@ -284,25 +292,45 @@ class FetchWriteClient(RequestClient[Response]):
 
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
         what = f"read {address} x{count}"
-        try:
-            addr = parse_s5_address(address)
-            self._check_count(addr, count)
-            request, skip = self._fetch_for(addr, count)
-        except AddressError as exc:
-            raise exc.bind(plc=self.name, request=what) from None
+        plan = (
+            self._read_plans.get((address, count))
+            if type(address) is str and type(count) is int
+            else None
+        )
+        if plan is None:
+            try:
+                plan = self._read_plan(address, count)
+            except AddressError as exc:
+                raise exc.bind(plc=self.name, request=what) from None
+        request, skip, words = plan
         response = await self._job(request, what)
         assert isinstance(response, FetchResponse)
-        data = response.data[skip : skip + addr.byte_length(count)]
-        if addr.unit is S5Unit.WORD:
-            return [int.from_bytes(data[i : i + 2], "big") for i in range(0, len(data), 2)]
-        return list(data)
+        data = response.data
+        if words:
+            return list(struct.unpack_from(f">{count}H", data, skip))
+        return list(data[skip : skip + count])
+
+    def _read_plan(self, address: str, count: int) -> _ReadPlan:
+        """Parse and check ``address`` x ``count`` once: the FETCH job, the leading data bytes
+        to skip and whether the points are words. Cached per client (the ``db_start`` option
+        shapes the job), so a poller's repeated reads skip parsing and checking."""
+        addr = parse_s5_address(address)
+        self._check_count(addr, count)
+        request, skip = self._fetch_for(addr, count)
+        plan = (request, skip, addr.unit is S5Unit.WORD)
+        if len(self._read_plans) < _PLAN_CACHE:
+            self._read_plans[(address, count)] = plan
+        return plan
 
     async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
         what = f"write {address} x{len(values)}"
         try:
             addr = parse_s5_address(address)
             self._check_count(addr, len(values))
-            request = self._write_for(addr, _encode_values(addr.unit, values))
+            data = pack_ints(values, ">", "H" if addr.unit is S5Unit.WORD else "B")
+            if data is None:
+                data = _encode_values(addr.unit, values)
+            request = self._write_for(addr, data)
         except AddressError as exc:
             raise exc.bind(plc=self.name, request=what) from None
         await self._job(request, what)

@@ -34,6 +34,7 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Self
 
+from plcstack.clients._values import pack_ints
 from plcstack.clients.base import RequestClient
 from plcstack.codecs.s5lan import (
     HEADER_BYTE_ORDER,
@@ -309,6 +310,9 @@ class S5LanClient(RequestClient[Response]):
 
     def _encode_values(self, addr: S5Address, values: Sequence[int] | Sequence[bool]) -> bytes:
         word = addr.unit is S5Unit.WORD
+        fast = pack_ints(values, "<", "H" if word else "B")  # low byte first on the wire (A.6)
+        if fast is not None:
+            return fast
         lo, hi = (-0x8000, 0xFFFF) if word else (-0x80, 0xFF)
         out = bytearray()
         for i, value in enumerate(values):
