@@ -73,6 +73,8 @@ _LETTER = {
     S5Area.COUNTERS: "Z",
 }
 _MAX_START = 0xFFFF
+#: most (address, count) read plans a client keeps (a poller reads a fixed set of tags)
+_PLAN_CACHE = 1024
 
 #: ``locate`` area key: (area, unit, DB number or None, byte parity of M/E/A words)
 AreaKey = tuple[S5Area, S5Unit, int | None, int]
@@ -114,6 +116,7 @@ class S5LanClient(RequestClient[Response]):
         self.strict = strict
         self._seq = 0
         self._answers_on_connection = 0
+        self._read_plans: dict[tuple[str, int], tuple[S5Address, str]] = {}
         b = self.backoff
         self._refusal_backoff = Backoff(b.initial, b.maximum, b.factor, b.jitter)
         self.codec: ClientConnection = self.new_codec()
@@ -162,8 +165,14 @@ class S5LanClient(RequestClient[Response]):
 
     # -- the API -------------------------------------------------------------------------------
     async def read(self, address: str, count: int = 1) -> list[int]:
-        addr = self._parse(address, count)
-        what = f"read {addr} x{count}"
+        plan = (
+            self._read_plans.get((address, count))
+            if type(address) is str and type(count) is int
+            else None
+        )
+        if plan is None:
+            plan = self._read_plan(address, count)
+        addr, what = plan
         if addr.area.is_block and addr.unit is S5Unit.BYTE:
             first, last = addr.offset // 2, (addr.offset + count - 1) // 2
             words = S5Address(addr.area, S5Unit.WORD, first, addr.db)
@@ -206,6 +215,14 @@ class S5LanClient(RequestClient[Response]):
             done += units
 
     # -- internals -----------------------------------------------------------------------------
+    def _read_plan(self, address: str, count: int) -> tuple[S5Address, str]:
+        """Parse and check a read once; a poller's repeated reads then skip both."""
+        addr = self._parse(address, count)
+        plan = (addr, f"read {addr} x{count}")
+        if type(address) is str and type(count) is int and len(self._read_plans) < _PLAN_CACHE:
+            self._read_plans[(address, count)] = plan
+        return plan
+
     def _parse(self, address: str, count: int, *, write: bool = False) -> S5Address:
         try:
             addr = parse_s5_address(address)
@@ -232,6 +249,8 @@ class S5LanClient(RequestClient[Response]):
     def _chunks(addr: S5Address, count: int) -> list[tuple[int, int]]:
         """``(Start, Count)`` of each request for ``count`` points at ``addr`` (<= 2048 bytes)."""
         per = MAX_DATA_BYTES // addr.unit.size
+        if count <= per:
+            return [(addr.offset, count)]
         out = []
         done = 0
         while done < count:
