@@ -22,8 +22,8 @@ _INT: Final = frozenset({int})
 def _all_plain_ints(values: object) -> bool:
     return (
         (type(values) is list or type(values) is tuple)
-        and len(values) > 0  # type: ignore[arg-type]
-        and set(map(type, values)) == _INT  # type: ignore[call-overload]
+        and len(values) > 0
+        and set(map(type, values)) == _INT
     )
 
 

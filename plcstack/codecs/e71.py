@@ -1198,8 +1198,11 @@ class E71ClientConnection:
     # -- decoding -----------------------------------------------------------------------------
     def _data_length(self, req: Request) -> int:
         """Binary length of the data after subheader + end code of a normal response (§11.2)."""
+        cls = type(req)
         if type(req) is ReadWords:
             return 2 * req.count
+        if cls is WriteWords or cls is WriteBits:
+            return 0
         if isinstance(req, ReadBits):
             return (req.count + 1) // 2
         if isinstance(req, ReadWords):
@@ -1211,8 +1214,11 @@ class E71ClientConnection:
         return 0
 
     def _finish(self, req: Request, body: bytes) -> Response:
+        cls = type(req)
         if type(req) is ReadWords and self._unit == 1:
             return WordsResponse(1, struct.unpack(f"<{req.count}H", body))
+        if cls is WriteWords or cls is WriteBits:
+            return Ack(req.COMMAND)  # a write's normal answer carries no data (_data_length 0)
         r = _Reader(body, self.code is Code.ASCII)
         try:
             if isinstance(req, (ReadBits, MonitorBits)):
