@@ -34,6 +34,7 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Self
 
+from plcstack.clients._values import pack_ints
 from plcstack.clients.base import Client
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.as511 import (
@@ -673,6 +674,9 @@ def _check_byte(value: int | bool) -> int:
 
 
 def _pack_words(values: Sequence[int] | Sequence[bool]) -> bytes:
+    fast = pack_ints(values, ">", "H")  # plain ints in range: no per-value checks needed
+    if fast is not None:
+        return fast
     out = bytearray()
     for value in values:
         if isinstance(value, bool) or not isinstance(value, int):
