@@ -34,8 +34,8 @@ class Counter:
             self.sent += len(data)
             write(data)
 
-        async def counting_read() -> bytes:
-            data = await read()
+        async def counting_read(deadline: float | None = None) -> bytes:
+            data = await read(deadline)
             self.received += len(data)
             return data
 
