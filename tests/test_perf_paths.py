@@ -258,3 +258,30 @@ async def test_deadline_timer_rearms_earlier_and_later_over_loopback() -> None:
         await replies.put((0.0, b"d"))
         assert await asyncio.wait_for(t.read(), 10.0) == b"d"
         t.abort()
+
+
+@pytest.mark.parametrize("sim_name", ["fetchwrite", "s5lan", "as511"])
+async def test_cached_plans_still_check_every_value_and_count(sim_name: str) -> None:
+    """After a good write and read have cached their plans, bad values, counts and types at the
+    same address are still refused before anything is sent, and the PLC memory is unchanged."""
+    import importlib
+
+    import plcstack
+    from plcstack.sim.s5memory import S5Memory
+
+    memory = S5Memory(default_dbs={10: 16})
+    sim = await importlib.import_module(f"plcstack.sim.{sim_name}").start(memory)
+    try:
+        async with plcstack.connect(sim.url, timeout=5.0) as plc:
+            await plc.write("DB10.DW2", [1, 2])
+            assert await plc.read("DB10.DW2", 2) == [1, 2]
+            for bad in ([True, 2], [1, 0x10000], [1, -0x8001], [1, 2.0], (1, "2")):
+                with pytest.raises(AddressError):
+                    await plc.write("DB10.DW2", bad)  # type: ignore[arg-type]
+            for count in (True, 0, 2.0):
+                with pytest.raises(AddressError):
+                    await plc.read("DB10.DW2", count)  # type: ignore[arg-type]
+            await plc.write("DB10.DW2", [-1, 0xFFFF])  # two's complement, same plan
+            assert memory.read_db_words(10, 2, 2) == [0xFFFF, 0xFFFF]
+    finally:
+        await sim.aclose()

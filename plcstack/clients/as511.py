@@ -576,7 +576,7 @@ class AS511Client(Client):
             addr = parse_s5_address(address)
         except AddressError as exc:
             raise exc.bind(plc=self.name) from None
-        if not isinstance(count, int) or count < 1:
+        if not isinstance(count, int) or isinstance(count, bool) or count < 1:
             raise AddressError(f"count {count!r} must be a positive integer", plc=self.name)
         return addr
 

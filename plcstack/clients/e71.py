@@ -223,8 +223,12 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
         ref = self._ref(address, what)
         self._check_span(ref, count, MAX_POINTS, what)
         if ref.device.is_bit:
-            return await self._read_bits(ReadBits(ref, count, **self._hdr()), what)
-        return await self._read_words(ReadWords(ref, count, **self._hdr()), what)
+            return await self._read_bits(
+                ReadBits(ref, count, pc=self.pc, timer=self.monitoring_timer), what
+            )
+        return await self._read_words(
+            ReadWords(ref, count, pc=self.pc, timer=self.monitoring_timer), what
+        )
 
     async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
         """Bits to a bit device (02H) or words to a word device (03H); <= 256 points."""
@@ -239,7 +243,7 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
                 if any(isinstance(v, bool) for v in values):
                     raise self._bad(f"{ref.device.letters} is a word device: give integers", what)
                 words = self._words_of(values, what)
-            request = WriteWords(ref, words, **self._hdr())
+            request = WriteWords(ref, words, pc=self.pc, timer=self.monitoring_timer)
         await self._call(request, what, is_write=True)
 
     async def read_words(self, address: str, count: int = 1) -> list[int]:

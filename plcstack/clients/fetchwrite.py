@@ -60,6 +60,8 @@ Response = FetchResponse | WriteResponse
 
 #: a read's cached plan: the FETCH job, data bytes to skip, whether the points are words
 _ReadPlan = tuple[FetchRequest, int, bool]
+#: a write's cached plan: the point unit and the WRITE header fields (ORG, DBNR, start, length)
+_WritePlan = tuple[S5Unit, int, int, int, int]
 #: most (address, count) read plans a client keeps (a poller reads a fixed set of tags)
 _PLAN_CACHE: Final = 1024
 
@@ -142,6 +144,7 @@ class FetchWriteClient(RequestClient[Response]):
         self._pending_error: PlcError | None = None
         self._writer: FetchWriteClient | None = None
         self._read_plans: dict[tuple[str, int], _ReadPlan] = {}
+        self._write_plans: dict[tuple[str, int], _WritePlan] = {}
         if write_port is not None:
             self._writer = FetchWriteClient(
                 f"{name} [write connection, port {write_port}]",
@@ -323,14 +326,28 @@ class FetchWriteClient(RequestClient[Response]):
         return plan
 
     async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
-        what = f"write {address} x{len(values)}"
+        n = len(values)
+        what = f"write {address} x{n}"
+        plan = self._write_plans.get((address, n)) if type(address) is str else None
         try:
-            addr = parse_s5_address(address)
-            self._check_count(addr, len(values))
-            data = pack_ints(values, ">", "H" if addr.unit is S5Unit.WORD else "B")
+            if plan is None:
+                addr = parse_s5_address(address)
+                self._check_count(addr, n)
+                unit = addr.unit
+            else:
+                unit = plan[0]
+            data = pack_ints(values, ">", "H" if unit is S5Unit.WORD else "B")
             if data is None:
-                data = _encode_values(addr.unit, values)
-            request = self._write_for(addr, data)
+                data = _encode_values(unit, values)
+            if plan is None:
+                request = self._write_for(addr, data)
+                if type(address) is str and len(self._write_plans) < _PLAN_CACHE:
+                    # the job's header fields depend only on (address, count): keep them
+                    self._write_plans[(address, n)] = (unit, request.org, request.db,
+                                                       request.start, request.length)  # fmt: skip
+            else:
+                _, org, db, start, length = plan
+                request = WriteRequest(org, db, start, length, data)
         except AddressError as exc:
             raise exc.bind(plc=self.name, request=what) from None
         await self._job(request, what)
