@@ -468,6 +468,8 @@ class PGConnection:
         self._enter(PGState.W_ACK1, now, sent=1)
 
     def data_to_send(self) -> bytes:
+        if not self._out:
+            return b""
         out = bytes(self._out)
         self._out.clear()
         return out
@@ -482,7 +484,8 @@ class PGConnection:
         return event
 
     def receive_data(self, data: bytes, now: float) -> None:
-        data = bytes(data)
+        if type(data) is not bytes:
+            data = bytes(data)
         i, n = 0, len(data)
         while i < n:
             if self.state is PGState.RX_DATA and (self.deadline is None or now <= self.deadline):
