@@ -329,6 +329,7 @@ class ClientConnection:
         self._buf = ReceiveBuffer()
         self._request: Header | None = None
         self._request_head = b""
+        self._reply_data = 0
         self._reply: Header | None = None
         self._mismatch: tuple[str, ...] = ()
 
@@ -339,7 +340,8 @@ class ClientConnection:
                 f"S5-LAN allows one request at a time; the codec is in state {self.state.value}"
             )
         h = request.header
-        if not (h.is_read or h.is_write):
+        is_read = h.cmd in READ_CMDS
+        if not (is_read or h.cmd in WRITE_CMDS):
             raise LocalProtocolError(f"Cmd {h.cmd!r} is neither read (R/r) nor write (W/w)")
         if not area_legal(h.area, h.data_type):
             raise LocalProtocolError(
@@ -353,16 +355,17 @@ class ClientConnection:
             raise LocalProtocolError(
                 f"{n} data bytes exceed the module's limit of {MAX_DATA_BYTES}; split the request"
             )
-        if h.is_write and len(request.data) != n:
+        if not is_read and len(request.data) != n:
             raise LocalProtocolError(
                 f"write of {h.count} {h.data_type} units needs {n} data bytes, "
                 f"got {len(request.data)}"
             )
-        if h.is_read and request.data:
+        if is_read and request.data:
             raise LocalProtocolError("a read request carries no data")
         head = h.encode(self.byte_order)
         self._request = h
         self._request_head = head
+        self._reply_data = n if is_read else 0  # data bytes that follow a successful answer
         self.state = _ClientState.WAIT_HEADER
         return head + request.data
 
@@ -380,18 +383,19 @@ class ClientConnection:
             raise
 
     def _next_event(self) -> Response | NeedData:
-        if self.state is _ClientState.IDLE:
-            if self._buf:
+        state, buf = self.state, self._buf
+        if state is _ClientState.IDLE:
+            if buf:
                 raise RemoteProtocolError(
-                    f"{len(self._buf)} unexpected byte(s) from the module with no request pending"
+                    f"{len(buf)} unexpected byte(s) from the module with no request pending"
                 )
             return NEED_DATA
         request = self._request
         assert request is not None
-        if self.state is _ClientState.WAIT_HEADER:
-            if len(self._buf) < HEADER_LEN:
+        if state is _ClientState.WAIT_HEADER:
+            if len(buf) < HEADER_LEN:
                 return NEED_DATA
-            raw = self._buf.take(HEADER_LEN)
+            raw = buf.take(HEADER_LEN)
             reply = Header.decode(raw, self.byte_order)
             sent = self._request_head
             # Echoed fields are equal exactly when their bytes are (same byte order both ways):
@@ -404,14 +408,14 @@ class ClientConnection:
             ):
                 self._check_reply(request, reply)
             self._reply = reply
-            if reply.err != 0 or not request.is_read:
+            if reply.err != 0 or not self._reply_data:
                 return self._finish(b"")
             self.state = _ClientState.WAIT_DATA
         assert self._reply is not None
-        n = request.data_len or 0
-        if len(self._buf) < n:
+        n = self._reply_data
+        if len(buf) < n:
             return NEED_DATA
-        return self._finish(self._buf.take(n))
+        return self._finish(buf.take(n))
 
     def _finish(self, data: bytes) -> Response:
         reply = self._reply
