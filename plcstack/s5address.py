@@ -29,6 +29,7 @@ Decisions where S5 usage is not uniform:
 from __future__ import annotations
 
 import enum
+import functools
 import re
 from dataclasses import dataclass
 from typing import Final
@@ -185,8 +186,15 @@ _HELP = (
 
 def parse_s5_address(text: str) -> S5Address:
     """Parse S5 operand notation (see the module docstring); :class:`AddressError` otherwise."""
-    if not isinstance(text, str):
-        raise AddressError(f"address {text!r} is not a string; {_HELP}")
+    if isinstance(text, str):
+        return _parse_cached(text)
+    raise AddressError(f"address {text!r} is not a string; {_HELP}")
+
+
+@functools.lru_cache(maxsize=4096)
+def _parse_cached(text: str) -> S5Address:
+    # Pollers ask for the same few addresses over and over, and S5Address is immutable; errors
+    # are not cached (lru_cache does not keep exceptions), so every bad address is re-checked.
     norm = text.strip().upper()
     try:
         return _parse(norm, text)

@@ -34,6 +34,7 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Self
 
+from plcstack.clients._values import pack_ints
 from plcstack.clients.base import Client
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.as511 import (
@@ -575,7 +576,7 @@ class AS511Client(Client):
             addr = parse_s5_address(address)
         except AddressError as exc:
             raise exc.bind(plc=self.name) from None
-        if not isinstance(count, int) or count < 1:
+        if not isinstance(count, int) or isinstance(count, bool) or count < 1:
             raise AddressError(f"count {count!r} must be a positive integer", plc=self.name)
         return addr
 
@@ -673,6 +674,9 @@ def _check_byte(value: int | bool) -> int:
 
 
 def _pack_words(values: Sequence[int] | Sequence[bool]) -> bytes:
+    fast = pack_ints(values, ">", "H")  # plain ints in range: no per-value checks needed
+    if fast is not None:
+        return fast
     out = bytearray()
     for value in values:
         if isinstance(value, bool) or not isinstance(value, int):

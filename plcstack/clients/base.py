@@ -233,7 +233,8 @@ class RequestClient(Client, Generic[E]):
         nothing stale can be read later. A write is never retried here.
         """
         async with self._lock:
-            await self._ensure_open(what)
+            if not self.transport.is_open:
+                await self._ensure_open(what)
             self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
             try:

@@ -22,6 +22,7 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Self
 
+from plcstack.clients._values import plain_words
 from plcstack.clients.base import RequestClient
 from plcstack.clients.e71_commands import E71CommandsMixin
 from plcstack.codecs.e71 import (
@@ -197,6 +198,9 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
             raise self._bad(f"{ref} + {count * unit} points runs past the last device", what)
 
     def _words_of(self, values: Sequence[int], what: str) -> tuple[int, ...]:
+        fast = plain_words(values)
+        if fast is not None:
+            return fast
         out = []
         for v in values:
             if isinstance(v, bool) or not isinstance(v, int) or not -0x8000 <= v <= 0xFFFF:
@@ -219,8 +223,12 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
         ref = self._ref(address, what)
         self._check_span(ref, count, MAX_POINTS, what)
         if ref.device.is_bit:
-            return await self._read_bits(ReadBits(ref, count, **self._hdr()), what)
-        return await self._read_words(ReadWords(ref, count, **self._hdr()), what)
+            return await self._read_bits(
+                ReadBits(ref, count, pc=self.pc, timer=self.monitoring_timer), what
+            )
+        return await self._read_words(
+            ReadWords(ref, count, pc=self.pc, timer=self.monitoring_timer), what
+        )
 
     async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
         """Bits to a bit device (02H) or words to a word device (03H); <= 256 points."""
@@ -230,9 +238,12 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
         if ref.device.is_bit:
             request: Request = WriteBits(ref, self._bits_of(values, what), **self._hdr())
         else:
-            if any(isinstance(v, bool) for v in values):
-                raise self._bad(f"{ref.device.letters} is a word device: give integers", what)
-            request = WriteWords(ref, self._words_of(values, what), **self._hdr())
+            words = plain_words(values)  # plain ints in range: no per-value checks needed
+            if words is None:
+                if any(isinstance(v, bool) for v in values):
+                    raise self._bad(f"{ref.device.letters} is a word device: give integers", what)
+                words = self._words_of(values, what)
+            request = WriteWords(ref, words, pc=self.pc, timer=self.monitoring_timer)
         await self._call(request, what, is_write=True)
 
     async def read_words(self, address: str, count: int = 1) -> list[int]:

@@ -23,9 +23,11 @@ from __future__ import annotations
 import asyncio
 import copy
 import logging
+import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Final, Literal, Self
 
+from plcstack.clients._values import pack_ints
 from plcstack.clients.base import RequestClient
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.fetchwrite import (
@@ -55,6 +57,13 @@ MAX_JOB_BYTES: Final = 4096
 
 DbStart = Literal["word", "byte"]
 Response = FetchResponse | WriteResponse
+
+#: a read's cached plan: the FETCH job, data bytes to skip, whether the points are words
+_ReadPlan = tuple[FetchRequest, int, bool]
+#: a write's cached plan: the point unit and the WRITE header fields (ORG, DBNR, start, length)
+_WritePlan = tuple[S5Unit, int, int, int, int]
+#: most (address, count) read plans a client keeps (a poller reads a fixed set of tags)
+_PLAN_CACHE: Final = 1024
 
 _URL_OPTIONS: Final = frozenset(
     {"mk", "db_start", "write_port", "life_ack", "life_timeout", "strict"}
@@ -134,6 +143,8 @@ class FetchWriteClient(RequestClient[Response]):
         self._keeper: asyncio.Task[None] | None = None
         self._pending_error: PlcError | None = None
         self._writer: FetchWriteClient | None = None
+        self._read_plans: dict[tuple[str, int], _ReadPlan] = {}
+        self._write_plans: dict[tuple[str, int], _WritePlan] = {}
         if write_port is not None:
             self._writer = FetchWriteClient(
                 f"{name} [write connection, port {write_port}]",
@@ -284,25 +295,59 @@ class FetchWriteClient(RequestClient[Response]):
 
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
         what = f"read {address} x{count}"
-        try:
-            addr = parse_s5_address(address)
-            self._check_count(addr, count)
-            request, skip = self._fetch_for(addr, count)
-        except AddressError as exc:
-            raise exc.bind(plc=self.name, request=what) from None
+        plan = (
+            self._read_plans.get((address, count))
+            if type(address) is str and type(count) is int
+            else None
+        )
+        if plan is None:
+            try:
+                plan = self._read_plan(address, count)
+            except AddressError as exc:
+                raise exc.bind(plc=self.name, request=what) from None
+        request, skip, words = plan
         response = await self._job(request, what)
         assert isinstance(response, FetchResponse)
-        data = response.data[skip : skip + addr.byte_length(count)]
-        if addr.unit is S5Unit.WORD:
-            return [int.from_bytes(data[i : i + 2], "big") for i in range(0, len(data), 2)]
-        return list(data)
+        data = response.data
+        if words:
+            return list(struct.unpack_from(f">{count}H", data, skip))
+        return list(data[skip : skip + count])
+
+    def _read_plan(self, address: str, count: int) -> _ReadPlan:
+        """Parse and check ``address`` x ``count`` once: the FETCH job, the leading data bytes
+        to skip and whether the points are words. Cached per client (the ``db_start`` option
+        shapes the job), so a poller's repeated reads skip parsing and checking."""
+        addr = parse_s5_address(address)
+        self._check_count(addr, count)
+        request, skip = self._fetch_for(addr, count)
+        plan = (request, skip, addr.unit is S5Unit.WORD)
+        if len(self._read_plans) < _PLAN_CACHE:
+            self._read_plans[(address, count)] = plan
+        return plan
 
     async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
-        what = f"write {address} x{len(values)}"
+        n = len(values)
+        what = f"write {address} x{n}"
+        plan = self._write_plans.get((address, n)) if type(address) is str else None
         try:
-            addr = parse_s5_address(address)
-            self._check_count(addr, len(values))
-            request = self._write_for(addr, _encode_values(addr.unit, values))
+            if plan is None:
+                addr = parse_s5_address(address)
+                self._check_count(addr, n)
+                unit = addr.unit
+            else:
+                unit = plan[0]
+            data = pack_ints(values, ">", "H" if unit is S5Unit.WORD else "B")
+            if data is None:
+                data = _encode_values(unit, values)
+            if plan is None:
+                request = self._write_for(addr, data)
+                if type(address) is str and len(self._write_plans) < _PLAN_CACHE:
+                    # the job's header fields depend only on (address, count): keep them
+                    self._write_plans[(address, n)] = (unit, request.org, request.db,
+                                                       request.start, request.length)  # fmt: skip
+            else:
+                _, org, db, start, length = plan
+                request = WriteRequest(org, db, start, length, data)
         except AddressError as exc:
             raise exc.bind(plc=self.name, request=what) from None
         await self._job(request, what)

@@ -29,11 +29,13 @@ reports that as :class:`~plcstack.errors.ConnectFailed` saying so, not as a vagu
 from __future__ import annotations
 
 import asyncio
+import enum
 import logging
 import struct
 from collections.abc import Hashable, Sequence
-from typing import Any, Self
+from typing import Any, NamedTuple, Self
 
+from plcstack.clients._values import pack_ints
 from plcstack.clients.base import RequestClient
 from plcstack.codecs.s5lan import (
     HEADER_BYTE_ORDER,
@@ -45,6 +47,7 @@ from plcstack.codecs.s5lan import (
     byte_order_hint,
     err_meaning,
     estimate_seconds,
+    swap_words,
 )
 from plcstack.errors import (
     AddressError,
@@ -72,6 +75,28 @@ _LETTER = {
     S5Area.COUNTERS: "Z",
 }
 _MAX_START = 0xFFFF
+#: most (address, count) plans a client keeps per kind (a poller reads a fixed set of tags)
+_PLAN_CACHE = 1024
+
+
+class _Kind(enum.Enum):
+    WORDS = "words"
+    BYTES = "bytes"
+    DB_BYTES = "DB/DX bytes read through their data words"
+
+
+class _Plan(NamedTuple):
+    """A checked read or write: what the user asked and the wire requests that do it."""
+
+    addr: S5Address  # as given by the user
+    what: str  # "read DB10.DW0 x64", for messages
+    letter: str  # DataArea
+    data_type: str  # DataType on the wire: "W" or "B"
+    db: int
+    chunks: tuple[tuple[int, int], ...]  # (Start, Count) of each request (<= 2048 bytes)
+    size: int  # bytes per wire unit
+    kind: _Kind
+
 
 #: ``locate`` area key: (area, unit, DB number or None, byte parity of M/E/A words)
 AreaKey = tuple[S5Area, S5Unit, int | None, int]
@@ -113,6 +138,8 @@ class S5LanClient(RequestClient[Response]):
         self.strict = strict
         self._seq = 0
         self._answers_on_connection = 0
+        self._read_plans: dict[tuple[str, int], _Plan] = {}
+        self._write_plans: dict[tuple[str, int], _Plan] = {}
         b = self.backoff
         self._refusal_backoff = Backoff(b.initial, b.maximum, b.factor, b.jitter)
         self.codec: ClientConnection = self.new_codec()
@@ -161,50 +188,84 @@ class S5LanClient(RequestClient[Response]):
 
     # -- the API -------------------------------------------------------------------------------
     async def read(self, address: str, count: int = 1) -> list[int]:
-        addr = self._parse(address, count)
-        what = f"read {addr} x{count}"
-        if addr.area.is_block and addr.unit is S5Unit.BYTE:
-            first, last = addr.offset // 2, (addr.offset + count - 1) // 2
-            words = S5Address(addr.area, S5Unit.WORD, first, addr.db)
-            wire = await self._read_wire(words, last - first + 1, what)
-            skip = addr.offset % 2
-            # wire words are low byte first; the DB byte DL n is the high byte of DW n
-            s5 = bytes(b for i in range(0, len(wire), 2) for b in (wire[i + 1], wire[i]))
-            return list(s5[skip : skip + count])
-        wire = await self._read_wire(addr, count, what)
-        if addr.unit is S5Unit.WORD:
+        plan = (
+            self._read_plans.get((address, count))
+            if type(address) is str and type(count) is int
+            else None
+        )
+        if plan is None:
+            plan = self._plan(address, count, write=False)
+        wire = await self._read_wire(plan)
+        if plan.kind is _Kind.WORDS:
             return list(struct.unpack(f"<{count}H", wire))
-        return list(wire)
+        if plan.kind is _Kind.BYTES:
+            return list(wire)
+        # DB/DX bytes through their words: wire words are low byte first, and the DB byte
+        # DL n is the high byte of DW n
+        skip = plan.addr.offset % 2
+        return list(swap_words(wire)[skip : skip + count])
 
     async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
-        addr = self._parse(address, len(values), write=True)
-        data = self._encode_values(addr, values)
-        what = f"write {addr} x{len(values)}"
-        per = MAX_DATA_BYTES // addr.unit.size
+        n = len(values)
+        plan = self._write_plans.get((address, n)) if type(address) is str else None
+        if plan is None:
+            plan = self._plan(address, n, write=True)
+        data = self._encode_values(plan.addr, values)
+        size, chunks = plan.size, plan.chunks
         done = 0
-        for part, (start, units) in enumerate(self._chunks(addr, len(values))):
-            chunk = data[done * addr.unit.size : (done + units) * addr.unit.size]
+        for part, (start, units) in enumerate(chunks):
             req = Request.write(
-                _LETTER[addr.area],
-                "W" if addr.unit is S5Unit.WORD else "B",
+                plan.letter,
+                plan.data_type,
                 start,
-                chunk,
-                db=addr.db or 0,
+                data if len(chunks) == 1 else data[done * size : (done + units) * size],
+                db=plan.db,
                 user_code=self._next_user_code(),
             )
-            label = what if len(values) <= per else f"{what} (part {part + 1}: {units} at {start})"
+            label = (
+                plan.what
+                if len(chunks) == 1
+                else f"{plan.what} (part {part + 1}: {units} at {start})"
+            )
             try:
-                await self._request(req, label, is_write=True, total=what)
+                await self._request(req, label, is_write=True, total=plan.what)
             except PlcError as exc:
                 if done:
                     exc.message += (
-                        f"; the first {done} of {len(values)} values were written and confirmed, "
+                        f"; the first {done} of {n} values were written and confirmed, "
                         "the rest were not (S5-LAN cannot write more than 2048 bytes atomically)"
                     )
                 raise
             done += units
 
     # -- internals -----------------------------------------------------------------------------
+    def _plan(self, address: str, count: int, *, write: bool) -> _Plan:
+        """Parse and check a request once and work out its wire requests; cached per
+        ``(address, count)``, so a poller's repeated reads and writes skip all of it."""
+        addr = self._parse(address, count, write=write)
+        wire, wire_count, kind = addr, count, _Kind.WORDS
+        if addr.area.is_block and addr.unit is S5Unit.BYTE:
+            # read through the covering data words (the module moves D and X as words only)
+            first, last = addr.offset // 2, (addr.offset + count - 1) // 2
+            wire = S5Address(addr.area, S5Unit.WORD, first, addr.db)
+            wire_count, kind = last - first + 1, _Kind.DB_BYTES
+        elif addr.unit is S5Unit.BYTE:
+            kind = _Kind.BYTES
+        plan = _Plan(
+            addr=addr,
+            what=f"{'write' if write else 'read'} {addr} x{count}",
+            letter=_LETTER[addr.area],
+            data_type="W" if wire.unit is S5Unit.WORD else "B",
+            db=addr.db or 0,
+            chunks=tuple(self._chunks(wire, wire_count)),
+            size=wire.unit.size,
+            kind=kind,
+        )
+        cache = self._write_plans if write else self._read_plans
+        if type(address) is str and type(count) is int and len(cache) < _PLAN_CACHE:
+            cache[(address, count)] = plan
+        return plan
+
     def _parse(self, address: str, count: int, *, write: bool = False) -> S5Address:
         try:
             addr = parse_s5_address(address)
@@ -231,6 +292,8 @@ class S5LanClient(RequestClient[Response]):
     def _chunks(addr: S5Address, count: int) -> list[tuple[int, int]]:
         """``(Start, Count)`` of each request for ``count`` points at ``addr`` (<= 2048 bytes)."""
         per = MAX_DATA_BYTES // addr.unit.size
+        if count <= per:
+            return [(addr.offset, count)]
         out = []
         done = 0
         while done < count:
@@ -239,20 +302,22 @@ class S5LanClient(RequestClient[Response]):
             done += units
         return out
 
-    async def _read_wire(self, addr: S5Address, count: int, what: str) -> bytes:
+    async def _read_wire(self, plan: _Plan) -> bytes:
+        chunks, what = plan.chunks, plan.what
         parts = []
-        chunks = self._chunks(addr, count)
         for part, (start, units) in enumerate(chunks):
             req = Request.read(
-                _LETTER[addr.area],
-                "W" if addr.unit is S5Unit.WORD else "B",
+                plan.letter,
+                plan.data_type,
                 start,
                 units,
-                db=addr.db or 0,
+                db=plan.db,
                 user_code=self._next_user_code(),
             )
             label = what if len(chunks) == 1 else f"{what} (part {part + 1} of {len(chunks)})"
             response = await self._request(req, label, is_write=False, total=what)
+            if len(chunks) == 1:
+                return response.data
             parts.append(response.data)
         return b"".join(parts)
 
@@ -309,6 +374,9 @@ class S5LanClient(RequestClient[Response]):
 
     def _encode_values(self, addr: S5Address, values: Sequence[int] | Sequence[bool]) -> bytes:
         word = addr.unit is S5Unit.WORD
+        fast = pack_ints(values, "<", "H" if word else "B")  # low byte first on the wire (A.6)
+        if fast is not None:
+            return fast
         lo, hi = (-0x8000, 0xFFFF) if word else (-0x80, 0xFF)
         out = bytearray()
         for i, value in enumerate(values):

@@ -87,6 +87,7 @@ DC2 = 0x12
 TERMINATE_BYTES = frozenset({0x11, 0x12, 0x14})
 
 DLE_ACK = bytes([DLE, ACK])
+_DLE_BYTE = bytes([DLE])
 DLE_NAK = bytes([DLE, NAK])
 ACCEPT_FRAME = bytes([SYN, DLE, ETX])
 TERMINATE_FRAME = bytes([DC2, DLE, ETX])
@@ -157,6 +158,38 @@ class Unstuffer:
         if self.limit is not None and len(self._buf) > self.limit:
             raise RemoteProtocolError(f"AS511 frame longer than {self.limit} bytes")
         return False
+
+    def feed_from(self, data: bytes, start: int) -> int:
+        """:meth:`feed` every byte of ``data[start:]`` until the frame ends, a run between two
+        DLEs at a time; returns the index just after ``DLE end``, or ``-1`` when all of
+        ``data`` was consumed without it. Raises exactly where :meth:`feed` would."""
+        buf, limit, end, n = self._buf, self.limit, self.end, len(data)
+        i = start
+        while i < n:
+            if self._dle:
+                self._dle = False
+                byte = data[i]
+                i += 1
+                if byte == DLE:
+                    buf.append(DLE)
+                elif byte == end:
+                    return i
+                else:
+                    raise RemoteProtocolError(
+                        f"DLE followed by {byte:02X}h inside a frame (expected 10h or {end:02X}h)"
+                    )
+            else:
+                j = data.find(_DLE_BYTE, i)
+                if j < 0:
+                    j = n
+                buf += data[i:j]
+                if j < n:
+                    self._dle = True
+                    j += 1
+                i = j
+            if limit is not None and len(buf) > limit:
+                raise RemoteProtocolError(f"AS511 frame longer than {limit} bytes")
+        return -1
 
     def payload(self) -> bytes:
         return bytes(self._buf)
@@ -435,6 +468,8 @@ class PGConnection:
         self._enter(PGState.W_ACK1, now, sent=1)
 
     def data_to_send(self) -> bytes:
+        if not self._out:
+            return b""
         out = bytes(self._out)
         self._out.clear()
         return out
@@ -449,8 +484,37 @@ class PGConnection:
         return event
 
     def receive_data(self, data: bytes, now: float) -> None:
-        for byte in data:
-            self._receive_byte(byte, now)
+        if type(data) is not bytes:
+            data = bytes(data)
+        i, n = 0, len(data)
+        while i < n:
+            if self.state is PGState.RX_DATA and (self.deadline is None or now <= self.deadline):
+                # The data frame, up to 512 stuffed bytes: de-stuffed a run at a time instead of
+                # byte by byte (the same checks; every byte of one chunk shares ``now``).
+                i = self._receive_run(data, i, now)
+            else:
+                self._receive_byte(data[i], now)
+                i += 1
+
+    def _receive_run(self, data: bytes, start: int, now: float) -> int:
+        """RX_DATA: feed ``data[start:]`` to the de-stuffer; returns where to go on."""
+        rx = self._rx
+        assert rx is not None
+        self.deadline = now + self.char_timeout  # re-armed by every byte (B.9.1)
+        try:
+            end = rx.feed_from(data, start)
+        except RemoteProtocolError as exc:
+            self._fail(now, f"data frame: {exc.message}")
+            # The rest of the chunk arrives in IDLE, where bytes only extend the back-off
+            # (which ``_fail`` has just set from the same ``now``).
+            return len(data)
+        if end < 0:
+            return len(data)
+        self._payload = rx.payload()
+        self._rx = None
+        self._send(DLE_ACK)
+        self._enter(PGState.W_STX3, now, sent=2)
+        return end
 
     def timer(self, now: float) -> None:
         """Call when ``deadline`` has passed: aborts the transaction with a Timeout event."""

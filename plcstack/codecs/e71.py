@@ -724,6 +724,8 @@ def _check_word(value: int) -> None:
 
 
 _READ_FRAME: Final = struct.Struct("<BBHIHBB")
+#: what ``_check_word`` accepts as a type (``bool`` is an ``int``)
+_INT_OR_BOOL: Final = frozenset({int, bool})
 
 
 def encode_request(req: Request, code: Code) -> bytes:
@@ -745,6 +747,30 @@ def encode_request(req: Request, code: Code) -> bytes:
             return _READ_FRAME.pack(
                 cls.COMMAND, req.pc, req.timer, ref.number, dev.code, count & 0xFF, 0
             )
+    if code is Code.BINARY and cls is WriteWords:
+        # The write hot path: the checks of the general path below, with the per-value
+        # ``_check_word`` loop replaced by one type check and ``struct``'s own range check.
+        assert isinstance(req, WriteWords)
+        ref, values = req.ref, req.values
+        n = len(values)
+        if (
+            type(ref) is DeviceRef
+            and 1 <= n <= command_limit(0x03, ref.device)
+            and _head_ok(ref)
+            and 0 <= req.pc <= 0xFF
+            and 0 <= req.timer <= 0xFFFF
+            and 0 <= ref.number <= 0xFFFFFFFF
+            and set(map(type, values)) <= _INT_OR_BOOL
+        ):
+            try:
+                data = struct.pack(f"<{n}H", *values)
+            except struct.error:
+                pass  # a value out of range: the general path names it
+            else:
+                head = _READ_FRAME.pack(
+                    0x03, req.pc, req.timer, ref.number, ref.device.code, n & 0xFF, 0
+                )
+                return head + data
     if not isinstance(req, REQUEST_TYPES):
         cmd = getattr(req, "command", None)
         what = f"command {cmd:02X}H" if isinstance(cmd, int) else f"request {req!r}"
@@ -1172,8 +1198,11 @@ class E71ClientConnection:
     # -- decoding -----------------------------------------------------------------------------
     def _data_length(self, req: Request) -> int:
         """Binary length of the data after subheader + end code of a normal response (§11.2)."""
+        cls = type(req)
         if type(req) is ReadWords:
             return 2 * req.count
+        if cls is WriteWords or cls is WriteBits:
+            return 0
         if isinstance(req, ReadBits):
             return (req.count + 1) // 2
         if isinstance(req, ReadWords):
@@ -1185,8 +1214,11 @@ class E71ClientConnection:
         return 0
 
     def _finish(self, req: Request, body: bytes) -> Response:
+        cls = type(req)
         if type(req) is ReadWords and self._unit == 1:
             return WordsResponse(1, struct.unpack(f"<{req.count}H", body))
+        if cls is WriteWords or cls is WriteBits:
+            return Ack(req.COMMAND)  # a write's normal answer carries no data (_data_length 0)
         r = _Reader(body, self.code is Code.ASCII)
         try:
             if isinstance(req, (ReadBits, MonitorBits)):

@@ -112,6 +112,10 @@ class MkConnection:
         """The telegrams carrying ``data``, concatenated, ready for one ``transport.write``."""
         if not data:
             raise LocalProtocolError("an MK message cannot be empty (DataLen 0 is a life ack)")
+        seq = self.tx_seq
+        if len(data) <= self.max_send_data:  # one telegram (every request of a poller)
+            self.tx_seq = (seq + 1) & 0xFFFF
+            return _HEADER.pack(MAGIC, len(data), 0, seq) + data
         out = bytearray()
         step = self.max_send_data  # [R] C.4: 512-byte telegrams, bit 0 set on all but the last
         for pos in range(0, len(data), step):

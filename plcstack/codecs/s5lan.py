@@ -137,8 +137,9 @@ def swap_words(data: bytes) -> bytes:
     return bytes(out)
 
 
-def _char(value: int) -> str:
-    return chr(value)
+#: the whole 26-byte block in one ``struct`` call (Err is signed, A.2)
+_HEADER_LE: Final = struct.Struct("<BHBB3s3HhH4s4s")
+_HEADER_BE: Final = struct.Struct(">BHBB3s3HhH4s4s")
 
 
 @dataclass(frozen=True, slots=True)
@@ -182,25 +183,21 @@ class Header:
     def encode(self, byte_order: ByteOrder = HEADER_BYTE_ORDER) -> bytes:
         """The 26 bytes; raises :class:`LocalProtocolError` for values that do not fit."""
         try:
-            e = "<" if byte_order == "little" else ">"
             if len(self.user_code) != 4 or len(self.reserved) != 4:
                 raise ValueError("user_code and reserved must be 4 bytes")
-            return (
-                struct.pack(
-                    f"{e}BHBB3s3Hh H",
-                    self.plc_type,
-                    self.interface,
-                    self.plc_no,
-                    self.hd_len,
-                    (self.cmd + self.data_type + self.area).encode("latin-1"),
-                    self.db,
-                    self.start,
-                    self.count,
-                    self.err,
-                    self.version,
-                )
-                + self.user_code
-                + self.reserved
+            return (_HEADER_LE if byte_order == "little" else _HEADER_BE).pack(
+                self.plc_type,
+                self.interface,
+                self.plc_no,
+                self.hd_len,
+                (self.cmd + self.data_type + self.area).encode("latin-1"),
+                self.db,
+                self.start,
+                self.count,
+                self.err,
+                self.version,
+                self.user_code,
+                self.reserved,
             )
         except (struct.error, ValueError, UnicodeEncodeError) as exc:
             raise LocalProtocolError(f"cannot encode S5-LAN header {self}: {exc}") from None
@@ -210,26 +207,12 @@ class Header:
         """Parse exactly 26 bytes (no validation of the values; see the connections)."""
         if len(data) != HEADER_LEN:
             raise RemoteProtocolError(f"S5-LAN header needs {HEADER_LEN} bytes, got {len(data)}")
-        e = "<" if byte_order == "little" else ">"
-        plc_type, interface, plc_no, hd_len, letters, db, start, count, err, version = (
-            struct.unpack(f"{e}BHBB3s3Hh H", data[:18])
-        )
-        return cls(
-            cmd=_char(letters[0]),
-            data_type=_char(letters[1]),
-            area=_char(letters[2]),
-            db=db,
-            start=start,
-            count=count,
-            err=err,
-            version=version,
-            user_code=bytes(data[18:22]),
-            plc_type=plc_type,
-            interface=interface,
-            plc_no=plc_no,
-            hd_len=hd_len,
-            reserved=bytes(data[22:26]),
-        )
+        layout = _HEADER_LE if byte_order == "little" else _HEADER_BE
+        (plc_type, interface, plc_no, hd_len, letters, db, start, count, err, version, user_code,
+         reserved) = layout.unpack(data)  # fmt: skip
+        cmd, data_type, area = letters.decode("latin-1")
+        return cls(cmd, data_type, area, db, start, count, err, version, user_code, plc_type,
+                   interface, plc_no, hd_len, reserved)  # fmt: skip
 
     def response(self, err: int = 0, version: int = DEFAULT_VERSION) -> Header:
         """The module's answer to this request: the echo plus ``Err`` and ``VersionNo``."""
@@ -345,6 +328,8 @@ class ClientConnection:
         self.bytes_received = 0
         self._buf = ReceiveBuffer()
         self._request: Header | None = None
+        self._request_head = b""
+        self._reply_data = 0
         self._reply: Header | None = None
         self._mismatch: tuple[str, ...] = ()
 
@@ -355,7 +340,8 @@ class ClientConnection:
                 f"S5-LAN allows one request at a time; the codec is in state {self.state.value}"
             )
         h = request.header
-        if not (h.is_read or h.is_write):
+        is_read = h.cmd in READ_CMDS
+        if not (is_read or h.cmd in WRITE_CMDS):
             raise LocalProtocolError(f"Cmd {h.cmd!r} is neither read (R/r) nor write (W/w)")
         if not area_legal(h.area, h.data_type):
             raise LocalProtocolError(
@@ -369,17 +355,19 @@ class ClientConnection:
             raise LocalProtocolError(
                 f"{n} data bytes exceed the module's limit of {MAX_DATA_BYTES}; split the request"
             )
-        if h.is_write and len(request.data) != n:
+        if not is_read and len(request.data) != n:
             raise LocalProtocolError(
                 f"write of {h.count} {h.data_type} units needs {n} data bytes, "
                 f"got {len(request.data)}"
             )
-        if h.is_read and request.data:
+        if is_read and request.data:
             raise LocalProtocolError("a read request carries no data")
-        out = h.encode(self.byte_order) + request.data
+        head = h.encode(self.byte_order)
         self._request = h
+        self._request_head = head
+        self._reply_data = n if is_read else 0  # data bytes that follow a successful answer
         self.state = _ClientState.WAIT_HEADER
-        return out
+        return head + request.data
 
     def receive_data(self, data: bytes) -> None:
         self.bytes_received += len(data)
@@ -395,28 +383,39 @@ class ClientConnection:
             raise
 
     def _next_event(self) -> Response | NeedData:
-        if self.state is _ClientState.IDLE:
-            if self._buf:
+        state, buf = self.state, self._buf
+        if state is _ClientState.IDLE:
+            if buf:
                 raise RemoteProtocolError(
-                    f"{len(self._buf)} unexpected byte(s) from the module with no request pending"
+                    f"{len(buf)} unexpected byte(s) from the module with no request pending"
                 )
             return NEED_DATA
         request = self._request
         assert request is not None
-        if self.state is _ClientState.WAIT_HEADER:
-            if len(self._buf) < HEADER_LEN:
+        if state is _ClientState.WAIT_HEADER:
+            if len(buf) < HEADER_LEN:
                 return NEED_DATA
-            reply = Header.decode(self._buf.take(HEADER_LEN), self.byte_order)
-            self._check_reply(request, reply)
+            raw = buf.take(HEADER_LEN)
+            reply = Header.decode(raw, self.byte_order)
+            sent = self._request_head
+            # Echoed fields are equal exactly when their bytes are (same byte order both ways):
+            # Cmd/DataType/DataArea/DBNo/Start/Count at 5..13, UserCode at 18..21.
+            if (
+                raw[5:14] != sent[5:14]
+                or raw[18:22] != sent[18:22]
+                or reply.hd_len != HEADER_LEN
+                or reply.plc_type not in (PLC_TYPE, PLC_TYPE_NUMERIC)
+            ):
+                self._check_reply(request, reply)
             self._reply = reply
-            if reply.err != 0 or not request.is_read:
+            if reply.err != 0 or not self._reply_data:
                 return self._finish(b"")
             self.state = _ClientState.WAIT_DATA
         assert self._reply is not None
-        n = request.data_len or 0
-        if len(self._buf) < n:
+        n = self._reply_data
+        if len(buf) < n:
             return NEED_DATA
-        return self._finish(self._buf.take(n))
+        return self._finish(buf.take(n))
 
     def _finish(self, data: bytes) -> Response:
         reply = self._reply

@@ -11,8 +11,8 @@ from __future__ import annotations
 import asyncio
 import collections
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable
-from typing import TypeVar
+from collections.abc import Awaitable, Coroutine
+from typing import Any, TypeVar
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
 
@@ -74,6 +74,11 @@ class QueueProtocolMixin:
         self._chunks: collections.deque[bytes] = collections.deque()
         self._waiter: asyncio.Future[None] | None = None
         self._closed_exc: BaseException | None = None
+        #: deadline of the wait in progress (``None``: none, or a wait without deadline)
+        self._deadline: float | None = None
+        #: the one deadline timer and the loop time it is armed for
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_at = 0.0
 
     def _push(self, data: bytes) -> None:
         self._chunks.append(data)
@@ -94,23 +99,41 @@ class QueueProtocolMixin:
                 raise ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
             loop = asyncio.get_running_loop()
             self._waiter = waiter = loop.create_future()
-            timer = None if deadline is None else loop.call_at(deadline, _expire, waiter)
+            if deadline is not None:
+                self._deadline = deadline
+                # One timer serves consecutive waits: it is re-armed only for an earlier
+                # deadline (here) or, when it fires, for a later one (``_on_timer``). A fresh
+                # timer per read cost a TimerHandle, a heap push and a cancel on every request.
+                if self._timer is None or self._timer_at > deadline:
+                    self._arm(loop, deadline)
             try:
                 await waiter
             finally:
                 self._waiter = None
-                if timer is not None:
-                    timer.cancel()
+                self._deadline = None
         if join and len(self._chunks) > 1:
             data = b"".join(self._chunks)
             self._chunks.clear()
             return data
         return self._chunks.popleft()
 
+    def _arm(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+        self._timer = loop.call_at(when, self._on_timer)
+        self._timer_at = when
 
-def _expire(waiter: asyncio.Future[None]) -> None:
-    if not waiter.done():
-        waiter.set_exception(TimeoutError())
+    def _on_timer(self) -> None:
+        """The timer fired at ``_timer_at``: expire the current wait if its deadline is due,
+        re-arm for it if it is later, and lapse if nobody waits with a deadline."""
+        self._timer = None
+        deadline, waiter = self._deadline, self._waiter
+        if deadline is None or waiter is None or waiter.done():
+            return
+        if deadline <= self._timer_at:
+            waiter.set_exception(TimeoutError())
+        else:
+            self._arm(asyncio.get_running_loop(), deadline)
 
 
 class ProtocolTransport(Transport):
@@ -145,10 +168,11 @@ class ProtocolTransport(Transport):
             raise ConnectionLost(f"not connected to {self.peer}")
         self._send(data)
 
-    async def read(self, deadline: float | None = None) -> bytes:
+    def read(self, deadline: float | None = None) -> Coroutine[Any, Any, bytes]:
+        # Not ``async``: handing out the protocol's coroutine saves a coroutine frame per read.
         if self._protocol is None:
             raise ConnectionLost(f"not connected to {self.peer}")
-        return await self._protocol._next_chunk(self._join, deadline)
+        return self._protocol._next_chunk(self._join, deadline)
 
     def discard_received(self) -> None:
         if self._protocol is not None:
