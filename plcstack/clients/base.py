@@ -8,6 +8,7 @@ each protocol client only says how to build a request and what its reply means.
 from __future__ import annotations
 
 import asyncio
+import logging
 from abc import ABC, abstractmethod
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
@@ -27,6 +28,8 @@ from plcstack.transports.base import Transport
 from plcstack.url import PlcUrl
 
 __all__ = ["Client", "ClientCodec", "ClientStats", "RequestClient", "Value"]
+
+_log = logging.getLogger(__name__)
 
 #: what ``read`` returns per point: ``int`` for words/bytes, ``bool`` for bits
 Value = int | bool
@@ -234,12 +237,23 @@ class RequestClient(Client, Generic[E]):
         """
         async with self._lock:
             await self._ensure_open(what)
+            # One loop pass reads what the OS already holds for us; anything that arrived since
+            # the last answer (a duplicated answer, the rest of a too-long one, bytes from a
+            # confused peer) would otherwise be decoded as the answer to this request. Without a
+            # transaction id the only safe reaction is a fresh connection before sending.
+            await asyncio.sleep(0)
+            stale = self._unsolicited_input()
+            if stale is not None or not self.transport.is_open:
+                if stale is not None:
+                    _log.warning("%s: %s; reconnecting before %s", self.name, stale, what)
+                    self.stats.errors += 1
+                self._drop()
+                await self._ensure_open(what)
             self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
             try:
                 codec, transport = self.codec, self.transport
                 payload = codec.send(request)
-                transport.discard_received()
                 transport.write(payload)
                 expires = asyncio.get_running_loop().time() + deadline
                 while True:
@@ -266,6 +280,20 @@ class RequestClient(Client, Generic[E]):
             except PlcError as exc:
                 self.stats.errors += 1
                 raise exc.bind(plc=self.name, request=what) from None
+
+    def _unsolicited_input(self) -> str | None:
+        """Feed bytes received between requests to the idle codec: ``None`` if they were only
+        what the protocol allows there (e.g. MK life acks), else what was wrong with them."""
+        codec = self.codec
+        try:
+            for chunk in self.transport.take_received():
+                codec.receive_data(chunk)
+            event = codec.next_event()
+        except PlcError as exc:
+            return f"unsolicited data between requests ({exc.message})"
+        if event is NEED_DATA:
+            return None
+        return f"unsolicited {type(event).__name__} between requests"
 
     def count_error(self) -> None:
         """Count a PLC error response decoded by the subclass (the reply itself was fine)."""
