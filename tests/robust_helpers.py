@@ -118,7 +118,7 @@ class Script:
     #: "pass", "late", "twice", "garbage", "half_close", "mute", "close"
     mode: str = "pass"
     late: float = 0.0
-    garbage: bytes = b"\x10\x02garbage\xff\x00\x55"
+    garbage: bytes = b"\x10\x02garbage\xff\x00\x55" * 3  # longer than any header
     #: requests (client -> proxy chunks) and connections seen
     chunks: list[bytes] = field(default_factory=list)
     connections: int = 0

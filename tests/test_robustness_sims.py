@@ -30,8 +30,10 @@ from plcstack.sim.e71_fixed import FixedBufferSimulator, start_fixed_buffer
 from plcstack.url import connect, parse_url
 from tests.robust_helpers import capture_request, mutations, record_loop_errors
 
-RANDOM_CONNECTIONS = 20
-MUTATIONS = 60
+# PLCSTACK_FUZZ_SCALE=10 for a longer exploratory run (the default keeps the file fast)
+SCALE = int(os.environ.get("PLCSTACK_FUZZ_SCALE", "1"))
+RANDOM_CONNECTIONS = 20 * SCALE
+MUTATIONS = 60 * SCALE
 BATCH = 8
 
 
@@ -61,7 +63,7 @@ async def _tcp_poke(host: str, port: int, payload: bytes, how: str) -> None:
 
 
 async def _tcp_fuzz(host: str, port: int, frames: list[bytes], seed: int) -> None:
-    rng = random.Random(seed)
+    rng = random.Random(f"{seed}-{SCALE}")
     payloads: list[bytes] = [
         rng.randbytes(rng.randrange(1, 300)) for _ in range(RANDOM_CONNECTIONS)
     ]
@@ -74,7 +76,7 @@ async def _tcp_fuzz(host: str, port: int, frames: list[bytes], seed: int) -> Non
 
 
 async def _udp_fuzz(host: str, port: int, frames: list[bytes], seed: int) -> None:
-    rng = random.Random(seed)
+    rng = random.Random(f"{seed}-{SCALE}")
     payloads = [rng.randbytes(rng.randrange(1, 300)) for _ in range(RANDOM_CONNECTIONS)]
     for frame in frames:
         payloads += mutations(frame, rng, MUTATIONS // max(len(frames), 1))
@@ -218,7 +220,7 @@ async def test_as511_pty_simulator_survives_garbage() -> None:
         sim = await as511_sim.start_pty(char_timeout=0.05)
         try:
             frames = await _roundtrip(sim.url, "MB10", 1)
-            rng = random.Random(31)
+            rng = random.Random(31 * SCALE)
             payloads = [rng.randbytes(rng.randrange(1, 200)) for _ in range(10)]
             for frame in frames:
                 payloads += mutations(frame, rng, 15)
