@@ -143,9 +143,14 @@ class E71FixedBufferClient(Client):
 
     def _broken(self, exc: BaseException) -> None:
         error = exc if isinstance(exc, PlcError) else RemoteProtocolError(str(exc))
-        error.bind(plc=self.name, request="receive")
         if self._ack is not None and not self._ack.done():
-            self._ack.set_exception(error)
+            # A send is waiting: it gets its own (unbound) error so that its message names the
+            # send, not "receive", and says that the outcome is unknown.
+            kind = ConnectionLost if isinstance(error, ConnectionLost) else RemoteProtocolError
+            self._ack.set_exception(
+                kind(f"{error.message}; the PLC may or may not have taken the data")
+            )
+        error.bind(plc=self.name, request="receive")
         self._inbox.put_nowait(error)
         self.transport.abort()
 
