@@ -10,6 +10,7 @@ Every loop is bounded in count and every wait in time.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import random
 import socket
@@ -50,16 +51,17 @@ async def _tcp_poke(host: str, port: int, payload: bytes, how: str) -> None:
             sock = writer.get_extra_info("socket")
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
             writer.transport.abort()
-            return
-        if how == "glance":
-            try:
-                async with asyncio.timeout(0.02):
-                    await reader.read(4096)
-            except (TimeoutError, OSError):
-                pass
-        writer.close()
+        else:
+            if how == "glance":
+                with contextlib.suppress(TimeoutError, OSError):
+                    async with asyncio.timeout(0.02):
+                        await reader.read(4096)
+            writer.close()
     except OSError:
         writer.transport.abort()
+    # retrieve the close outcome (a reset) so only the simulator's own leftovers get reported
+    with contextlib.suppress(OSError):
+        await writer.wait_closed()
 
 
 async def _tcp_fuzz(host: str, port: int, frames: list[bytes], seed: int) -> None:
