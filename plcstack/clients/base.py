@@ -259,6 +259,7 @@ class RequestClient(Client, Generic[E]):
                 while True:
                     event = codec.next_event()
                     if event is not NEED_DATA:
+                        self._check_nothing_follows(codec)
                         return event  # type: ignore[no-any-return]
                     codec.receive_data(await transport.read(expires))
             except TimeoutError:
@@ -274,12 +275,30 @@ class RequestClient(Client, Generic[E]):
             except (ConnectionLost, RemoteProtocolError) as exc:
                 self.stats.errors += 1
                 self._drop()
-                if is_write and isinstance(exc, ConnectionLost):
+                if is_write:
                     exc.message += "; the write may or may not have been executed"
                 raise exc.bind(plc=self.name, request=what) from None
             except PlcError as exc:
                 self.stats.errors += 1
                 raise exc.bind(plc=self.name, request=what) from None
+
+    @staticmethod
+    def _check_nothing_follows(codec: ClientCodec) -> None:
+        """An answer that arrived together with more bytes (a second answer, or one longer than
+        the request allows) cannot be trusted: without a transaction id there is no telling
+        which part belongs to this request. Raises :class:`RemoteProtocolError`."""
+        try:
+            extra = codec.next_event()
+        except RemoteProtocolError as exc:
+            raise RemoteProtocolError(
+                f"the answer came with more bytes than the request asks for ({exc.message}); "
+                "not trusted, connection closed"
+            ) from None
+        if extra is not NEED_DATA:
+            raise RemoteProtocolError(
+                f"the answer was followed by a second one ({type(extra).__name__}); "
+                "not trusted, connection closed"
+            )
 
     def _unsolicited_input(self) -> str | None:
         """Feed bytes received between requests to the idle codec: ``None`` if they were only
