@@ -115,8 +115,10 @@ def fd_count() -> int:
 class Script:
     """What the proxy does with the next upstream answer (mode) and what it saw."""
 
-    #: "pass", "late", "twice", "garbage", "half_close", "mute", "close"
+    #: "pass", "late", "twice", "garbage", "half_close", "mute", "close", "mutate"
     mode: str = "pass"
+    #: for "mutate": what the peer sends instead of the real answer
+    mutate: Callable[[bytes], bytes] = bytes
     late: float = 0.0
     garbage: bytes = b"\x10\x02garbage\xff\x00\x55" * 3  # longer than any header
     #: requests (client -> proxy chunks) and connections seen
@@ -211,4 +213,6 @@ class MisbehavingProxy:
             writer.transport.abort()
         elif s.mode == "close":
             writer.transport.abort()
+        elif s.mode == "mutate":
+            writer.write(s.mutate(data))
         # "mute": drop it

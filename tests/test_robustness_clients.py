@@ -153,6 +153,27 @@ async def test_duplicated_answer_is_never_taken_for_the_next_one(name: str) -> N
     assert errors.describe() == []
 
 
+@pytest.mark.parametrize("name", sorted(STARTERS))
+async def test_answer_with_trailing_bytes_is_not_trusted(name: str) -> None:
+    """An answer that comes with more bytes than the request allows is misframed: which part
+    (if any) answers this request is unknowable, so no value is returned from it."""
+    async with record_loop_errors() as errors:
+        async for target, proxy in _target(name):
+            async with connect(target.url, timeout=TIMEOUT, **CLIENT_OPTIONS.get(name, {})) as plc:
+                assert await plc.read(target.address, 1) is not None  # warm up
+                proxy.script.mode = "mutate"
+                proxy.script.mutate = lambda data: data + b"\x55" * 16
+                with pytest.raises(PlcError) as info:
+                    async with asyncio.timeout(10):
+                        await plc.read(target.address, 1)
+                if not name.startswith("as511"):  # AS511: each handshake step is mutated
+                    assert isinstance(info.value, RemoteProtocolError), repr(info.value)
+                _names_plc_and_request(info.value, target, "read")
+                assert not plc.transport.is_open
+                await _fresh_read_is_its_own(plc, target, proxy)
+    assert errors.describe() == []
+
+
 WRITE_FAULTS: dict[str, type[PlcError]] = {
     "mute": PlcTimeout,
     "close": ConnectionLost,
