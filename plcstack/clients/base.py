@@ -262,6 +262,12 @@ class RequestClient(Client, Generic[E]):
                         self._check_nothing_follows(codec)
                         return event  # type: ignore[no-any-return]
                     codec.receive_data(await transport.read(expires))
+            except asyncio.CancelledError:
+                # The caller gave up (wait_for, a cancelled task) with the answer maybe still on
+                # its way: it must die with the connection, or the codec (still expecting it)
+                # would refuse or mis-assign the next request.
+                self._drop()
+                raise
             except TimeoutError:
                 self.stats.timeouts += 1
                 self.stats.errors += 1
