@@ -244,6 +244,14 @@ class AS511Client(Client):
             self.stats.requests += 1
             try:
                 event = await self._run(job)
+            except asyncio.CancelledError:
+                # The caller gave up mid-transaction: the PG must start over (B5.5 silence on a
+                # line, a new connection on TCP), or every later request finds the transaction
+                # "already in progress".
+                self.pg.reset(asyncio.get_running_loop().time())
+                if self._drop_on_error:
+                    self._drop()
+                raise
             except PlcTimeout as exc:
                 self.stats.timeouts += 1
                 self.stats.errors += 1
