@@ -175,6 +175,30 @@ async def test_answer_with_trailing_bytes_is_not_trusted(name: str) -> None:
     assert errors.describe() == []
 
 
+@pytest.mark.parametrize("name", sorted(STARTERS))
+async def test_cancelled_request_never_answers_the_next_one(name: str) -> None:
+    """A caller that gives up (``asyncio.wait_for``, a cancelled poll task) while the answer is
+    on its way: the late answer must die with the connection, and the client must go on."""
+    async with record_loop_errors() as errors:
+        async for target, proxy in _target(name):
+            async with connect(target.url, timeout=2, **CLIENT_OPTIONS.get(name, {})) as plc:
+                target.set_value(0x1111)
+                assert await plc.read(target.address, 1) == [0x1111]
+                for op in ("read", "write"):
+                    proxy.script.mode, proxy.script.late = "late", 0.15
+                    call = (
+                        plc.read(target.address, 1)
+                        if op == "read"
+                        else plc.write(target.address, [0x1111])
+                    )
+                    with pytest.raises(TimeoutError):
+                        await asyncio.wait_for(call, 0.05)
+                    await _fresh_read_is_its_own(plc, target, proxy)  # at once
+                    await asyncio.sleep(0.2)  # the late answer has arrived by now
+                    await _fresh_read_is_its_own(plc, target, proxy)
+    assert errors.describe() == []
+
+
 WRITE_FAULTS: dict[str, type[PlcError]] = {
     "mute": PlcTimeout,
     "close": ConnectionLost,
