@@ -103,12 +103,11 @@ async def _bad_address_over_tcp(name: str) -> None:
     proxy = await MisbehavingProxy(sim.host, sim.port).start()
     url = sim.url.replace(f":{sim.port}", f":{proxy.port}", 1)
     try:
-        (code, err, out), (wcode, werr, _) = await asyncio.gather(
-            _cli("read", url, bad), _cli("write", url, bad, "1")
-        )
+        # read for every protocol, write for one (the subprocesses dominate the cost)
+        verb, extra = ("write", ["1"]) if name == "s5lan" else ("read", [])
+        code, err, out = await _cli(verb, url, bad, *extra)
         assert (code, out) == (2, ""), (name, err)
-        assert len(err) == 1 and url in err[0] and f"read {bad}" in err[0], err
-        assert wcode == 2 and len(werr) == 1 and url in werr[0] and f"write {bad}" in werr[0], werr
+        assert len(err) == 1 and url in err[0] and f"{verb} {bad}" in err[0], err
         assert proxy.script.chunks == []  # the PLC saw no byte
     finally:
         await proxy.aclose()
@@ -135,12 +134,8 @@ async def test_bad_address_over_udp_sends_no_datagram() -> None:
     port = transport.get_extra_info("sockname")[1]
     url = f"e71+udp://127.0.0.1:{port}?code=ascii"
     try:
-        (code, err, _), (ccode, cerr, _) = await asyncio.gather(
-            _cli("read", url, "D-1"),
-            _cli("read", url, "D100", "0"),  # a bad count is a bad address too
-        )
-        assert code == 2 and len(err) == 1 and url in err[0] and "read D-1" in err[0], err
-        assert ccode == 2 and len(cerr) == 1, cerr
+        code, err, _ = await _cli("read", url, "D100", "0")  # a bad count is bad input too
+        assert code == 2 and len(err) == 1 and url in err[0] and "read D100" in err[0], err
         assert counter.datagrams == 0
     finally:
         transport.close()

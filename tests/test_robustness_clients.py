@@ -185,7 +185,7 @@ async def test_cancelled_request_never_answers_the_next_one(name: str) -> None:
                 target.set_value(0x1111)
                 assert await plc.read(target.address, 1) == [0x1111]
                 for op in ("read", "write"):
-                    proxy.script.mode, proxy.script.late = "late", 0.15
+                    proxy.script.mode, proxy.script.late = "late", 0.08
                     call = (
                         plc.read(target.address, 1)
                         if op == "read"
@@ -194,7 +194,7 @@ async def test_cancelled_request_never_answers_the_next_one(name: str) -> None:
                     with pytest.raises(TimeoutError):
                         await asyncio.wait_for(call, 0.05)
                     await _fresh_read_is_its_own(plc, target, proxy)  # at once
-                    await asyncio.sleep(0.2)  # the late answer has arrived by now
+                    await asyncio.sleep(0.1)  # the late answer has arrived by now
                     await _fresh_read_is_its_own(plc, target, proxy)
     assert errors.describe() == []
 
