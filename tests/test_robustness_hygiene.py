@@ -25,7 +25,10 @@ CASES: dict[str, tuple[Callable[[], Awaitable[Any]], str]] = {
     "e71-udp": (lambda: e71_sim.start(transport="udp", code="ascii"), "D100"),
     "s5lan": (lambda: s5lan_sim.start(), "MW100"),
     "fetchwrite-raw": (lambda: fw_sim.start(), "MW100"),
-    "fetchwrite-mk-write-port": (lambda: fw_sim.start(mk=True, write_port=0), "MW100"),
+    "fetchwrite-mk-write-port-life-ack": (
+        lambda: fw_sim.start(mk=True, write_port=0, life_ack=0.5),
+        "MW100",
+    ),
     "as511-tcp": (lambda: as511_sim.start(), "MB10"),
     "as511-pty": (lambda: as511_sim.start_pty(), "MB10"),
 }
