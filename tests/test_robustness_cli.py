@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import socket
 import sys
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -114,9 +115,21 @@ async def _bad_address_over_tcp(name: str) -> None:
         await sim.aclose()
 
 
+async def _bad_address_with_plc_unreachable() -> None:
+    """The address is checked before connecting: a typo is exit 2 even with the PLC offline."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]  # closed again: nobody listens there
+    url = f"e71+tcp://127.0.0.1:{port}"
+    code, err, _ = await _cli("read", url, "Q5")
+    assert code == 2 and len(err) == 1 and url in err[0] and "read Q5" in err[0], err
+
+
 async def test_bad_address_is_exit_2_and_nothing_is_sent() -> None:
     """All protocols at once (the subprocesses dominate the cost and run in parallel)."""
-    await asyncio.gather(*(_bad_address_over_tcp(name) for name in TCP_BAD))
+    await asyncio.gather(
+        *(_bad_address_over_tcp(name) for name in TCP_BAD), _bad_address_with_plc_unreachable()
+    )
 
 
 class _CountingUdp(asyncio.DatagramProtocol):
