@@ -17,7 +17,7 @@ Modules:
 * :mod:`benchmarks.suite`   -- which cases run in ``--quick``/full/``--smoke`` and on which loops
 * :mod:`benchmarks.report`  -- the stdout table, the JSON file and the PNG chart
 * :mod:`benchmarks.png`     -- a dependency-free PNG line chart (zlib + struct)
-* :mod:`benchmarks.profile` -- cProfile of the client side (``python -m benchmarks.profile``)
+* :mod:`benchmarks.profiling` -- cProfile of the client side (``python -m benchmarks.profiling``)
 
 Usage, decisions and the JSON schema: ``benchmarks/README.md``; numbers: ``RESULTS.md``.
 

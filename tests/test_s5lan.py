@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
+import re
 import struct
 import sys
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -512,9 +512,8 @@ async def test_cli_read_json_and_write(sim: s5lan.S5LanSimulator) -> None:
 
 
 async def test_cli_sim_serves_until_stopped() -> None:
-    with socket.socket() as s:  # a free port for --port (the CLI prints the one it bound)
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    # --port 0: the CLI prints the port it bound (a port picked here first could be taken by
+    # another test's process before the simulator binds it).
     proc = await asyncio.create_subprocess_exec(
         sys.executable,
         "-m",
@@ -522,14 +521,17 @@ async def test_cli_sim_serves_until_stopped() -> None:
         "sim",
         "s5lan",
         "--port",
-        str(port),
+        "0",
         cwd=ROOT,
         stdout=asyncio.subprocess.PIPE,
     )
     try:
         assert proc.stdout is not None
         line = (await asyncio.wait_for(proc.stdout.readline(), 30)).decode().strip()
-        assert line == f"listening on 127.0.0.1:{port}"
+        match = re.fullmatch(r"listening on 127\.0\.0\.1:(\d+)", line)
+        assert match is not None, line
+        port = int(match.group(1))
+        assert port != 0
         async with plcstack.connect(f"s5lan://127.0.0.1:{port}") as plc:
             await plc.write("DB10.DW5", [7, 8])
             assert await plc.read("DB10.DW5", 2) == [7, 8]

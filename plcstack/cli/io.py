@@ -47,8 +47,13 @@ def _options(args: argparse.Namespace) -> dict[str, Any]:
 
 
 async def run_read(args: argparse.Namespace) -> int:
-    async with connect(args.url, **_options(args)) as plc:
+    # No eager open (``async with`` would connect first): the client checks the address before
+    # it connects, so a typo is exit 2 even when the PLC is unreachable, and nothing is sent.
+    plc = connect(args.url, **_options(args))
+    try:
         values = await plc.read(args.address, args.count)
+    finally:
+        await plc.aclose()
     if args.json:
         print(json.dumps({"address": args.address, "values": list(values)}))
     else:
@@ -58,7 +63,10 @@ async def run_read(args: argparse.Namespace) -> int:
 
 async def run_write(args: argparse.Namespace) -> int:
     values = [parse_value(v) for v in args.values]
-    async with connect(args.url, **_options(args)) as plc:
+    plc = connect(args.url, **_options(args))
+    try:
         await plc.write(args.address, values)
+    finally:
+        await plc.aclose()
     print(f"{args.address}: wrote {len(values)} value(s)")
     return 0

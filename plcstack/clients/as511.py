@@ -146,6 +146,17 @@ def _block_type(block_type: int | str) -> tuple[int, str]:
     raise AddressError(f"unknown block type code {block_type:#04x}")
 
 
+def _as_user_request(exc: PlcError, what: str) -> PlcError:
+    """Name the request as the caller wrote it (``read MW100 x1``), keeping the AS511 step that
+    failed in brackets: logs are searched for the address the user configured, which the
+    transaction-level wording (``read M bytes 100..101``) did not contain."""
+    if exc.request is None or exc.request.startswith(what):
+        exc.request = what
+    else:
+        exc.request = f"{what} ({exc.request})"
+    return exc
+
+
 class AS511Client(Client):
     """Read and write an S5 CPU through its programming port (spec part B)."""
 
@@ -234,6 +245,14 @@ class AS511Client(Client):
             self.stats.requests += 1
             try:
                 event = await self._run(job)
+            except asyncio.CancelledError:
+                # The caller gave up mid-transaction: the PG must start over (B5.5 silence on a
+                # line, a new connection on TCP), or every later request finds the transaction
+                # "already in progress".
+                self.pg.reset(asyncio.get_running_loop().time())
+                if self._drop_on_error:
+                    self._drop()
+                raise
             except PlcTimeout as exc:
                 self.stats.timeouts += 1
                 self.stats.errors += 1
@@ -582,6 +601,12 @@ class AS511Client(Client):
 
     async def read(self, address: str, count: int = 1) -> list[int]:
         """Read in S5 notation: words (DBn.DWk, MW, IW, QW, T, C) or bytes (MB, IB, DL/DR)."""
+        try:
+            return await self._read(address, count)
+        except PlcError as exc:
+            raise _as_user_request(exc, f"read {address} x{count}") from None
+
+    async def _read(self, address: str, count: int) -> list[int]:
         addr = self._parse(address, count)
         nbytes = addr.byte_length(count)
         if addr.area.is_block:
@@ -596,6 +621,12 @@ class AS511Client(Client):
 
     async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
         """Write in S5 notation; returns once the PLC acknowledged every byte."""
+        try:
+            await self._write(address, values)
+        except PlcError as exc:
+            raise _as_user_request(exc, f"write {address} x{len(values)}") from None
+
+    async def _write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
         addr = self._parse(address, max(1, len(values)))
         if not values:
             raise AddressError("no values to write", plc=self.name, request=f"write {address}")

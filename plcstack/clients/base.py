@@ -8,6 +8,7 @@ each protocol client only says how to build a request and what its reply means.
 from __future__ import annotations
 
 import asyncio
+import logging
 from abc import ABC, abstractmethod
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
@@ -27,6 +28,8 @@ from plcstack.transports.base import Transport
 from plcstack.url import PlcUrl
 
 __all__ = ["Client", "ClientCodec", "ClientStats", "RequestClient", "Value"]
+
+_log = logging.getLogger(__name__)
 
 #: what ``read`` returns per point: ``int`` for words/bytes, ``bool`` for bits
 Value = int | bool
@@ -235,19 +238,37 @@ class RequestClient(Client, Generic[E]):
         async with self._lock:
             if not self.transport.is_open:
                 await self._ensure_open(what)
+            # One loop pass reads what the OS already holds for us; anything that arrived since
+            # the last answer (a duplicated answer, the rest of a too-long one, bytes from a
+            # confused peer) would otherwise be decoded as the answer to this request. Without a
+            # transaction id the only safe reaction is a fresh connection before sending.
+            await asyncio.sleep(0)
+            stale = self._unsolicited_input()
+            if stale is not None or not self.transport.is_open:
+                if stale is not None:
+                    _log.warning("%s: %s; reconnecting before %s", self.name, stale, what)
+                    self.stats.errors += 1
+                self._drop()
+                await self._ensure_open(what)
             self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
             try:
                 codec, transport = self.codec, self.transport
                 payload = codec.send(request)
-                transport.discard_received()
                 transport.write(payload)
                 expires = asyncio.get_running_loop().time() + deadline
                 while True:
                     event = codec.next_event()
                     if event is not NEED_DATA:
+                        self._check_nothing_follows(codec)
                         return event  # type: ignore[no-any-return]
                     codec.receive_data(await transport.read(expires))
+            except asyncio.CancelledError:
+                # The caller gave up (wait_for, a cancelled task) with the answer maybe still on
+                # its way: it must die with the connection, or the codec (still expecting it)
+                # would refuse or mis-assign the next request.
+                self._drop()
+                raise
             except TimeoutError:
                 self.stats.timeouts += 1
                 self.stats.errors += 1
@@ -261,12 +282,44 @@ class RequestClient(Client, Generic[E]):
             except (ConnectionLost, RemoteProtocolError) as exc:
                 self.stats.errors += 1
                 self._drop()
-                if is_write and isinstance(exc, ConnectionLost):
+                if is_write:
                     exc.message += "; the write may or may not have been executed"
                 raise exc.bind(plc=self.name, request=what) from None
             except PlcError as exc:
                 self.stats.errors += 1
                 raise exc.bind(plc=self.name, request=what) from None
+
+    @staticmethod
+    def _check_nothing_follows(codec: ClientCodec) -> None:
+        """An answer that arrived together with more bytes (a second answer, or one longer than
+        the request allows) cannot be trusted: without a transaction id there is no telling
+        which part belongs to this request. Raises :class:`RemoteProtocolError`."""
+        try:
+            extra = codec.next_event()
+        except RemoteProtocolError as exc:
+            raise RemoteProtocolError(
+                f"the answer came with more bytes than the request asks for ({exc.message}); "
+                "not trusted, connection closed"
+            ) from None
+        if extra is not NEED_DATA:
+            raise RemoteProtocolError(
+                f"the answer was followed by a second one ({type(extra).__name__}); "
+                "not trusted, connection closed"
+            )
+
+    def _unsolicited_input(self) -> str | None:
+        """Feed bytes received between requests to the idle codec: ``None`` if they were only
+        what the protocol allows there (e.g. MK life acks), else what was wrong with them."""
+        codec = self.codec
+        try:
+            for chunk in self.transport.take_received():
+                codec.receive_data(chunk)
+            event = codec.next_event()
+        except PlcError as exc:
+            return f"unsolicited data between requests ({exc.message})"
+        if event is NEED_DATA:
+            return None
+        return f"unsolicited {type(event).__name__} between requests"
 
     def count_error(self) -> None:
         """Count a PLC error response decoded by the subclass (the reply itself was fine)."""

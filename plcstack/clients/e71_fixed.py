@@ -128,7 +128,8 @@ class E71FixedBufferClient(Client):
                 while (event := codec.next_event()) is not NEED_DATA:
                     self._dispatch(event)
         except (PlcError, ValueError) as exc:
-            self._broken(exc)
+            if codec is self.codec:  # a reader of an already replaced connection stays quiet
+                self._broken(exc)
 
     def _dispatch(self, event: FixedBufferData | FixedBufferAck | FixedBufferError | bytes) -> None:
         if isinstance(event, FixedBufferAck):
@@ -143,9 +144,14 @@ class E71FixedBufferClient(Client):
 
     def _broken(self, exc: BaseException) -> None:
         error = exc if isinstance(exc, PlcError) else RemoteProtocolError(str(exc))
-        error.bind(plc=self.name, request="receive")
         if self._ack is not None and not self._ack.done():
-            self._ack.set_exception(error)
+            # A send is waiting: it gets its own (unbound) error so that its message names the
+            # send, not "receive", and says that the outcome is unknown.
+            kind = ConnectionLost if isinstance(error, ConnectionLost) else RemoteProtocolError
+            self._ack.set_exception(
+                kind(f"{error.message}; the PLC may or may not have taken the data")
+            )
+        error.bind(plc=self.name, request="receive")
         self._inbox.put_nowait(error)
         self.transport.abort()
 
@@ -174,6 +180,12 @@ class E71FixedBufferClient(Client):
                 self.transport.write(data)
                 async with asyncio.timeout(self.timeout):
                     end = await self._ack
+            except asyncio.CancelledError:
+                # The caller gave up: the answer may still come and must not confirm the next
+                # telegram, and the codec must not keep waiting for it (every later send was
+                # refused as "not answered yet"). A new connection settles both.
+                self.transport.abort()
+                raise
             except TimeoutError:
                 self.stats.timeouts += 1
                 self.stats.errors += 1

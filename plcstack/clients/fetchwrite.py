@@ -97,6 +97,12 @@ class _MkTcpTransport(TcpTransport):
     def discard_received(self) -> None:
         pass
 
+    def take_received(self) -> list[bytes]:
+        chunks = super().take_received()
+        if chunks and self.timer is not None:  # life acks taken between jobs are traffic too
+            self.timer.received(asyncio.get_running_loop().time())
+        return chunks
+
 
 class FetchWriteClient(RequestClient[Response]):
     """Read and write S5 memory through a CP's FETCH/WRITE service (raw TCP or MK header)."""

@@ -285,7 +285,8 @@ class S5LanClient(RequestClient[Response]):
                     f"{count} points from {addr} go beyond the 16-bit Start field of S5-LAN"
                 )
         except AddressError as exc:
-            raise exc.bind(plc=self.name, request=f"{address} x{count}") from None
+            verb = "write" if write else "read"
+            raise exc.bind(plc=self.name, request=f"{verb} {address} x{count}") from None
         return addr
 
     @staticmethod

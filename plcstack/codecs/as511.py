@@ -792,6 +792,12 @@ class AGConnection:
         self._dle = False
         self.deadline = now + self.char_timeout + sent * self.tx_byte_time
 
+    def _withdraw_request(self) -> None:
+        for i in range(len(self._events) - 1, -1, -1):
+            if isinstance(self._events[i], Request):
+                del self._events[i]
+                return
+
     def _idle(self, reason: str) -> None:
         # [R] B5.6: on a gap or a wrong byte the AG silently returns to idle (no NAK)
         self.state = AGState.IDLE
@@ -816,7 +822,11 @@ class AGConnection:
                 self._stx(now)
             return  # anything else between transactions is ignored
         if state is AGState.EXECUTE:
-            # The PG must wait for our answer; bytes now are a protocol breach (B5.6).
+            # The PG must wait for our answer; bytes now are a protocol breach (B5.6). A Request
+            # the application has not taken yet is withdrawn with it: answering it later would
+            # hit a state that belongs to another request (or none) - found by the robustness
+            # fuzz, where the sim then raised LocalProtocolError out of respond().
+            self._withdraw_request()
             self._idle(f"unexpected byte {byte:02X}h while executing a request")
             return
         if self.deadline is not None and now > self.deadline:

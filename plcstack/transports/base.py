@@ -60,6 +60,12 @@ class Transport(ABC):
     def discard_received(self) -> None:
         """Drop what has been received and not yet read (used before a fresh request on UDP)."""
 
+    def take_received(self) -> list[bytes]:
+        """Chunks (datagrams) received and not yet read, without waiting; empties the queue.
+
+        The request clients check between requests that nothing unsolicited arrived."""
+        return []
+
 
 class QueueProtocolMixin:
     """asyncio protocol half shared by TCP, UDP and serial: a chunk queue and one waiting reader.
@@ -177,6 +183,13 @@ class ProtocolTransport(Transport):
     def discard_received(self) -> None:
         if self._protocol is not None:
             self._protocol._chunks.clear()
+
+    def take_received(self) -> list[bytes]:
+        if self._protocol is None or not self._protocol._chunks:
+            return []
+        chunks = list(self._protocol._chunks)
+        self._protocol._chunks.clear()
+        return chunks
 
     def abort(self) -> None:
         transport = self._transport

@@ -46,8 +46,6 @@ PARITIES = {
 
 #: Linux major device numbers of Unix98 pty slaves (/dev/pts/N): 136..143
 _PTY_MAJORS = range(136, 144)
-#: ptys we already warned about (the fallback repeats on every re-open; say it once)
-_WARNED: set[str] = set()
 
 
 def is_pty(path: str) -> bool:
@@ -134,11 +132,12 @@ class SerialTransport(ProtocolTransport):
         except _OPEN_ERRORS as exc:  # SerialException is an OSError
             if self.parity == "N" or not is_pty(self.path):
                 raise ConnectFailed(f"cannot open serial port {self.path}: {exc}") from None
-            # Documented fallback (module docstring): ptys reject PARENB here.
-            level = logging.INFO if self.path in _WARNED else logging.WARNING
-            _WARNED.add(self.path)
+            # Documented fallback (module docstring): ptys reject PARENB here. INFO, not
+            # WARNING: it is expected on every pty (only simulators use them), and a warning
+            # reached stderr through logging's last-resort handler, so a one-shot CLI error
+            # was no longer one line (tests/test_robustness_cli.py, as511-pty).
             log.log(
-                level,
+                logging.INFO,
                 "%s is a pseudo-terminal that rejects parity %s (%s); opened without parity",
                 self.path,
                 self.parity,

@@ -1,9 +1,9 @@
 """Where a request's time goes: cProfile of the one-connection stack path, client side only.
 
-    python -m benchmarks.profile e71+tcp [--seconds 3] [--kind read|write] [--top 25]
-    python -m benchmarks.profile e71+tcp --poll 100     # the poller over 100 PLCs instead
+    python -m benchmarks.profiling e71+tcp [--seconds 3] [--kind read|write] [--top 25]
+    python -m benchmarks.profiling e71+tcp --poll 100     # the poller over 100 PLCs instead
 
-The simulator runs in a **child process** (``python -m benchmarks.profile --serve KEY``, which
+The simulator runs in a **child process** (``python -m benchmarks.profiling --serve KEY``, which
 prints the URL once it accepts clients), so the profile shows only what the client side costs:
 plcstack's client, codec and transport plus the event loop. The output is the usual ``pstats``
 table sorted by own time, then a summary per layer (own time of functions grouped by file), in
@@ -145,7 +145,7 @@ def report(profiler: Any, requests: int, top: int) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.profile")
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.profiling")
     parser.add_argument("protocol", help="e.g. e71+tcp, fetchwrite, s5lan, as511+tcp")
     parser.add_argument("--kind", choices=("read", "write"), default="read")
     parser.add_argument("--seconds", type=float, default=3.0)
@@ -159,7 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     path = [str(REPO_ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(path))
     server = subprocess.Popen(
-        [sys.executable, "-m", "benchmarks.profile", args.protocol, "--serve", str(args.poll or 1)],
+        [sys.executable, "-m", "benchmarks.profiling", args.protocol,
+         "--serve", str(args.poll or 1)],
         stdout=subprocess.PIPE, text=True, env=env, cwd=str(REPO_ROOT),
     )  # fmt: skip
     try:
