@@ -113,7 +113,10 @@ def parse_url(url: str) -> PlcUrl:
         raise AddressError(
             f"not a PLC URL (expected SCHEME://..., schemes: {', '.join(SCHEMES)})", plc=str(url)
         )
-    parts = urlsplit(url)
+    try:
+        parts = urlsplit(url)
+    except ValueError as exc:  # e.g. "Invalid IPv6 URL" for an unbalanced '[' in the host
+        raise AddressError(f"malformed URL: {exc}", plc=url) from None
     scheme = parts.scheme.lower()
     if scheme not in SCHEMES:
         raise AddressError(

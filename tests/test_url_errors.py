@@ -47,6 +47,7 @@ def test_every_scheme_parses(
         ("as511://host/dev/ttyS0", "three slashes"),
         ("as511://", "missing device path"),
         ("e71+tcp://h:1?code=ascii&code=binary", "given twice"),
+        ("e71+tcp://[::1:5000", "malformed URL"),  # urlsplit's ValueError, not a crash
     ],
 )
 def test_bad_urls_are_named(text: str, fragment: str) -> None:

@@ -12,8 +12,9 @@ A client without the merge hooks (they raise ``NotImplementedError``) is read ta
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Iterable, Sequence
-from dataclasses import dataclass
+import struct
+from collections.abc import Callable, Hashable, Iterable, Sequence
+from dataclasses import dataclass, field
 
 from plcstack.clients.base import Client
 from plcstack.errors import AddressError, PlcError, RemoteProtocolError
@@ -59,10 +60,19 @@ class TagPlan:
     tag: TagConfig
     pieces: tuple[Piece, ...]
     point_bits: int
+    #: the requests this tag needs, ascending (precomputed: the poller reads it every scan)
+    request_ids: tuple[int, ...] = field(init=False, repr=False, compare=False)
+    #: ``decode(points, order)`` for exactly this tag's points (shared by equal tags)
+    decode: Decoder = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        # frozen: the precomputed fields are set once here, like a constructor would
+        object.__setattr__(self, "request_ids", tuple(sorted({p.request for p in self.pieces})))
+        object.__setattr__(self, "decode", decoder(self.tag.type, self.tag.count, self.point_bits))
 
     @property
     def requests(self) -> set[int]:
-        return {p.request for p in self.pieces}
+        return set(self.request_ids)
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,7 +90,7 @@ class ScanPlan:
     tags: tuple[TagPlan, ...]
 
     def tags_of(self, request: int) -> list[TagConfig]:
-        return [t.tag for t in self.tags if request in t.requests]
+        return [t.tag for t in self.tags if request in t.request_ids]
 
     def split(
         self, replies: Sequence[Sequence[int | bool] | PlcError], order: WordOrder
@@ -90,60 +100,180 @@ class ScanPlan:
             raise ValueError("one reply per request expected")
         out: list[TagResult] = []
         for plan in self.tags:
-            error: PlcError | None = None
-            points: list[int | bool] = []
-            for piece in plan.pieces:
+            result = self.extract(plan, replies, order)
+            if isinstance(result, PlcError):
+                out.append(TagResult(plan.tag, None, result))
+            else:
+                out.append(TagResult(plan.tag, result, None))
+        return out
+
+    def extract(
+        self,
+        plan: TagPlan,
+        replies: Sequence[Sequence[int | bool] | PlcError],
+        order: WordOrder,
+    ) -> TagValue | PlcError:
+        """One tag's value from one reply (or error) per request, or the error (not raised).
+
+        The poller calls this for every tag of every scan, so the common case (one piece, the
+        whole reply) takes no copy and the value comes from a decoder chosen when the plan was
+        built.
+        """
+        pieces = plan.pieces
+        points: Sequence[int | bool]
+        if len(pieces) == 1:
+            piece = pieces[0]
+            reply = replies[piece.request]
+            if isinstance(reply, PlcError):
+                return reply
+            request = self.requests[piece.request]
+            if len(reply) != request.count:
+                return _short(reply, request)
+            offset, length = piece.offset, piece.length
+            points = (
+                reply if offset == 0 and length == len(reply) else reply[offset : offset + length]
+            )
+            bits_seen = bool(points) and isinstance(points[0], bool)
+        else:
+            collected: list[int | bool] = []
+            bits_seen = False
+            for piece in pieces:
                 reply = replies[piece.request]
                 if isinstance(reply, PlcError):
-                    error = reply
-                    break
-                expected = self.requests[piece.request].count
-                if len(reply) != expected:
-                    error = RemoteProtocolError(
-                        f"reply has {len(reply)} points, {expected} were requested",
-                        request=_describe(self.requests[piece.request]),
-                    )
-                    break
-                points.extend(reply[piece.offset : piece.offset + piece.length])
-            multi_bit = plan.tag.type not in (DataType.RAW, DataType.BOOL)
-            if error is None and multi_bit and any(isinstance(p, bool) for p in points):
-                error = AddressError(
-                    f"type {plan.tag.type.value} cannot be read from a bit area "
-                    f"(tag {plan.tag.name!r} at {plan.tag.address})"
-                )
-            if error is not None:
-                out.append(TagResult(plan.tag, None, error))
-                continue
-            out.append(TagResult(plan.tag, _decode(plan, points, order), None))
-        return out
+                    return reply
+                request = self.requests[piece.request]
+                if len(reply) != request.count:
+                    return _short(reply, request)
+                part = reply[piece.offset : piece.offset + piece.length]
+                bits_seen = bits_seen or (bool(part) and isinstance(part[0], bool))
+                collected.extend(part)
+            points = collected
+        if bits_seen and plan.tag.type not in _BIT_TYPES:
+            # A client returns ``list[int]`` or ``list[bool]``, never a mix: one look per piece.
+            return AddressError(
+                f"type {plan.tag.type.value} cannot be read from a bit area "
+                f"(tag {plan.tag.name!r} at {plan.tag.address})"
+            )
+        return plan.decode(points, order)
+
+
+def _short(reply: Sequence[int | bool], request: ReadRequest) -> PlcError:
+    return RemoteProtocolError(
+        f"reply has {len(reply)} points, {request.count} were requested",
+        request=_describe(request),
+    )
 
 
 def _describe(request: ReadRequest) -> str:
     return f"read {request.address} x{request.count}"
 
 
-def _decode(plan: TagPlan, points: Sequence[int | bool], order: WordOrder) -> TagValue:
-    dtype = plan.tag.type
-    count = plan.tag.count
-    values: list[Scalar]
+#: ``decode(points, order) -> value`` of one tag (exactly its points, in read order)
+Decoder = Callable[[Sequence[int | bool], WordOrder], TagValue]
+
+_BIT_TYPES = (DataType.RAW, DataType.BOOL)
+#: struct codes of a point and of a value, for the decoders that go through ``struct``
+_POINT_CODE = {8: "B", 16: "H"}
+_VALUE_CODE = {
+    DataType.INT8: "b",
+    DataType.UINT8: "B",
+    DataType.INT16: "h",
+    DataType.UINT16: "H",
+    DataType.INT32: "i",
+    DataType.UINT32: "I",
+    DataType.FLOAT32: "f",
+}
+_DECODERS: dict[tuple[DataType, int, int], Decoder] = {}
+#: distinct (type, count, point width) decoders kept; beyond that new ones are not cached
+_DECODER_CACHE_SIZE = 4096
+
+
+def decoder(dtype: DataType, count: int, point_bits: int) -> Decoder:
+    """The decoder of ``count`` values of ``dtype`` over ``point_bits``-bit points.
+
+    Chosen once per tag when a plan is built (and shared by equal tags of every PLC, so a
+    thousand PLCs with the same tags hold one decoder each kind), not per scan. Every decoder
+    gives exactly what :meth:`DataType.decode` gives value by value (property-tested).
+    """
+    key = (dtype, count, point_bits)
+    found = _DECODERS.get(key)
+    if found is None:
+        found = _make_decoder(dtype, count, point_bits)
+        if len(_DECODERS) < _DECODER_CACHE_SIZE:
+            _DECODERS[key] = found
+    return found
+
+
+def _make_decoder(dtype: DataType, count: int, bits: int) -> Decoder:
+    scalar = count == 1
     if dtype is DataType.RAW:
-        values = list(points)
-    elif dtype is DataType.BOOL:
-        values = [bool(p) for p in points]
-    elif dtype.points_per_value(plan.point_bits) == 1 and dtype is not DataType.FLOAT32:
-        # the common case (int16/uint16 on words, uint8/int8 on bytes): one point per value
+        if scalar:
+            return lambda points, order: points[0]
+        return lambda points, order: list(points)
+    if dtype is DataType.BOOL:
+        if scalar:
+            return lambda points, order: bool(points[0])
+        return lambda points, order: [bool(p) for p in points]
+    slow = _value_by_value(dtype, count, bits)
+    point_code, n = _POINT_CODE.get(bits), dtype.points_per_value(bits)
+    if point_code is None or dtype.bits < bits or dtype.bits != n * bits:
+        return slow  # e.g. int8 in a 16-bit word: masked value by value
+    # All points of the tag packed as big- or little-endian point words, then unpacked as values:
+    # the word order of the PLC family is the byte order of the whole run (MELSEC: low word
+    # first = little-endian; S5: big-endian). A point out of range (a client returning signed
+    # words, say) makes ``pack`` fail, and the value-by-value path masks it as before.
+    value_code = _VALUE_CODE[dtype]
+    pack_big = struct.Struct(f">{n * count}{point_code}").pack
+    if value_code == point_code:
+        # uint16 in words, uint8 in bytes: the values are the points once they are in range
+        # (pack checks that in C); no new int objects.
+        def same(points: Sequence[int | bool], order: WordOrder) -> TagValue:
+            try:
+                pack_big(*points)
+            except struct.error:
+                return slow(points, order)
+            return points[0] if scalar else list(points)
+
+        return same
+    pack_little = struct.Struct(f"<{n * count}{point_code}").pack
+    unpack_big = struct.Struct(f">{count}{value_code}").unpack
+    unpack_little = struct.Struct(f"<{count}{value_code}").unpack
+    big = WordOrder.BIG
+
+    def fast(points: Sequence[int | bool], order: WordOrder) -> TagValue:
+        try:
+            if order is big:
+                values: tuple[Scalar, ...] = unpack_big(pack_big(*points))
+            else:
+                values = unpack_little(pack_little(*points))
+        except struct.error:
+            return slow(points, order)
+        return values[0] if scalar else list(values)
+
+    return fast
+
+
+def _value_by_value(dtype: DataType, count: int, bits: int) -> Decoder:
+    n = dtype.points_per_value(bits)
+    if n == 1 and dtype is not DataType.FLOAT32:
+        # one point per value (int8 in a word, or a point out of range): mask and sign-extend
         mask = (1 << dtype.bits) - 1
-        if dtype.signed:
-            half, full = 1 << (dtype.bits - 1), 1 << dtype.bits
-            values = [v - full if v >= half else v for v in (int(p) & mask for p in points)]
-        else:
-            values = [int(p) & mask for p in points]
-    else:
-        n = dtype.points_per_value(plan.point_bits)
-        values = [
-            dtype.decode(points[i * n : (i + 1) * n], plan.point_bits, order) for i in range(count)
-        ]
-    return values[0] if count == 1 else values
+        half, full = 1 << (dtype.bits - 1), 1 << dtype.bits
+        signed = dtype.signed
+
+        def masked(points: Sequence[int | bool], order: WordOrder) -> TagValue:
+            values: list[Scalar] = [int(p) & mask for p in points]
+            if signed:
+                values = [v - full if v >= half else v for v in values]
+            return values[0] if count == 1 else values
+
+        return masked
+
+    def general(points: Sequence[int | bool], order: WordOrder) -> TagValue:
+        values = [dtype.decode(points[i * n : (i + 1) * n], bits, order) for i in range(count)]
+        return values[0] if count == 1 else values
+
+    return general
 
 
 def point_bits(client: Client, area: Hashable | None) -> int:
