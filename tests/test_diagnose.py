@@ -371,3 +371,78 @@ async def test_matching_settings_still_work() -> None:
         connect(f"fetchwrite://{hostport(fw)}?mk=1") as plc,
     ):
         assert len(await plc.read("DB10.DW0", 2)) == 2
+
+
+@asynccontextmanager
+async def garbage_line(answer: bytes) -> AsyncIterator[str]:
+    """A real pty pair whose far end answers every byte with ``answer``: what a PG receives
+    when the serial line's baud rate or parity does not match the PLC. Yields the port path."""
+    import os
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    loop = asyncio.get_running_loop()
+
+    def readable() -> None:
+        try:
+            if os.read(master, 4096):
+                os.write(master, answer)
+        except OSError:
+            pass  # EIO while the PG has the port closed
+
+    loop.add_reader(master, readable)
+    try:
+        yield os.ttyname(slave)
+    finally:
+        loop.remove_reader(master)
+        os.close(master)
+        os.close(slave)
+
+
+async def test_as511_serial_line_with_wrong_settings() -> None:
+    async with garbage_line(H("FE 7F 80 E0 F8")) as path:
+        exc = await failure_of(f"as511://{path}?{FAST}", read("DB10.DW0"))
+    assert isinstance(exc, (PlcTimeout, RemoteProtocolError))
+    hint = hint_of(exc)
+    assert "line settings of the serial port" in hint and "?baud=, ?parity=" in hint
+
+
+async def test_as511_serial_line_silent_gets_no_guess() -> None:
+    """A silent serial line is already explained by the AS511 timeout message (cable, power,
+    port); the bytes support no setting to name."""
+    async with garbage_line(b"") as path:
+        exc = await failure_of(f"as511://{path}?{FAST}", read("DB10.DW0"))
+    assert type(exc) is PlcTimeout
+    assert "Hint:" not in exc.message
+
+
+async def test_a_failing_diagnosis_never_replaces_the_error(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from plcstack.clients.fetchwrite import FetchWriteClient
+
+    def broken(self: object, failure: object, reply: bytes) -> str:
+        raise ValueError("bug in a hint")
+
+    monkeypatch.setattr(FetchWriteClient, "diagnose", broken)
+    async with await fwsim.start(mk=True) as sim:
+        exc = await failure_of(f"fetchwrite://{hostport(sim)}?{FAST}", read("DB10.DW0"))
+    assert type(exc) is ConnectionLost
+    assert "Hint:" not in exc.message
+
+
+async def test_cli_prints_the_hint_on_its_one_error_line() -> None:
+    import subprocess
+    import sys
+
+    async with await e71sim.start(code="ascii") as sim:
+        url = f"e71+tcp://{hostport(sim)}?{FAST}"
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "plcstack", "read", url, "D100", "2", stderr=subprocess.PIPE
+        )
+        _, err = await proc.communicate()
+    assert proc.returncode == 1
+    lines = err.decode().strip().splitlines()
+    assert len(lines) == 1 and lines[0].endswith("try ?code=ascii"), lines
