@@ -48,7 +48,7 @@ def _hex(data: bytes) -> str:
 
 def _text(data: bytes) -> str:
     more = "…" if len(data) > _QUOTE else ""
-    return '"' + data[:_QUOTE].decode("ascii") + more + '"'
+    return '"' + data[:_QUOTE].decode("ascii", "backslashreplace") + more + '"'
 
 
 def looks_like_e71_binary(reply: bytes) -> bool:

@@ -113,6 +113,27 @@ def test_unrecognised_bytes_get_no_protocol_hint(failure: str, reply: bytes, fir
             assert "line settings" in hints[5]
 
 
+@settings(max_examples=200)
+@given(
+    head=st.sampled_from([b"8100", b"FF54", b"\x81\x00", b"MK\x00\x00\x00\x00", b"S5\x10\x01"]),
+    tail=st.binary(max_size=20),
+    failure=FAILURES,
+    first=st.booleans(),
+)
+def test_hints_never_raise_on_recognised_heads(
+    head: bytes, tail: bytes, failure: str, first: bool
+) -> None:
+    """Quoting a reply must survive any bytes after a recognised head (the hint is built on
+    the failure path, where a second exception would lose it)."""
+    for hint in _all_hints(failure, head + tail, first):
+        assert isinstance(hint, str)
+
+
+def test_ascii_quote_of_non_ascii_tail() -> None:
+    hint = e71_hint("malformed", b"FF54\xff\xfe", code="binary", first=True)
+    assert '"FF54\\xff\\xfe"' in hint and "try ?code=ascii" in hint
+
+
 def test_no_hint_for_silence_after_the_first_request() -> None:
     """A silent or closing peer later in a connection proves nothing about the settings."""
     for failure in ("timeout", "closed"):
