@@ -87,9 +87,9 @@ def identify(reply: bytes) -> str | None:
 
     Checked from the most to the least specific signature, so a few random bytes rarely match.
     """
-    if _looks_like_mk(reply) and len(reply) >= 8:
+    if _looks_like_mk(reply):
         return "a Tani module with the MK header (fetchwrite://…?mk=1)"
-    if _looks_like_s5_header(reply) and len(reply) >= 4:
+    if _looks_like_s5_header(reply):
         return "an S5 FETCH/WRITE port (fetchwrite://)"
     if _looks_like_s5lan(reply):
         return "an S5-LAN-LINK module (s5lan://)"

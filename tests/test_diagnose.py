@@ -98,8 +98,24 @@ def _all_hints(failure: str, reply: bytes, first: bool) -> list[str]:
     ]
 
 
+# random bytes, and random bytes behind the first bytes of each signature (near misses)
+REPLIES = st.one_of(
+    st.binary(min_size=1, max_size=40),
+    st.builds(
+        bytes.__add__,
+        st.sampled_from([b"S", b"S5", b"MK", b"8", b"F", b"\x10", b"\x16", b"5\x00", b"\x81"]),
+        st.binary(max_size=12),
+    ),
+    st.builds(
+        bytes.__add__,
+        st.text("0123456789ABCDEFabcdef", max_size=6).map(str.encode),
+        st.binary(max_size=6),
+    ),
+).filter(bool)
+
+
 @settings(max_examples=200, suppress_health_check=[HealthCheck.too_slow])
-@given(failure=FAILURES, reply=st.binary(min_size=1, max_size=40), first=st.booleans())
+@given(failure=FAILURES, reply=REPLIES, first=st.booleans())
 def test_unrecognised_bytes_get_no_protocol_hint(failure: str, reply: bytes, first: bool) -> None:
     """Bytes that carry no protocol's signature never produce a setting to try (only AS511 may
     say that the line settings look wrong, and only when no control character arrived)."""
