@@ -62,6 +62,7 @@ from plcstack.codecs.as511 import (
     system_parameters_job,
     write_job,
 )
+from plcstack.diagnose import Failure, as511_hint
 from plcstack.errors import (
     AddressError,
     ConnectionLost,
@@ -243,8 +244,10 @@ class AS511Client(Client):
         async with self._lock:
             await self._ensure_open(what)
             self.stats.requests += 1
+            # every chunk received during this transaction, kept only for the failure hint
+            chunks: list[bytes] = []
             try:
-                event = await self._run(job)
+                event = await self._run(job, chunks)
             except asyncio.CancelledError:
                 # The caller gave up mid-transaction: the PG must start over (B5.5 silence on a
                 # line, a new connection on TCP), or every later request finds the transaction
@@ -260,12 +263,15 @@ class AS511Client(Client):
                     exc.message += "; " + self._write_outcome()
                 if self._drop_on_error:
                     self._drop()
+                self._with_hint(exc, "timeout", b"".join(chunks))
                 raise exc.bind(plc=self.name, request=what) from None
             except (ConnectionLost, RemoteProtocolError) as exc:
                 self.stats.errors += 1
                 self._drop()
                 if is_write:
                     exc.message += "; " + self._write_outcome()
+                failure: Failure = "closed" if isinstance(exc, ConnectionLost) else "malformed"
+                self._with_hint(exc, failure, b"".join(chunks))
                 raise exc.bind(plc=self.name, request=what) from None
         if isinstance(event, Response):
             return event.data
@@ -287,7 +293,13 @@ class AS511Client(Client):
             message += "; " + self._write_outcome(state)
         if self._drop_on_error:
             self._drop()
-        raise PlcTimeout(message, plc=self.name, request=what)
+        error = PlcTimeout(message, plc=self.name, request=what)
+        self._with_hint(error, "timeout", b"".join(chunks))
+        raise error
+
+    def diagnose(self, failure: Failure, reply: bytes) -> str:
+        serial = isinstance(self.transport, SerialTransport)
+        return as511_hint(failure, reply, serial=serial, first=self.first_on_connection())
 
     def _write_outcome(self, state: PGState | None = None) -> str:
         state = state if state is not None else self._last_state
@@ -297,7 +309,7 @@ class AS511Client(Client):
             return "the PLC had acknowledged the data (DLE ACK), so the write was executed"
         return "the write may or may not have been executed"
 
-    async def _run(self, job: Job) -> Response | Nak | Timeout:
+    async def _run(self, job: Job, chunks: list[bytes]) -> Response | Nak | Timeout:
         loop = asyncio.get_running_loop()
         pg = self.pg
         out_bytes = 20 + 2 * len(job.params)
@@ -326,6 +338,7 @@ class AS511Client(Client):
                     except TimeoutError:
                         pg.timer(max(loop.time(), deadline or 0.0))
                     else:
+                        chunks.append(data)
                         pg.receive_data(data, loop.time())
                     out = pg.data_to_send()
                     if out:

@@ -16,6 +16,7 @@ from types import TracebackType
 from typing import Any, Generic, Protocol, Self, TypeVar
 
 from plcstack.codecs._common import NEED_DATA
+from plcstack.diagnose import Failure
 from plcstack.errors import (
     ConnectFailed,
     ConnectionLost,
@@ -27,7 +28,7 @@ from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.url import PlcUrl
 
-__all__ = ["Client", "ClientCodec", "ClientStats", "RequestClient", "Value"]
+__all__ = ["Client", "ClientCodec", "ClientStats", "Failure", "RequestClient", "Value"]
 
 _log = logging.getLogger(__name__)
 
@@ -90,6 +91,9 @@ class Client(ABC):
         self._next_attempt = 0.0
         self._last_connect_error: PlcError | None = None
         self._closed = False
+        #: ``stats.requests`` when the connection was made: tells the failure path whether the
+        #: request that failed was the first one on this connection (no cost on the hot path)
+        self._requests_at_connect = 0
 
     # -- construction -----------------------------------------------------------------------
     @classmethod
@@ -145,6 +149,7 @@ class Client(ABC):
             self._last_connect_error = exc
             raise
         self.stats.connects += 1
+        self._requests_at_connect = self.stats.requests
         self.backoff.reset()
         self._last_connect_error = None
         self.connection_made()
@@ -170,6 +175,25 @@ class Client(ABC):
 
     def connection_dropped(self) -> None:
         """Hook: the connection was closed because of an error or a deadline."""
+
+    def first_on_connection(self) -> bool:
+        """Whether the request in flight is the first one on this connection (failure path)."""
+        return self.stats.requests - self._requests_at_connect <= 1
+
+    def diagnose(self, failure: Failure, reply: bytes) -> str:
+        """Hook for the failure path only: one plain-words sentence on what is probably
+        misconfigured, judged from ``reply`` (every byte received for the failed request), or
+        ``""`` when the evidence supports nothing. See :mod:`plcstack.diagnose`."""
+        return ""
+
+    def _with_hint(self, exc: PlcError, failure: Failure, reply: bytes) -> None:
+        try:
+            hint = self.diagnose(failure, reply)
+        except Exception:  # a diagnosis must never replace the error it explains
+            _log.exception("%s: diagnosis failed", self.name)
+            return
+        if hint:
+            exc.message += f". Hint: {hint}"
 
     def _drop(self) -> None:
         self.transport.abort()
@@ -252,6 +276,8 @@ class RequestClient(Client, Generic[E]):
                 await self._ensure_open(what)
             self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
+            # every chunk of this answer, kept only for the diagnosis on the failure path
+            chunks: list[bytes] = []
             try:
                 codec, transport = self.codec, self.transport
                 payload = codec.send(request)
@@ -262,7 +288,9 @@ class RequestClient(Client, Generic[E]):
                     if event is not NEED_DATA:
                         self._check_nothing_follows(codec)
                         return event  # type: ignore[no-any-return]
-                    codec.receive_data(await transport.read(expires))
+                    chunk = await transport.read(expires)
+                    chunks.append(chunk)
+                    codec.receive_data(chunk)
             except asyncio.CancelledError:
                 # The caller gave up (wait_for, a cancelled task) with the answer maybe still on
                 # its way: it must die with the connection, or the codec (still expecting it)
@@ -274,16 +302,23 @@ class RequestClient(Client, Generic[E]):
                 self.stats.errors += 1
                 self._drop()
                 outcome = "; the write may or may not have been executed" if is_write else ""
-                raise PlcTimeout(
+                timeout_error = PlcTimeout(
                     f"no complete answer within {deadline:g} s, connection closed{outcome}",
                     plc=self.name,
                     request=what,
-                ) from None
+                )
+                self._with_hint(timeout_error, "timeout", b"".join(chunks))
+                raise timeout_error from None
             except (ConnectionLost, RemoteProtocolError) as exc:
                 self.stats.errors += 1
                 self._drop()
                 if is_write:
                     exc.message += "; the write may or may not have been executed"
+                self._with_hint(
+                    exc,
+                    "closed" if isinstance(exc, ConnectionLost) else "malformed",
+                    b"".join(chunks),
+                )
                 raise exc.bind(plc=self.name, request=what) from None
             except PlcError as exc:
                 self.stats.errors += 1

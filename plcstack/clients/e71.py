@@ -53,6 +53,7 @@ from plcstack.codecs.e71 import (
     parse_address,
     unit_error,
 )
+from plcstack.diagnose import Failure, e71_hint
 from plcstack.errors import (
     AddressError,
     LocalProtocolError,
@@ -142,6 +143,11 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
         plc = cls(url.raw, transport, code=code, pc=pc, monitoring_timer=timer, **common)
         plc.rab_ascii_sub_chars = width
         return plc
+
+    def diagnose(self, failure: Failure, reply: bytes) -> str:
+        if self._udp and not reply:
+            return ""  # a datagram that was never answered says nothing about the peer
+        return e71_hint(failure, reply, code=self.code.value, first=self.first_on_connection())
 
     def new_codec(self) -> E71ClientConnection:
         codec = E71ClientConnection(self.code, transport="udp" if self._udp else "tcp")

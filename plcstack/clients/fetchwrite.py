@@ -41,6 +41,7 @@ from plcstack.codecs.fetchwrite import (
     error_meaning,
 )
 from plcstack.codecs.mk import LifeAckTimer, MkConnection
+from plcstack.diagnose import Failure, fetchwrite_hint
 from plcstack.errors import AddressError, ConnectionLost, PlcError, PlcErrorResponse
 from plcstack.s5address import FETCHWRITE_ORG, S5Address, S5Area, S5Unit, parse_s5_address
 from plcstack.transports.backoff import Backoff
@@ -181,6 +182,9 @@ class FetchWriteClient(RequestClient[Response]):
                 opts.setdefault(name, url.get_float(name, 0.0))
         assert url.host is not None and url.port is not None
         return cls(url.raw, url.host, url.port, **opts)
+
+    def diagnose(self, failure: Failure, reply: bytes) -> str:
+        return fetchwrite_hint(failure, reply, mk=self.mk, first=self.first_on_connection())
 
     # -- connection life cycle ----------------------------------------------------------------
     def new_codec(self) -> ClientConnection:

@@ -49,6 +49,7 @@ from plcstack.codecs.s5lan import (
     estimate_seconds,
     swap_words,
 )
+from plcstack.diagnose import Failure, s5lan_hint
 from plcstack.errors import (
     AddressError,
     ConnectFailed,
@@ -155,6 +156,9 @@ class S5LanClient(RequestClient[Response]):
         opts.setdefault("strict", url.get_bool("strict", True))
         assert url.host is not None and url.port is not None
         return cls(url.raw, url.host, url.port, **opts)
+
+    def diagnose(self, failure: Failure, reply: bytes) -> str:
+        return s5lan_hint(failure, reply, first=self.first_on_connection())
 
     def new_codec(self) -> ClientConnection:
         return ClientConnection(header_byte_order=self.header_byte_order, strict=self.strict)
