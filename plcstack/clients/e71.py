@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Hashable, Sequence
-from typing import Any, Self
+from typing import Any, Self, TypeVar
 
 from plcstack.clients._values import plain_words
 from plcstack.clients.base import RequestClient
@@ -66,6 +66,9 @@ from plcstack.transports.udp import UdpTransport
 from plcstack.url import PlcUrl
 
 __all__ = ["MAX_POINTS", "E71Client"]
+
+#: a reply type passed through :meth:`E71Client._reply_or_raise` unchanged
+R = TypeVar("R")
 
 #: points one read frame carries: 256 bits (00H) or 256 words (01H) (§7.1)
 MAX_POINTS = 256
@@ -172,6 +175,10 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
 
     async def _call(self, request: Request, what: str, *, is_write: bool) -> Response:
         event: Response = await self.exchange(request, what, is_write=is_write)
+        return self._reply_or_raise(event, what)
+
+    def _reply_or_raise(self, event: R, what: str) -> R:
+        """The reply, or the PLC's end code as :class:`PlcErrorResponse` with its meaning."""
         if isinstance(event, ErrorResponse):
             self.count_error()
             raise PlcErrorResponse(

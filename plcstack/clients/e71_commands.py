@@ -14,12 +14,11 @@ from __future__ import annotations
 import struct
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from plcstack.codecs.e71 import (
     Ack,
     Code,
-    ErrorResponse,
     ExtensionRequest,
     ExtensionResponse,
     Response,
@@ -52,7 +51,7 @@ from plcstack.codecs.e71_commands import (
     WriteSpecial,
 )
 from plcstack.codecs.e71_programs import PROGRAM_COMMANDS, build, parse_response
-from plcstack.errors import AddressError, LocalProtocolError, PlcErrorResponse, RemoteProtocolError
+from plcstack.errors import AddressError, LocalProtocolError, RemoteProtocolError
 
 if TYPE_CHECKING:
     from plcstack.codecs.e71 import E71ClientConnection
@@ -61,6 +60,8 @@ __all__ = ["CPU_STATES", "CpuStatus", "E71CommandsMixin", "ProgressCallback"]
 
 #: progress callback of streamed reads/writes: (units done, units total)
 ProgressCallback = Callable[[int, int], None]
+
+R = TypeVar("R")
 
 #: [R] D9015 bits 0-3 (A-series special register "CPU operating status")
 CPU_STATES = {0: "RUN", 1: "STOP", 2: "PAUSE", 3: "STEP-RUN"}
@@ -92,7 +93,9 @@ class E71CommandsMixin:
             self, request: Any, what: str, *, is_write: bool, timeout: float | None = None
         ) -> Any: ...
 
-        def count_error(self) -> None: ...
+        def _reply_or_raise(self, event: R, what: str) -> R: ...
+
+        def _bad(self, message: str, what: str) -> AddressError: ...
 
         def _hdr(self) -> dict[str, int]: ...
 
@@ -101,27 +104,15 @@ class E71CommandsMixin:
     _ext_monitor_count: int | None = None
 
     # -- plumbing -------------------------------------------------------------------------------
-    def _xbad(self, message: str, what: str) -> AddressError:
-        return AddressError(message, plc=self.name, request=what)
-
     async def _xcall(
         self, request: ExtensionRequest, what: str, *, is_write: bool
     ) -> Response | ExtensionResponse:
         try:
             request.encode(self.code)  # our own checks first: nothing is sent on bad input
         except LocalProtocolError as exc:
-            raise self._xbad(exc.message, what) from None
+            raise self._bad(exc.message, what) from None
         event: Response | ExtensionResponse = await self.exchange(request, what, is_write=is_write)
-        if isinstance(event, ErrorResponse):
-            self.count_error()
-            raise PlcErrorResponse(
-                event.end_code,
-                event.meaning,
-                plc=self.name,
-                request=what,
-                code_text=event.code_text,
-            )
-        return event
+        return self._reply_or_raise(event, what)
 
     async def _xwords(self, request: ExtensionRequest, what: str) -> list[int]:
         event = await self._xcall(request, what, is_write=False)
@@ -131,7 +122,7 @@ class E71CommandsMixin:
 
     def _xint(self, value: object, low: int, high: int, name: str, what: str) -> int:
         if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-            raise self._xbad(f"{name} must be an integer {low}..{high}, got {value!r}", what)
+            raise self._bad(f"{name} must be an integer {low}..{high}, got {value!r}", what)
         return value
 
     def _xword_values(self, values: Sequence[int], what: str) -> tuple[int, ...]:
@@ -167,7 +158,7 @@ class E71CommandsMixin:
         """16H: send 1-254 bytes (§13 A6) and check they come back unchanged."""
         what = f"loopback {len(data)} bytes"
         if not isinstance(data, bytes) or not 1 <= len(data) <= 254:
-            raise self._xbad("loopback takes 1-254 bytes", what)
+            raise self._bad("loopback takes 1-254 bytes", what)
         event = await self._xcall(Loopback(data, **self._hdr()), what, is_write=False)
         assert isinstance(event, LoopbackResponse)
         if event.data != data:
@@ -213,7 +204,7 @@ class E71CommandsMixin:
         what = f"write special module {module:02X}H words @{word_address} x{len(values)}"
         words = self._xword_values(values, what)
         if not 1 <= len(words) <= 128:
-            raise self._xbad("1-128 words per request", what)
+            raise self._bad("1-128 words per request", what)
         data = struct.pack(f"<{len(words)}H", *words)
         await self.write_special(module, word_address * 2 + offset, data)
 
@@ -252,7 +243,7 @@ class E71CommandsMixin:
     async def monitor_ext(self) -> list[int]:
         what = "monitor ext file registers"
         if self._ext_monitor_count is None:
-            raise self._xbad("register registers first (register_monitor_ext)", what)
+            raise self._bad("register registers first (register_monitor_ext)", what)
         return await self._xwords(MonitorExt(self._ext_monitor_count, **self._hdr()), what)
 
     async def read_ext_direct(self, number: int, count: int = 1) -> list[int]:
@@ -329,7 +320,7 @@ class E71CommandsMixin:
         time; yields each chunk's values."""
         what = f"read {PROGRAM_COMMANDS.get(command, ('?', False))[0]} @{start:X}H x{length}"
         if command not in PROGRAM_COMMANDS or PROGRAM_COMMANDS[command][1]:
-            raise self._xbad(f"{command!r} is not a program/parameter/comment read", what)
+            raise self._bad(f"{command!r} is not a program/parameter/comment read", what)
         self._xint(chunk, 1, 256, "chunk", what)
         self._xint(length, 1, 1 << 24, "length", what)
         done = 0
@@ -338,7 +329,7 @@ class E71CommandsMixin:
             try:
                 req = build(command, start + done, n, self.code, **self._hdr())
             except LocalProtocolError as exc:
-                raise self._xbad(exc.message, what) from None
+                raise self._bad(exc.message, what) from None
             event = await self._xcall(req, what, is_write=False)
             assert isinstance(event, OpaqueResponse)
             yield parse_response(req, event, self.code)
@@ -374,14 +365,14 @@ class E71CommandsMixin:
         Writing programs or parameters partially may make a real CPU malfunction (§7.8)."""
         what = f"write {PROGRAM_COMMANDS.get(command, ('?', False))[0]} @{start:X}H x{len(values)}"
         if command not in PROGRAM_COMMANDS or not PROGRAM_COMMANDS[command][1]:
-            raise self._xbad(f"{command!r} is not a program/parameter/comment write", what)
+            raise self._bad(f"{command!r} is not a program/parameter/comment write", what)
         self._xint(chunk, 1, 256, "chunk", what)
         for k in range(0, len(values), chunk):
             part = list(values[k : k + chunk])
             try:
                 req = build(command, start + k, part, self.code, **self._hdr())
             except LocalProtocolError as exc:
-                raise self._xbad(exc.message, what) from None
+                raise self._bad(exc.message, what) from None
             await self._xcall(req, what, is_write=True)
             if progress is not None:
                 progress(k + len(part), len(values))
