@@ -103,47 +103,22 @@ class DemoProtocol:
     needs: tuple[str, ...] = ()
 
 
+def _e71(transport: str, code: str) -> DemoProtocol:
+    """One E71 variant: the four differ only in transport and code."""
+    return DemoProtocol(
+        f"e71-{transport}-{'bin' if code == 'binary' else code}",
+        "plcstack.sim.e71",
+        "plcstack.clients.e71",
+        {"transport": transport, "code": code},
+        melsec_memory,
+        melsec_program,
+        MELSEC_TAGS,
+        needs=("plcstack.sim.melsec_memory",),
+    )
+
+
 PROTOCOLS: tuple[DemoProtocol, ...] = (
-    DemoProtocol(
-        "e71-tcp-bin",
-        "plcstack.sim.e71",
-        "plcstack.clients.e71",
-        {"transport": "tcp", "code": "binary"},
-        melsec_memory,
-        melsec_program,
-        MELSEC_TAGS,
-        needs=("plcstack.sim.melsec_memory",),
-    ),
-    DemoProtocol(
-        "e71-tcp-ascii",
-        "plcstack.sim.e71",
-        "plcstack.clients.e71",
-        {"transport": "tcp", "code": "ascii"},
-        melsec_memory,
-        melsec_program,
-        MELSEC_TAGS,
-        needs=("plcstack.sim.melsec_memory",),
-    ),
-    DemoProtocol(
-        "e71-udp-bin",
-        "plcstack.sim.e71",
-        "plcstack.clients.e71",
-        {"transport": "udp", "code": "binary"},
-        melsec_memory,
-        melsec_program,
-        MELSEC_TAGS,
-        needs=("plcstack.sim.melsec_memory",),
-    ),
-    DemoProtocol(
-        "e71-udp-ascii",
-        "plcstack.sim.e71",
-        "plcstack.clients.e71",
-        {"transport": "udp", "code": "ascii"},
-        melsec_memory,
-        melsec_program,
-        MELSEC_TAGS,
-        needs=("plcstack.sim.melsec_memory",),
-    ),
+    *(_e71(transport, code) for transport in ("tcp", "udp") for code in ("binary", "ascii")),
     DemoProtocol(
         "s5lan", "plcstack.sim.s5lan", "plcstack.clients.s5lan", {}, s5_memory, s5_program, S5_TAGS
     ),
