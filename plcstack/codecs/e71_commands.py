@@ -325,6 +325,20 @@ class _Hdr(ExtensionRequest):
         return Ack(self.COMMAND)
 
 
+class _WordsReply:
+    """The answer is ``count`` words (17H, 1BH, 3BH): one sizing and decoding for all three."""
+
+    __slots__ = ()
+    COMMAND: ClassVar[int]
+    count: int
+
+    def _data_length(self) -> int:
+        return 2 * self.count
+
+    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+        return WordsResponse(self.COMMAND, r.words(self.count))
+
+
 @dataclass(frozen=True, slots=True)
 class RemoteRun(_Hdr):
     """13H remote RUN (no request data; answer ``93 00``)."""
@@ -454,7 +468,7 @@ def _count_ok(n: int, limit: int, what: str) -> None:
 
 
 @dataclass(frozen=True, slots=True)
-class ReadExtFile(_Hdr):
+class ReadExtFile(_WordsReply, _Hdr):
     """17H extended file register batch read: ``count`` (1-256) registers from R``number`` of
     ``block``."""
 
@@ -470,12 +484,6 @@ class ReadExtFile(_Hdr):
         w.num(self.count & 0xFF, 1)
         w.num(0, 1)
         return w.getvalue()
-
-    def _data_length(self) -> int:
-        return 2 * self.count
-
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
-        return WordsResponse(self.COMMAND, r.words(self.count))
 
 
 @dataclass(frozen=True, slots=True)
@@ -537,7 +545,7 @@ class RegisterMonitorExt(_Hdr):
 
 
 @dataclass(frozen=True, slots=True)
-class MonitorExt(_Hdr):
+class MonitorExt(_WordsReply, _Hdr):
     """1BH extended file register monitor. ``count`` (not on the wire) = the number of points
     registered by 1AH, needed to size the answer (§11.2)."""
 
@@ -548,15 +556,9 @@ class MonitorExt(_Hdr):
         _count_ok(self.count, 20, "1BH (registered points)")
         return self._writer(code).getvalue()
 
-    def _data_length(self) -> int:
-        return 2 * self.count
-
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
-        return WordsResponse(self.COMMAND, r.words(self.count))
-
 
 @dataclass(frozen=True, slots=True)
-class ReadExtDirect(_Hdr):
+class ReadExtDirect(_WordsReply, _Hdr):
     """3BH extended file register direct read (AnA/AnU): ``number`` = (block - 1) x 8192 +
     register (§7.4), 1-256 words."""
 
@@ -572,12 +574,6 @@ class ReadExtDirect(_Hdr):
         w.num(self.count & 0xFF, 1)
         w.num(0, 1)
         return w.getvalue()
-
-    def _data_length(self) -> int:
-        return 2 * self.count
-
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
-        return WordsResponse(self.COMMAND, r.words(self.count))
 
 
 @dataclass(frozen=True, slots=True)
