@@ -25,14 +25,7 @@ def register(subparsers: Any) -> None:
     read.add_argument("address", help="first address, e.g. D100, M0, DB10.DW5, MB100")
     read.add_argument("count", nargs="?", type=int, default=1, help="number of points (default 1)")
     read.add_argument("--json", action="store_true", help='print {"address": ..., "values": [...]}')
-    read.add_argument("--timeout", type=float, default=None, help="request deadline in seconds")
-    read.add_argument("--type", choices=_TYPES, default="raw", help=_TYPE_HELP)
-    read.add_argument(
-        "--word-order",
-        choices=("big", "little"),
-        default=None,
-        help="order of the words of a multi-word type (default: little for E71, big for S5)",
-    )
+    _add_common_options(read)
     read.set_defaults(func=run_read)
 
     write = subparsers.add_parser("write", help="write points to a PLC")
@@ -43,15 +36,20 @@ def register(subparsers: Any) -> None:
         nargs="+",
         help="values: integers (123, -5, 0x1F), true/false for bits, decimals with --type float32",
     )
-    write.add_argument("--timeout", type=float, default=None, help="request deadline in seconds")
-    write.add_argument("--type", choices=_TYPES, default="raw", help=_TYPE_HELP)
-    write.add_argument(
+    _add_common_options(write)
+    write.set_defaults(func=run_write)
+
+
+def _add_common_options(parser: argparse.ArgumentParser) -> None:
+    """Options ``read`` and ``write`` share: the deadline and how values map onto points."""
+    parser.add_argument("--timeout", type=float, default=None, help="request deadline in seconds")
+    parser.add_argument("--type", choices=_TYPES, default="raw", help=_TYPE_HELP)
+    parser.add_argument(
         "--word-order",
         choices=("big", "little"),
         default=None,
         help="order of the words of a multi-word type (default: little for E71, big for S5)",
     )
-    write.set_defaults(func=run_write)
 
 
 def parse_value(text: str) -> int | bool:
