@@ -60,8 +60,8 @@ from plcstack.errors import (
     PlcErrorResponse,
     RemoteProtocolError,
 )
+from plcstack.transports import ip_transport
 from plcstack.transports.base import Transport
-from plcstack.transports.tcp import TcpTransport
 from plcstack.transports.udp import UdpTransport
 from plcstack.url import PlcUrl
 
@@ -137,12 +137,7 @@ class E71Client(E71CommandsMixin, RequestClient[Response]):
         if width not in (2, 4):
             raise AddressError("rab_ascii_sub_chars must be 2 or 4", plc=url.raw)
         common = cls.common_options(url, kw)
-        assert url.host is not None and url.port is not None
-        transport: Transport
-        if url.transport == "udp":
-            transport = UdpTransport(url.host, url.port)
-        else:
-            transport = TcpTransport(url.host, url.port)
+        transport = ip_transport(url.host, url.port, url.transport)
         plc = cls(url.raw, transport, code=code, pc=pc, monitoring_timer=timer, **common)
         plc.rab_ascii_sub_chars = width
         return plc

@@ -45,8 +45,8 @@ from plcstack.errors import (
     PlcTimeout,
     RemoteProtocolError,
 )
+from plcstack.transports import ip_transport
 from plcstack.transports.base import Transport
-from plcstack.transports.tcp import TcpTransport
 from plcstack.transports.udp import UdpTransport
 from plcstack.url import PlcUrl
 
@@ -95,12 +95,7 @@ class E71FixedBufferClient(Client):
         if procedure is None:
             procedure = url.get_bool("procedure", True)
         common = cls.common_options(url, kw)
-        assert url.host is not None and url.port is not None
-        transport: Transport
-        if url.transport == "udp":
-            transport = UdpTransport(url.host, url.port)
-        else:
-            transport = TcpTransport(url.host, url.port)
+        transport = ip_transport(url.host, url.port, url.transport)
         return cls(url.raw, transport, code=code, procedure=procedure, **common)
 
     def _new_codec(self) -> FixedBufferConnection | RawBufferConnection:
