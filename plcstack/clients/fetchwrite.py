@@ -72,13 +72,8 @@ _URL_OPTIONS: Final = frozenset(
 
 
 class _MkTcpTransport(TcpTransport):
-    """TCP that tells a life-ack timer about traffic and keeps unread bytes for the codec.
-
-    ``discard_received`` is a no-op here: with the MK header, bytes that arrive between jobs are
-    life acks (or part of one), and dropping them would break the telegram framing; the codec
-    consumes them instead. A late reply cannot be among them: a timed-out job closes the
-    connection.
-    """
+    """TCP that tells a life-ack timer about every byte of traffic, including the life acks
+    the client takes between jobs (``take_received``), which the MK codec then consumes."""
 
     def __init__(self, host: str, port: int) -> None:
         super().__init__(host, port)
@@ -94,9 +89,6 @@ class _MkTcpTransport(TcpTransport):
         if self.timer is not None:
             self.timer.received(asyncio.get_running_loop().time())
         return data
-
-    def discard_received(self) -> None:
-        pass
 
     def take_received(self) -> list[bytes]:
         chunks = super().take_received()

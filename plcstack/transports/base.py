@@ -57,9 +57,6 @@ class Transport(ABC):
         """Close cleanly (flush what was written). The default is an abort."""
         self.abort()
 
-    def discard_received(self) -> None:
-        """Drop what has been received and not yet read (used before a fresh request on UDP)."""
-
     def take_received(self) -> list[bytes]:
         """Chunks (datagrams) received and not yet read, without waiting; empties the queue.
 
@@ -179,10 +176,6 @@ class ProtocolTransport(Transport):
         if self._protocol is None:
             raise ConnectionLost(f"not connected to {self.peer}")
         return self._protocol._next_chunk(self._join, deadline)
-
-    def discard_received(self) -> None:
-        if self._protocol is not None:
-            self._protocol._chunks.clear()
 
     def take_received(self) -> list[bytes]:
         if self._protocol is None or not self._protocol._chunks:
