@@ -24,6 +24,7 @@ from plcstack.errors import (
     PlcTimeout,
     RemoteProtocolError,
 )
+from plcstack.logs import install_trace
 from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.url import PlcUrl
@@ -83,6 +84,8 @@ class Client(ABC):
             raise ValueError("timeouts must be positive")
         self.name = name
         self.transport = transport
+        # the DEBUG frame trace (plcstack.frames.PROTOCOL); nothing at all on the path when off
+        install_trace(transport, name, type(self).__module__.rpartition(".")[2])
         self.timeout = timeout
         self.connect_timeout = connect_timeout
         self.backoff = backoff if backoff is not None else Backoff()
