@@ -44,7 +44,7 @@ from plcstack.bench import frames
 from plcstack.bench.cases import WORDS, sample_words
 from plcstack.bench.cases.fanout import PACKAGE_PARENT, raise_fd_limit
 
-__all__ = ["KINDS", "REQUEST", "REPLY", "spawn"]
+__all__ = ["KINDS", "REPLY", "REQUEST", "spawn"]
 
 KINDS = ("floor", "clients", "poll")
 #: 10 Hz
@@ -89,14 +89,17 @@ def _pin(cpu: int | None) -> None:
 
 async def _serve(n: int) -> None:
     loop = asyncio.get_running_loop()
-    servers = [
-        await loop.create_server(_Responder, "127.0.0.1", 0, backlog=1024) for _ in range(n)
-    ]
+    servers = [await loop.create_server(_Responder, "127.0.0.1", 0, backlog=1024) for _ in range(n)]
     ports = [s.sockets[0].getsockname()[1] for s in servers]
     print(json.dumps({"ports": ports}), flush=True)
     stop = loop.create_future()
+
     # the parent closes our stdin (or dies): that is the end
-    loop.add_reader(sys.stdin.fileno(), lambda: stop.done() or stop.set_result(None))
+    def end() -> None:
+        if not stop.done():
+            stop.set_result(None)
+
+    loop.add_reader(sys.stdin.fileno(), end)
     await stop
 
 
@@ -119,9 +122,7 @@ def _start_responders(n: int, cpu: int | None) -> tuple[subprocess.Popen[str], l
         cmd += ["--cpu", str(cpu)]
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(PACKAGE_PARENT), env.get("PYTHONPATH", "")])
-    proc = subprocess.Popen(
-        cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
-    )
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
     assert proc.stdout is not None
     line = proc.stdout.readline()
     if not line:
@@ -142,22 +143,33 @@ class _Counters:
         self.recording = False
 
 
-class _FloorConn(asyncio.Protocol):
-    """The thinnest client: one future per request, resolved when the known length is in."""
+class _FloorConn(asyncio.BufferedProtocol):
+    """The thinnest client: one future per request, resolved when the known length is in.
+
+    A ``BufferedProtocol`` receiving into one reused buffer, as the stack's TCP transport does:
+    with a plain ``Protocol`` asyncio receives every reply into a fresh 256 KiB buffer, which
+    costs the floor more than the stack (measured 20-30 us per request here) and would flatter
+    the ratio.
+    """
 
     def __init__(self) -> None:
-        self.buffer = bytearray()
+        self.buffer = bytearray(4096)
+        self.view = memoryview(self.buffer)
+        self.have = 0
         self.waiter: asyncio.Future[bytes] | None = None
         self.transport: asyncio.Transport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = cast(asyncio.Transport, transport)
 
-    def data_received(self, data: bytes) -> None:
-        self.buffer += data
-        if len(self.buffer) >= len(REPLY) and self.waiter is not None and not self.waiter.done():
-            reply = bytes(self.buffer[: len(REPLY)])
-            del self.buffer[: len(REPLY)]
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return self.view[self.have :]
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self.have += nbytes
+        if self.have >= len(REPLY) and self.waiter is not None and not self.waiter.done():
+            reply = bytes(self.view[: len(REPLY)])
+            self.have = 0
             self.waiter.set_result(reply)
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -208,7 +220,7 @@ async def _floor_fleet(ports: list[int], counters: _Counters) -> list[asyncio.Ta
 
             return request
 
-        due = now + 1.0 + INTERVAL * i / len(ports)
+        due = now + 0.2 + INTERVAL * i / len(ports)
         tasks.append(asyncio.create_task(_schedule(due, counters, make(), [False])))
     return tasks
 
@@ -267,7 +279,7 @@ async def _measure(
             def overruns() -> int:
                 return counters.overruns
 
-        await asyncio.sleep(warmup + 1.0)  # connects, first scans, one second of steady state
+        await asyncio.sleep(warmup)  # first scans done, steady state reached
         for task in tasks:
             if task.done():
                 task.result()  # a failed check: raise it here
@@ -377,7 +389,7 @@ async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.
         # as an application that keeps up should: take what is there in one batch per wake-up
         async for first in poller:
             for sample in (first, *poller.drain()):
-                if sample.value is None or (not bad and list(sample.value) != expected):
+                if sample.value is None or (not bad and list(cast(Any, sample.value)) != expected):
                     bad.append(f"{sample.plc}: {sample.error or sample.value!r:.120}")
 
     consumer = asyncio.create_task(consume())
