@@ -121,7 +121,9 @@ class Sample:
 
     None of these protocols timestamps its data, so the best statement of when the PLC held the
     value is "between ``source_time`` and ``receive_time``". A bad sample has ``value`` None and
-    ``error`` saying why (the full :class:`PlcError` text, naming PLC and request).
+    ``error`` saying why (the full :class:`PlcError` text, naming PLC and request) and
+    ``error_type`` the :class:`PlcError` subclass, so a consumer can map the kind of failure
+    (timeout, refused connection, PLC error code) to its own status codes without parsing text.
     """
 
     plc: str
@@ -131,10 +133,11 @@ class Sample:
     source_time: float
     receive_time: float
     error: str | None = None
+    error_type: type[PlcError] | None = None
 
 
 _new_object = object.__new__
-(_set_plc, _set_tag, _set_value, _set_quality, _set_source, _set_receive, _set_error) = (
+(_set_plc, _set_tag, _set_value, _set_quality, _set_source, _set_receive, _set_error, _set_type) = (
     getattr(Sample, name).__set__ for name in (f.name for f in fields(Sample))
 )
 
@@ -147,6 +150,7 @@ def _sample(
     source_time: float,
     receive_time: float,
     error: str | None,
+    error_type: type[PlcError] | None = None,
 ) -> Sample:
     """``Sample(...)`` for the hot path: the same frozen object, built in ~60 % of the time.
 
@@ -161,6 +165,7 @@ def _sample(
     _set_source(sample, source_time)
     _set_receive(sample, receive_time)
     _set_error(sample, error)
+    _set_type(sample, error_type)
     return sample
 
 
@@ -306,6 +311,14 @@ class Poller:
 
     def client(self, plc: str) -> Client:
         return self._plc(plc).client
+
+    def tags(self, plc: str) -> dict[str, tuple[TagConfig, int]]:
+        """Each tag of one PLC with the width of its points in bits (1 bit, 8 byte, 16 word area).
+
+        What a north-side server needs to give a tag its type before the first sample arrives
+        (a ``raw`` tag is a bool, a byte or a word depending on the area).
+        """
+        return dict(self._plc(plc).tags)
 
     async def start(self) -> None:
         if self._running or self._closed:
@@ -651,7 +664,16 @@ class Poller:
             if isinstance(result, PlcError):
                 bad += 1
                 queue.append(
-                    _sample(name, tag_plan.tag.name, None, bad_q, source, receive, str(result))
+                    _sample(
+                        name,
+                        tag_plan.tag.name,
+                        None,
+                        bad_q,
+                        source,
+                        receive,
+                        str(result),
+                        type(result),
+                    )
                 )
             else:
                 queue.append(_sample(name, tag_plan.tag.name, result, good, source, receive, None))
