@@ -29,10 +29,10 @@ from plcstack.poll.engine import (
     Poller,
     Quality,
     Sample,
-    _sample,
     timer_resolution,
 )
 from plcstack.poll.plan import build_plan, decoder
+from plcstack.poll.samples import make_sample as _sample
 from plcstack.poll.values import DataType, WordOrder
 from tests.poll_fakes import FakeClient
 

@@ -84,7 +84,8 @@ from plcstack.north.opcua_config import (
     parse_opcua_config,
 )
 from plcstack.poll.config import ConfigError, TagConfig
-from plcstack.poll.engine import Poller, Quality, Sample
+from plcstack.poll.engine import Poller
+from plcstack.poll.samples import Quality, Sample
 
 __all__ = [
     "STATUS_MAP",
