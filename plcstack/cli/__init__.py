@@ -34,6 +34,7 @@ from plcstack.logs import LEVELS, configure
 COMMAND_MODULES = [
     "plcstack.cli.demo",
     "plcstack.cli.poll",
+    "plcstack.cli.serve",
     "plcstack.cli.io",
     "plcstack.cli.e71",
     "plcstack.cli.sim",

@@ -29,20 +29,22 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar, Final
 
-from plcstack.codecs.e71 import (
-    DEFAULT_PC,
-    DEFAULT_TIMER,
+from plcstack.codecs.e71_events import (
     Ack,
-    Code,
     ErrorResponse,
     ExtensionRequest,
     ExtensionResponse,
     Response,
     WordsResponse,
-    _count_from,
-    _Malformed,
-    _Reader,
-    _Writer,
+)
+from plcstack.codecs.e71_wire import (
+    DEFAULT_PC,
+    DEFAULT_TIMER,
+    Code,
+    Malformed,
+    Reader,
+    Writer,
+    count_from,
 )
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
@@ -132,12 +134,12 @@ def _head(head: bytes, code: Code, expected_sub: int, sub_units: int = 1) -> tup
     if len(head) < (sub_units + 1) * u:
         return None
     try:
-        r = _Reader(head[: (sub_units + 1) * u], code is Code.ASCII)
+        r = Reader(head[: (sub_units + 1) * u], code is Code.ASCII)
         sub = r.num(1)
         if sub_units == 2:
             r.num(1)
         end = r.num(1)
-    except _Malformed:
+    except Malformed:
         raise RemoteProtocolError(f"malformed response head {head[:8]!r}") from None
     if sub != expected_sub:
         raise RemoteProtocolError(
@@ -164,22 +166,22 @@ def _size(head: bytes, code: Code, command: int, data_len: int, sub_units: int =
 
 def _error_or_body(
     frame: bytes, code: Code, command: int, sub_units: int = 1
-) -> ErrorResponse | _Reader:
+) -> ErrorResponse | Reader:
     """An :class:`ErrorResponse` for a non-zero end code, else a reader positioned at the data."""
-    r = _Reader(frame, code is Code.ASCII)
+    r = Reader(frame, code is Code.ASCII)
     try:
         r.num(sub_units)
         end = r.num(1)
         if end == 0x5B:
             return ErrorResponse(command, end, r.num(1))
-    except _Malformed as exc:
+    except Malformed as exc:
         raise RemoteProtocolError(f"malformed {command | 0x80:02X}H response: {exc}") from None
     if end != 0:
         return ErrorResponse(command, end)
     return r
 
 
-def _malformed(command: int, exc: _Malformed) -> RemoteProtocolError:
+def _malformed(command: int, exc: Malformed) -> RemoteProtocolError:
     return RemoteProtocolError(f"malformed {(command | 0x80) & 0xFF:02X}H response: {exc}")
 
 
@@ -209,7 +211,7 @@ class BytesResponse(ExtensionResponse):
     data: bytes
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num((self.command | 0x80) & 0xFF, 1)
         w.num(0, 1)
         w.raw(self.data)
@@ -228,7 +230,7 @@ class CpuModelResponse(ExtensionResponse):
         return cpu_model_name(self.model_code)
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num(0x95, 1)
         w.num(0, 1)
         w.num(self.model_code, 1)
@@ -244,7 +246,7 @@ class LoopbackResponse(ExtensionResponse):
     command: int = 0x16
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num(0x96, 1)
         w.num(0, 1)
         w.num(len(self.data) & 0xFF, 1)
@@ -261,7 +263,7 @@ class OpaqueResponse(ExtensionResponse):
     data: bytes = b""
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num((self.command | 0x80) & 0xFF, 1)
         w.num(0, 1)
         return w.getvalue() + self.data
@@ -278,7 +280,7 @@ class RandomBufferResponse(ExtensionResponse):
     ascii_sub_chars: int = 2
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num((self.command | 0x80) & 0xFF, 1)
         if code is Code.ASCII and self.ascii_sub_chars == 4:
             w.num(0, 1)
@@ -292,15 +294,24 @@ class RandomBufferResponse(ExtensionResponse):
 # Requests with the common header (subheader, PC number, monitoring timer)
 
 
+def _r_ref(r: Reader, width: int) -> tuple[int, int]:
+    """(block, number) of an R designation of 6 (no block) or 8 bytes; 56H for another code."""
+    value = r.num(width)
+    dcode = value >> 32 & 0xFFFF
+    if dcode != R_CODE:
+        raise Malformed(0x56, f"device code {dcode:04X}H is not R (5220H)")
+    return value >> 48, value & 0xFFFFFFFF
+
+
 @dataclass(frozen=True, slots=True)
 class _Hdr(ExtensionRequest):
     pc: int = field(default=DEFAULT_PC, kw_only=True)
     timer: int = field(default=DEFAULT_TIMER, kw_only=True)
 
-    def _writer(self, code: Code) -> _Writer:
+    def _writer(self, code: Code) -> Writer:
         _check(_is_int(self.pc, 0, 0xFF), f"PC number {self.pc!r} outside 00H-FFH")
         _check(_is_int(self.timer, 0, 0xFFFF), f"monitoring timer {self.timer!r} invalid")
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num(self.COMMAND, 1)
         w.num(self.pc, 1)
         w.num(self.timer, 2)
@@ -318,11 +329,29 @@ class _Hdr(ExtensionRequest):
             return got
         try:
             return self._decode_data(got)
-        except _Malformed as exc:
+        except Malformed as exc:
             raise _malformed(self.COMMAND, exc) from None
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         return Ack(self.COMMAND)
+
+    # -- E71 side: the request decoded from a complete, correctly sized frame ------------------
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        """The request in ``frame``; :class:`Malformed` carries the end code and the PC number."""
+        r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
+        r.num(1)
+        hdr = {"pc": r.num(1), "timer": r.num(2)}
+        try:
+            return cls._decode_fields(r, hdr)
+        except Malformed as exc:
+            exc.pc = hdr["pc"]
+            raise
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        """What follows the header (nothing for 13H-15H and 1BH)."""
+        return cls(**hdr)
 
 
 class _WordsReply:
@@ -335,7 +364,7 @@ class _WordsReply:
     def _data_length(self) -> int:
         return 2 * self.count
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         return WordsResponse(self.COMMAND, r.words(self.count))
 
 
@@ -371,7 +400,7 @@ class ReadCpuModel(_Hdr):
     def _data_length(self) -> int:
         return 2
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         model = r.num(1)
         r.num(1)
         return CpuModelResponse(model)
@@ -397,11 +426,16 @@ class Loopback(_Hdr):
     def _data_length(self) -> int:
         return 1 + len(self.data)
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         n = r.num(1) or 256
         if n != len(self.data):
-            raise _Malformed(0x57, f"loopback length {n} differs from the {len(self.data)} sent")
+            raise Malformed(0x57, f"loopback length {n} differs from the {len(self.data)} sent")
         return LoopbackResponse(r.raw(n))
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        n = r.num(1) or 256
+        return cls(r.raw(n), **hdr)
 
 
 @dataclass(frozen=True, slots=True)
@@ -422,8 +456,14 @@ class ReadSpecial(_Hdr):
     def _data_length(self) -> int:
         return self.count
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         return BytesResponse(self.COMMAND, r.raw(self.count))
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        address, count, module = r.num(3), r.num(1) or 256, r.num(1)
+        r.num(1)
+        return cls(module, address, count, **hdr)
 
 
 @dataclass(frozen=True, slots=True)
@@ -444,8 +484,14 @@ class WriteSpecial(_Hdr):
         w.raw(self.data)
         return w.getvalue()
 
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        address, count, module = r.num(3), r.num(1) or 256, r.num(1)
+        r.num(1)
+        return cls(module, address, r.raw(count), **hdr)
 
-def _special_head(req: ReadSpecial | WriteSpecial, code: Code, count: int) -> _Writer:
+
+def _special_head(req: ReadSpecial | WriteSpecial, code: Code, count: int) -> Writer:
     _check(_is_int(req.address, 0, 0xFFFFFF), f"start address {req.address!r} not 3 bytes")
     _check(_is_int(req.module, 0, 0xFF), f"module number {req.module!r} outside 00H-FFH")
     w = req._writer(code)
@@ -485,6 +531,11 @@ class ReadExtFile(_WordsReply, _Hdr):
         w.num(0, 1)
         return w.getvalue()
 
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        block, number = _r_ref(r, 8)
+        return cls(block, number, count_from(r), **hdr)
+
 
 @dataclass(frozen=True, slots=True)
 class WriteExtFile(_Hdr):
@@ -504,6 +555,11 @@ class WriteExtFile(_Hdr):
         w.num(0, 1)
         w.words(self.values)
         return w.getvalue()
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        block, number = _r_ref(r, 8)
+        return cls(block, number, r.words(count_from(r)), **hdr)
 
 
 @dataclass(frozen=True, slots=True)
@@ -525,6 +581,14 @@ class TestExtFile(_Hdr):
             w.num(value, 2)
         return w.getvalue()
 
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        points = []
+        for _ in range(count_from(r)):
+            block, number = _r_ref(r, 8)
+            points.append((block, number, r.num(2)))
+        return cls(tuple(points), **hdr)
+
 
 @dataclass(frozen=True, slots=True)
 class RegisterMonitorExt(_Hdr):
@@ -542,6 +606,11 @@ class RegisterMonitorExt(_Hdr):
         for block, number in self.points:
             w.num(_xdev(block, number), 8)
         return w.getvalue()
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        n = count_from(r)
+        return cls(tuple(_r_ref(r, 8) for _ in range(n)), **hdr)
 
 
 @dataclass(frozen=True, slots=True)
@@ -575,6 +644,11 @@ class ReadExtDirect(_WordsReply, _Hdr):
         w.num(0, 1)
         return w.getvalue()
 
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        _, number = _r_ref(r, 6)
+        return cls(number, count_from(r), **hdr)
+
 
 @dataclass(frozen=True, slots=True)
 class WriteExtDirect(_Hdr):
@@ -594,6 +668,11 @@ class WriteExtDirect(_Hdr):
         w.num(0, 1)
         w.words(self.values)
         return w.getvalue()
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        _, number = _r_ref(r, 6)
+        return cls(number, r.words(count_from(r)), **hdr)
 
 
 @dataclass(frozen=True, slots=True)
@@ -625,6 +704,13 @@ class OpaqueCommand(_Hdr):
             return got
         return OpaqueResponse(self.command, frame[2 * _unit(code) :])
 
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
+        command = r.num(1)
+        pc, timer = r.num(1), r.num(2)
+        return cls(command, frame[r.pos :], pc=pc, timer=timer)
+
 
 # ---------------------------------------------------------------------------------------------
 # Random access buffer (61H/62H) and fixed buffer data (60H): "xx 00" subheader, no PC/timer
@@ -632,14 +718,21 @@ class OpaqueCommand(_Hdr):
 
 @dataclass(frozen=True, slots=True)
 class _Buffer(ExtensionRequest):
-    def _writer(self, code: Code, address: int | None, count: int) -> _Writer:
-        w = _Writer(code is Code.ASCII)
+    def _writer(self, code: Code, address: int | None, count: int) -> Writer:
+        w = Writer(code is Code.ASCII)
         w.num(self.COMMAND, 1)
         w.num(0, 1)  # §13 A16: always 00H
         if address is not None:
             w.num(address, 2)
         w.num(count, 2)
         return w
+
+    @staticmethod
+    def _reader(frame: bytes, code: Code, lower_ok: bool) -> Reader:
+        r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
+        r.num(1)
+        r.num(1)  # §13 A16: the second subheader byte is ignored
+        return r
 
 
 def _rab_check(address: int, count: int, code: Code) -> None:
@@ -675,8 +768,13 @@ class ReadRandomBuffer(_Buffer):
             return got
         try:
             return WordsResponse(self.COMMAND, got.words(self.count))
-        except _Malformed as exc:
+        except Malformed as exc:
             raise _malformed(self.COMMAND, exc) from None
+
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        r = cls._reader(frame, code, lower_ok)
+        return cls(r.num(2), r.num(2))
 
 
 @dataclass(frozen=True, slots=True)
@@ -705,6 +803,12 @@ class WriteRandomBuffer(_Buffer):
         got = _error_or_body(frame, code, self.COMMAND, self._subs(code))
         return got if isinstance(got, ErrorResponse) else Ack(self.COMMAND)
 
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        r = cls._reader(frame, code, lower_ok)
+        address, count = r.num(2), r.num(2)
+        return cls(address, r.words(count))
+
 
 @dataclass(frozen=True, slots=True)
 class FixedBufferData(_Buffer):
@@ -729,143 +833,34 @@ class FixedBufferData(_Buffer):
         got = _error_or_body(frame, code, self.COMMAND)
         return got if isinstance(got, ErrorResponse) else Ack(self.COMMAND)
 
-
-# ---------------------------------------------------------------------------------------------
-# E71 side: decoders of complete, correctly sized frames (E71ServerConnection(extensions=...))
-
-
-def _header(r: _Reader) -> dict[str, int]:
-    r.num(1)
-    return {"pc": r.num(1), "timer": r.num(2)}
-
-
-def _r_ref(r: _Reader, width: int) -> tuple[int, int]:
-    """(block, number) of an R designation of 6 (no block) or 8 bytes; 56H for another code."""
-    value = r.num(width)
-    dcode = value >> 32 & 0xFFFF
-    if dcode != R_CODE:
-        raise _Malformed(0x56, f"device code {dcode:04X}H is not R (5220H)")
-    return value >> 48, value & 0xFFFFFFFF
-
-
-def _with_pc(
-    fn: Callable[[_Reader, dict[str, int]], ExtensionRequest],
-) -> Callable[[bytes, Code, bool], ExtensionRequest]:
-    def decode(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-        r = _Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
-        hdr = _header(r)
-        try:
-            return fn(r, hdr)
-        except _Malformed as exc:
-            exc.pc = hdr["pc"]
-            raise
-
-    return decode
-
-
-def _d_special_read(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    address, count, module = r.num(3), r.num(1) or 256, r.num(1)
-    r.num(1)
-    return ReadSpecial(module, address, count, **hdr)
-
-
-def _d_special_write(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    address, count, module = r.num(3), r.num(1) or 256, r.num(1)
-    r.num(1)
-    return WriteSpecial(module, address, r.raw(count), **hdr)
-
-
-def _d_loopback(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    n = r.num(1) or 256
-    return Loopback(r.raw(n), **hdr)
-
-
-def _d_ext_read(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    block, number = _r_ref(r, 8)
-    return ReadExtFile(block, number, _count_from(r), **hdr)
-
-
-def _d_ext_write(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    block, number = _r_ref(r, 8)
-    return WriteExtFile(block, number, r.words(_count_from(r)), **hdr)
-
-
-def _d_ext_test(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    points = []
-    for _ in range(_count_from(r)):
-        block, number = _r_ref(r, 8)
-        points.append((block, number, r.num(2)))
-    return TestExtFile(tuple(points), **hdr)
-
-
-def _d_ext_register(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    n = _count_from(r)
-    return RegisterMonitorExt(tuple(_r_ref(r, 8) for _ in range(n)), **hdr)
-
-
-def _d_direct_read(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    _, number = _r_ref(r, 6)
-    return ReadExtDirect(number, _count_from(r), **hdr)
-
-
-def _d_direct_write(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    _, number = _r_ref(r, 6)
-    return WriteExtDirect(number, r.words(_count_from(r)), **hdr)
-
-
-def _simple(
-    cls: type[RemoteRun | RemoteStop | ReadCpuModel | MonitorExt],
-) -> Callable[[_Reader, dict[str, int]], ExtensionRequest]:
-    return lambda _r, hdr: cls(**hdr)
-
-
-def _d_opaque(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-    r = _Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
-    command = r.num(1)
-    pc, timer = r.num(1), r.num(2)
-    return OpaqueCommand(command, frame[r.pos :], pc=pc, timer=timer)
-
-
-def _buffer_reader(frame: bytes, code: Code, lower_ok: bool) -> _Reader:
-    r = _Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
-    r.num(1)
-    r.num(1)  # §13 A16: the second subheader byte is ignored
-    return r
-
-
-def _d_rab_read(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-    r = _buffer_reader(frame, code, lower_ok)
-    return ReadRandomBuffer(r.num(2), r.num(2))
-
-
-def _d_rab_write(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-    r = _buffer_reader(frame, code, lower_ok)
-    address, count = r.num(2), r.num(2)
-    return WriteRandomBuffer(address, r.words(count))
-
-
-def _d_fixed(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-    r = _buffer_reader(frame, code, lower_ok)
-    return FixedBufferData(r.words(r.num(2)))
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        r = cls._reader(frame, code, lower_ok)
+        return cls(r.words(r.num(2)))
 
 
 #: every command of this module -> its E71-side decoder (``E71ServerConnection(extensions=)``)
 DECODERS: Final[dict[int, Callable[[bytes, Code, bool], ExtensionRequest]]] = {
-    0x0E: _with_pc(_d_special_read),
-    0x0F: _with_pc(_d_special_write),
-    0x13: _with_pc(_simple(RemoteRun)),
-    0x14: _with_pc(_simple(RemoteStop)),
-    0x15: _with_pc(_simple(ReadCpuModel)),
-    0x16: _with_pc(_d_loopback),
-    0x17: _with_pc(_d_ext_read),
-    0x18: _with_pc(_d_ext_write),
-    0x19: _with_pc(_d_ext_test),
-    0x1A: _with_pc(_d_ext_register),
-    0x1B: _with_pc(_simple(MonitorExt)),
-    0x3B: _with_pc(_d_direct_read),
-    0x3C: _with_pc(_d_direct_write),
-    0x60: _d_fixed,
-    0x61: _d_rab_read,
-    0x62: _d_rab_write,
-    **dict.fromkeys(OPAQUE_COMMANDS, _d_opaque),
+    **{
+        cls.COMMAND: cls.decode
+        for cls in (
+            ReadSpecial,
+            WriteSpecial,
+            RemoteRun,
+            RemoteStop,
+            ReadCpuModel,
+            Loopback,
+            ReadExtFile,
+            WriteExtFile,
+            TestExtFile,
+            RegisterMonitorExt,
+            MonitorExt,
+            ReadExtDirect,
+            WriteExtDirect,
+            FixedBufferData,
+            ReadRandomBuffer,
+            WriteRandomBuffer,
+        )
+    },
+    **dict.fromkeys(OPAQUE_COMMANDS, OpaqueCommand.decode),
 }

@@ -8,14 +8,36 @@ client should use, so callers never assemble URLs by hand.
 from __future__ import annotations
 
 import asyncio
-from abc import ABC, abstractmethod
-from types import TracebackType
-from typing import Self
+from abc import abstractmethod
 
-__all__ = ["Simulator", "TcpSimulator", "UdpSimulator"]
+from plcstack.resource import AsyncResource
+
+__all__ = ["ConnectionCount", "Simulator", "TcpSimulator", "UdpSimulator"]
 
 
-class Simulator(ABC):
+class ConnectionCount:
+    """How many client connections a simulator holds now, and the most it ever held at once.
+
+    The scale-out tests read ``peak`` to prove that no PLC ever had two pollers at once.
+    """
+
+    __slots__ = ("current", "peak", "total")
+
+    def __init__(self) -> None:
+        self.current = 0
+        self.peak = 0
+        self.total = 0
+
+    def opened(self) -> None:
+        self.current += 1
+        self.total += 1
+        self.peak = max(self.peak, self.current)
+
+    def closed(self) -> None:
+        self.current -= 1
+
+
+class Simulator(AsyncResource):
     """A running simulator. Close it with ``await sim.aclose()`` or ``async with``."""
 
     #: the URL a plcstack client uses to reach this simulator, e.g. ``e71+tcp://127.0.0.1:40001``
@@ -23,17 +45,6 @@ class Simulator(ABC):
 
     @abstractmethod
     async def aclose(self) -> None: ...
-
-    async def __aenter__(self) -> Self:
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.aclose()
 
     async def serve_forever(self) -> None:
         """Serve until cancelled (the CLI's ``plcstack sim``)."""
@@ -53,11 +64,20 @@ class TcpSimulator(Simulator):
         self.port: int = sockname[1]
         self.url = f"{scheme}://{self.host}:{self.port}" + (f"?{query}" if query else "")
         self._conn_tasks: set[asyncio.Task[None]] = set()
+        #: client connections now / at most at once (simulators without per-connection tasks
+        #: call ``opened``/``closed`` themselves)
+        self.connection_count = ConnectionCount()
 
     def track(self, task: asyncio.Task[None]) -> None:
-        """Remember a per-connection task so ``aclose`` can end it (no task outlives the sim)."""
+        """Remember a per-connection task so ``aclose`` can end it (no task outlives the sim);
+        the connection counts as open until the task ends."""
         self._conn_tasks.add(task)
-        task.add_done_callback(self._conn_tasks.discard)
+        self.connection_count.opened()
+        task.add_done_callback(self._untrack)
+
+    def _untrack(self, task: asyncio.Task[None]) -> None:
+        self._conn_tasks.discard(task)
+        self.connection_count.closed()
 
     async def aclose(self) -> None:
         self.server.close()
