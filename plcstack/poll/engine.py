@@ -57,10 +57,10 @@ from plcstack.errors import (
     PlcTimeout,
 )
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
-from plcstack.poll.plan import ScanPlan, build_plan, describe
-from plcstack.poll.values import TagValue, WordOrder
+from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, describe, encode_tag
 from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
+from plcstack.values import ByteOrder, Endian, TagValue, WordOrder
 
 __all__ = ["PlcStats", "Poller", "Quality", "Sample", "format_stats"]
 
@@ -222,8 +222,9 @@ class _Plc:
     client: Client
     groups: list[_Group]
     stats: PlcStats
-    tags: dict[str, tuple[TagConfig, int]]  # name -> (tag, point bits)
-    order: WordOrder = WordOrder.BIG
+    tags: dict[str, TagPlan]  # name -> the tag's plan (point bits, bit of a word)
+    order: WordOrder = Endian.BIG
+    byte_order: ByteOrder = Endian.BIG
     task: asyncio.Task[None] | None = None
 
 
@@ -277,7 +278,7 @@ class Poller:
         except AddressError as exc:
             raise AddressError(exc.message, plc=plc.name, request=exc.request) from None
         groups: list[_Group] = []
-        tags: dict[str, tuple[TagConfig, int]] = {}
+        tags: dict[str, TagPlan] = {}
         for name, interval in self.config.groups.items():
             members = tuple(t for t in plc.tags if t.group == name)
             if not members:
@@ -289,8 +290,8 @@ class Poller:
                 raise
             groups.append(_Group(name, interval, members, plan))
             for tag_plan in plan.tags:
-                tags[tag_plan.tag.name] = (tag_plan.tag, tag_plan.point_bits)
-        return _Plc(plc, client, groups, PlcStats(), tags, plc.order)
+                tags[tag_plan.tag.name] = tag_plan
+        return _Plc(plc, client, groups, PlcStats(), tags, plc.order, client.byte_order)
 
     # -- life cycle -------------------------------------------------------------------------
     @property
@@ -426,9 +427,17 @@ class Poller:
         """
         state = self._plc(plc)
         try:
-            config, bits = state.tags[tag]
+            tag_plan = state.tags[tag]
         except KeyError:
             raise AddressError(f"no tag named {tag!r}", plc=plc, request=f"write {tag}") from None
+        config, bits = tag_plan.tag, tag_plan.point_bits
+        if tag_plan.bit is not None:
+            raise AddressError(
+                f"tag {tag!r} is a bit of a word ({config.address}) and is read-only: writing "
+                "one bit of a word would be a read-modify-write racing the PLC program",
+                plc=plc,
+                request=f"write {tag}",
+            )
         items: Sequence[object]
         if config.count == 1:
             items = [value]
@@ -446,15 +455,12 @@ class Poller:
                 plc=plc,
                 request=f"write {tag}",
             )
-        points: list[int | bool] = []
-        order = state.order
-        for item in items:
-            try:
-                points.extend(config.type.encode(item, bits, order))
-            except AddressError as exc:
-                raise AddressError(
-                    f"tag {tag!r}: {exc.message}", plc=plc, request=f"write {tag}"
-                ) from None
+        try:
+            points = encode_tag(config, items, bits, state.order, state.byte_order)
+        except AddressError as exc:
+            raise type(exc)(
+                f"tag {tag!r}: {exc.message}", plc=plc, request=f"write {tag}"
+            ) from None
         if all(isinstance(p, bool) for p in points):
             await self.write(plc, config.address, [bool(p) for p in points])
         else:

@@ -31,7 +31,7 @@ from datetime import UTC, datetime
 from typing import Any
 
 from plcstack.poll.engine import Sample
-from plcstack.poll.values import Scalar
+from plcstack.values import Scalar
 
 __all__ = ["FORMATS", "influx_line", "iso_time", "jsonl_line"]
 
@@ -79,6 +79,10 @@ def _field(value: Scalar) -> str | None:
         return "true" if value else "false"
     if isinstance(value, int):
         return f"{value}i"
+    if isinstance(value, str):
+        return _escape_string(value)
+    if isinstance(value, tuple):  # KY: the STEP 5 display "12,255"
+        return _escape_string(",".join(str(b) for b in value))
     if not math.isfinite(value):
         return None
     return repr(float(value))
