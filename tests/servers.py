@@ -1,4 +1,5 @@
-"""Real servers for tests: mosquitto and InfluxDB 1.x on free loopback ports.
+"""Real servers for tests: mosquitto, nats-server (JetStream) and InfluxDB 1.x on free loopback
+ports.
 
 Tests of the north side talk to the real brokers a plant runs, not to fakes, so a test that needs
 one starts it here. If the binary is missing or the server does not come up, the helper raises
@@ -42,10 +43,12 @@ import pytest
 __all__ = [
     "Influxd",
     "Mosquitto",
+    "NatsServer",
     "ServerUnavailable",
     "free_port",
     "influxd",
     "mosquitto",
+    "nats_server",
 ]
 
 #: how long a server may take to accept connections after start
@@ -72,6 +75,9 @@ def _accepts(host: str, port: int) -> bool:
         return False
 
 
+_PACKAGES = {"mosquitto": "mosquitto", "nats-server": "nats-server", "influxd": "influxdb"}
+
+
 def _find(binary: str, *extra_dirs: str) -> str:
     path = shutil.which(binary)
     if path is None:
@@ -81,7 +87,7 @@ def _find(binary: str, *extra_dirs: str) -> str:
                 return candidate
         raise ServerUnavailable(
             f"{binary} is not installed (Debian: apt-get install -y "
-            f"{'mosquitto' if binary == 'mosquitto' else 'influxdb'}); .ci/run installs it"
+            f"{_PACKAGES.get(binary, binary)}); .ci/run installs it"
         )
     return path
 
@@ -224,6 +230,60 @@ class Mosquitto(_Server):
         return [self.binary, "-c", str(conf)]
 
 
+class NatsServer(_Server):
+    """nats-server with JetStream (``-js``) on ``127.0.0.1:port``, its store in the temporary
+    directory (kept across ``restart()``), and the HTTP monitor on ``monitor_port`` (``/varz``
+    counts messages for the scale-out figures; ``/healthz`` says when JetStream is ready)."""
+
+    name = "nats-server"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.monitor_port = free_port()
+        self.binary = _find("nats-server", "/usr/sbin", "/usr/local/sbin", "/usr/bin")
+
+    @property
+    def url(self) -> str:
+        return f"nats://{self.host}:{self.port}"
+
+    def varz(self) -> dict[str, object]:
+        """The server's ``/varz`` statistics (in_msgs, out_msgs, connections, ...)."""
+        import json
+        import urllib.request
+
+        with urllib.request.urlopen(f"http://{self.host}:{self.monitor_port}/varz", timeout=2) as r:
+            data: dict[str, object] = json.load(r)
+            return data
+
+    def _ready(self) -> bool:
+        import urllib.request
+
+        if not _accepts(self.host, self.port):
+            return False
+        try:
+            url = f"http://{self.host}:{self.monitor_port}/healthz?js-enabled-only=true"
+            with urllib.request.urlopen(url, timeout=0.5) as r:
+                return int(r.status) == 200
+        except OSError:
+            return False
+
+    def _command(self) -> list[str]:
+        return [
+            self.binary,
+            "-js",
+            "-a",
+            self.host,
+            "-p",
+            str(self.port),
+            "-m",
+            str(self.monitor_port),
+            "-sd",
+            str(self.dir / "jetstream"),
+            "-l",
+            str(self.log_path),
+        ]
+
+
 class Influxd(_Server):
     """InfluxDB 1.x (``influxd``) with HTTP on ``127.0.0.1:port``, everything else loopback."""
 
@@ -282,6 +342,15 @@ def mosquitto() -> Iterator[Mosquitto]:
     """A fresh persistent mosquitto on a free loopback port; the test fails if there is none."""
     for server in _serve(Mosquitto()):
         assert isinstance(server, Mosquitto)
+        yield server
+
+
+@pytest.fixture
+def nats_server() -> Iterator[NatsServer]:
+    """A fresh nats-server with JetStream on a free loopback port; the test fails if there is
+    none."""
+    for server in _serve(NatsServer()):
+        assert isinstance(server, NatsServer)
         yield server
 
 

@@ -435,7 +435,7 @@ async def test_receive_time_is_source_time_plus_the_measured_latency() -> None:
 
 # -- the overhead benchmark -----------------------------------------------------------------------
 def test_pollcost_benchmark_measures_both_sides(capsys: pytest.CaptureFixture[str]) -> None:
-    from benchmarks import pollcost
+    from plcstack.bench import pollcost
 
     assert pollcost.main(["--plcs", "3", "--seconds", "0.05", "--repeats", "2"]) == 0
     out = capsys.readouterr().out
