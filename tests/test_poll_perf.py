@@ -30,10 +30,10 @@ from plcstack.poll.engine import (
     Poller,
     Quality,
     Sample,
-    _sample,
     timer_resolution,
 )
 from plcstack.poll.plan import build_plan, decoder
+from plcstack.poll.samples import make_sample as _sample
 from plcstack.values import WordOrder
 from tests.poll_fakes import FakeClient
 
