@@ -26,11 +26,15 @@ temp = { address = "D102", type = "float32", group = "default" }
 alarms = { address = "M0", type = "bool", count = 16 }
 level = { address = "D110", type = "int16", scale = [0, 4000, 0.0, 100.0] }   # raw -> engineering
 door = { address = "D120.3", type = "bool" }              # bit 3 of D120 (S5: "DB10.DW5.3")
+setpoint = { address = "D130", type = "int16", writable = true }   # north-side servers may write
 ```
 
 Tag types are the value types of :mod:`plcstack.values` by name (``int16``, ``float32``, ``kg``,
 ``kt``, ``bcd16``, ``string:10``, ...). ``scale = [raw_lo, raw_hi, eng_lo, eng_hi]`` maps a number
 linearly onto engineering units (writes map back).
+
+Other top-level tables (``[opcua]``) belong to the north-side servers and are read by them; the
+poller only checks that they are tables.
 
 Every problem is a :class:`ConfigError` naming the PLC, the tag and, where it can be found, the
 TOML line, so a typo in a 500-PLC file is found at once and before anything is sent.
@@ -76,6 +80,8 @@ DEFAULT_INTERVAL = 1.0
 DEFAULT_CONCURRENCY: int | None = None
 DEFAULT_QUEUE = 10_000
 DEFAULT_MAX_GAP = 8
+#: top-level tables read by north-side servers from the same file (plcstack.north)
+NORTH_SECTIONS = ("opcua",)
 
 
 class ConfigError(AddressError):
@@ -100,6 +106,9 @@ class TagConfig:
     count: int = 1
     group: str = DEFAULT_GROUP
     scale: Scale | None = None
+    #: whether north-side servers (OPC UA) may write this tag; the Python API's ``write_tag`` is
+    #: not limited by it (the program that owns the poller decides for itself)
+    writable: bool = False
 
 
 @dataclass(frozen=True)
@@ -262,11 +271,15 @@ class _Loader:
         return sorted(set(table) - allowed)
 
     def load(self, data: dict[str, Any]) -> PollConfig:
-        unknown = self._unknown(data, {"poll", "groups", "plc"})
+        unknown = self._unknown(data, {"poll", "groups", "plc", *NORTH_SECTIONS})
         if unknown:
             raise self.error(
                 f"unknown top-level key(s) {', '.join(unknown)}; expected poll, groups, plc"
+                f" or {', '.join(NORTH_SECTIONS)}"
             )
+        for section in NORTH_SECTIONS:
+            if section in data and not isinstance(data[section], dict):
+                raise self.error(f"[{section}] must be a table", section)
         poll = data.get("poll", {})
         if not isinstance(poll, dict):
             raise self.error("[poll] must be a table", "poll")
@@ -414,7 +427,7 @@ class _Loader:
                 f'{where}: expected "ADDRESS" or {{ address = ..., type = ..., count = ... }}',
                 name,
             )
-        unknown = self._unknown(spec, {"address", "type", "count", "group", "scale"})
+        unknown = self._unknown(spec, {"address", "type", "count", "group", "scale", "writable"})
         if unknown:
             raise self.error(f"{where}: unknown key(s) {', '.join(unknown)}", name)
         address = spec.get("address")
@@ -452,4 +465,9 @@ class _Loader:
                 f"{where}: unknown scan group {tag_group!r} (groups: {', '.join(sorted(groups))})",
                 name,
             )
-        return TagConfig(name, address.strip(), dtype, count, tag_group, scale)
+        writable = spec.get("writable", False)
+        if not isinstance(writable, bool):
+            raise self.error(f"{where}: writable must be true or false, not {writable!r}", name)
+        return TagConfig(
+            name, address.strip(), dtype, count, tag_group, scale=scale, writable=writable
+        )
