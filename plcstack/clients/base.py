@@ -299,12 +299,14 @@ class RequestClient(Client, Generic[E]):
             # list only when the answer comes in more than one chunk)
             first = b""
             chunks: list[bytes] | None = None
-            self._settled = False
+            # A settled codec holds no bytes, so right after ``send`` it can only need data:
+            # asking it (as an unsettled one must be asked) would cost a decode attempt.
+            settled, self._settled = self._settled, False
             try:
                 codec = self.codec
                 transport.write(codec.send(request))
                 expires = asyncio.get_running_loop().time() + deadline
-                event = codec.next_event()  # NEED_DATA, unless the codec answers by itself
+                event = NEED_DATA if settled else codec.next_event()
                 while event is NEED_DATA:
                     chunk = await transport.read(expires)
                     if chunks is not None:
