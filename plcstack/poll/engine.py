@@ -42,7 +42,6 @@ import collections
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any, Self
 
 from plcstack.clients.base import Client
@@ -58,6 +57,7 @@ from plcstack.poll.plan import ScanPlan, build_plan, describe
 from plcstack.poll.samples import Quality, Sample, make_sample
 from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
 from plcstack.poll.values import WordOrder
+from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
 
@@ -114,7 +114,7 @@ def default_client_factory(plc: PlcConfig) -> Client:
     return client
 
 
-class Poller:
+class Poller(AsyncResource):
     """Polls every PLC of a :class:`PollConfig`; iterate over it for :class:`Sample` objects.
 
     Clients and read plans are built in the constructor, so every bad URL or address raises
@@ -183,6 +183,14 @@ class Poller:
     def client(self, plc: str) -> Client:
         return self._plc(plc).client
 
+    def tags(self, plc: str) -> dict[str, tuple[TagConfig, int]]:
+        """Each tag of one PLC with the width of its points in bits (1 bit, 8 byte, 16 word area).
+
+        What a north-side server needs to give a tag its type before the first sample arrives
+        (a ``raw`` tag is a bool, a byte or a word depending on the area).
+        """
+        return dict(self._plc(plc).tags)
+
     async def start(self) -> None:
         if self._running or self._closed:
             return
@@ -215,17 +223,8 @@ class Poller:
         self._update_connection_stats()
         self._wakeup.set()
 
-    async def __aenter__(self) -> Self:
+    async def aopen(self) -> None:
         await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.aclose()
 
     # -- samples ----------------------------------------------------------------------------
     def __aiter__(self) -> Self:
@@ -528,7 +527,16 @@ class Poller:
             if isinstance(result, PlcError):
                 bad += 1
                 queue.append(
-                    make_sample(name, tag_plan.tag.name, None, bad_q, source, receive, str(result))
+                    make_sample(
+                        name,
+                        tag_plan.tag.name,
+                        None,
+                        bad_q,
+                        source,
+                        receive,
+                        str(result),
+                        type(result),
+                    )
                 )
             else:
                 queue.append(
