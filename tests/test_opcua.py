@@ -27,6 +27,7 @@ from asyncua.ua.uaerrors import UaStatusCodeError
 from plcstack.north.opcua import OpcUaServer
 from plcstack.north.opcua_config import OpcUaConfig, UserConfig, hash_password
 from plcstack.poll import PlcConfig, PollConfig, Poller, TagConfig
+from plcstack.poll.samples import Quality, Sample
 from plcstack.poll.values import DataType
 from plcstack.sim import e71, fetchwrite
 from plcstack.sim.melsec_memory import MelsecMemory
@@ -462,3 +463,22 @@ strokes = {{ address = "D100", type = "uint16", writable = true }}
             proc.kill()
             await proc.wait()
         await sim.aclose()
+
+
+async def test_submit_is_the_sink_interface_and_keeps_the_newest_sample_per_tag(
+    plant: Plant,
+) -> None:
+    # a second feed (as a fan-out loop after report-by-exception would call it): never blocks
+    server = plant.server
+    before = server.coalesced
+    now = time.time()
+    samples = [
+        Sample("press1", "nosuch", 1, Quality.GOOD, now, now),  # unknown tag: ignored
+        Sample("oven2", "status", 1, Quality.GOOD, now, now),
+        Sample("oven2", "status", 2, Quality.GOOD, now, now),  # replaces the one before
+    ]
+    server.submit(samples)
+    assert server.coalesced == before + 1
+    node = plant.node(plant.anonymous, "oven2", "status")
+    # applied by the server's task (2), then the poller's next sample brings back 13
+    await wait_for(node, lambda dv: good(dv) and dv.Value.Value == 13)
