@@ -470,15 +470,22 @@ async def test_submit_is_the_sink_interface_and_keeps_the_newest_sample_per_tag(
 ) -> None:
     # a second feed (as a fan-out loop after report-by-exception would call it): never blocks
     server = plant.server
-    before = server.coalesced
-    now = time.time()
-    samples = [
-        Sample("press1", "nosuch", 1, Quality.GOOD, now, now),  # unknown tag: ignored
-        Sample("oven2", "status", 1, Quality.GOOD, now, now),
-        Sample("oven2", "status", 2, Quality.GOOD, now, now),  # replaces the one before
-    ]
-    server.submit(samples)
-    assert server.coalesced == before + 1
-    node = plant.node(plant.anonymous, "oven2", "status")
-    # applied by the server's task (2), then the poller's next sample brings back 13
-    await wait_for(node, lambda dv: good(dv) and dv.Value.Value == 13)
+    handler = Changes()
+    sub = await plant.anonymous.create_subscription(10, handler)
+    try:
+        await sub.subscribe_data_change(plant.node(plant.anonymous, "oven2", "status"))
+        await handler.until(lambda v, dv: v == 13)
+        before = server.coalesced
+        now = time.time()
+        server.submit(
+            [
+                Sample("press1", "nosuch", 1, Quality.GOOD, now, now),  # unknown: ignored
+                Sample("oven2", "status", 1, Quality.GOOD, now, now),
+                Sample("oven2", "status", 2, Quality.GOOD, now, now),  # replaces the 1
+            ]
+        )
+        assert server.coalesced == before + 1
+        seen = await handler.until(lambda v, dv: v != 13)
+        assert seen.Value is not None and seen.Value.Value == 2
+    finally:
+        await sub.delete()
