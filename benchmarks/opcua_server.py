@@ -22,6 +22,7 @@ Measured:
   then sees the last value only.
 
     python -m benchmarks.opcua_server [--plcs 10] [--tags 100] [--interval 1.0] [--seconds 20]
+    python -m benchmarks.opcua_server --poll-only     # the same polling without the server
 """
 
 from __future__ import annotations
@@ -114,61 +115,94 @@ async def change_loop(
 
 
 async def main_async(args: argparse.Namespace) -> None:
-    from asyncua.client.client import Client
-
     memories = [MelsecMemory() for _ in range(args.plcs)]
     sims = [await sim_e71.start(m) for m in memories]
-    with tempfile.TemporaryDirectory() as tmp:
-        config = Path(tmp) / "bench.toml"
-        write_config(config, [s.url for s in sims], args.tags, args.interval)
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable,
-            "-m",
-            "plcstack",
-            "serve",
-            "opcua",
-            str(config),
-            stderr=asyncio.subprocess.PIPE,
-            cwd=ROOT,
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            config = Path(tmp) / "bench.toml"
+            write_config(config, [s.url for s in sims], args.tags, args.interval)
+            if args.poll_only:
+                await poll_only(args, memories, config)
+            else:
+                await serve(args, memories, config)
+    finally:
+        for sim in sims:
+            await sim.aclose()
+
+
+async def serve(args: argparse.Namespace, memories: list[MelsecMemory], config: Path) -> None:
+    from asyncua.client.client import Client
+
+    proc = await asyncio.create_subprocess_exec(
+        *(sys.executable, "-m", "plcstack", "serve", "opcua", str(config)),
+        stderr=asyncio.subprocess.PIPE,
+        cwd=ROOT,
+    )
+    try:
+        assert proc.stderr is not None
+        while b"listening on" not in (line := await proc.stderr.readline()):
+            if not line:
+                raise SystemExit("the server ended before listening")
+        url = line.decode().rsplit(" ", 1)[1].strip()
+        async with Client(url, timeout=30) as client:
+            idx = await client.get_namespace_index("urn:plcstack")
+            names: dict[Any, tuple[int, int]] = {}
+            nodes = []
+            for p in range(args.plcs):
+                for t in range(args.tags):
+                    node = client.get_node(f"ns={idx};s=plc{p}.t{t}")
+                    names[node.nodeid] = (p, t)
+                    nodes.append(node)
+            handler = Handler(names)
+            sub = await client.create_subscription(args.publish, handler)
+            for i in range(0, len(nodes), 500):
+                await sub.subscribe_data_change(nodes[i : i + 500])
+            changes, cpu = await measure(args, memories, handler, proc.pid)
+            await asyncio.sleep(args.interval + 1.0)  # the last changes' notifications
+        report(args, handler, changes, cpu)
+    finally:
+        await stop(proc)
+
+
+async def poll_only(args: argparse.Namespace, memories: list[MelsecMemory], config: Path) -> None:
+    """The baseline: ``plcstack poll`` of the same PLCs and changes, JSON lines to /dev/null."""
+    proc = await asyncio.create_subprocess_exec(
+        *(sys.executable, "-m", "plcstack", "poll", str(config)),
+        stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.DEVNULL,
+        cwd=ROOT,
+    )
+    try:
+        _, cpu = await measure(args, memories, Handler({}), proc.pid)
+        tags = args.plcs * args.tags
+        print(
+            f"baseline plcstack poll (JSON lines to /dev/null), {tags} tags every "
+            f"{args.interval} s: CPU {cpu * 100:.1f} % of one core"
         )
-        try:
-            assert proc.stderr is not None
-            while b"listening on" not in (line := await proc.stderr.readline()):
-                if not line:
-                    raise SystemExit("the server ended before listening")
-            url = line.decode().rsplit(" ", 1)[1].strip()
-            async with Client(url, timeout=30) as client:
-                idx = await client.get_namespace_index("urn:plcstack")
-                names: dict[Any, tuple[int, int]] = {}
-                nodes = []
-                for p in range(args.plcs):
-                    for t in range(args.tags):
-                        node = client.get_node(f"ns={idx};s=plc{p}.t{t}")
-                        names[node.nodeid] = (p, t)
-                        nodes.append(node)
-                handler = Handler(names)
-                sub = await client.create_subscription(args.publish, handler)
-                for i in range(0, len(nodes), 500):
-                    await sub.subscribe_data_change(nodes[i : i + 500])
-                warm = time.perf_counter() + args.warmup
-                stop = warm + args.seconds
-                changer = asyncio.create_task(
-                    change_loop(memories, args.tags, args.change_every, handler, stop)
-                )
-                await asyncio.sleep(max(0.0, warm - time.perf_counter()))
-                handler.since = time.perf_counter()
-                cpu0, t0 = cpu_seconds(proc.pid), time.perf_counter()
-                changes = await changer
-                cpu1, t1 = cpu_seconds(proc.pid), time.perf_counter()
-                await asyncio.sleep(args.interval + 1.0)  # the last changes' notifications
-            report(args, handler, changes, (cpu1 - cpu0) / (t1 - t0))
-        finally:
-            if proc.returncode is None:
-                proc.terminate()
-                with contextlib.suppress(Exception):
-                    await asyncio.wait_for(proc.wait(), 10)
-            for sim in sims:
-                await sim.aclose()
+    finally:
+        await stop(proc)
+
+
+async def measure(
+    args: argparse.Namespace, memories: list[MelsecMemory], handler: Handler, pid: int
+) -> tuple[int, float]:
+    """Change the PLCs' memory through warm-up and window; returns (changes, CPU share of pid)."""
+    warm = time.perf_counter() + args.warmup
+    end = warm + args.seconds
+    changer = asyncio.create_task(change_loop(memories, args.tags, args.change_every, handler, end))
+    await asyncio.sleep(max(0.0, warm - time.perf_counter()))
+    handler.since = time.perf_counter()
+    cpu0, t0 = cpu_seconds(pid), time.perf_counter()
+    changes = await changer
+    cpu1, t1 = cpu_seconds(pid), time.perf_counter()
+    return changes, (cpu1 - cpu0) / (t1 - t0)
+
+
+async def stop(proc: asyncio.subprocess.Process) -> None:
+    if proc.returncode is None:
+        proc.terminate()
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(proc.wait(), 10)
 
 
 def report(args: argparse.Namespace, handler: Handler, changes: int, cpu: float) -> None:
@@ -196,7 +230,11 @@ def report(args: argparse.Namespace, handler: Handler, changes: int, cpu: float)
     if after:
         print(line("latency poller's read sent (SourceTimestamp) -> client notification", after))
     print(f"notifications matched {len(lat)} of {changes} changes made while measuring")
-    print(f"server process CPU: {cpu * 100:.1f} % of one core ({cpu * 1e6 / tags:.0f} us/tag/s)")
+    rate = changes / args.seconds
+    print(
+        f"server process CPU: {cpu * 100:.1f} % of one core "
+        f"({cpu * 1e6 / tags:.0f} us per tag and second, {rate:.0f} changes/s)"
+    )
 
 
 def main() -> None:
@@ -204,10 +242,15 @@ def main() -> None:
     parser.add_argument("--plcs", type=int, default=10)
     parser.add_argument("--tags", type=int, default=100, help="tags per PLC")
     parser.add_argument("--interval", type=float, default=1.0, help="scan interval (s)")
-    parser.add_argument("--change-every", type=float, default=1.0, help="each tag changes (s)")
+    parser.add_argument(
+        "--change-every", type=float, default=2.0, help="each tag changes every S s on average"
+    )
     parser.add_argument("--publish", type=float, default=100.0, help="publishing interval (ms)")
     parser.add_argument("--seconds", type=float, default=20.0, help="measuring window")
     parser.add_argument("--warmup", type=float, default=3.0)
+    parser.add_argument(
+        "--poll-only", action="store_true", help="baseline: plcstack poll instead of the server"
+    )
     asyncio.run(main_async(parser.parse_args()))
 
 
