@@ -74,10 +74,7 @@ S5_CASES = [
 
 
 def _s5(name: str) -> list[object]:
-    return [
-        pytest.param(name, *case, id=f"{name}-{i}")
-        for i, case in enumerate(S5_CASES)
-    ]
+    return [pytest.param(name, *case, id=f"{name}-{i}") for i, case in enumerate(S5_CASES)]
 
 
 @pytest.mark.parametrize(

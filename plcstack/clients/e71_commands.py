@@ -93,7 +93,7 @@ class E71CommandsMixin:
             self, request: Any, what: str, *, is_write: bool, timeout: float | None = None
         ) -> Any: ...
 
-        def _reply_or_raise(self, event: R, what: str) -> R: ...
+        def _reply_or_raise(self, event: R, what: str, *, is_write: bool = False) -> R: ...
 
         def _bad(self, message: str, what: str) -> AddressError: ...
 
@@ -112,7 +112,7 @@ class E71CommandsMixin:
         except LocalProtocolError as exc:
             raise self._bad(exc.message, what) from None
         event: Response | ExtensionResponse = await self.exchange(request, what, is_write=is_write)
-        return self._reply_or_raise(event, what)
+        return self._reply_or_raise(event, what, is_write=is_write)
 
     async def _xwords(self, request: ExtensionRequest, what: str) -> list[int]:
         event = await self._xcall(request, what, is_write=False)
