@@ -5,7 +5,7 @@ both directions, as on a half-duplex 8E1 line). The client counts the bytes it s
 the line-rate limit is that count times 11 / 9600 s, i.e. the time the bytes alone need on the
 wire. The difference is handshake turnaround and asyncio latency.
 
-    python benchmarks/as511_line_rate.py [--wire pty|tcp] [--baud 9600] [--rounds 5]
+    python -m benchmarks.as511_line_rate [--wire pty|tcp] [--baud 9600] [--rounds 5]
 """
 
 from __future__ import annotations

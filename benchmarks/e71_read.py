@@ -5,8 +5,8 @@ after the other, several alternating rounds; the best round of each is reported.
 sends pre-built request bytes and waits for the known reply length (2 + 128 bytes) on a plain
 ``asyncio.Protocol``: no codec, no error handling, the floor the stack cannot beat.
 
-    python benchmarks/e71_read.py [--seconds 1.0] [--rounds 3] [--code binary|ascii]
-    python benchmarks/e71_read.py --profile      # cProfile of the stack path, top entries
+    python -m benchmarks.e71_read [--seconds 1.0] [--rounds 3] [--code binary|ascii]
+    python -m benchmarks.e71_read --profile      # cProfile of the stack path, top entries
 """
 
 from __future__ import annotations
@@ -15,11 +15,7 @@ import argparse
 import asyncio
 import cProfile
 import pstats
-import sys
 import time
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import plcstack
 from plcstack.codecs.e71 import Code, Device, DeviceRef, E71ClientConnection, ReadWords

@@ -18,12 +18,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from benchmarks import frames
-from benchmarks.cases import sample_words
-from benchmarks.floor import FloorError, open_floor
-from benchmarks.png import Canvas, ChartSeries, compact, encode_png, line_chart
-from benchmarks.report import chart_series, format_table, write_json, write_plot
-from benchmarks.runner import (
+from plcstack.bench import frames
+from plcstack.bench.cases import sample_words
+from plcstack.bench.floor import FloorError, open_floor
+from plcstack.bench.png import Canvas, ChartSeries, compact, encode_png, line_chart
+from plcstack.bench.report import chart_series, format_table, write_json, write_plot
+from plcstack.bench.runner import (
     JSON_KEYS,
     Result,
     Sample,

@@ -361,7 +361,7 @@ async def test_cli_poll_influx_and_config_error_exit_codes(tmp_path: Path) -> No
     assert proc.returncode == 0, stderr.decode()
     lines = stdout.decode().splitlines()
     assert any(
-        line.startswith('plc,plc=plc000,tag=counter value=9i,quality="good" ') for line in lines
+        line.startswith('plc,plc=plc000,tag=counter value_int=9i,quality="good" ') for line in lines
     )
     assert "plc000" in stderr.decode() and "requests" in stderr.decode()
     assert stderr.decode().count("p99 ms") >= 2  # --stats-every, then the final statistics

@@ -29,10 +29,10 @@ from plcstack.poll.engine import (
     Poller,
     Quality,
     Sample,
-    _sample,
     timer_resolution,
 )
 from plcstack.poll.plan import build_plan, decoder
+from plcstack.poll.samples import make_sample as _sample
 from plcstack.poll.values import DataType, WordOrder
 from tests.poll_fakes import FakeClient
 
@@ -436,7 +436,7 @@ async def test_receive_time_is_source_time_plus_the_measured_latency() -> None:
 
 # -- the overhead benchmark -----------------------------------------------------------------------
 def test_pollcost_benchmark_measures_both_sides(capsys: pytest.CaptureFixture[str]) -> None:
-    from benchmarks import pollcost
+    from plcstack.bench import pollcost
 
     assert pollcost.main(["--plcs", "3", "--seconds", "0.05", "--repeats", "2"]) == 0
     out = capsys.readouterr().out

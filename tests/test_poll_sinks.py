@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 from hypothesis import given, settings
@@ -23,16 +24,19 @@ def test_iso_time() -> None:
     assert iso_time(T0) == "2026-11-22T00:31:30.123456Z"
 
 
+# A field per value type (InfluxDB 1.x fixes a field's type per measurement), see north.influx.
+H = "plc,plc=press\\ 1,tag=temp\\,a\\=b "
 INFLUX = [
-    (21.5, 'plc,plc=press\\ 1,tag=temp\\,a\\=b value=21.5,quality="good" 1795307490123456000'),
-    (7, 'plc,plc=press\\ 1,tag=temp\\,a\\=b value=7i,quality="good" 1795307490123456000'),
-    (True, 'plc,plc=press\\ 1,tag=temp\\,a\\=b value=true,quality="good" 1795307490123456000'),
+    (21.5, H + 'value_float=21.5,quality="good" 1795307490123456000'),
+    (7, H + 'value_int=7i,quality="good" 1795307490123456000'),
+    (True, H + 'value_bool=true,quality="good" 1795307490123456000'),
+    ([1, -2], H + 'value_int_0=1i,value_int_1=-2i,quality="good" 1795307490123456000'),
+    (float("nan"), H + 'quality="bad",error="non-finite value nan" 1795307490123456000'),
     (
-        [1, -2],
-        'plc,plc=press\\ 1,tag=temp\\,a\\=b value_0=1i,value_1=-2i,quality="good" '
+        [1.5, float("-inf")],
+        H + 'value_float_0=1.5,quality="bad",error="element 1: non-finite value -inf" '
         "1795307490123456000",
     ),
-    (float("nan"), 'plc,plc=press\\ 1,tag=temp\\,a\\=b quality="good" 1795307490123456000'),
 ]
 
 
@@ -91,4 +95,8 @@ def test_any_sample_is_one_well_formed_line(
     line = influx_line(s)
     assert "\n" not in line and "\r" not in line
     assert line.startswith("plc,plc=") and line.endswith(str(round(t * 1e6) * 1000))
-    assert f'quality="{quality.value}"' in line
+    finite = all(
+        not isinstance(v, float) or math.isfinite(v)
+        for v in (value if isinstance(value, list) else [value])
+    )
+    assert f'quality="{quality.value if finite else "bad"}"' in line

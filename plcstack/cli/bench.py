@@ -1,26 +1,21 @@
-"""``plcstack bench``: the benchmark suite (codecs, one connection vs the floor, fan-out, peers).
+"""``plcstack bench``: the benchmark suite (codecs, one connection, fan-out, fleet, peers).
 
-The suite's code is the top-level ``benchmarks`` package of the source tree, beside ``plcstack/``;
-it is deliberately not installed with the wheel (it is a development tool with its own cases and
-fixtures). This command finds it in this order: the directory that contains the ``plcstack``
-package being run (a source checkout, also after ``pip install -e .``), else an importable
-``benchmarks`` package. From an installed wheel without the source tree it says so and exits 2.
+The suite is the ``plcstack.bench`` package, installed with the wheel, so the command works from
+any install. Standalone developer scripts that need extra services (brokers, databases) stay in
+the repository's ``benchmarks/`` directory and are not part of this command.
 
 The measurements run in a worker thread with their own event loop per loop kind (asyncio, and
-uvloop when installed), so both loops are measured the same way; fan-out cases run in child
-processes (see ``benchmarks/cases/fanout.py``).
+uvloop when installed), so both loops are measured the same way; fan-out and fleet cases run in
+child processes (see ``plcstack/bench/cases/fanout.py`` and ``fleet.py``).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
-import importlib
 import sys
 import threading
 from collections.abc import Callable
-from pathlib import Path
-from types import ModuleType
 from typing import Any, TypeVar
 
 from plcstack.errors import AddressError
@@ -33,7 +28,7 @@ def register(subparsers: Any) -> None:
         "bench",
         help="benchmark codecs, one connection against the raw-asyncio floor, fan-out, peers",
         description="Measure plcstack against a raw asyncio floor on in-process simulators. "
-        "Needs the source tree (the benchmarks/ package beside plcstack/).",
+        "Runs from any install (the suite is the plcstack.bench package).",
     )
     size = bench.add_mutually_exclusive_group()
     size.add_argument("--quick", action="store_true", help="short run, < 60 s on 2 cores")
@@ -48,24 +43,6 @@ def register(subparsers: Any) -> None:
     )
     bench.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     bench.set_defaults(func=run_bench)
-
-
-def load_benchmarks() -> ModuleType:
-    """Import ``benchmarks.suite``: the source tree's own first, else an importable one."""
-    root = Path(__file__).resolve().parents[2]
-    if (root / "benchmarks" / "suite.py").is_file():
-        if str(root) not in sys.path:
-            sys.path.insert(0, str(root))
-        return importlib.import_module("benchmarks.suite")
-    try:
-        return importlib.import_module("benchmarks.suite")
-    except ModuleNotFoundError as exc:
-        if exc.name not in ("benchmarks", "benchmarks.suite"):
-            raise
-    raise AddressError(
-        "plcstack bench needs the source tree: the benchmarks/ package was not found next to "
-        f"{root / 'plcstack'} (run it from a git checkout, e.g. after pip install -e .)"
-    )
 
 
 async def _in_daemon_thread(work: Callable[[], T]) -> T:
@@ -103,8 +80,8 @@ async def _in_daemon_thread(work: Callable[[], T]) -> T:
 
 
 async def run_bench(args: argparse.Namespace) -> int:
-    suite = load_benchmarks()
-    report = importlib.import_module("benchmarks.report")
+    from plcstack.bench import report, suite  # imported on use: ``plcstack --help`` stays fast
+
     plan = suite.PLANS["smoke" if args.smoke else "quick" if args.quick else "full"]
     loops = suite.available_loops()
     if args.loop != "all":

@@ -18,6 +18,7 @@ from typing import Any, TextIO
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.sinks import FORMATS
+from plcstack.scale import cli as scale_cli
 
 
 def register(subparsers: Any) -> None:
@@ -44,6 +45,7 @@ def register(subparsers: Any) -> None:
         metavar="SECONDS",
         help="also print the statistics on stderr every SECONDS (for long runs)",
     )
+    scale_cli.add_arguments(poll)
     poll.set_defaults(func=run_poll)
 
 
@@ -73,6 +75,11 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
             print(f"plcstack poll: error: --{name} must be greater than 0", file=sys.stderr)
             return 2
     config = load_config(args.config)
+    try:
+        config = scale_cli.select(config, args)
+    except ValueError as exc:
+        print(f"plcstack poll: error: {exc}", file=sys.stderr)
+        return 2
     poller = Poller(config)  # every URL and address checked here, before anything is sent
     line = FORMATS[args.format]
     stop = asyncio.Event()

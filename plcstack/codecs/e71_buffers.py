@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from typing import Final, Literal
 
 from plcstack.codecs._common import NEED_DATA, NeedData, ReceiveBuffer
-from plcstack.codecs.e71 import Code, _Malformed, _Reader, _Writer
 from plcstack.codecs.e71_commands import FIXED_BUFFER_MAX_WORDS, FixedBufferData
+from plcstack.codecs.e71_wire import Code, Malformed, Reader, Writer
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
 __all__ = [
@@ -111,7 +111,7 @@ class FixedBufferConnection:
         if not self.owe_ack and end_code == 0:
             raise LocalProtocolError("no telegram of the peer to acknowledge")
         self.owe_ack = False
-        w = _Writer(self.code is Code.ASCII)
+        w = Writer(self.code is Code.ASCII)
         w.num(0xE0, 1)
         w.num(end_code, 1)
         return w.getvalue()
@@ -150,7 +150,7 @@ class FixedBufferConnection:
 
     def refuse(self, error: FixedBufferError) -> bytes:
         """E71 side: the answer to a refused telegram (§2: bit 7 set on its subheader)."""
-        w = _Writer(self.code is Code.ASCII)
+        w = Writer(self.code is Code.ASCII)
         w.num((error.subheader | 0x80) & 0xFF, 1)
         w.num(error.end_code, 1)
         return w.getvalue()
@@ -166,7 +166,7 @@ class FixedBufferConnection:
             return None
         sub = 0x7F  # [R] a non-hex ASCII subheader is answered FFH 54H, as in the core codec
         try:
-            r = _Reader(head, self.code is Code.ASCII)
+            r = Reader(head, self.code is Code.ASCII)
             sub = r.num(1)
             if sub == 0xE0:
                 return 2 * u
@@ -176,7 +176,7 @@ class FixedBufferConnection:
                 return None
             r.num(1)  # §13 A16: second subheader byte ignored
             n = r.num(2)
-        except _Malformed as exc:
+        except Malformed as exc:
             return self._fail(exc.end_code, exc.reason, sub)
         if not 1 <= n <= FIXED_BUFFER_MAX_WORDS[self.code]:
             return self._fail(
@@ -186,7 +186,7 @@ class FixedBufferConnection:
 
     def _decode(self, frame: bytes) -> FixedBufferData | FixedBufferAck | FixedBufferError:
         try:
-            r = _Reader(frame, self.code is Code.ASCII)
+            r = Reader(frame, self.code is Code.ASCII)
             sub = r.num(1)
             if sub == 0xE0:
                 end = r.num(1)
@@ -196,7 +196,7 @@ class FixedBufferConnection:
                 return FixedBufferAck(end)
             r.num(1)
             values = r.words(r.num(2))
-        except _Malformed as exc:
+        except Malformed as exc:
             return self._fail(exc.end_code, exc.reason)
         self.owe_ack = True
         return FixedBufferData(values)

@@ -29,20 +29,22 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar, Final
 
-from plcstack.codecs.e71 import (
-    DEFAULT_PC,
-    DEFAULT_TIMER,
+from plcstack.codecs.e71_events import (
     Ack,
-    Code,
     ErrorResponse,
     ExtensionRequest,
     ExtensionResponse,
     Response,
     WordsResponse,
-    _count_from,
-    _Malformed,
-    _Reader,
-    _Writer,
+)
+from plcstack.codecs.e71_wire import (
+    DEFAULT_PC,
+    DEFAULT_TIMER,
+    Code,
+    Malformed,
+    Reader,
+    Writer,
+    count_from,
 )
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
@@ -132,12 +134,12 @@ def _head(head: bytes, code: Code, expected_sub: int, sub_units: int = 1) -> tup
     if len(head) < (sub_units + 1) * u:
         return None
     try:
-        r = _Reader(head[: (sub_units + 1) * u], code is Code.ASCII)
+        r = Reader(head[: (sub_units + 1) * u], code is Code.ASCII)
         sub = r.num(1)
         if sub_units == 2:
             r.num(1)
         end = r.num(1)
-    except _Malformed:
+    except Malformed:
         raise RemoteProtocolError(f"malformed response head {head[:8]!r}") from None
     if sub != expected_sub:
         raise RemoteProtocolError(
@@ -164,22 +166,22 @@ def _size(head: bytes, code: Code, command: int, data_len: int, sub_units: int =
 
 def _error_or_body(
     frame: bytes, code: Code, command: int, sub_units: int = 1
-) -> ErrorResponse | _Reader:
+) -> ErrorResponse | Reader:
     """An :class:`ErrorResponse` for a non-zero end code, else a reader positioned at the data."""
-    r = _Reader(frame, code is Code.ASCII)
+    r = Reader(frame, code is Code.ASCII)
     try:
         r.num(sub_units)
         end = r.num(1)
         if end == 0x5B:
             return ErrorResponse(command, end, r.num(1))
-    except _Malformed as exc:
+    except Malformed as exc:
         raise RemoteProtocolError(f"malformed {command | 0x80:02X}H response: {exc}") from None
     if end != 0:
         return ErrorResponse(command, end)
     return r
 
 
-def _malformed(command: int, exc: _Malformed) -> RemoteProtocolError:
+def _malformed(command: int, exc: Malformed) -> RemoteProtocolError:
     return RemoteProtocolError(f"malformed {(command | 0x80) & 0xFF:02X}H response: {exc}")
 
 
@@ -209,7 +211,7 @@ class BytesResponse(ExtensionResponse):
     data: bytes
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num((self.command | 0x80) & 0xFF, 1)
         w.num(0, 1)
         w.raw(self.data)
@@ -228,7 +230,7 @@ class CpuModelResponse(ExtensionResponse):
         return cpu_model_name(self.model_code)
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num(0x95, 1)
         w.num(0, 1)
         w.num(self.model_code, 1)
@@ -244,7 +246,7 @@ class LoopbackResponse(ExtensionResponse):
     command: int = 0x16
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num(0x96, 1)
         w.num(0, 1)
         w.num(len(self.data) & 0xFF, 1)
@@ -261,7 +263,7 @@ class OpaqueResponse(ExtensionResponse):
     data: bytes = b""
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num((self.command | 0x80) & 0xFF, 1)
         w.num(0, 1)
         return w.getvalue() + self.data
@@ -278,7 +280,7 @@ class RandomBufferResponse(ExtensionResponse):
     ascii_sub_chars: int = 2
 
     def encode(self, code: Code) -> bytes:
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num((self.command | 0x80) & 0xFF, 1)
         if code is Code.ASCII and self.ascii_sub_chars == 4:
             w.num(0, 1)
@@ -297,10 +299,10 @@ class _Hdr(ExtensionRequest):
     pc: int = field(default=DEFAULT_PC, kw_only=True)
     timer: int = field(default=DEFAULT_TIMER, kw_only=True)
 
-    def _writer(self, code: Code) -> _Writer:
+    def _writer(self, code: Code) -> Writer:
         _check(_is_int(self.pc, 0, 0xFF), f"PC number {self.pc!r} outside 00H-FFH")
         _check(_is_int(self.timer, 0, 0xFFFF), f"monitoring timer {self.timer!r} invalid")
-        w = _Writer(code is Code.ASCII)
+        w = Writer(code is Code.ASCII)
         w.num(self.COMMAND, 1)
         w.num(self.pc, 1)
         w.num(self.timer, 2)
@@ -318,10 +320,10 @@ class _Hdr(ExtensionRequest):
             return got
         try:
             return self._decode_data(got)
-        except _Malformed as exc:
+        except Malformed as exc:
             raise _malformed(self.COMMAND, exc) from None
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         return Ack(self.COMMAND)
 
 
@@ -335,7 +337,7 @@ class _WordsReply:
     def _data_length(self) -> int:
         return 2 * self.count
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         return WordsResponse(self.COMMAND, r.words(self.count))
 
 
@@ -371,7 +373,7 @@ class ReadCpuModel(_Hdr):
     def _data_length(self) -> int:
         return 2
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         model = r.num(1)
         r.num(1)
         return CpuModelResponse(model)
@@ -397,10 +399,10 @@ class Loopback(_Hdr):
     def _data_length(self) -> int:
         return 1 + len(self.data)
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         n = r.num(1) or 256
         if n != len(self.data):
-            raise _Malformed(0x57, f"loopback length {n} differs from the {len(self.data)} sent")
+            raise Malformed(0x57, f"loopback length {n} differs from the {len(self.data)} sent")
         return LoopbackResponse(r.raw(n))
 
 
@@ -422,7 +424,7 @@ class ReadSpecial(_Hdr):
     def _data_length(self) -> int:
         return self.count
 
-    def _decode_data(self, r: _Reader) -> Response | ExtensionResponse:
+    def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         return BytesResponse(self.COMMAND, r.raw(self.count))
 
 
@@ -445,7 +447,7 @@ class WriteSpecial(_Hdr):
         return w.getvalue()
 
 
-def _special_head(req: ReadSpecial | WriteSpecial, code: Code, count: int) -> _Writer:
+def _special_head(req: ReadSpecial | WriteSpecial, code: Code, count: int) -> Writer:
     _check(_is_int(req.address, 0, 0xFFFFFF), f"start address {req.address!r} not 3 bytes")
     _check(_is_int(req.module, 0, 0xFF), f"module number {req.module!r} outside 00H-FFH")
     w = req._writer(code)
@@ -632,8 +634,8 @@ class OpaqueCommand(_Hdr):
 
 @dataclass(frozen=True, slots=True)
 class _Buffer(ExtensionRequest):
-    def _writer(self, code: Code, address: int | None, count: int) -> _Writer:
-        w = _Writer(code is Code.ASCII)
+    def _writer(self, code: Code, address: int | None, count: int) -> Writer:
+        w = Writer(code is Code.ASCII)
         w.num(self.COMMAND, 1)
         w.num(0, 1)  # §13 A16: always 00H
         if address is not None:
@@ -675,7 +677,7 @@ class ReadRandomBuffer(_Buffer):
             return got
         try:
             return WordsResponse(self.COMMAND, got.words(self.count))
-        except _Malformed as exc:
+        except Malformed as exc:
             raise _malformed(self.COMMAND, exc) from None
 
 
@@ -734,100 +736,100 @@ class FixedBufferData(_Buffer):
 # E71 side: decoders of complete, correctly sized frames (E71ServerConnection(extensions=...))
 
 
-def _header(r: _Reader) -> dict[str, int]:
+def _header(r: Reader) -> dict[str, int]:
     r.num(1)
     return {"pc": r.num(1), "timer": r.num(2)}
 
 
-def _r_ref(r: _Reader, width: int) -> tuple[int, int]:
+def _r_ref(r: Reader, width: int) -> tuple[int, int]:
     """(block, number) of an R designation of 6 (no block) or 8 bytes; 56H for another code."""
     value = r.num(width)
     dcode = value >> 32 & 0xFFFF
     if dcode != R_CODE:
-        raise _Malformed(0x56, f"device code {dcode:04X}H is not R (5220H)")
+        raise Malformed(0x56, f"device code {dcode:04X}H is not R (5220H)")
     return value >> 48, value & 0xFFFFFFFF
 
 
 def _with_pc(
-    fn: Callable[[_Reader, dict[str, int]], ExtensionRequest],
+    fn: Callable[[Reader, dict[str, int]], ExtensionRequest],
 ) -> Callable[[bytes, Code, bool], ExtensionRequest]:
     def decode(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-        r = _Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
+        r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
         hdr = _header(r)
         try:
             return fn(r, hdr)
-        except _Malformed as exc:
+        except Malformed as exc:
             exc.pc = hdr["pc"]
             raise
 
     return decode
 
 
-def _d_special_read(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
+def _d_special_read(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
     address, count, module = r.num(3), r.num(1) or 256, r.num(1)
     r.num(1)
     return ReadSpecial(module, address, count, **hdr)
 
 
-def _d_special_write(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
+def _d_special_write(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
     address, count, module = r.num(3), r.num(1) or 256, r.num(1)
     r.num(1)
     return WriteSpecial(module, address, r.raw(count), **hdr)
 
 
-def _d_loopback(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
+def _d_loopback(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
     n = r.num(1) or 256
     return Loopback(r.raw(n), **hdr)
 
 
-def _d_ext_read(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
+def _d_ext_read(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
     block, number = _r_ref(r, 8)
-    return ReadExtFile(block, number, _count_from(r), **hdr)
+    return ReadExtFile(block, number, count_from(r), **hdr)
 
 
-def _d_ext_write(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
+def _d_ext_write(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
     block, number = _r_ref(r, 8)
-    return WriteExtFile(block, number, r.words(_count_from(r)), **hdr)
+    return WriteExtFile(block, number, r.words(count_from(r)), **hdr)
 
 
-def _d_ext_test(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
+def _d_ext_test(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
     points = []
-    for _ in range(_count_from(r)):
+    for _ in range(count_from(r)):
         block, number = _r_ref(r, 8)
         points.append((block, number, r.num(2)))
     return TestExtFile(tuple(points), **hdr)
 
 
-def _d_ext_register(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    n = _count_from(r)
+def _d_ext_register(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+    n = count_from(r)
     return RegisterMonitorExt(tuple(_r_ref(r, 8) for _ in range(n)), **hdr)
 
 
-def _d_direct_read(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
+def _d_direct_read(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
     _, number = _r_ref(r, 6)
-    return ReadExtDirect(number, _count_from(r), **hdr)
+    return ReadExtDirect(number, count_from(r), **hdr)
 
 
-def _d_direct_write(r: _Reader, hdr: dict[str, int]) -> ExtensionRequest:
+def _d_direct_write(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
     _, number = _r_ref(r, 6)
-    return WriteExtDirect(number, r.words(_count_from(r)), **hdr)
+    return WriteExtDirect(number, r.words(count_from(r)), **hdr)
 
 
 def _simple(
     cls: type[RemoteRun | RemoteStop | ReadCpuModel | MonitorExt],
-) -> Callable[[_Reader, dict[str, int]], ExtensionRequest]:
+) -> Callable[[Reader, dict[str, int]], ExtensionRequest]:
     return lambda _r, hdr: cls(**hdr)
 
 
 def _d_opaque(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-    r = _Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
+    r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
     command = r.num(1)
     pc, timer = r.num(1), r.num(2)
     return OpaqueCommand(command, frame[r.pos :], pc=pc, timer=timer)
 
 
-def _buffer_reader(frame: bytes, code: Code, lower_ok: bool) -> _Reader:
-    r = _Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
+def _buffer_reader(frame: bytes, code: Code, lower_ok: bool) -> Reader:
+    r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
     r.num(1)
     r.num(1)  # §13 A16: the second subheader byte is ignored
     return r

@@ -15,9 +15,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Final
 
-from plcstack.codecs.e71 import DEFAULT_PC, DEFAULT_TIMER, Code, _count_from, _Malformed, _Reader
-from plcstack.codecs.e71 import _Writer as _W
 from plcstack.codecs.e71_commands import OpaqueCommand, OpaqueResponse
+from plcstack.codecs.e71_wire import (
+    DEFAULT_PC,
+    DEFAULT_TIMER,
+    Code,
+    Malformed,
+    Reader,
+    Writer,
+    count_from,
+)
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
 __all__ = [
@@ -83,7 +90,7 @@ def build(
     width = _address_width(command)
     if not (isinstance(address, int) and 0 <= address < 1 << (8 * width)):
         raise LocalProtocolError(f"address {address!r} does not fit {width} bytes")
-    w = _W(code is Code.ASCII)
+    w = Writer(code is Code.ASCII)
     words = command in WORD_COMMANDS
     if is_write:
         if isinstance(count_or_data, int):
@@ -111,35 +118,35 @@ def build(
 
 
 def parse_request(req: OpaqueCommand, code: Code) -> ProgramAccess:
-    """Decode the body of ``req`` by the [R] layout; raises ``_Malformed`` (57H / 54H)."""
+    """Decode the body of ``req`` by the [R] layout; raises ``Malformed`` (57H / 54H)."""
     command = req.command
     if command not in PROGRAM_COMMANDS:
-        raise _Malformed(0x50, f"command {command:02X}H has no address/count body")
-    r = _Reader(req.body, code is Code.ASCII)
+        raise Malformed(0x50, f"command {command:02X}H has no address/count body")
+    r = Reader(req.body, code is Code.ASCII)
     address = r.num(_address_width(command))
-    count = _count_from(r)
+    count = count_from(r)
     data: tuple[int, ...] | None = None
     if PROGRAM_COMMANDS[command][1]:
         data = r.words(count) if command in WORD_COMMANDS else tuple(r.raw(count))
     if r.pos != len(r.data):
-        raise _Malformed(0x57, "data count does not match")
+        raise Malformed(0x57, "data count does not match")
     return ProgramAccess(command, address, count, data)
 
 
 def parse_response(req: OpaqueCommand, resp: OpaqueResponse, code: Code) -> tuple[int, ...]:
     """Words (0AH/0BH) or bytes of a read's :class:`OpaqueResponse` by the [R] layout."""
-    r = _Reader(resp.data, code is Code.ASCII)
+    r = Reader(resp.data, code is Code.ASCII)
     try:
         if req.command in WORD_COMMANDS:
             return tuple(r.words(req.response_length // 2))
         return tuple(r.raw(req.response_length))
-    except _Malformed as exc:
+    except Malformed as exc:
         raise RemoteProtocolError(f"malformed {req.command | 0x80:02X}H data: {exc}") from None
 
 
 def encode_answer(command: int, values: Sequence[int], code: Code) -> OpaqueResponse:
     """E71 side: the answer data of a read by the [R] layout."""
-    w = _W(code is Code.ASCII)
+    w = Writer(code is Code.ASCII)
     if command in WORD_COMMANDS:
         w.words(values)
     else:

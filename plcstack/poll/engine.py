@@ -37,14 +37,11 @@ poller itself never touches global GC settings.
 
 from __future__ import annotations
 
-import array
 import asyncio
 import collections
-import enum
-import itertools
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass, field, fields
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 
@@ -58,152 +55,27 @@ from plcstack.errors import (
 )
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.plan import ScanPlan, build_plan, describe
-from plcstack.poll.values import TagValue, WordOrder
+from plcstack.poll.samples import Quality, Sample, make_sample
+from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
+from plcstack.poll.values import WordOrder
 from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
 
-__all__ = ["PlcStats", "Poller", "Quality", "Sample", "format_stats"]
+__all__ = [
+    "LATENCY_WINDOW",
+    "MAX_SCANS_WITHOUT_YIELD",
+    "LatencyWindow",
+    "PlcStats",
+    "Poller",
+    "Quality",
+    "Sample",
+    "format_stats",
+    "timer_resolution",
+]
 
-#: how many recent request latencies each PLC keeps for its percentiles
-LATENCY_WINDOW = 4096
 #: a task whose client never suspends (every request fails at once, or an in-memory fake) still
 #: lets the event loop run other tasks after this many scans in a row
 MAX_SCANS_WITHOUT_YIELD = 16
-
-
-class LatencyWindow:
-    """The most recent ``maxlen`` request latencies in seconds (float32 ring buffer).
-
-    4 bytes per latency in one array: a full window of 4096 is 16 KiB per PLC, where a deque of
-    float objects took about 128 KiB (1000 PLCs: 16 MiB instead of 128 MiB). Iterates oldest
-    first.
-    """
-
-    __slots__ = ("_data", "_next", "maxlen")
-
-    def __init__(self, values: Iterable[float] = (), maxlen: int = LATENCY_WINDOW) -> None:
-        if maxlen < 1:
-            raise ValueError("maxlen must be at least 1")
-        self.maxlen = maxlen
-        self._data = array.array("f")
-        self._next = 0  # once full: the index of the oldest value, overwritten next
-        for value in values:
-            self.append(value)
-
-    def append(self, value: float) -> None:
-        data = self._data
-        if len(data) < self.maxlen:
-            data.append(value)
-        else:
-            i = self._next
-            data[i] = value
-            self._next = i + 1 if i + 1 < self.maxlen else 0
-
-    def __len__(self) -> int:
-        return len(self._data)
-
-    def __iter__(self) -> Iterator[float]:
-        data, cut = self._data, self._next
-        return itertools.chain(data[cut:], data[:cut])
-
-    def __repr__(self) -> str:
-        return f"LatencyWindow({len(self)} of {self.maxlen})"
-
-
-class Quality(enum.Enum):
-    GOOD = "good"
-    BAD = "bad"
-
-
-@dataclass(frozen=True, slots=True)
-class Sample:
-    """One tag value. Times are Unix seconds; ``source_time`` is when the request was sent.
-
-    None of these protocols timestamps its data, so the best statement of when the PLC held the
-    value is "between ``source_time`` and ``receive_time``". A bad sample has ``value`` None and
-    ``error`` saying why (the full :class:`PlcError` text, naming PLC and request).
-    """
-
-    plc: str
-    tag: str
-    value: TagValue | None
-    quality: Quality
-    source_time: float
-    receive_time: float
-    error: str | None = None
-
-
-_new_object = object.__new__
-(_set_plc, _set_tag, _set_value, _set_quality, _set_source, _set_receive, _set_error) = (
-    getattr(Sample, name).__set__ for name in (f.name for f in fields(Sample))
-)
-
-
-def _sample(
-    plc: str,
-    tag: str,
-    value: TagValue | None,
-    quality: Quality,
-    source_time: float,
-    receive_time: float,
-    error: str | None,
-) -> Sample:
-    """``Sample(...)`` for the hot path: the same frozen object, built in ~60 % of the time.
-
-    A frozen dataclass's ``__init__`` goes through ``object.__setattr__`` once per field; the
-    slot descriptors set the fields directly (what ``object.__setattr__`` ends up doing).
-    """
-    sample: Sample = _new_object(Sample)
-    _set_plc(sample, plc)
-    _set_tag(sample, tag)
-    _set_value(sample, value)
-    _set_quality(sample, quality)
-    _set_source(sample, source_time)
-    _set_receive(sample, receive_time)
-    _set_error(sample, error)
-    return sample
-
-
-@dataclass(slots=True)
-class PlcStats:
-    """Counters of one PLC as seen by the poller."""
-
-    requests: int = 0
-    errors: int = 0
-    reconnects: int = 0
-    connect_failures: int = 0
-    overruns: int = 0
-    drops: int = 0
-    samples: int = 0
-    bad_samples: int = 0
-    scans: int = 0
-    writes: int = 0
-    latencies: LatencyWindow = field(default_factory=LatencyWindow, repr=False)
-
-    def percentile(self, q: float) -> float | None:
-        """Latency percentile in seconds over the recent window (nearest rank); None if empty."""
-        if not self.latencies:
-            return None
-        data = sorted(self.latencies)
-        rank = max(0, min(len(data) - 1, int(q / 100.0 * len(data) + 0.5) - 1))
-        return data[rank]
-
-    def as_dict(self) -> dict[str, Any]:
-        p50, p99 = self.percentile(50), self.percentile(99)
-        return {
-            "requests": self.requests,
-            "errors": self.errors,
-            "reconnects": self.reconnects,
-            "connect_failures": self.connect_failures,
-            "overruns": self.overruns,
-            "drops": self.drops,
-            "samples": self.samples,
-            "bad_samples": self.bad_samples,
-            "scans": self.scans,
-            "writes": self.writes,
-            "p50_ms": None if p50 is None else round(p50 * 1000, 3),
-            "p99_ms": None if p99 is None else round(p99 * 1000, 3),
-        }
 
 
 @dataclass(slots=True)
@@ -249,6 +121,10 @@ class Poller:
     :class:`AddressError` (naming PLC and tag) before anything is sent. ``client_factory`` builds
     the client of one PLC (tests pass in-memory fakes; the default is :func:`plcstack.connect`).
     """
+
+    #: a scan of one request runs inline in ``_run`` (see there); tests turn this off to run the
+    #: same scans through ``_scan`` and prove both give the same samples and counters
+    inline_single_request = True
 
     def __init__(self, config: PollConfig, *, client_factory: ClientFactory | None = None) -> None:
         self.config = config
@@ -480,6 +356,7 @@ class Poller:
         client = plc.client
         stats = plc.stats
         only = groups[0] if len(groups) == 1 else None
+        inline = self.inline_single_request
         unyielded = 0  # scans since this task last slept
         while True:
             due = only.next_due if only is not None else min(g.next_due for g in groups)
@@ -500,7 +377,7 @@ class Poller:
                 if group.next_due > ready:
                     continue
                 plan = group.plan
-                if len(plan.requests) == 1:
+                if inline and len(plan.requests) == 1:
                     request = plan.requests[0]
                     stats.scans += 1
                     if semaphore is not None:
@@ -651,10 +528,12 @@ class Poller:
             if isinstance(result, PlcError):
                 bad += 1
                 queue.append(
-                    _sample(name, tag_plan.tag.name, None, bad_q, source, receive, str(result))
+                    make_sample(name, tag_plan.tag.name, None, bad_q, source, receive, str(result))
                 )
             else:
-                queue.append(_sample(name, tag_plan.tag.name, result, good, source, receive, None))
+                queue.append(
+                    make_sample(name, tag_plan.tag.name, result, good, source, receive, None)
+                )
         stats = plc.stats
         stats.samples += len(plan.tags)
         stats.bad_samples += bad
@@ -676,64 +555,3 @@ def timer_resolution(loop: asyncio.AbstractEventLoop) -> float:
     if isinstance(loop, asyncio.BaseEventLoop):
         return time.get_clock_info("monotonic").resolution
     return 1e-3
-
-
-def format_stats(stats: dict[str, PlcStats], *, dropped_total: int | None = None) -> str:
-    """A plain-text table of per-PLC statistics (what ``plcstack poll`` prints on stderr)."""
-
-    def ms(value: float | None) -> str:
-        return "-" if value is None else f"{value * 1000:.2f}"
-
-    header: tuple[str, ...] = ("plc", "requests", "errors", "reconnects", "overruns", "drops")
-    header += ("samples", "p50 ms", "p99 ms")
-    rows: list[tuple[str, ...]] = [header]
-    totals = PlcStats()
-    for name, st in stats.items():
-        rows.append(
-            (
-                name,
-                str(st.requests),
-                str(st.errors),
-                str(st.reconnects),
-                str(st.overruns),
-                str(st.drops),
-                str(st.samples),
-                ms(st.percentile(50)),
-                ms(st.percentile(99)),
-            )
-        )
-        totals.requests += st.requests
-        totals.errors += st.errors
-        totals.reconnects += st.reconnects
-        totals.overruns += st.overruns
-        totals.drops += st.drops
-        totals.samples += st.samples
-    if len(stats) > 1:
-        # the total's percentiles are over the last LATENCY_WINDOW requests of all PLCs together
-        all_lat: list[float] = []
-        for st in stats.values():
-            all_lat.extend(st.latencies)
-        totals.latencies = LatencyWindow(all_lat, maxlen=max(1, len(all_lat)))
-        rows.append(
-            (
-                f"TOTAL ({len(stats)} PLCs)",
-                str(totals.requests),
-                str(totals.errors),
-                str(totals.reconnects),
-                str(totals.overruns),
-                str(totals.drops),
-                str(totals.samples),
-                ms(totals.percentile(50)),
-                ms(totals.percentile(99)),
-            )
-        )
-    widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
-    lines = []
-    for r in rows:
-        cells = [r[0].ljust(widths[0])] + [
-            c.rjust(w) for c, w in zip(r[1:], widths[1:], strict=True)
-        ]
-        lines.append("  ".join(cells).rstrip())
-    if dropped_total is not None:
-        lines.append(f"samples dropped for a slow consumer: {dropped_total}")
-    return "\n".join(lines)

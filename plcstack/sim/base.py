@@ -12,7 +12,29 @@ from abc import ABC, abstractmethod
 from types import TracebackType
 from typing import Self
 
-__all__ = ["Simulator", "TcpSimulator", "UdpSimulator"]
+__all__ = ["ConnectionCount", "Simulator", "TcpSimulator", "UdpSimulator"]
+
+
+class ConnectionCount:
+    """How many client connections a simulator holds now, and the most it ever held at once.
+
+    The scale-out tests read ``peak`` to prove that no PLC ever had two pollers at once.
+    """
+
+    __slots__ = ("current", "peak", "total")
+
+    def __init__(self) -> None:
+        self.current = 0
+        self.peak = 0
+        self.total = 0
+
+    def opened(self) -> None:
+        self.current += 1
+        self.total += 1
+        self.peak = max(self.peak, self.current)
+
+    def closed(self) -> None:
+        self.current -= 1
 
 
 class Simulator(ABC):
@@ -53,11 +75,20 @@ class TcpSimulator(Simulator):
         self.port: int = sockname[1]
         self.url = f"{scheme}://{self.host}:{self.port}" + (f"?{query}" if query else "")
         self._conn_tasks: set[asyncio.Task[None]] = set()
+        #: client connections now / at most at once (simulators without per-connection tasks
+        #: call ``opened``/``closed`` themselves)
+        self.connection_count = ConnectionCount()
 
     def track(self, task: asyncio.Task[None]) -> None:
-        """Remember a per-connection task so ``aclose`` can end it (no task outlives the sim)."""
+        """Remember a per-connection task so ``aclose`` can end it (no task outlives the sim);
+        the connection counts as open until the task ends."""
         self._conn_tasks.add(task)
-        task.add_done_callback(self._conn_tasks.discard)
+        self.connection_count.opened()
+        task.add_done_callback(self._untrack)
+
+    def _untrack(self, task: asyncio.Task[None]) -> None:
+        self._conn_tasks.discard(task)
+        self.connection_count.closed()
 
     async def aclose(self) -> None:
         self.server.close()

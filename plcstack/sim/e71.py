@@ -197,6 +197,7 @@ class _TcpConnection(asyncio.Protocol):
             return
         self.transport = transport
         self.sim.connections.add(self)
+        self.sim.connection_count.opened()
 
     def data_received(self, data: bytes) -> None:
         transport = self.transport
@@ -242,6 +243,8 @@ class _TcpConnection(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         if self._partial_timer is not None:
             self._partial_timer.cancel()
+        if self.transport is not None:
+            self.sim.connection_count.closed()
         self.sim.connections.discard(self)
         self.transport = None
 

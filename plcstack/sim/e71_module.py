@@ -31,7 +31,6 @@ from plcstack.codecs.e71 import (
     ExtensionResponse,
     Response,
     WordsResponse,
-    _Malformed,
 )
 from plcstack.codecs.e71_commands import (
     EXT_FILE_BLOCK_SIZE,
@@ -66,6 +65,7 @@ from plcstack.codecs.e71_programs import (
     encode_answer,
     parse_request,
 )
+from plcstack.codecs.e71_wire import Malformed
 from plcstack.sim.melsec_memory import CpuState, MelsecMemory
 
 __all__ = ["E71Module", "KeySwitch", "execute_extension", "module_of"]
@@ -214,13 +214,13 @@ class E71Module:
     # -- extended file registers ---------------------------------------------------------
     def ext_check(self, block: int, number: int, count: int) -> None:
         if not 1 <= block <= self.ext_cassette_blocks:
-            raise _Malformed(0x57, f"block {block} beyond the memory cassette")
+            raise Malformed(0x57, f"block {block} beyond the memory cassette")
         if block not in self.ext_blocks:
-            raise _Malformed(0x58, f"block {block} does not exist")
+            raise Malformed(0x58, f"block {block} does not exist")
         if number >= EXT_FILE_BLOCK_SIZE:
-            raise _Malformed(0x58, f"R{number} beyond 8191")
+            raise Malformed(0x58, f"R{number} beyond 8191")
         if number + count > EXT_FILE_BLOCK_SIZE:
-            raise _Malformed(0x57, f"R{number} + {count} beyond 8191")
+            raise Malformed(0x57, f"R{number} + {count} beyond 8191")
 
     def _direct_cells(self, number: int, count: int) -> list[tuple[array[int], int]]:
         """(block array, index) of each register of a 3BH/3CH span (number = (b-1)*8192 + r)."""
@@ -229,7 +229,7 @@ class E71Module:
             block, reg = divmod(number + k, EXT_FILE_BLOCK_SIZE)
             arr = self.ext_blocks.get(block + 1)
             if arr is None:
-                raise _Malformed(0x58 if k == 0 else 0x57, f"block {block + 1} does not exist")
+                raise Malformed(0x58 if k == 0 else 0x57, f"block {block + 1} does not exist")
             cells.append((arr, reg))
         return cells
 
@@ -270,7 +270,7 @@ def execute_extension(
         return ErrorResponse(cmd, 0x5B, 0x10)
     try:
         return _execute(memory, module, req, code)
-    except _Malformed as exc:
+    except Malformed as exc:
         return ErrorResponse(cmd, exc.end_code)
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Any
 
-from benchmarks.frames import FloorJob, ScriptJob
+from plcstack.bench.frames import FloorJob, ScriptJob
 
 __all__ = ["WORDS", "CodecOps", "ProtocolCase", "Unavailable", "sample_words"]
 

@@ -4,7 +4,7 @@ Each adapter returns :class:`CodecOps`: the stack side drives the protocol's San
 connection exactly as its client does (build the request event, ``send``, ``receive_data`` of the
 reply bytes, ``next_event`` until the response event); the floor side does the same job with
 ``struct`` only (pack the request header, check the reply's status bytes, unpack the words). The
-reply bytes are built once from the spec rules (:mod:`benchmarks.frames`). One call is verified
+reply bytes are built once from the spec rules (:mod:`plcstack.bench.frames`). One call is verified
 outside the timing, so a codec that decodes something else fails the benchmark.
 
 The adapters import the codecs lazily: a protocol not merged yet raises :class:`Unavailable`.
@@ -18,8 +18,8 @@ from collections.abc import Callable
 from types import ModuleType
 from typing import Any
 
-from benchmarks import frames
-from benchmarks.cases import WORDS, CodecOps, Unavailable, sample_words
+from plcstack.bench import frames
+from plcstack.bench.cases import WORDS, CodecOps, Unavailable, sample_words
 
 __all__ = ["as511_codec", "e71_codec", "fw_codec", "s5lan_codec"]
 

@@ -24,12 +24,12 @@ from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
 from typing import Any, TextIO, TypeVar
 
-from benchmarks.cases import WORDS, Unavailable
-from benchmarks.cases.conn import run_conn_case
-from benchmarks.cases.fanout import series_from_summary, spawn
-from benchmarks.cases.peers import PEER_PROTOCOLS, hsl_available
-from benchmarks.cases.protocols import PROTOCOLS, by_key
-from benchmarks.runner import Result, measure_sync
+from plcstack.bench.cases import WORDS, Unavailable
+from plcstack.bench.cases.conn import run_conn_case
+from plcstack.bench.cases.fanout import series_from_summary, spawn
+from plcstack.bench.cases.peers import PEER_PROTOCOLS, hsl_available
+from plcstack.bench.cases.protocols import PROTOCOLS, by_key
+from plcstack.bench.runner import Result, measure_sync
 
 __all__ = ["PLANS", "Plan", "available_loops", "run_suite"]
 

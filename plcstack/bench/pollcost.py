@@ -1,7 +1,7 @@
-"""The poller's own CPU per request, without sockets: ``python -m benchmarks.pollcost``.
+"""The poller's own CPU per request, without sockets: ``python -m plcstack.bench.pollcost``.
 
-    python -m benchmarks.pollcost                      # 1000 PLCs, 64-word raw tag, 5 repeats
-    python -m benchmarks.pollcost --plcs 100 --type int16 --repeats 3
+    python -m plcstack.bench.pollcost                      # 1000 PLCs, 64-word raw tag, 5 repeats
+    python -m plcstack.bench.pollcost --plcs 100 --type int16 --repeats 3
 
 The fan-out case (``plcstack bench``) prices the poller together with sockets, the E71 codec and
 an in-process simulator, on a machine shared with other jobs: its ratios move by 0.15 between runs.
@@ -218,7 +218,7 @@ def report(result: dict[str, list[tuple[float, float]]], plcs: int, what: str) -
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.pollcost")
+    parser = argparse.ArgumentParser(prog="python -m plcstack.bench.pollcost")
     parser.add_argument("--plcs", type=int, default=1000)
     parser.add_argument("--words", type=int, default=64, help="points of each tag")
     parser.add_argument("--tags", type=int, default=1, help="adjacent tags per PLC (one request)")

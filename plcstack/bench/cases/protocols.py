@@ -15,9 +15,9 @@ import struct
 from types import ModuleType
 from typing import Any
 
-from benchmarks import frames
-from benchmarks.cases import WORDS, ProtocolCase, Unavailable, sample_words
-from benchmarks.cases.codecs import as511_codec, e71_codec, fw_codec, s5lan_codec
+from plcstack.bench import frames
+from plcstack.bench.cases import WORDS, ProtocolCase, Unavailable, sample_words
+from plcstack.bench.cases.codecs import as511_codec, e71_codec, fw_codec, s5lan_codec
 
 __all__ = ["PROTOCOLS", "by_key"]
 

@@ -14,7 +14,7 @@ import socket
 import struct
 from typing import cast
 
-from benchmarks.frames import FloorJob, ScriptJob
+from plcstack.bench.frames import FloorJob, ScriptJob
 
 __all__ = ["FloorError", "FloorTcp", "FloorUdp", "open_floor"]
 

@@ -13,9 +13,9 @@ import asyncio
 from typing import Any, Literal
 
 import plcstack
-from benchmarks.cases import WORDS, ProtocolCase, sample_words
-from benchmarks.floor import FloorError, FloorTcp, FloorUdp, open_floor
-from benchmarks.runner import Result, Series, measure_workers
+from plcstack.bench.cases import WORDS, ProtocolCase, sample_words
+from plcstack.bench.floor import FloorError, FloorTcp, FloorUdp, open_floor
+from plcstack.bench.runner import Result, Series, measure_workers
 
 __all__ = ["CHECK_TIMEOUT", "open_stack", "run_conn_case", "start_sim"]
 

@@ -16,8 +16,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks.png import PALETTE, RGB, ChartSeries, line_chart
-from benchmarks.runner import Result
+from plcstack.bench.png import PALETTE, RGB, ChartSeries, line_chart
+from plcstack.bench.runner import Result
 
 __all__ = ["chart_series", "format_table", "write_json", "write_plot"]
 

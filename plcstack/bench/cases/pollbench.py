@@ -18,8 +18,8 @@ import importlib
 import time
 from typing import Any
 
-from benchmarks.cases import WORDS, ProtocolCase, Unavailable, sample_words
-from benchmarks.runner import Sample, Series, read_rss_kib
+from plcstack.bench.cases import WORDS, ProtocolCase, Unavailable, sample_words
+from plcstack.bench.runner import Sample, Series, read_rss_kib
 
 __all__ = ["run"]
 

@@ -1,6 +1,6 @@
 """Case 3 (and 4): fan-out to N simulated PLCs, and thread-per-PLC peers.
 
-Each measurement runs in a **fresh child process** (``python -m benchmarks.cases.fanout``): resident
+Each measurement runs in a **fresh child process** (``python -m plcstack.bench.cases.fanout``):
 memory per connection is only meaningful from a clean baseline (a process that already opened and
 closed 1000 connections keeps most of that memory), file descriptors are released for sure, and
 the event loop is chosen in the child. The child starts N simulators in-process (one listening
@@ -10,7 +10,7 @@ simulator side together, the same for every kind), then runs the repeats and pri
 
 Kinds:
 
-* ``floor``   -- N raw asyncio clients (:mod:`benchmarks.floor`), one closed loop each
+* ``floor``   -- N raw asyncio clients (:mod:`plcstack.bench.floor`), one closed loop each
 * ``clients`` -- N plcstack clients from ``plcstack.connect``, one closed loop each
 * ``poll``    -- one ``plcstack.poll`` poller over the N PLCs, one 64-word tag each, scan interval
   so short that every PLC is always busy; ops = samples delivered
@@ -35,15 +35,18 @@ from pathlib import Path
 from typing import Any
 
 import plcstack
-from benchmarks.cases import ProtocolCase, Unavailable, sample_words
-from benchmarks.cases.conn import CHECK_TIMEOUT, check_floor, check_stack, stack_op, start_sim
-from benchmarks.floor import FloorTcp, FloorUdp, open_floor
-from benchmarks.runner import Sample, Series, measure_workers, read_rss_kib
+from plcstack.bench.cases import ProtocolCase, Unavailable, sample_words
+from plcstack.bench.cases.conn import CHECK_TIMEOUT, check_floor, check_stack, stack_op, start_sim
+from plcstack.bench.floor import FloorTcp, FloorUdp, open_floor
+from plcstack.bench.runner import Sample, Series, measure_workers, read_rss_kib
 
 __all__ = ["KINDS", "raise_fd_limit", "run_child", "spawn"]
 
 KINDS = ("floor", "clients", "poll", "peer-hsl")
-REPO_ROOT = Path(__file__).resolve().parents[2]
+# The directory that holds the running ``plcstack`` package (a source checkout or site-packages):
+# child processes get it first on PYTHONPATH and as their working directory, so they import the
+# very same plcstack as the parent, installed from a wheel or not.
+PACKAGE_PARENT = Path(__file__).resolve().parents[3]
 
 
 def raise_fd_limit(needed: int) -> int:
@@ -72,12 +75,12 @@ def spawn(
     """Run one measurement in a child process; returns its JSON summary (or ``{"note": ...}``)."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
-        [str(REPO_ROOT), *filter(None, [env.get("PYTHONPATH", "")])]
+        [str(PACKAGE_PARENT), *filter(None, [env.get("PYTHONPATH", "")])]
     )
     cmd = [
         sys.executable,
         "-m",
-        "benchmarks.cases.fanout",
+        "plcstack.bench.cases.fanout",
         protocol,
         kind,
         str(n),
@@ -92,7 +95,7 @@ def spawn(
     ]
     try:
         proc = subprocess.run(
-            cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd=str(REPO_ROOT)
+            cmd, capture_output=True, text=True, timeout=timeout, env=env, cwd=str(PACKAGE_PARENT)
         )
     except subprocess.TimeoutExpired:
         return {"note": f"child timed out after {timeout:g} s"}
@@ -150,7 +153,7 @@ async def run_child(
     sims = [await start_sim(case, memory) for _ in range(n)]
     hsl_factory = None
     if kind == "peer-hsl":  # import the peer library before the memory baseline
-        from benchmarks.cases import peers
+        from plcstack.bench.cases import peers
 
         hsl_factory = peers.hsl_reader(case)
     closers: list[Callable[[], Awaitable[None]]] = []
@@ -236,7 +239,7 @@ async def _run_poll(
     duration: float,
     warmup: float,
 ) -> dict[str, Any]:
-    from benchmarks.cases import pollbench  # the poller's API lives in one adapter module
+    from plcstack.bench.cases import pollbench  # the poller's API lives in one adapter module
 
     return await pollbench.run(case, sims, base, repeats=repeats, duration=duration, warmup=warmup)
 
@@ -322,7 +325,7 @@ def _loop_factory(name: str) -> Callable[[], asyncio.AbstractEventLoop]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.cases.fanout")
+    parser = argparse.ArgumentParser(prog="python -m plcstack.bench.cases.fanout")
     parser.add_argument("protocol")
     parser.add_argument("kind", choices=KINDS)
     parser.add_argument("n", type=int)
@@ -331,7 +334,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=1.0)
     parser.add_argument("--warmup", type=float, default=0.2)
     args = parser.parse_args(argv)
-    from benchmarks.cases.protocols import by_key
+    from plcstack.bench.cases.protocols import by_key
 
     case = by_key(args.protocol)
     try:

@@ -1,9 +1,9 @@
 """Where a request's time goes: cProfile of the one-connection stack path, client side only.
 
-    python -m benchmarks.profiling e71+tcp [--seconds 3] [--kind read|write] [--top 25]
-    python -m benchmarks.profiling e71+tcp --poll 100     # the poller over 100 PLCs instead
+    python -m plcstack.bench.profiling e71+tcp [--seconds 3] [--kind read|write] [--top 25]
+    python -m plcstack.bench.profiling e71+tcp --poll 100     # the poller over 100 PLCs instead
 
-The simulator runs in a **child process** (``python -m benchmarks.profiling --serve KEY``, which
+The simulator runs in a **child process** (``python -m plcstack.bench.profiling --serve KEY``, which
 prints the URL once it accepts clients), so the profile shows only what the client side costs:
 plcstack's client, codec and transport plus the event loop. The output is the usual ``pstats``
 table sorted by own time, then a summary per layer (own time of functions grouped by file), in
@@ -25,10 +25,10 @@ from pathlib import Path
 from typing import Any
 
 import plcstack
-from benchmarks.cases.conn import Kind, check_stack, open_stack, stack_op, start_sim
-from benchmarks.cases.fanout import REPO_ROOT
-from benchmarks.cases.protocols import by_key
-from benchmarks.runner import measure_workers
+from plcstack.bench.cases.conn import Kind, check_stack, open_stack, stack_op, start_sim
+from plcstack.bench.cases.fanout import PACKAGE_PARENT
+from plcstack.bench.cases.protocols import by_key
+from plcstack.bench.runner import measure_workers
 
 __all__ = ["layer_of", "main"]
 
@@ -37,7 +37,7 @@ def layer_of(filename: str) -> str:
     """Group a profiled file into a layer for the per-layer summary."""
     path = filename.replace("\\", "/")
     for marker in ("plcstack/codecs/", "plcstack/clients/", "plcstack/transports/",
-                   "plcstack/poll/", "benchmarks/"):  # fmt: skip
+                   "plcstack/poll/", "plcstack/bench/"):  # fmt: skip
         if marker in path:
             return marker.rstrip("/") + "/" + path.split(marker, 1)[1]
     if "asyncio/" in path or "uvloop" in path:
@@ -69,8 +69,8 @@ async def _poller(urls: list[str], key: str, seconds: float) -> tuple[Any, int]:
         config_mod.TagConfig,
     )
 
-    from benchmarks.cases import WORDS
-    from benchmarks.cases.pollbench import INTERVAL
+    from plcstack.bench.cases import WORDS
+    from plcstack.bench.cases.pollbench import INTERVAL
 
     case = by_key(key)
     tag = TagConfig(name="words", address=case.read_address, count=WORDS)
@@ -145,7 +145,7 @@ def report(profiler: Any, requests: int, top: int) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.profiling")
+    parser = argparse.ArgumentParser(prog="python -m plcstack.bench.profiling")
     parser.add_argument("protocol", help="e.g. e71+tcp, fetchwrite, s5lan, as511+tcp")
     parser.add_argument("--kind", choices=("read", "write"), default="read")
     parser.add_argument("--seconds", type=float, default=3.0)
@@ -156,12 +156,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.serve:
         asyncio.run(_serve(args.protocol, args.serve))
         return 0
-    path = [str(REPO_ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]
+    path = [str(PACKAGE_PARENT), *filter(None, [os.environ.get("PYTHONPATH")])]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(path))
     server = subprocess.Popen(
-        [sys.executable, "-m", "benchmarks.profiling", args.protocol,
+        [sys.executable, "-m", "plcstack.bench.profiling", args.protocol,
          "--serve", str(args.poll or 1)],
-        stdout=subprocess.PIPE, text=True, env=env, cwd=str(REPO_ROOT),
+        stdout=subprocess.PIPE, text=True, env=env, cwd=str(PACKAGE_PARENT),
     )  # fmt: skip
     try:
         assert server.stdout is not None

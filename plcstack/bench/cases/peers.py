@@ -16,7 +16,7 @@ import struct
 from collections.abc import Callable
 from typing import Any
 
-from benchmarks.cases import WORDS, ProtocolCase, Unavailable
+from plcstack.bench.cases import WORDS, ProtocolCase, Unavailable
 
 __all__ = ["PEER_PROTOCOLS", "hsl_available", "hsl_reader"]
 

@@ -1,0 +1,235 @@
+"""MQTT topic and payload layout of the plain (JSON) mode, close to what EMQX Neuron users know.
+
+``P`` is the configured prefix (default ``plcstack``), ``PLC`` a PLC name, ``GROUP`` a scan
+group. Topic levels are the names as configured; ``/``, ``+``, ``#`` and NUL are replaced by
+``_`` so a name can never add a level or a wildcard.
+
+=====================================  =======  ======  ====================================
+topic                                  retain   QoS     payload (JSON, UTF-8)
+=====================================  =======  ======  ====================================
+``P/PLC/data/GROUP``                   no       cfg     one scan group's scan: values and
+                                                        per-tag errors (below)
+``P/PLC/status``                       yes      1       ``{"status": "online"|"offline",
+                                                        "timestamp": ms}``
+``P/_poller/CLIENT_ID/status``         yes      1       the same for the poller itself;
+                                                        ``offline`` is its Last Will
+``P/PLC/write/req``                    no       -       ``{"id": ..., "tag": "t", "value": v}``
+``P/PLC/write/resp``                   no       1       ``{"id": ..., "ok": true}`` or
+                                                        ``{"id": ..., "ok": false, "error": code,
+                                                        "message": text, "may_have_executed":
+                                                        bool}``
+=====================================  =======  ======  ====================================
+
+A data message::
+
+    {"plc": "press1", "group": "fast", "timestamp": 1795307490123,
+     "values": {"strokes": 1200, "force": 12.5, "alarms": [false, true]},
+     "errors": {"temp": "press1: read D200 x2: no answer within 2.0 s"}}
+
+``timestamp`` is the scan's source time in milliseconds since the Unix epoch (the earliest
+``source_time`` of its samples). A tag is in ``values`` (good) or in ``errors`` (bad), never both;
+after report-by-exception a message holds only the tags that changed. A non-finite float is
+reported in ``errors`` (``"non-finite value nan"``), since JSON has no NaN.
+
+A PLC is ``online`` while its latest scan delivered at least one good value and ``offline`` when
+a whole scan came back bad (unreachable, timed out); the status is published when it changes.
+
+Write error codes: ``bad_request`` (not JSON, no ``tag`` or ``value``), ``unknown_plc``,
+``unknown_tag``, ``wrong_type`` (value does not fit the tag's type or count), ``plc_error`` (the
+PLC refused or did not answer; ``may_have_executed`` tells whether the write could still have
+happened, e.g. after a timeout), ``busy`` (too many writes waiting). ``id`` is echoed as given
+(any JSON value; ``null`` if the request had none or was not JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+from plcstack.poll.engine import Quality, Sample
+
+__all__ = [
+    "data_payload",
+    "data_topic",
+    "poller_status_topic",
+    "status_payload",
+    "status_topic",
+    "topic_level",
+    "write_request_topic",
+    "write_response_payload",
+    "write_response_topic",
+]
+
+_UNSAFE = re.compile(r"[/+#\x00]")
+
+
+def topic_level(name: str) -> str:
+    """A name as one topic level: no ``/`` (a new level), no wildcards, no NUL, never empty."""
+    return _UNSAFE.sub("_", name) or "_"
+
+
+def data_topic(prefix: str, plc: str, group: str) -> str:
+    return f"{prefix}/{topic_level(plc)}/data/{topic_level(group)}"
+
+
+def status_topic(prefix: str, plc: str) -> str:
+    return f"{prefix}/{topic_level(plc)}/status"
+
+
+def poller_status_topic(prefix: str, client_id: str) -> str:
+    return f"{prefix}/_poller/{topic_level(client_id)}/status"
+
+
+def write_request_topic(prefix: str, plc: str = "+") -> str:
+    """The request topic of one PLC, or with ``+`` the subscription for all of them."""
+    return f"{prefix}/{plc if plc == '+' else topic_level(plc)}/write/req"
+
+
+def write_response_topic(prefix: str, plc: str) -> str:
+    return f"{prefix}/{topic_level(plc)}/write/resp"
+
+
+def _finite(value: Any) -> bool:
+    if isinstance(value, float):
+        return math.isfinite(value)
+    if isinstance(value, list):
+        return all(_finite(v) for v in value)
+    return True
+
+
+def data_payload(plc: str, group: str, samples: Sequence[Sample]) -> bytes:
+    """One data message from the samples of one PLC and scan group."""
+    values: dict[str, Any] = {}
+    errors: dict[str, str] = {}
+    for s in samples:
+        if s.quality is Quality.GOOD and _finite(s.value):
+            values[s.tag] = s.value
+        elif s.quality is Quality.GOOD:
+            errors[s.tag] = f"non-finite value {s.value!r}"
+        else:
+            errors[s.tag] = s.error or "bad quality"
+    record: dict[str, Any] = {
+        "plc": plc,
+        "group": group,
+        "timestamp": round(min(s.source_time for s in samples) * 1000) if samples else 0,
+        "values": values,
+    }
+    if errors:
+        record["errors"] = errors
+    return json.dumps(record, ensure_ascii=False, allow_nan=False, separators=(",", ":")).encode()
+
+
+def status_payload(online: bool, timestamp: float) -> bytes:
+    return json.dumps(
+        {"status": "online" if online else "offline", "timestamp": round(timestamp * 1000)}
+    ).encode()
+
+
+def write_response_payload(
+    request_id: Any,
+    *,
+    error: str | None = None,
+    message: str | None = None,
+    may_have_executed: bool = False,
+) -> bytes:
+    record: dict[str, Any] = {"id": request_id, "ok": error is None}
+    if error is not None:
+        record["error"] = error
+        record["message"] = message or error
+        record["may_have_executed"] = may_have_executed
+    return json.dumps(record, ensure_ascii=False, allow_nan=False).encode()
+
+
+def split_scans(
+    samples: Iterable[Sample], group_of: dict[tuple[str, str], str]
+) -> list[tuple[str, str, list[Sample]]]:
+    """Cut a stream of samples into (plc, group, samples) messages, keeping arrival order.
+
+    The poller hands over one scan's samples together; a message ends when the PLC or group
+    changes or a tag repeats (a second scan of the same group in one batch).
+    """
+    out: list[tuple[str, str, list[Sample]]] = []
+    open_: dict[tuple[str, str], tuple[list[Sample], set[str]]] = {}
+    for s in samples:
+        key = (s.plc, group_of.get((s.plc, s.tag), "default"))
+        entry = open_.get(key)
+        if entry is None or s.tag in entry[1]:
+            entry = ([], set())
+            open_[key] = entry
+            out.append((key[0], key[1], entry[0]))
+        entry[0].append(s)
+        entry[1].add(s.tag)
+    return out
+
+
+class JsonLayout:
+    """The plain mode: turns samples into data and status messages, parses write requests."""
+
+    def __init__(self, prefix: str, client_id: str, qos: int = 1) -> None:
+        self.prefix = prefix
+        self.client_id = client_id
+        self.qos = qos
+        self._online: dict[str, bool] = {}
+
+    # what the sink asks of a layout
+    def will(self) -> tuple[str, bytes]:
+        return poller_status_topic(self.prefix, self.client_id), status_payload(False, 0.0)
+
+    def on_connect(self, now: float) -> list[tuple[str, bytes, int, bool]]:
+        """Messages published first on every (re)connect, before the backlog."""
+        return [
+            (poller_status_topic(self.prefix, self.client_id), status_payload(True, now), 1, True)
+        ]
+
+    def on_close(self, now: float) -> list[tuple[str, bytes, int, bool]]:
+        """Messages published on a graceful shutdown (the Will covers the other kind)."""
+        return [
+            (poller_status_topic(self.prefix, self.client_id), status_payload(False, now), 1, True)
+        ]
+
+    def subscriptions(self) -> list[str]:
+        return [write_request_topic(self.prefix)]
+
+    def messages(
+        self, batch: Sequence[tuple[str, str, list[Sample]]]
+    ) -> list[tuple[str, bytes, int, bool]]:
+        out: list[tuple[str, bytes, int, bool]] = []
+        for plc, group, samples in batch:
+            online = any(s.quality is Quality.GOOD for s in samples)
+            if self._online.get(plc) is not online:
+                self._online[plc] = online
+                when = max(s.receive_time for s in samples)
+                out.append((status_topic(self.prefix, plc), status_payload(online, when), 1, True))
+            out.append(
+                (
+                    data_topic(self.prefix, plc, group),
+                    data_payload(plc, group, samples),
+                    self.qos,
+                    False,
+                )
+            )
+        return out
+
+    def parse_write(
+        self, topic: str, payload: bytes
+    ) -> tuple[str, Any, str | None, Any, str | None]:
+        """``(plc_level, request_id, tag, value, error)`` of a write request; ``error`` is a
+        ``bad_request`` text when the request cannot be understood."""
+        levels = topic.split("/")
+        plc = levels[-3] if len(levels) >= 3 else ""
+        try:
+            request = json.loads(payload)
+        except (UnicodeDecodeError, ValueError) as exc:
+            return plc, None, None, None, f"request is not JSON: {exc}"
+        if not isinstance(request, dict):
+            return plc, None, None, None, "request must be a JSON object"
+        request_id = request.get("id")
+        tag = request.get("tag")
+        if not isinstance(tag, str):
+            return plc, request_id, None, None, 'request needs "tag" (a string)'
+        if "value" not in request:
+            return plc, request_id, tag, None, 'request needs "value"'
+        return plc, request_id, tag, request["value"], None

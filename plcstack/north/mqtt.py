@@ -1,0 +1,458 @@
+"""MQTT sink: samples out, writes in, over aiomqtt with our own reconnect and store-and-forward.
+
+aiomqtt (on paho-mqtt) is one connection per ``async with Client(...)`` and never reconnects by
+itself; this module is the loop around it:
+
+* connect (Last Will = the poller's ``offline`` status, retained), publish the layout's
+  on-connect messages (``online``; Sparkplug NBIRTH/DBIRTH), subscribe to write requests;
+* two tasks per connection: the reader (write requests; aiomqtt's message iterator raises when
+  the connection drops, which ends the connection's task group) and the publisher, which sends
+  the oldest messages of the :class:`StoreAndForward` queue and removes them only once the
+  broker acknowledged them (QoS >= 1);
+* on any failure: wait a jittered, growing backoff, then a new Client (a fresh paho session, so
+  nothing is resent twice behind our back) and the backlog again, oldest first.
+
+:meth:`MqttSink.submit` never blocks and never touches the network: the poller's consumer hands
+over samples, the layout turns them into messages, the queue takes them (memory, then disk).
+
+Delivery is at least once: messages in flight when a connection drops are sent again, so a
+subscriber may see the last window (``inflight``, default 64) twice, always in order. With
+``qos = 0`` the broker acknowledges nothing and messages sent just before a drop can be lost;
+use QoS 1 (the default) for store-and-forward.
+
+Writes: a request on ``P/PLC/write/req`` goes through the poller's single-flight ``write_tag``
+(the same rules as a write from Python) and is answered on ``P/PLC/write/resp`` with ``ok`` or
+the reason; see :mod:`plcstack.north.layout`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import ssl
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+from urllib.parse import urlsplit
+
+from plcstack.errors import AddressError, ConnectFailed, PlcError, PlcErrorResponse
+from plcstack.north.buffer import Message, StoreAndForward
+from plcstack.north.layout import (
+    JsonLayout,
+    split_scans,
+    topic_level,
+    write_response_payload,
+    write_response_topic,
+)
+from plcstack.poll.config import ConfigError
+from plcstack.poll.engine import Sample
+from plcstack.transports.backoff import Backoff
+
+__all__ = ["MqttSettings", "MqttSink", "Writer", "parse_mqtt"]
+
+log = logging.getLogger("plcstack.north.mqtt")
+
+#: write requests waiting for their PLC at once; more are refused with ``busy``
+MAX_PENDING_WRITES = 256
+
+
+class Writer(Protocol):
+    """What the sink needs of the poller: names and the single-flight tag write."""
+
+    @property
+    def plcs(self) -> list[str]: ...
+
+    async def write_tag(self, plc: str, tag: str, value: object) -> None: ...
+
+
+@dataclass(frozen=True)
+class MqttSettings:
+    """The ``[mqtt]`` table (see :func:`parse_mqtt`)."""
+
+    host: str = "127.0.0.1"
+    port: int = 1883
+    tls: bool = False
+    client_id: str = "plcstack"
+    prefix: str = "plcstack"
+    qos: int = 1
+    mode: str = "json"
+    group_id: str = "plcstack"
+    username: str | None = field(default=None, repr=False)
+    password: str | None = field(default=None, repr=False)
+    ca_file: str | None = None
+    cert_file: str | None = None
+    key_file: str | None = None
+    keepalive: int = 30
+    buffer_path: str | None = None
+    buffer_memory: int = 4 << 20
+    buffer_max: int = 256 << 20
+    inflight: int = 64
+    reconnect_max: float = 30.0
+
+
+def parse_mqtt(table: Any, env: dict[str, str] | None = None) -> MqttSettings:
+    """The ``[mqtt]`` table of the poll TOML::
+
+    [mqtt]
+    url = "mqtt://broker:1883"      # mqtts:// = TLS (port 8883 by default)
+    client_id = "plcstack-line1"
+    prefix = "plcstack"             # first topic level (JSON mode)
+    qos = 1                         # data messages; status and responses always 1
+    mode = "json"                   # or "sparkplug" (Sparkplug B, spBv1.0 topics)
+    group_id = "plant1"             # Sparkplug group id; the edge node id is client_id
+    username_env = "MQTT_USER"      # credentials come from the environment, never the file
+    password_env = "MQTT_PASSWORD"
+    ca_file = "/etc/ssl/broker-ca.pem"   # TLS: CA, and a client certificate if needed
+    cert_file = "..."
+    key_file = "..."
+    buffer_path = "/var/lib/plcstack/mqtt.sqlite"   # store-and-forward on disk
+    buffer_memory = 4194304         # bytes in memory before spilling to disk
+    buffer_max = 268435456          # total backlog budget; the oldest beyond it are dropped
+    """
+    env = dict(os.environ) if env is None else env
+    if not isinstance(table, dict):
+        raise ConfigError("[mqtt] must be a table")
+    allowed = {
+        "url", "client_id", "prefix", "qos", "mode", "group_id", "username_env", "password_env",
+        "ca_file", "cert_file", "key_file", "keepalive", "buffer_path", "buffer_memory",
+        "buffer_max", "inflight", "reconnect_max",
+    }  # fmt: skip
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ConfigError(f"[mqtt]: unknown key(s) {', '.join(unknown)}")
+
+    def text(key: str, default: str | None) -> str | None:
+        value = table.get(key, default)
+        if value is not None and (not isinstance(value, str) or not value):
+            raise ConfigError(f"[mqtt] {key} must be a non-empty string")
+        return value
+
+    def integer(key: str, default: int, lo: int, hi: int) -> int:
+        value = table.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+            raise ConfigError(f"[mqtt] {key} must be an integer in {lo}..{hi}, got {value!r}")
+        return value
+
+    url = text("url", "mqtt://127.0.0.1:1883") or ""
+    parts = urlsplit(url)
+    if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
+        raise ConfigError(f"[mqtt] url must be mqtt://HOST[:PORT] or mqtts://..., got {url!r}")
+    tls = parts.scheme == "mqtts"
+    try:
+        port = parts.port or (8883 if tls else 1883)
+    except ValueError:
+        raise ConfigError(f"[mqtt] url has a bad port: {url!r}") from None
+    credentials: dict[str, str | None] = {}
+    for key in ("username", "password"):
+        var = text(f"{key}_env", None)
+        if var is not None:
+            if var not in env:
+                raise ConfigError(f"[mqtt] {key}_env names {var!r}, which is not set")
+            credentials[key] = env[var]
+    mode = text("mode", "json")
+    if mode not in ("json", "sparkplug"):
+        raise ConfigError(f"[mqtt] mode must be json or sparkplug, got {mode!r}")
+    prefix = text("prefix", "plcstack") or "plcstack"
+    if any(c in prefix for c in "+#\x00"):
+        raise ConfigError("[mqtt] prefix must not contain + # or NUL")
+    reconnect_max = table.get("reconnect_max", 30.0)
+    if (
+        isinstance(reconnect_max, bool)
+        or not isinstance(reconnect_max, int | float)
+        or not (0.1 <= reconnect_max <= 3600)
+    ):
+        raise ConfigError("[mqtt] reconnect_max must be 0.1..3600 seconds")
+    return MqttSettings(
+        host=parts.hostname,
+        port=port,
+        tls=tls or any(table.get(k) for k in ("ca_file", "cert_file")),
+        client_id=text("client_id", "plcstack") or "plcstack",
+        prefix=prefix,
+        qos=integer("qos", 1, 0, 2),
+        mode=mode or "json",
+        group_id=text("group_id", "plcstack") or "plcstack",
+        username=credentials.get("username"),
+        password=credentials.get("password"),
+        ca_file=text("ca_file", None),
+        cert_file=text("cert_file", None),
+        key_file=text("key_file", None),
+        keepalive=integer("keepalive", 30, 5, 3600),
+        buffer_path=text("buffer_path", None),
+        buffer_memory=integer("buffer_memory", 4 << 20, 0, 1 << 40),
+        buffer_max=integer("buffer_max", 256 << 20, 1024, 1 << 44),
+        inflight=integer("inflight", 64, 1, 65535),
+        reconnect_max=float(reconnect_max),
+    )
+
+
+@dataclass
+class SinkStats:
+    """Counters of the sink (also exported by the metrics endpoint)."""
+
+    submitted: int = 0  # messages handed to the queue
+    sent: int = 0  # messages acknowledged by the broker (QoS >= 1) or written (QoS 0)
+    buffered: int = 0  # messages queued while no connection was up
+    replayed: int = 0  # messages sent after a reconnect that had waited for it
+    connects: int = 0
+    disconnects: int = 0
+    writes_ok: int = 0
+    writes_refused: int = 0
+
+
+class MqttSink:
+    """Publishes samples through a :class:`StoreAndForward` queue; answers write requests."""
+
+    def __init__(
+        self,
+        settings: MqttSettings,
+        *,
+        writer: Writer | None = None,
+        group_of: dict[tuple[str, str], str] | None = None,
+        layout: Any = None,
+        buffer: StoreAndForward | None = None,
+    ) -> None:
+        self.settings = settings
+        self.writer = writer
+        self.group_of = group_of or {}
+        self.layout = (
+            layout
+            if layout is not None
+            else JsonLayout(settings.prefix, settings.client_id, settings.qos)
+        )
+        self.buffer = (
+            buffer
+            if buffer is not None
+            else StoreAndForward(
+                settings.buffer_path,
+                memory_bytes=settings.buffer_memory,
+                max_bytes=settings.buffer_max,
+            )
+        )
+        self.stats = SinkStats()
+        self.connected = False
+        self._wake = asyncio.Event()
+        self._closing = False
+        self._client: Any = None
+        self._replay_until = -1
+        self._writes: set[asyncio.Task[None]] = set()
+        self._plc_by_level = {topic_level(p): p for p in (writer.plcs if writer else [])}
+        self._task: asyncio.Task[None] | None = None
+        self._connected_event = asyncio.Event()
+        self._idle = asyncio.Event()  # set while the publisher has nothing to send
+
+    # -- in: samples ----------------------------------------------------------------------------
+    def submit(self, samples: Sequence[Sample]) -> None:
+        """Queue the messages for these samples (never blocks, never raises for the network)."""
+        if not samples:
+            return
+        for topic, payload, qos, retain in self.layout.messages(
+            split_scans(samples, self.group_of)
+        ):
+            self._put(topic, payload, qos, retain)
+
+    def _put(self, topic: str, payload: bytes, qos: int, retain: bool) -> None:
+        self.buffer.put(topic, payload, qos, retain)
+        self.stats.submitted += 1
+        if not self.connected:
+            self.stats.buffered += 1
+        self._idle.clear()
+        self._wake.set()
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    async def start(self) -> None:
+        self._task = asyncio.create_task(self.run(), name="mqtt-sink")
+
+    async def wait_connected(self, timeout: float) -> None:
+        async with asyncio.timeout(timeout):
+            await self._connected_event.wait()
+
+    async def aclose(self, *, drain: float = 2.0) -> None:
+        """Send what can be sent within ``drain`` s, say ``offline``, keep the rest on disk."""
+        if self._task is not None and self.connected and drain > 0:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(drain):
+                    await self._idle.wait()
+        self._closing = True
+        client = self._client
+        if client is not None and self.connected:
+            with contextlib.suppress(Exception):
+                async with asyncio.timeout(2):
+                    for topic, payload, qos, retain in self.layout.on_close(time.time()):
+                        await client.publish(topic, payload, qos=qos, retain=retain)
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+        for task in list(self._writes):
+            task.cancel()
+        self.buffer.close()
+
+    async def run(self) -> None:
+        """Connect, serve, reconnect with backoff; until cancelled."""
+        import aiomqtt
+
+        backoff = Backoff(initial=0.1, maximum=self.settings.reconnect_max)
+        while not self._closing:
+            try:
+                await self._session(aiomqtt, backoff)
+            except* (aiomqtt.MqttError, OSError) as group:
+                log.warning(
+                    "mqtt %s:%s: %s", self.settings.host, self.settings.port, group.exceptions[0]
+                )
+            was = self.connected
+            self.connected = False
+            self._client = None
+            self._connected_event.clear()
+            if was:
+                self.stats.disconnects += 1
+            await asyncio.sleep(backoff.next_delay())
+
+    def _tls_context(self) -> ssl.SSLContext | None:
+        s = self.settings
+        if not s.tls:
+            return None
+        context = ssl.create_default_context(cafile=s.ca_file)
+        if s.cert_file:
+            context.load_cert_chain(s.cert_file, s.key_file)
+        return context
+
+    async def _session(self, aiomqtt: Any, backoff: Backoff) -> None:
+        s = self.settings
+        will_topic, will_payload = self.layout.will()
+        client = aiomqtt.Client(
+            s.host,
+            s.port,
+            identifier=s.client_id,
+            username=s.username,
+            password=s.password,
+            will=aiomqtt.Will(will_topic, will_payload, qos=1, retain=True),
+            clean_session=True,
+            keepalive=s.keepalive,
+            timeout=10,
+            tls_context=self._tls_context(),
+            max_inflight_messages=s.inflight,
+        )
+        async with client:
+            self._client = client
+            self.connected = True
+            self.stats.connects += 1
+            backoff.reset()
+            # everything queued before this point waited for the connection
+            self._replay_until = self.buffer.next_seq - 1
+            for topic, payload, qos, retain in self.layout.on_connect(time.time()):
+                await client.publish(topic, payload, qos=qos, retain=retain)
+            for topic in self.layout.subscriptions():
+                await client.subscribe(topic, qos=1)
+            self._connected_event.set()
+            async with asyncio.TaskGroup() as tg:
+                tg.create_task(self._reader(client))
+                tg.create_task(self._publisher(client))
+
+    async def _publisher(self, client: Any) -> None:
+        buffer, stats = self.buffer, self.stats
+        window = self.settings.inflight
+        prepare = getattr(self.layout, "prepare", None)
+        while True:
+            batch = buffer.peek(window)
+            if not batch:
+                self._wake.clear()
+                self._idle.set()
+                await self._wake.wait()
+                continue
+            await asyncio.gather(*(self._publish(client, m, prepare) for m in batch))
+            buffer.ack(batch[-1].seq)
+            stats.sent += len(batch)
+            replayed = sum(1 for m in batch if m.seq <= self._replay_until)
+            stats.replayed += replayed
+
+    async def _publish(self, client: Any, m: Message, prepare: Any) -> None:
+        payload = m.payload if prepare is None else prepare(m, m.seq <= self._replay_until)
+        await client.publish(m.topic, payload, qos=m.qos, retain=m.retain)
+
+    # -- in: write requests ---------------------------------------------------------------------
+    async def _reader(self, client: Any) -> None:
+        async for message in client.messages:
+            payload = message.payload
+            if not isinstance(payload, bytes | bytearray):
+                payload = str(payload or "").encode()
+            self.handle_request(str(message.topic), bytes(payload))
+
+    def handle_request(self, topic: str, payload: bytes) -> None:
+        handler = getattr(self.layout, "handle", None)
+        if handler is not None and handler(self, topic, payload):
+            return
+        level, request_id, tag, value, error = self.layout.parse_write(topic, payload)
+        plc = self._plc_by_level.get(level)
+        if error is not None or tag is None:
+            self._respond(level, request_id, "bad_request", error or "bad request")
+        elif plc is None or self.writer is None:
+            self._respond(level, request_id, "unknown_plc", f"no PLC named {level!r} here")
+        elif len(self._writes) >= MAX_PENDING_WRITES:
+            self._respond(level, request_id, "busy", "too many writes waiting; not attempted")
+        else:
+            task = asyncio.create_task(self._write(plc, request_id, tag, value))
+            self._writes.add(task)
+            task.add_done_callback(self._writes.discard)
+
+    async def write_and_classify(
+        self, plc: str, tag: str, value: Any
+    ) -> tuple[str, str, bool] | None:
+        """Run one write; None if confirmed, else ``(code, message, may_have_executed)``."""
+        assert self.writer is not None
+        try:
+            await self.writer.write_tag(plc, tag, value)
+        except AddressError as exc:
+            code = "unknown_tag" if "no tag named" in exc.message else "wrong_type"
+            if "no PLC named" in exc.message:
+                code = "unknown_plc"
+            return code, str(exc), False
+        except (PlcErrorResponse, ConnectFailed) as exc:
+            return "plc_error", str(exc), False
+        except PlcError as exc:
+            # a timeout or a dropped connection after sending: the PLC may have done it
+            return "plc_error", str(exc), True
+        except Exception as exc:  # a writer bug must still get an answer, never silence
+            return "plc_error", f"{type(exc).__name__}: {exc}", True
+        return None
+
+    async def _write(self, plc: str, request_id: Any, tag: str, value: Any) -> None:
+        result = await self.write_and_classify(plc, tag, value)
+        if result is None:
+            self.stats.writes_ok += 1
+            self._respond(topic_level(plc), request_id, None, None)
+        else:
+            self._respond(topic_level(plc), request_id, *result)
+
+    def _respond(
+        self,
+        level: str,
+        request_id: Any,
+        error: str | None,
+        message: str | None,
+        may_have_executed: bool = False,
+    ) -> None:
+        if error is not None:
+            self.stats.writes_refused += 1
+        topic = write_response_topic(self.settings.prefix, level)
+        try:
+            payload = write_response_payload(
+                request_id, error=error, message=message, may_have_executed=may_have_executed
+            )
+        except (TypeError, ValueError):  # an id JSON cannot echo (cannot happen from JSON)
+            payload = write_response_payload(None, error=error, message=message)
+        client = self._client
+        if client is not None and self.connected:
+            task = asyncio.create_task(self._send_response(client, topic, payload))
+            self._writes.add(task)
+            task.add_done_callback(self._writes.discard)
+        else:
+            self._put(topic, payload, 1, False)
+
+    async def _send_response(self, client: Any, topic: str, payload: bytes) -> None:
+        try:
+            await client.publish(topic, payload, qos=1)
+        except Exception:  # connection went away: the queue delivers it after the reconnect
+            self._put(topic, payload, 1, False)

@@ -1,0 +1,237 @@
+"""MQTT sink against a real mosquitto: layout, Will, broker restart, backlog, budget, writes."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+from pathlib import Path
+from typing import Any
+
+import aiomqtt
+import pytest
+
+from plcstack.clients.base import Client
+from plcstack.north.buffer import StoreAndForward
+from plcstack.north.mqtt import MqttSettings, MqttSink, parse_mqtt
+from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
+from plcstack.poll.engine import Poller
+from plcstack.poll.values import DataType
+from tests.north_helpers import sample, subscriber
+from tests.poll_fakes import FakeClient
+from tests.servers import Mosquitto
+
+
+def settings(broker: Mosquitto, **kw: Any) -> MqttSettings:
+    kw.setdefault("reconnect_max", 0.2)
+    return MqttSettings(host=broker.host, port=broker.port, **kw)
+
+
+def counts(sub: Any) -> list[int]:
+    """Values of tag n in arrival order, duplicates (at-least-once redelivery) removed."""
+    seen: list[int] = []
+    for record in sub.json():
+        n = record["values"]["n"]
+        if n not in seen:
+            seen.append(n)
+    return seen
+
+
+async def test_data_and_status_layout(mosquitto: Mosquitto) -> None:
+    async with subscriber(mosquitto.host, mosquitto.port, "plcstack/#") as sub:
+        sink = MqttSink(settings(mosquitto, client_id="gw1"), group_of={("press/1", "t"): "fast"})
+        await sink.start()
+        await sink.wait_connected(5)
+        sink.submit(
+            [
+                sample("press/1", "t", 21.5),
+                sample("press/1", "alarms", [True, False]),
+                sample("press/1", "bad", None, error="press/1: read D9 x1: no answer"),
+                sample("press/1", "nan", float("nan")),
+            ]
+        )
+        await sub.wait_for(lambda s: len(s.messages) >= 4)
+        await sink.aclose()
+    by_topic = {t: json.loads(p) for t, p in sub.messages}
+    poller_status = [json.loads(p)["status"] for t, p in sub.messages if "_poller" in t]
+    assert poller_status == ["online", "offline"]  # offline: said on a graceful close
+    assert by_topic["plcstack/press_1/status"]["status"] == "online"
+    assert by_topic["plcstack/press_1/data/fast"] == {
+        "plc": "press/1",
+        "group": "fast",
+        "timestamp": 1_800_000_000_000,
+        "values": {"t": 21.5},
+    }
+    default = by_topic["plcstack/press_1/data/default"]
+    assert default["values"] == {"alarms": [True, False]}
+    assert default["errors"] == {
+        "bad": "press/1: read D9 x1: no answer",
+        "nan": "non-finite value nan",
+    }
+
+
+async def test_last_will_says_offline_when_the_connection_drops(mosquitto: Mosquitto) -> None:
+    sink = MqttSink(settings(mosquitto, client_id="gw2"))
+    await sink.start()
+    await sink.wait_connected(5)
+    async with subscriber(mosquitto.host, mosquitto.port, "plcstack/_poller/#") as sub:
+        await sub.wait_for(lambda s: s.json() and s.json()[-1]["status"] == "online")
+        # the network goes away under the client (no DISCONNECT): the broker sends the Will
+        sink._client._client.socket().shutdown(socket.SHUT_RDWR)
+        await sub.wait_for(lambda s: s.json()[-1]["status"] == "offline")
+        await sub.wait_for(lambda s: s.json()[-1]["status"] == "online")  # and it came back
+    await sink.aclose()
+
+
+async def test_broker_restart_loses_nothing_and_keeps_order(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    # small memory allowance: the outage goes to disk
+    buffer = StoreAndForward(tmp_path / "q.sqlite", memory_bytes=4096, max_bytes=1 << 20)
+    sink = MqttSink(settings(mosquitto), buffer=buffer)
+    async with subscriber(mosquitto.host, mosquitto.port, "plcstack/+/data/#") as sub:
+        await sink.start()
+        await sink.wait_connected(5)
+        n = 0
+        for phase in range(3):
+            if phase == 1:
+                await sub.wait_for(lambda s: len(counts(s)) >= 100)
+                mosquitto.stop()
+                await asyncio.sleep(0.3)  # the sink notices
+            if phase == 2:
+                assert not sink.connected
+                assert buffer.on_disk > 0
+                mosquitto.start()
+            for _ in range(100):
+                sink.submit([sample("p", "n", n)])
+                n += 1
+                await asyncio.sleep(0.002)
+        await sub.wait_for(lambda s: len(counts(s)) >= 300, timeout=20)
+        await sink.aclose()
+    assert counts(sub) == list(range(300))
+    stats = sink.stats
+    assert stats.buffered >= 100 and stats.replayed >= 100
+    assert buffer.dropped == 0 and len(buffer) == 0
+    print(
+        f"broker restart: sent={stats.sent} buffered={stats.buffered} replayed={stats.replayed}"
+        f" received={len(sub.messages)} distinct={len(counts(sub))} lost=0"
+    )
+
+
+async def test_disk_backlog_survives_a_poller_restart(mosquitto: Mosquitto, tmp_path: Path) -> None:
+    path = tmp_path / "q.sqlite"
+    mosquitto.stop()  # first run: no broker at all
+    first = MqttSink(settings(mosquitto), buffer=StoreAndForward(path, memory_bytes=1 << 20))
+    await first.start()
+    for n in range(50):
+        first.submit([sample("p", "n", n)])
+    await asyncio.sleep(0.05)
+    await first.aclose()  # memory part goes to disk
+    mosquitto.start()
+    async with subscriber(mosquitto.host, mosquitto.port, "plcstack/+/data/#") as sub:
+        second = MqttSink(settings(mosquitto), buffer=StoreAndForward(path))
+        assert len(second.buffer) == 51  # the PLC's status and 50 data messages
+        await second.start()
+        second.submit([sample("p", "n", 50)])  # new data goes after the old
+        await sub.wait_for(lambda s: len(counts(s)) >= 51)
+        await second.aclose()
+    assert counts(sub) == list(range(51))
+
+
+async def test_byte_budget_keeps_the_newest_and_counts_the_rest(
+    mosquitto: Mosquitto, tmp_path: Path
+) -> None:
+    mosquitto.stop()
+    buffer = StoreAndForward(tmp_path / "q.sqlite", memory_bytes=2000, max_bytes=6000)
+    sink = MqttSink(settings(mosquitto), buffer=buffer)
+    await sink.start()
+    for n in range(200):
+        sink.submit([sample("p", "n", n)])
+        assert buffer.backlog_bytes <= 6000
+    kept = len(buffer)
+    assert buffer.dropped == sink.stats.submitted - kept > 0  # 200 data + 1 status submitted
+    mosquitto.start()
+    async with subscriber(mosquitto.host, mosquitto.port, "plcstack/+/data/#") as sub:
+        await sub.wait_for(lambda s: len(counts(s)) >= kept)
+        await sink.aclose()
+    assert counts(sub) == list(range(200 - kept, 200))
+
+
+def make_poller() -> tuple[Poller, dict[str, FakeClient]]:
+    fakes: dict[str, FakeClient] = {}
+
+    def factory(plc: PlcConfig) -> Client:
+        fakes[plc.name] = FakeClient(f"fake://{plc.name}", timeout=0.2)
+        return fakes[plc.name]
+
+    tags = (TagConfig("speed", "D10", DataType.UINT16), TagConfig("on", "M3", DataType.BOOL))
+    config = PollConfig((PlcConfig("press1", "e71+tcp://127.0.0.1:1", tags),), {"default": 60})
+    return Poller(config, client_factory=factory), fakes
+
+
+async def test_writes_are_confirmed_or_refused_with_the_reason(mosquitto: Mosquitto) -> None:
+    poller, fakes = make_poller()
+    async with poller:
+        sink = MqttSink(settings(mosquitto), writer=poller)
+        await sink.start()
+        await sink.wait_connected(5)
+        async with (
+            subscriber(mosquitto.host, mosquitto.port, "plcstack/+/write/resp") as sub,
+            aiomqtt.Client(mosquitto.host, mosquitto.port) as client,
+        ):
+
+            async def ask(payload: bytes | str, plc: str = "press1") -> dict[str, Any]:
+                before = len(sub.messages)
+                await client.publish(f"plcstack/{plc}/write/req", payload, qos=1)
+                await sub.wait_for(lambda s: len(s.messages) > before)
+                reply: dict[str, Any] = json.loads(sub.messages[-1][1])
+                return reply
+
+            assert await ask('{"id": 1, "tag": "speed", "value": 1234}') == {"id": 1, "ok": True}
+            assert fakes["press1"].memory["D"][10] == 1234
+            assert await ask('{"id": "b", "tag": "on", "value": true}') == {"id": "b", "ok": True}
+            refused = {
+                '{"id": 2, "tag": "nope", "value": 1}': "unknown_tag",
+                '{"id": 3, "tag": "speed", "value": 70000}': "wrong_type",
+                '{"id": 4, "tag": "speed", "value": "fast"}': "wrong_type",
+                '{"id": 5, "tag": "speed"}': "bad_request",
+                "not json": "bad_request",
+            }
+            for request, code in refused.items():
+                reply = await ask(request)
+                assert reply["ok"] is False and reply["error"] == code, (request, reply)
+                assert reply["may_have_executed"] is False and reply["message"]
+            assert (await ask('{"id": 6, "tag": "speed", "value": 1}', plc="ghost"))[
+                "error"
+            ] == "unknown_plc"
+            fakes["press1"].kill()
+            reply = await ask('{"id": 7, "tag": "speed", "value": 5}')
+            assert reply["error"] == "plc_error" and reply["may_have_executed"] is False
+            assert "press1" in reply["message"] or "fake://press1" in reply["message"]
+            fakes["press1"].revive()
+            fakes["press1"].delay = 1.0  # longer than its 0.2 s deadline
+            reply = await ask('{"id": 8, "tag": "speed", "value": 6}')
+            assert reply["error"] == "plc_error" and reply["may_have_executed"] is True
+        assert fakes["press1"].memory["D"][10] == 1234  # nothing refused reached the PLC
+        await sink.aclose()
+
+
+def test_mqtt_table_parsing() -> None:
+    s = parse_mqtt(
+        {"url": "mqtts://broker.example", "username_env": "U", "password_env": "P", "qos": 0},
+        env={"U": "me", "P": "secret"},
+    )
+    assert (s.host, s.port, s.tls, s.username, s.password, s.qos) == (
+        "broker.example", 8883, True, "me", "secret", 0,
+    )  # fmt: skip
+    assert "secret" not in repr(s)
+    for bad, text in [
+        ({"url": "http://x"}, "url must be"),
+        ({"qos": 3}, "qos must be"),
+        ({"username_env": "NOPE"}, "not set"),
+        ({"mode": "xml"}, "mode must be"),
+        ({"prefix": "a/#"}, "prefix"),
+        ({"colour": 1}, "unknown key"),
+    ]:
+        with pytest.raises(ConfigError, match=text):
+            parse_mqtt(bad, env={})

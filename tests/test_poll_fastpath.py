@@ -1,0 +1,118 @@
+"""The poller's inline single-request scan and ``_scan`` give the same samples and counters.
+
+``Poller._run`` runs a scan of one request inline (no coroutine, list or tuple per scan: the
+garbage collector's load with a thousand PLCs); scans of several requests go through
+``_scan``. Both must behave alike. These tests play one scripted sequence of replies and
+failures through a poller with the inline path and through one with it switched off, and
+compare what comes out.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from dataclasses import astuple
+
+import pytest
+
+from plcstack.clients.base import Client
+from plcstack.errors import ConnectionLost, PlcErrorResponse, PlcTimeout
+from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.poll.engine import Poller
+from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.values import DataType
+from tests.poll_fakes import FakeClient
+
+Outcome = list[int] | Callable[[], Exception]
+
+#: one entry per read call: the words read, or a factory of the exception the read raises
+SCRIPT: list[Outcome] = [
+    [1, 2],
+    lambda: PlcTimeout("no answer within 0.5 s"),
+    [3, 4],
+    lambda: KeyError("client bug"),
+    lambda: ConnectionLost("connection reset by peer"),
+    [5, 6],
+    # the merged request is refused: from the next scan on each tag is read on its own
+    lambda: PlcErrorResponse(0x57, "points beyond the device range"),
+    [7],
+    [8],
+]
+#: samples the script yields: 7 scans of the merged request, then one of two single reads
+EXPECTED_SAMPLES = 16
+
+
+async def _run(inline: bool) -> tuple[list[tuple[object, ...]], dict[str, int], int]:
+    fake = FakeClient("fake://p")
+    script = list(SCRIPT)
+    block = asyncio.Event()  # never set: after the script every read waits, counters freeze
+    waiting = asyncio.Event()  # set once a read is waiting on ``block``
+
+    async def scripted(address: str, count: int = 1) -> list[int] | list[bool]:
+        if not script:
+            waiting.set()
+            await block.wait()
+        outcome = script.pop(0)
+        await asyncio.sleep(0)
+        if callable(outcome):
+            raise outcome()
+        assert len(outcome) == count, (address, count)
+        return list(outcome)
+
+    fake.read = scripted  # type: ignore[method-assign]
+
+    def factory(plc: PlcConfig) -> Client:
+        return fake
+
+    tags = (
+        TagConfig("a", "D0", DataType("raw"), 1, "default"),
+        TagConfig("b", "D1", DataType("raw"), 1, "default"),
+    )
+    config = PollConfig((PlcConfig("p", "e71+tcp://127.0.0.1:1", tags),), {"default": 0.001})
+    poller = Poller(config, client_factory=factory)
+    poller.inline_single_request = inline
+    samples: list[Sample] = []
+    async with asyncio.timeout(10):
+        async with poller:
+            async for sample in poller:
+                samples.append(sample)
+                if len(samples) == EXPECTED_SAMPLES:
+                    break
+            await waiting.wait()  # the scan after the script has begun, and stays open
+            st = poller.stats["p"]
+            counters = {
+                "requests": st.requests,
+                "errors": st.errors,
+                "scans": st.scans,
+                "samples": st.samples,
+                "bad_samples": st.bad_samples,
+                "latencies": len(st.latencies),
+            }
+            requests = len(poller.plan("p", "default").requests)
+    for s in samples:
+        assert s.source_time <= s.receive_time
+    # times differ from run to run; everything else must not
+    return [(*astuple(s)[:4], s.error) for s in samples], counters, requests
+
+
+@pytest.mark.parametrize("inline", [True, False])
+async def test_script_gives_the_expected_samples(inline: bool) -> None:
+    samples, counters, requests = await _run(inline)
+    values = [(tag, value) for _, tag, value, quality, _ in samples if quality is Quality.GOOD]
+    assert [value for _, value in values] == [1, 2, 3, 4, 5, 6, 7, 8]
+    assert [tag for tag, _ in values] == ["a", "b"] * 4
+    errors = [error for *_, error in samples if error is not None]
+    assert len(errors) == 8 and all(e.startswith("p: read D0 x2: ") for e in errors)
+    assert counters == {
+        "requests": 9,
+        "errors": 4,
+        "scans": 9,
+        "samples": 16,
+        "bad_samples": 8,
+        "latencies": 5,
+    }
+    assert requests == 2
+
+
+async def test_inline_and_scan_paths_agree() -> None:
+    assert await _run(inline=True) == await _run(inline=False)
