@@ -26,7 +26,7 @@ __all__ = ["run"]
 #: seconds between scans: the shortest the poller accepts (1 ms). With the hundreds of PLCs
 #: measured here one round of requests takes far longer, so every PLC's task scans back to back;
 #: below about ten PLCs this caps the poller at 1000 scans/s per PLC.
-INTERVAL = 0.001  # plcstack.poll.config.MIN_INTERVAL (plcstack is imported lazily here)
+INTERVAL = 0.001  # = plcstack.poll.config.MIN_INTERVAL (plcstack is imported lazily here)
 
 
 def _time_reads(client: Any, latencies: list[int], recording: list[bool]) -> None:
