@@ -13,12 +13,15 @@ import contextlib
 import os
 import signal
 import sys
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.sinks import FORMATS
 from plcstack.scale import cli as scale_cli
+
+if TYPE_CHECKING:
+    from plcstack.scale.worker import Worker
 
 
 def register(subparsers: Any) -> None:
@@ -77,10 +80,12 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     config = load_config(args.config)
     try:
         config = scale_cli.select(config, args)
+        worker = scale_cli.make_worker(config, args)  # --mqtt: one worker of a cluster
     except ValueError as exc:
         print(f"plcstack poll: error: {exc}", file=sys.stderr)
         return 2
-    poller = Poller(config)  # every URL and address checked here, before anything is sent
+    # every URL and address checked here, before anything is sent
+    poller: Poller | Worker = worker if worker is not None else Poller(config)
     line = FORMATS[args.format]
     stop = asyncio.Event()
     installed = install_stop_signals(stop)
@@ -111,7 +116,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     return 0
 
 
-async def _report_stats(poller: Poller, every: float) -> None:
+async def _report_stats(poller: Poller | Worker, every: float) -> None:
     while True:
         await asyncio.sleep(every)
         print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr, flush=True)
@@ -132,7 +137,9 @@ def _flush(out: TextIO) -> None:
         out.flush()
 
 
-async def _write_samples(poller: Poller, line: Any, out: TextIO, stop: asyncio.Event) -> None:
+async def _write_samples(
+    poller: Poller | Worker, line: Any, out: TextIO, stop: asyncio.Event
+) -> None:
     try:
         async for sample in poller:
             out.write(line(sample) + "\n")
