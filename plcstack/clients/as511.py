@@ -277,7 +277,7 @@ class AS511Client(S5Access, Client):
                 raise self.request_failed(
                     exc,
                     failure,
-                    chunks,
+                    b"".join(chunks),
                     what,
                     is_write=is_write,
                     sent=True,
@@ -296,7 +296,7 @@ class AS511Client(S5Access, Client):
                 raise self.request_failed(
                     error,
                     "timeout",
-                    chunks,
+                    b"".join(chunks),
                     what,
                     is_write=is_write,
                     sent=True,
