@@ -31,7 +31,7 @@ from __future__ import annotations
 import math
 import re
 
-from plcstack.poll.engine import Quality, Sample
+from plcstack.poll.samples import Quality, Sample
 
 __all__ = ["DEFAULT_MEASUREMENT", "influx_line", "measurement_text", "tag_text"]
 

@@ -49,7 +49,7 @@ import re
 from collections.abc import Iterable, Sequence
 from typing import Any
 
-from plcstack.poll.engine import Quality, Sample
+from plcstack.poll.samples import Quality, Sample
 
 __all__ = [
     "data_payload",

@@ -48,7 +48,7 @@ from plcstack.north.layout import (
     write_response_topic,
 )
 from plcstack.poll.config import ConfigError
-from plcstack.poll.engine import Sample
+from plcstack.poll.samples import Sample
 from plcstack.transports.backoff import Backoff
 
 __all__ = ["MqttSettings", "MqttSink", "Writer", "parse_mqtt"]
