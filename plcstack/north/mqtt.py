@@ -370,6 +370,8 @@ class MqttSink:
 
     async def _publish(self, client: Any, m: Message, prepare: Any) -> None:
         payload = m.payload if prepare is None else prepare(m, m.seq <= self._replay_until)
+        if payload is None:  # the layout says this one is obsolete (an old session's birth)
+            return
         await client.publish(m.topic, payload, qos=m.qos, retain=m.retain)
 
     # -- in: write requests ---------------------------------------------------------------------
@@ -383,6 +385,8 @@ class MqttSink:
     def handle_request(self, topic: str, payload: bytes) -> None:
         handler = getattr(self.layout, "handle", None)
         if handler is not None and handler(self, topic, payload):
+            return
+        if not hasattr(self.layout, "parse_write"):
             return
         level, request_id, tag, value, error = self.layout.parse_write(topic, payload)
         plc = self._plc_by_level.get(level)

@@ -109,6 +109,9 @@ class PollConfig:
     groups: Mapping[str, float] = field(default_factory=lambda: {DEFAULT_GROUP: DEFAULT_INTERVAL})
     concurrency: int | None = DEFAULT_CONCURRENCY
     queue: int = DEFAULT_QUEUE
+    #: the north side's tables ([mqtt], [metrics], [report], [influx]) as read from the TOML,
+    #: checked by plcstack.north.config when the file is loaded
+    north: Mapping[str, Any] = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -229,11 +232,19 @@ class _Loader:
         return sorted(set(table) - allowed)
 
     def load(self, data: dict[str, Any]) -> PollConfig:
-        unknown = self._unknown(data, {"poll", "groups", "plc"})
+        from plcstack.north.config import NORTH_TABLES, parse_north
+
+        unknown = self._unknown(data, {"poll", "groups", "plc", *NORTH_TABLES})
         if unknown:
             raise self.error(
-                f"unknown top-level key(s) {', '.join(unknown)}; expected poll, groups, plc"
+                f"unknown top-level key(s) {', '.join(unknown)}; expected poll, groups, plc,"
+                f" {', '.join(NORTH_TABLES)}"
             )
+        north = {key: data[key] for key in NORTH_TABLES if key in data}
+        try:
+            parse_north(north)
+        except ConfigError as exc:
+            raise self.error(exc.message, next(iter(north), None)) from None
         poll = data.get("poll", {})
         if not isinstance(poll, dict):
             raise self.error("[poll] must be a table", "poll")
@@ -291,7 +302,7 @@ class _Loader:
         self.plc_index, self.plc_name = -1, None
         if not plcs:
             raise self.error("no PLC configured: add a [[plc]] table with name, url and tags")
-        return PollConfig(tuple(plcs), groups, concurrency, queue)
+        return PollConfig(tuple(plcs), groups, concurrency, queue, north)
 
     def _plc(
         self,
