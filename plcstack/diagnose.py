@@ -17,6 +17,10 @@ from __future__ import annotations
 
 from typing import Literal
 
+from plcstack.codecs.as511 import ACCEPT_FRAME, DLE_ACK, DLE_NAK, TERMINATE_FRAME
+from plcstack.codecs.e71_end_codes import END_CODES
+from plcstack.codecs.e71_wire import HEX
+
 __all__ = [
     "Failure",
     "as511_hint",
@@ -32,11 +36,11 @@ __all__ = [
 #: the peer closed the connection
 Failure = Literal["malformed", "timeout", "closed"]
 
-_HEX = frozenset(b"0123456789ABCDEFabcdef")
-#: E71 end codes (melsec-e71 §13): 00H, and the error codes 50H-5BH and 60H
-_END_CODES = frozenset([0x00, *range(0x50, 0x5C), 0x60])
-#: AS511 handshakes an AG sends (siemens-s5 B.2): DLE ACK, DLE NAK, the accept frame SYN DLE ETX
-_AS511_STARTS = (b"\x10\x06", b"\x10\x15", b"\x16\x10\x03", b"\x12\x10\x03")
+#: E71 end codes (melsec-e71 §10): 00H and the documented error codes, from the codec's table
+_END_CODES = frozenset(END_CODES)
+#: AS511 handshakes an AG sends (siemens-s5 B.2): DLE ACK, DLE NAK, the accept frame
+#: SYN DLE ETX and the terminate frame DC2 DLE ETX
+_AS511_STARTS = (DLE_ACK, DLE_NAK, ACCEPT_FRAME, TERMINATE_FRAME)
 #: at most this many reply bytes are quoted in a hint
 _QUOTE = 8
 
@@ -58,7 +62,7 @@ def looks_like_e71_binary(reply: bytes) -> bool:
 
 def looks_like_e71_ascii(reply: bytes) -> bool:
     """An ASCII 1E answer: 4 hex characters, subheader >= 80H, then a known end code (§11.4)."""
-    if len(reply) < 4 or not all(b in _HEX for b in reply[:4]):
+    if len(reply) < 4 or not all(b in HEX for b in reply[:4]):
         return False
     return int(reply[:2], 16) >= 0x80 and int(reply[2:4], 16) in _END_CODES
 

@@ -19,7 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plcstack.bench import frames
-from plcstack.bench.cases import sample_words
+from plcstack.bench.cases import WORDS, sample_words
 from plcstack.bench.floor import FloorError, open_floor
 from plcstack.bench.png import Canvas, ChartSeries, compact, encode_png, line_chart
 from plcstack.bench.report import chart_series, format_table, write_json, write_plot
@@ -513,5 +513,30 @@ def test_cli_smoke_writes_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFi
         # with the protocols merged, the smoke run really measures (nothing silently skipped)
         assert {"codec/e71+tcp/read64", "conn/e71+tcp/read64", "conn/e71+udp/write64"} <= ran
         assert {"fanout/e71+tcp/poll", "fanout/e71+tcp/clients"} <= ran
+        assert "fleet/e71+tcp/poll" in ran
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "case" in capsys.readouterr().out
+
+
+# -- the fleet case --------------------------------------------------------------------------------
+def test_fleet_frames_are_the_spec_read_of_64_words() -> None:
+    from plcstack.bench.cases import fleet
+
+    # 01H, PC FFH, timer, head D0, device code D, 64 points (E71 spec: batch read in words)
+    assert bytes.fromhex("01ff0a00000000002044" + "4000") == fleet.REQUEST
+    assert fleet.REPLY[:2] == b"\x81\x00" and len(fleet.REPLY) == 2 + 2 * WORDS
+
+
+def test_fleet_row_takes_medians_and_the_ratio_of_cpu_per_request() -> None:
+    from plcstack.bench.suite import fleet_row
+
+    def summary(cpu: float, overruns: int) -> dict[str, float]:
+        return {"cpu_us_per_request": cpu, "rate": 1000.0, "target": 1000.0, "p50_ms": 1.0,
+                "p99_ms": 5.0, "cpu_share": 0.5, "overruns": overruns}  # fmt: skip
+
+    pairs = [(summary(50, 0), summary(100, 1)), (summary(60, 2), summary(60, 0)),
+             (summary(40, 0), summary(50, 0))]  # fmt: skip
+    row = fleet_row("fleet/e71+tcp/poll", "asyncio", 100, pairs)
+    assert row.ratio == pytest.approx(0.8)  # ratios 0.5, 1.0, 0.8
+    assert row.us_per_op == 60 and row.floor_us_per_op == 50
+    assert "overruns s|f 1|2" in row.note and "ratio 0.50..1.00" in row.note

@@ -152,7 +152,7 @@ def test_as511_bulk_receive_equals_byte_by_byte(
     data: bytes, cuts: list[int], corrupt: list[tuple[int, int]], late: float
 ) -> None:
     """The AG's whole answer to a read (optionally corrupted), in arbitrary chunks, some of them
-    late: ``receive_data`` must leave the PG exactly as feeding ``_receive_byte`` one by one."""
+    late: ``receive_data`` must leave the PG exactly as feeding the same bytes one at a time."""
     job = as511.read_job(0x1000, len(data))
     ag_stream = bytearray(
         as511.DLE_ACK
@@ -177,7 +177,7 @@ def test_as511_bulk_receive_equals_byte_by_byte(
         now += late if i % 2 else 0.01
         bulk.receive_data(chunk, now)
         for byte in chunk:
-            ref._receive_byte(byte, now)
+            ref.receive_data(bytes([byte]), now)
         got = _snapshot(bulk)
         assert got == _snapshot(ref)
         events += got[-1]

@@ -6,7 +6,8 @@ Plans:
   (about 20 s per event loop here, 40-50 s with uvloop and the peer). Fan-out N = 10, 100,
   1000 for E71 TCP through the poller.
 * ``full``  -- longer repeats, fan-out also for FETCH/WRITE and S5-LAN, both stack kinds
-  (poller and plain clients); about 5 minutes per event loop.
+  (poller and plain clients); about 5 minutes per event loop. The 10 Hz fleet (N = 100,
+  1000; in ``quick`` N = 100 only) against responders in another process on their own CPU.
 * ``smoke`` -- tiny sizes for the test suite: exercises every code path, measures nothing useful.
 
 Failures never abort the run: a case that cannot run (protocol not merged, peer not installed) or
@@ -24,14 +25,17 @@ from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
 from typing import Any, TextIO, TypeVar
 
-from plcstack.bench.cases import WORDS, Unavailable
+from plcstack.bench.cases import WORDS, Unavailable, fleet
 from plcstack.bench.cases.conn import run_conn_case
 from plcstack.bench.cases.fanout import series_from_summary, spawn
 from plcstack.bench.cases.peers import PEER_PROTOCOLS, hsl_available
 from plcstack.bench.cases.protocols import PROTOCOLS, by_key
 from plcstack.bench.runner import Result, measure_sync
 
-__all__ = ["PLANS", "Plan", "available_loops", "run_suite"]
+__all__ = ["GROUPS", "PLANS", "Plan", "available_loops", "run_suite"]
+
+#: the case groups, in report order (``plcstack bench --only``)
+GROUPS = frozenset({"codec", "conn", "fanout", "fleet", "peer"})
 
 LoopFactory = Callable[[], asyncio.AbstractEventLoop]
 T = TypeVar("T")
@@ -52,6 +56,12 @@ class Plan:
     fanout_duration: float
     fanout_repeats: int
     peer_ns: tuple[int, ...]
+    #: the 10 Hz fleet against responders in another process (cases/fleet.py)
+    fleet_ns: tuple[int, ...] = ()
+    fleet_duration: float = 1.0
+    fleet_warmup: float = 1.0
+    #: floor and stack children alternate this many times; the ratio is the median of the pairs
+    fleet_repeats: int = 1
 
 
 PLANS: dict[str, Plan] = {
@@ -59,17 +69,20 @@ PLANS: dict[str, Plan] = {
         name="smoke", repeats=1, conn_duration=0.02, warmup=0.0, codec_time=0.001,
         conn_kinds=("read", "write"), fanout_protocols=("e71+tcp",), fanout_ns=(2,),
         fanout_kinds=("poll", "clients"), fanout_duration=0.05, fanout_repeats=1, peer_ns=(2,),
+        fleet_ns=(2,), fleet_duration=0.2, fleet_warmup=0.2,
     ),
     "quick": Plan(
         name="quick", repeats=3, conn_duration=0.1, warmup=0.05, codec_time=0.02,
         conn_kinds=("read", "write"), fanout_protocols=("e71+tcp",), fanout_ns=(10, 100, 1000),
         fanout_kinds=("poll",), fanout_duration=0.25, fanout_repeats=3, peer_ns=(10,),
+        fleet_ns=(100,), fleet_duration=1.0, fleet_warmup=0.5,
     ),
     "full": Plan(
         name="full", repeats=5, conn_duration=0.5, warmup=0.2, codec_time=0.2,
         conn_kinds=("read", "write"), fanout_protocols=("e71+tcp", "fetchwrite", "s5lan"),
         fanout_ns=(10, 100, 1000), fanout_kinds=("poll", "clients"), fanout_duration=1.0,
         fanout_repeats=5, peer_ns=(10, 100, 1000),
+        fleet_ns=(100, 1000), fleet_duration=3.0, fleet_warmup=1.0, fleet_repeats=3,
     ),
 }  # fmt: skip
 
@@ -90,9 +103,11 @@ def run_suite(
     *,
     loops: list[tuple[str, LoopFactory]] | None = None,
     log: TextIO | None = sys.stderr,
+    only: frozenset[str] | None = None,
 ) -> list[Result]:
-    """Run every case of ``plan``; returns the rows in report order."""
+    """Run every case of ``plan`` (or of the groups in ``only``); the rows in report order."""
     loops = loops if loops is not None else available_loops()
+    groups = GROUPS if only is None else only
     started = time.perf_counter()
 
     def say(text: str) -> None:
@@ -100,10 +115,11 @@ def run_suite(
             print(f"[{time.perf_counter() - started:5.1f}s] {text}", file=log, flush=True)
 
     results: list[Result] = []
-    results += run_codecs(plan, say)
+    if "codec" in groups:
+        results += run_codecs(plan, say)
     for loop_name, factory in loops:
         with asyncio.Runner(loop_factory=factory) as runner:
-            for case in PROTOCOLS:
+            for case in PROTOCOLS if "conn" in groups else ():
                 for kind in plan.conn_kinds:
                     name = f"conn/{case.key}/{kind}{WORDS}"
                     say(f"{name} on {loop_name}")
@@ -131,8 +147,12 @@ def run_suite(
                         results.append(
                             Result.skipped(name, loop_name, 1, _failed(exc), group="conn")
                         )
-        results += run_fanout(plan, loop_name, say)
-    results += run_peers(plan, results, say)
+        if "fanout" in groups:
+            results += run_fanout(plan, loop_name, say)
+        if "fleet" in groups:
+            results += run_fleet(plan, loop_name, say)
+    if "peer" in groups:
+        results += run_peers(plan, results, say)
     return results
 
 
@@ -222,6 +242,71 @@ def run_fanout(plan: Plan, loop_name: str, say: Callable[[str], None]) -> list[R
                     row.note = f"floor: {floor_summary['note']}"
                 rows.append(row)
     return rows
+
+
+def run_fleet(plan: Plan, loop_name: str, say: Callable[[str], None]) -> list[Result]:
+    """Floor and poller children alternate ``fleet_repeats`` times per N (load on a shared
+    machine drifts; neighbouring pairs see the same); CPU per request and ratio are medians."""
+    rows: list[Result] = []
+    name = "fleet/e71+tcp/poll"
+    for n in plan.fleet_ns:
+        pairs: list[tuple[dict[str, Any], dict[str, Any]]] = []
+        failed = ""
+        for i in range(plan.fleet_repeats):
+            got = []
+            for kind in ("floor", "poll"):
+                say(f"fleet/e71+tcp/{kind} N={n} at 10 Hz on {loop_name} ({i + 1})")
+                summary = fleet.spawn(
+                    kind,
+                    n,
+                    loop=loop_name,
+                    duration=plan.fleet_duration,
+                    warmup=plan.fleet_warmup,
+                )
+                if "cpu_us_per_request" not in summary or not summary["cpu_us_per_request"]:
+                    failed = f"{kind}: {summary.get('note', 'no requests completed')}"
+                got.append(summary)
+            if failed:
+                break
+            pairs.append((got[0], got[1]))
+        if failed:
+            rows.append(Result.skipped(name, loop_name, n, failed, group="fleet"))
+            continue
+        rows.append(fleet_row(name, loop_name, n, pairs))
+    return rows
+
+
+def fleet_row(
+    name: str, loop_name: str, n: int, pairs: list[tuple[dict[str, Any], dict[str, Any]]]
+) -> Result:
+    """One report row from (floor, stack) summaries: medians, and the ratio's range."""
+
+    def med(side: int, key: str) -> float:
+        return float(statistics.median(pair[side][key] for pair in pairs))
+
+    ratios = sorted(f["cpu_us_per_request"] / s["cpu_us_per_request"] for f, s in pairs)
+    row = Result(
+        case=name,
+        loop=loop_name,
+        n=n,
+        ops_per_s=med(1, "rate"),
+        floor_ops_per_s=med(0, "rate"),
+        ratio=statistics.median(ratios),
+        p99_ms=med(1, "p99_ms"),
+        group="fleet",
+        p50_ms=med(1, "p50_ms"),
+        floor_p99_ms=med(0, "p99_ms"),
+        us_per_op=med(1, "cpu_us_per_request"),
+        floor_us_per_op=med(0, "cpu_us_per_request"),
+        repeats=len(pairs),
+    )
+    overruns = f"{sum(p[1]['overruns'] for p in pairs)}|{sum(p[0]['overruns'] for p in pairs)}"
+    spread = f"; ratio {ratios[0]:.2f}..{ratios[-1]:.2f}" if len(ratios) > 1 else ""
+    row.note = (
+        f"CPU/request; target {pairs[0][1]['target']:,.0f}/s; overruns s|f {overruns}; "
+        f"core s|f {med(1, 'cpu_share'):.2f}|{med(0, 'cpu_share'):.2f}{spread}"
+    )
+    return row
 
 
 def run_peers(plan: Plan, results: list[Result], say: Callable[[str], None]) -> list[Result]:

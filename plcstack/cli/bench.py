@@ -41,6 +41,12 @@ def register(subparsers: Any) -> None:
         default="all",
         help="event loop(s) to measure (default: asyncio, and uvloop when installed)",
     )
+    bench.add_argument(
+        "--only",
+        action="append",
+        choices=("codec", "conn", "fanout", "fleet", "peer"),
+        help="run only this group of cases (repeatable; default: all)",
+    )
     bench.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     bench.set_defaults(func=run_bench)
 
@@ -89,7 +95,11 @@ async def run_bench(args: argparse.Namespace) -> int:
         if not loops:
             raise AddressError(f"event loop {args.loop!r} is not installed")
     log = None if args.quiet else sys.stderr
-    results = await _in_daemon_thread(lambda: suite.run_suite(plan, loops=loops, log=log))
+    results = await _in_daemon_thread(
+        lambda: suite.run_suite(
+            plan, loops=loops, log=log, only=frozenset(args.only) if args.only else None
+        )
+    )
     print(report.format_table(results))
     if args.json:
         report.write_json(args.json, results, {"plan": plan.name, "loops": [n for n, _ in loops]})

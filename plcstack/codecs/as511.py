@@ -632,19 +632,8 @@ class PGConnection:
                 self._got_byte = False
                 self._enter(PGState.W_END, now, sent=2)
             return
-        # RX_DATA
-        rx = self._rx
-        assert rx is not None
-        try:
-            done = rx.feed(byte)
-        except RemoteProtocolError as exc:
-            self._fail(now, f"data frame: {exc.message}")
-            return
-        if done:
-            self._payload = rx.payload()
-            self._rx = None
-            self._send(DLE_ACK)
-            self._enter(PGState.W_STX3, now, sent=2)
+        # RX_DATA never gets here: receive_data hands the data frame to _receive_run, and a
+        # byte that came too late was dealt with above.
 
     def _receive_short_frame(self, byte: int, now: float, job: Job) -> None:
         """Accept frame (``16 10 03``) or terminate frame (``12 10 03``; lenient per D.B4)."""

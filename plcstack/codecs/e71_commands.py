@@ -294,6 +294,15 @@ class RandomBufferResponse(ExtensionResponse):
 # Requests with the common header (subheader, PC number, monitoring timer)
 
 
+def _r_ref(r: Reader, width: int) -> tuple[int, int]:
+    """(block, number) of an R designation of 6 (no block) or 8 bytes; 56H for another code."""
+    value = r.num(width)
+    dcode = value >> 32 & 0xFFFF
+    if dcode != R_CODE:
+        raise Malformed(0x56, f"device code {dcode:04X}H is not R (5220H)")
+    return value >> 48, value & 0xFFFFFFFF
+
+
 @dataclass(frozen=True, slots=True)
 class _Hdr(ExtensionRequest):
     pc: int = field(default=DEFAULT_PC, kw_only=True)
@@ -325,6 +334,24 @@ class _Hdr(ExtensionRequest):
 
     def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         return Ack(self.COMMAND)
+
+    # -- E71 side: the request decoded from a complete, correctly sized frame ------------------
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        """The request in ``frame``; :class:`Malformed` carries the end code and the PC number."""
+        r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
+        r.num(1)
+        hdr = {"pc": r.num(1), "timer": r.num(2)}
+        try:
+            return cls._decode_fields(r, hdr)
+        except Malformed as exc:
+            exc.pc = hdr["pc"]
+            raise
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        """What follows the header (nothing for 13H-15H and 1BH)."""
+        return cls(**hdr)
 
 
 class _WordsReply:
@@ -405,6 +432,11 @@ class Loopback(_Hdr):
             raise Malformed(0x57, f"loopback length {n} differs from the {len(self.data)} sent")
         return LoopbackResponse(r.raw(n))
 
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        n = r.num(1) or 256
+        return cls(r.raw(n), **hdr)
+
 
 @dataclass(frozen=True, slots=True)
 class ReadSpecial(_Hdr):
@@ -427,6 +459,12 @@ class ReadSpecial(_Hdr):
     def _decode_data(self, r: Reader) -> Response | ExtensionResponse:
         return BytesResponse(self.COMMAND, r.raw(self.count))
 
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        address, count, module = r.num(3), r.num(1) or 256, r.num(1)
+        r.num(1)
+        return cls(module, address, count, **hdr)
+
 
 @dataclass(frozen=True, slots=True)
 class WriteSpecial(_Hdr):
@@ -445,6 +483,12 @@ class WriteSpecial(_Hdr):
         w = _special_head(self, code, len(self.data))
         w.raw(self.data)
         return w.getvalue()
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        address, count, module = r.num(3), r.num(1) or 256, r.num(1)
+        r.num(1)
+        return cls(module, address, r.raw(count), **hdr)
 
 
 def _special_head(req: ReadSpecial | WriteSpecial, code: Code, count: int) -> Writer:
@@ -487,6 +531,11 @@ class ReadExtFile(_WordsReply, _Hdr):
         w.num(0, 1)
         return w.getvalue()
 
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        block, number = _r_ref(r, 8)
+        return cls(block, number, count_from(r), **hdr)
+
 
 @dataclass(frozen=True, slots=True)
 class WriteExtFile(_Hdr):
@@ -506,6 +555,11 @@ class WriteExtFile(_Hdr):
         w.num(0, 1)
         w.words(self.values)
         return w.getvalue()
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        block, number = _r_ref(r, 8)
+        return cls(block, number, r.words(count_from(r)), **hdr)
 
 
 @dataclass(frozen=True, slots=True)
@@ -527,6 +581,14 @@ class TestExtFile(_Hdr):
             w.num(value, 2)
         return w.getvalue()
 
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        points = []
+        for _ in range(count_from(r)):
+            block, number = _r_ref(r, 8)
+            points.append((block, number, r.num(2)))
+        return cls(tuple(points), **hdr)
+
 
 @dataclass(frozen=True, slots=True)
 class RegisterMonitorExt(_Hdr):
@@ -544,6 +606,11 @@ class RegisterMonitorExt(_Hdr):
         for block, number in self.points:
             w.num(_xdev(block, number), 8)
         return w.getvalue()
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        n = count_from(r)
+        return cls(tuple(_r_ref(r, 8) for _ in range(n)), **hdr)
 
 
 @dataclass(frozen=True, slots=True)
@@ -577,6 +644,11 @@ class ReadExtDirect(_WordsReply, _Hdr):
         w.num(0, 1)
         return w.getvalue()
 
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        _, number = _r_ref(r, 6)
+        return cls(number, count_from(r), **hdr)
+
 
 @dataclass(frozen=True, slots=True)
 class WriteExtDirect(_Hdr):
@@ -596,6 +668,11 @@ class WriteExtDirect(_Hdr):
         w.num(0, 1)
         w.words(self.values)
         return w.getvalue()
+
+    @classmethod
+    def _decode_fields(cls, r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
+        _, number = _r_ref(r, 6)
+        return cls(number, r.words(count_from(r)), **hdr)
 
 
 @dataclass(frozen=True, slots=True)
@@ -627,6 +704,13 @@ class OpaqueCommand(_Hdr):
             return got
         return OpaqueResponse(self.command, frame[2 * _unit(code) :])
 
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
+        command = r.num(1)
+        pc, timer = r.num(1), r.num(2)
+        return cls(command, frame[r.pos :], pc=pc, timer=timer)
+
 
 # ---------------------------------------------------------------------------------------------
 # Random access buffer (61H/62H) and fixed buffer data (60H): "xx 00" subheader, no PC/timer
@@ -642,6 +726,13 @@ class _Buffer(ExtensionRequest):
             w.num(address, 2)
         w.num(count, 2)
         return w
+
+    @staticmethod
+    def _reader(frame: bytes, code: Code, lower_ok: bool) -> Reader:
+        r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
+        r.num(1)
+        r.num(1)  # §13 A16: the second subheader byte is ignored
+        return r
 
 
 def _rab_check(address: int, count: int, code: Code) -> None:
@@ -680,6 +771,11 @@ class ReadRandomBuffer(_Buffer):
         except Malformed as exc:
             raise _malformed(self.COMMAND, exc) from None
 
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        r = cls._reader(frame, code, lower_ok)
+        return cls(r.num(2), r.num(2))
+
 
 @dataclass(frozen=True, slots=True)
 class WriteRandomBuffer(_Buffer):
@@ -707,6 +803,12 @@ class WriteRandomBuffer(_Buffer):
         got = _error_or_body(frame, code, self.COMMAND, self._subs(code))
         return got if isinstance(got, ErrorResponse) else Ack(self.COMMAND)
 
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        r = cls._reader(frame, code, lower_ok)
+        address, count = r.num(2), r.num(2)
+        return cls(address, r.words(count))
+
 
 @dataclass(frozen=True, slots=True)
 class FixedBufferData(_Buffer):
@@ -731,143 +833,34 @@ class FixedBufferData(_Buffer):
         got = _error_or_body(frame, code, self.COMMAND)
         return got if isinstance(got, ErrorResponse) else Ack(self.COMMAND)
 
-
-# ---------------------------------------------------------------------------------------------
-# E71 side: decoders of complete, correctly sized frames (E71ServerConnection(extensions=...))
-
-
-def _header(r: Reader) -> dict[str, int]:
-    r.num(1)
-    return {"pc": r.num(1), "timer": r.num(2)}
-
-
-def _r_ref(r: Reader, width: int) -> tuple[int, int]:
-    """(block, number) of an R designation of 6 (no block) or 8 bytes; 56H for another code."""
-    value = r.num(width)
-    dcode = value >> 32 & 0xFFFF
-    if dcode != R_CODE:
-        raise Malformed(0x56, f"device code {dcode:04X}H is not R (5220H)")
-    return value >> 48, value & 0xFFFFFFFF
-
-
-def _with_pc(
-    fn: Callable[[Reader, dict[str, int]], ExtensionRequest],
-) -> Callable[[bytes, Code, bool], ExtensionRequest]:
-    def decode(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-        r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
-        hdr = _header(r)
-        try:
-            return fn(r, hdr)
-        except Malformed as exc:
-            exc.pc = hdr["pc"]
-            raise
-
-    return decode
-
-
-def _d_special_read(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    address, count, module = r.num(3), r.num(1) or 256, r.num(1)
-    r.num(1)
-    return ReadSpecial(module, address, count, **hdr)
-
-
-def _d_special_write(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    address, count, module = r.num(3), r.num(1) or 256, r.num(1)
-    r.num(1)
-    return WriteSpecial(module, address, r.raw(count), **hdr)
-
-
-def _d_loopback(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    n = r.num(1) or 256
-    return Loopback(r.raw(n), **hdr)
-
-
-def _d_ext_read(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    block, number = _r_ref(r, 8)
-    return ReadExtFile(block, number, count_from(r), **hdr)
-
-
-def _d_ext_write(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    block, number = _r_ref(r, 8)
-    return WriteExtFile(block, number, r.words(count_from(r)), **hdr)
-
-
-def _d_ext_test(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    points = []
-    for _ in range(count_from(r)):
-        block, number = _r_ref(r, 8)
-        points.append((block, number, r.num(2)))
-    return TestExtFile(tuple(points), **hdr)
-
-
-def _d_ext_register(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    n = count_from(r)
-    return RegisterMonitorExt(tuple(_r_ref(r, 8) for _ in range(n)), **hdr)
-
-
-def _d_direct_read(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    _, number = _r_ref(r, 6)
-    return ReadExtDirect(number, count_from(r), **hdr)
-
-
-def _d_direct_write(r: Reader, hdr: dict[str, int]) -> ExtensionRequest:
-    _, number = _r_ref(r, 6)
-    return WriteExtDirect(number, r.words(count_from(r)), **hdr)
-
-
-def _simple(
-    cls: type[RemoteRun | RemoteStop | ReadCpuModel | MonitorExt],
-) -> Callable[[Reader, dict[str, int]], ExtensionRequest]:
-    return lambda _r, hdr: cls(**hdr)
-
-
-def _d_opaque(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-    r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
-    command = r.num(1)
-    pc, timer = r.num(1), r.num(2)
-    return OpaqueCommand(command, frame[r.pos :], pc=pc, timer=timer)
-
-
-def _buffer_reader(frame: bytes, code: Code, lower_ok: bool) -> Reader:
-    r = Reader(frame, code is Code.ASCII, lower_ok=lower_ok)
-    r.num(1)
-    r.num(1)  # §13 A16: the second subheader byte is ignored
-    return r
-
-
-def _d_rab_read(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-    r = _buffer_reader(frame, code, lower_ok)
-    return ReadRandomBuffer(r.num(2), r.num(2))
-
-
-def _d_rab_write(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-    r = _buffer_reader(frame, code, lower_ok)
-    address, count = r.num(2), r.num(2)
-    return WriteRandomBuffer(address, r.words(count))
-
-
-def _d_fixed(frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
-    r = _buffer_reader(frame, code, lower_ok)
-    return FixedBufferData(r.words(r.num(2)))
+    @classmethod
+    def decode(cls, frame: bytes, code: Code, lower_ok: bool) -> ExtensionRequest:
+        r = cls._reader(frame, code, lower_ok)
+        return cls(r.words(r.num(2)))
 
 
 #: every command of this module -> its E71-side decoder (``E71ServerConnection(extensions=)``)
 DECODERS: Final[dict[int, Callable[[bytes, Code, bool], ExtensionRequest]]] = {
-    0x0E: _with_pc(_d_special_read),
-    0x0F: _with_pc(_d_special_write),
-    0x13: _with_pc(_simple(RemoteRun)),
-    0x14: _with_pc(_simple(RemoteStop)),
-    0x15: _with_pc(_simple(ReadCpuModel)),
-    0x16: _with_pc(_d_loopback),
-    0x17: _with_pc(_d_ext_read),
-    0x18: _with_pc(_d_ext_write),
-    0x19: _with_pc(_d_ext_test),
-    0x1A: _with_pc(_d_ext_register),
-    0x1B: _with_pc(_simple(MonitorExt)),
-    0x3B: _with_pc(_d_direct_read),
-    0x3C: _with_pc(_d_direct_write),
-    0x60: _d_fixed,
-    0x61: _d_rab_read,
-    0x62: _d_rab_write,
-    **dict.fromkeys(OPAQUE_COMMANDS, _d_opaque),
+    **{
+        cls.COMMAND: cls.decode
+        for cls in (
+            ReadSpecial,
+            WriteSpecial,
+            RemoteRun,
+            RemoteStop,
+            ReadCpuModel,
+            Loopback,
+            ReadExtFile,
+            WriteExtFile,
+            TestExtFile,
+            RegisterMonitorExt,
+            MonitorExt,
+            ReadExtDirect,
+            WriteExtDirect,
+            FixedBufferData,
+            ReadRandomBuffer,
+            WriteRandomBuffer,
+        )
+    },
+    **dict.fromkeys(OPAQUE_COMMANDS, OpaqueCommand.decode),
 }

@@ -133,11 +133,6 @@ class MkConnection:
         self._buf.feed(data)
 
     @property
-    def in_message(self) -> bool:
-        """True while a continued message is partly received."""
-        return bool(self._parts)
-
-    @property
     def buffered(self) -> int:
         """Bytes received and not yet turned into events."""
         return len(self._buf) + self._parts_len

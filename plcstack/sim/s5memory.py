@@ -168,8 +168,6 @@ class S5Memory:
         self.ram_start = ram_start
         self._blocks: dict[tuple[BlockType, int], _Block] = {}
         self._next_free = ram_start
-        #: bumped on every block layout change, so a cache can be checked cheaply in tests
-        self.layout_generation = 0
         for number, words in (default_dbs if default_dbs is not None else {}).items():
             self.create_block(BlockType.DB, number, words)
 
@@ -200,7 +198,6 @@ class S5Memory:
         self.image[block.dw0_address : block.dw0_address + data_words * 2] = body
         self._blocks[(type, number)] = block
         self._next_free = addr + size
-        self.layout_generation += 1
         return block.dw0_address
 
     def delete_block(self, type: BlockType, number: int) -> None:
@@ -209,7 +206,6 @@ class S5Memory:
             raise S5AccessError(2, f"{type.name}{number} does not exist")
         # Invalidate the header in place, as the CPU marks a deleted block (valid bits cleared).
         self.image[block.header_address + 2] &= 0x3F
-        self.layout_generation += 1
 
     def compress(self) -> None:
         """Move all blocks down to close gaps; their addresses change (B.6, "compress")."""
@@ -223,10 +219,6 @@ class S5Memory:
             addr += size
         self.image[addr : self._next_free] = bytes(self._next_free - addr)
         self._next_free = addr
-        self.layout_generation += 1
-
-    def has_block(self, type: BlockType, number: int) -> bool:
-        return (type, number) in self._blocks
 
     def block_info(self, type: BlockType, number: int) -> tuple[int, bytes]:
         """``(DW0 address, 10-byte header)`` as function 1Ah answers it; error 2 if missing."""
@@ -235,12 +227,6 @@ class S5Memory:
             raise S5AccessError(2, f"{type.name}{number} does not exist")
         header = bytes(self.image[block.header_address : block.dw0_address])
         return block.dw0_address, header
-
-    def block_data_words(self, type: BlockType, number: int) -> int:
-        block = self._blocks.get((type, number))
-        if block is None:
-            raise S5AccessError(2, f"{type.name}{number} does not exist")
-        return block.data_bytes // 2
 
     def blocks(self) -> list[tuple[BlockType, int]]:
         return sorted(self._blocks, key=lambda k: (k[0], k[1]))

@@ -1,0 +1,462 @@
+"""The fleet case: N E71 PLCs polled at 10 Hz, the PLCs' side in another process on its own CPU.
+
+What a plant pays per PLC. The PLCs are cheap fixed-reply responders (not our simulators: no
+codec, no memory image, every 12-byte request answered with the same 130-byte 64-word reply) in a
+separate process, pinned with ``os.sched_setaffinity`` to the last CPU when the machine has two or
+more, so their cost never lands on the measured side. The measured process is pinned to another
+CPU and runs one of:
+
+* ``floor``   -- a raw-asyncio fleet of the same shape: per PLC one connection and one task that
+  sends pre-built request bytes on a 10 Hz schedule (start times spread over the interval, missed
+  ticks counted as overruns and skipped, as the poller does) and awaits the known reply length;
+* ``clients`` -- the same schedule, each task calling ``plcstack`` ``client.read("D0", 64)``;
+* ``poll``    -- :class:`plcstack.poll.Poller`, one 64-word tag per PLC, interval 0.1 s, and a
+  consumer that takes the samples in batches.
+
+Reported per kind: process CPU per completed request (``time.process_time``: CPU time of this
+process only, which other jobs on a shared machine barely move, unlike wall-clock rates),
+requests/s achieved against the target N x 10, the share of one core, overruns, p50/p99 of the
+request latency. The ratio floor/stack is of CPU per request.
+
+Run one measurement (a JSON line on stdout)::
+
+    python -m plcstack.bench.cases.fleet poll 1000 --loop asyncio --duration 5
+
+``plcstack bench`` runs floor and stack in fresh child processes (:func:`spawn`) and pairs them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import gc
+import importlib
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import Any, cast
+
+from plcstack.bench import frames
+from plcstack.bench.cases import WORDS, sample_words
+from plcstack.bench.cases.fanout import PACKAGE_PARENT, raise_fd_limit
+
+__all__ = ["KINDS", "REPLY", "REQUEST", "spawn"]
+
+KINDS = ("floor", "clients", "poll")
+#: 10 Hz
+INTERVAL = 0.1
+REQUEST = frames.e71_read_words("D", 0, WORDS)
+REPLY = frames.e71_reply_words(sample_words())
+
+
+# -- the PLCs' side -------------------------------------------------------------------------------
+class _Responder(asyncio.Protocol):
+    """Answers every complete request with the fixed reply; knows nothing else."""
+
+    __slots__ = ("_pending", "_transport")
+
+    def __init__(self) -> None:
+        self._pending = 0
+        self._transport: asyncio.Transport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._transport = cast(asyncio.Transport, transport)
+
+    def data_received(self, data: bytes) -> None:
+        self._pending += len(data)
+        if self._pending >= len(REQUEST):
+            count, self._pending = divmod(self._pending, len(REQUEST))
+            assert self._transport is not None
+            self._transport.write(REPLY * count)
+
+
+def _cpus() -> list[int]:
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        return []
+
+
+def _pin(cpu: int | None) -> None:
+    if cpu is not None:
+        with contextlib.suppress(AttributeError, OSError):
+            os.sched_setaffinity(0, {cpu})
+
+
+async def _serve(n: int) -> None:
+    loop = asyncio.get_running_loop()
+    servers = [await loop.create_server(_Responder, "127.0.0.1", 0, backlog=1024) for _ in range(n)]
+    ports = [s.sockets[0].getsockname()[1] for s in servers]
+    print(json.dumps({"ports": ports}), flush=True)
+    stop = loop.create_future()
+
+    # the parent closes our stdin (or dies): that is the end
+    def end() -> None:
+        if not stop.done():
+            stop.set_result(None)
+
+    loop.add_reader(sys.stdin.fileno(), end)
+    await stop
+
+
+def _serve_main(n: int, cpu: int | None) -> int:
+    _pin(cpu)
+    raise_fd_limit(n + 64)
+    try:  # the cheapest loop there is: the responders must not be the bottleneck
+        uvloop = importlib.import_module("uvloop")
+        factory: Callable[[], asyncio.AbstractEventLoop] = uvloop.new_event_loop
+    except ImportError:
+        factory = asyncio.new_event_loop
+    with asyncio.Runner(loop_factory=factory) as runner:
+        runner.run(_serve(n))
+    return 0
+
+
+def _start_responders(n: int, cpu: int | None) -> tuple[subprocess.Popen[str], list[int]]:
+    cmd = [sys.executable, "-m", "plcstack.bench.cases.fleet", "serve", str(n)]
+    if cpu is not None:
+        cmd += ["--cpu", str(cpu)]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(PACKAGE_PARENT), env.get("PYTHONPATH", "")])
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    if not line:
+        proc.wait(5)
+        raise RuntimeError(f"responder process exited ({proc.returncode}) before listening")
+    ports: list[int] = json.loads(line)["ports"]
+    return proc, ports
+
+
+# -- the measured side ----------------------------------------------------------------------------
+class _Counters:
+    __slots__ = ("latencies", "overruns", "recording", "requests")
+
+    def __init__(self) -> None:
+        self.requests = 0
+        self.overruns = 0
+        self.latencies: list[float] = []
+        self.recording = False
+
+
+class _FloorConn(asyncio.BufferedProtocol):
+    """The thinnest client: one future per request, resolved when the known length is in.
+
+    A ``BufferedProtocol`` receiving into one reused buffer, as the stack's TCP transport does:
+    with a plain ``Protocol`` asyncio receives every reply into a fresh 256 KiB buffer, which
+    costs the floor more than the stack (measured 20-30 us per request here) and would flatter
+    the ratio.
+    """
+
+    def __init__(self) -> None:
+        self.buffer = bytearray(4096)
+        self.view = memoryview(self.buffer)
+        self.have = 0
+        self.waiter: asyncio.Future[bytes] | None = None
+        self.transport: asyncio.Transport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = cast(asyncio.Transport, transport)
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return self.view[self.have :]
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self.have += nbytes
+        if self.have >= len(REPLY) and self.waiter is not None and not self.waiter.done():
+            reply = bytes(self.view[: len(REPLY)])
+            self.have = 0
+            self.waiter.set_result(reply)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.waiter is not None and not self.waiter.done():
+            self.waiter.set_exception(ConnectionError("responder closed the connection"))
+
+
+async def _schedule(
+    first_due: float, counters: _Counters, request: Callable[[], Any], checked: list[bool]
+) -> None:
+    """One PLC's 10 Hz loop, the poller's schedule rules, around ``await request()``."""
+    clock = time.perf_counter
+    next_due = first_due
+    while True:
+        delay = next_due - clock()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        start = clock()
+        reply = await request()
+        end = clock()
+        if not checked[0]:
+            checked[0] = True
+            if list(reply) != sample_words() and reply != REPLY:
+                raise RuntimeError(f"unexpected reply {reply!r:.80}")
+        counters.requests += 1
+        if counters.recording:
+            counters.latencies.append(end - start)
+        next_due += INTERVAL
+        if next_due <= end:
+            missed = int((end - next_due) // INTERVAL) + 1
+            counters.overruns += missed
+            next_due += missed * INTERVAL
+
+
+async def _floor_fleet(ports: list[int], counters: _Counters) -> list[asyncio.Task[None]]:
+    loop = asyncio.get_running_loop()
+    now = time.perf_counter()
+    tasks = []
+    for i, port in enumerate(ports):
+        _, conn = await loop.create_connection(_FloorConn, "127.0.0.1", port)
+
+        def make(conn: _FloorConn = conn) -> Callable[[], asyncio.Future[bytes]]:
+            def request() -> asyncio.Future[bytes]:
+                conn.waiter = waiter = loop.create_future()
+                assert conn.transport is not None
+                conn.transport.write(REQUEST)
+                return waiter
+
+            return request
+
+        due = now + 0.2 + INTERVAL * i / len(ports)
+        tasks.append(asyncio.create_task(_schedule(due, counters, make(), [False])))
+    return tasks
+
+
+async def _client_fleet(ports: list[int], counters: _Counters) -> tuple[list[Any], list[Any]]:
+    import plcstack
+
+    clients = [plcstack.connect(f"e71+tcp://127.0.0.1:{port}") for port in ports]
+    for client in clients:
+        await client.read("D0", WORDS)  # connected before the schedule starts
+    now = time.perf_counter()
+    tasks = []
+    for i, client in enumerate(clients):
+
+        def make(client: Any = client) -> Callable[[], Any]:
+            return lambda: client.read("D0", WORDS)
+
+        due = now + INTERVAL * i / len(clients)
+        tasks.append(asyncio.create_task(_schedule(due, counters, make(), [False])))
+    return tasks, clients
+
+
+async def _measure(
+    kind: str, n: int, duration: float, warmup: float, profile: str | None = None
+) -> dict[str, Any]:
+    cpus = _cpus()
+    responder_cpu = cpus[-1] if len(cpus) >= 2 else None
+    _pin(cpus[0] if len(cpus) >= 2 else None)
+    raise_fd_limit(2 * n + 64)
+    proc, ports = _start_responders(n, responder_cpu)
+    counters = _Counters()
+    tasks: list[asyncio.Task[None]] = []
+    closers: list[Any] = []
+    poller: Any = None
+    consumer: asyncio.Task[None] | None = None
+    bad: list[str] = []
+    try:
+        if kind == "floor":
+            tasks = await _floor_fleet(ports, counters)
+        elif kind == "clients":
+            tasks, closers = await _client_fleet(ports, counters)
+        else:
+            poller, consumer = await _start_poller(ports, bad)
+        if poller is not None:
+
+            def requests() -> int:
+                return sum(s.requests for s in poller.stats.values())
+
+            def overruns() -> int:
+                return sum(s.overruns for s in poller.stats.values())
+        else:
+
+            def requests() -> int:
+                return counters.requests
+
+            def overruns() -> int:
+                return counters.overruns
+
+        await asyncio.sleep(warmup)  # first scans done, steady state reached
+        for task in tasks:
+            if task.done():
+                task.result()  # a failed check: raise it here
+        gc.collect()
+        if os.environ.get("FLEET_GC_FREEZE"):
+            gc.freeze()
+        per_plc_before = (
+            {name: s.requests for name, s in poller.stats.items()} if poller is not None else {}
+        )
+        counters.recording = True
+        gc_before = _gc_seconds[0]
+        collections_before = [g["collections"] for g in gc.get_stats()]
+        profiler = None
+        if profile:
+            import cProfile
+
+            profiler = cProfile.Profile()
+            profiler.enable()
+        r0, o0, c0, t0 = requests(), overruns(), time.process_time(), time.perf_counter()
+        await asyncio.sleep(duration)
+        r1, o1, c1, t1 = requests(), overruns(), time.process_time(), time.perf_counter()
+        if profiler is not None:
+            profiler.disable()
+            profiler.dump_stats(cast(str, profile))
+        counters.recording = False
+        gc_seconds = _gc_seconds[0] - gc_before
+        collections = [
+            g["collections"] - c for g, c in zip(gc.get_stats(), collections_before, strict=True)
+        ]
+        tracked = len(gc.get_objects())
+        if poller is not None:
+            latencies: list[float] = []
+            for name, stats in poller.stats.items():
+                k = stats.requests - per_plc_before[name]
+                window = list(stats.latencies)
+                latencies += window[len(window) - min(k, len(window)) :]
+        else:
+            latencies = counters.latencies
+        if bad:
+            raise RuntimeError(f"poller delivered bad samples: {bad[:3]}")
+        for task in tasks:
+            if task.done():
+                task.result()
+    finally:
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        for client in closers:
+            await client.aclose()
+        if poller is not None:
+            await poller.aclose()
+        if consumer is not None:
+            consumer.cancel()
+            await asyncio.gather(consumer, return_exceptions=True)
+        assert proc.stdin is not None
+        proc.stdin.close()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    done = r1 - r0
+    latencies.sort()
+
+    def pct(q: float) -> float | None:
+        if not latencies:
+            return None
+        return 1000 * latencies[min(len(latencies) - 1, int(q / 100 * len(latencies)))]
+
+    return {
+        "kind": kind,
+        "n": n,
+        "seconds": t1 - t0,
+        "requests": done,
+        "rate": done / (t1 - t0),
+        "target": n / INTERVAL,
+        "cpu_s": c1 - c0,
+        "cpu_us_per_request": 1e6 * (c1 - c0) / done if done else None,
+        "cpu_share": (c1 - c0) / (t1 - t0),
+        "gc_us_per_request": 1e6 * gc_seconds / done if done else None,
+        "gc_collections": collections,
+        "gc_tracked_objects": tracked,
+        "overruns": o1 - o0,
+        "p50_ms": pct(50),
+        "p99_ms": pct(99),
+        "pinned": responder_cpu is not None,
+    }
+
+
+async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.Task[None]]:
+    from plcstack.poll.config import DEFAULT_GROUP, PlcConfig, PollConfig, TagConfig
+    from plcstack.poll.engine import Poller
+
+    plcs = tuple(
+        PlcConfig(
+            name=f"plc{i}",
+            url=f"e71+tcp://127.0.0.1:{port}",
+            tags=(TagConfig(name="words", address="D0", count=WORDS),),
+        )
+        for i, port in enumerate(ports)
+    )
+    poller = Poller(
+        PollConfig(plcs=plcs, groups={DEFAULT_GROUP: INTERVAL}, queue=max(1000, 4 * len(ports)))
+    )
+    expected = sample_words()
+
+    async def consume() -> None:
+        # as an application that keeps up should: take what is there in one batch per wake-up
+        async for first in poller:
+            for sample in (first, *poller.drain()):
+                if sample.value is None or (not bad and list(cast(Any, sample.value)) != expected):
+                    bad.append(f"{sample.plc}: {sample.error or sample.value!r:.120}")
+
+    consumer = asyncio.create_task(consume())
+    await poller.start()
+    return poller, consumer
+
+
+_gc_seconds = [0.0]
+_gc_started = [0.0]
+
+
+def _gc_callback(phase: str, info: dict[str, Any]) -> None:
+    if phase == "start":
+        _gc_started[0] = time.process_time()
+    else:
+        _gc_seconds[0] += time.process_time() - _gc_started[0]
+
+
+def run_child(
+    kind: str, n: int, *, loop: str, duration: float, warmup: float, profile: str | None = None
+) -> dict[str, Any]:
+    factory: Callable[[], asyncio.AbstractEventLoop] = asyncio.new_event_loop
+    if loop == "uvloop":
+        factory = importlib.import_module("uvloop").new_event_loop
+    gc.callbacks.append(_gc_callback)
+    with asyncio.Runner(loop_factory=factory) as runner:
+        return runner.run(_measure(kind, n, duration, warmup, profile))
+
+
+# -- parent side ----------------------------------------------------------------------------------
+def spawn(
+    kind: str, n: int, *, loop: str, duration: float, warmup: float, timeout: float = 120.0
+) -> dict[str, Any]:
+    """One measurement in a fresh child process; its JSON summary, or ``{"note": ...}``."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(PACKAGE_PARENT), env.get("PYTHONPATH", "")])
+    cmd = [sys.executable, "-m", "plcstack.bench.cases.fleet", kind, str(n), "--loop", loop]
+    cmd += ["--duration", str(duration), "--warmup", str(warmup)]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    except subprocess.TimeoutExpired:
+        return {"note": f"child timed out after {timeout:g} s"}
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+        return {"note": f"child failed (exit {proc.returncode}): {tail}"}
+    summary: dict[str, Any] = json.loads(lines[-1])
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m plcstack.bench.cases.fleet")
+    parser.add_argument("kind", choices=(*KINDS, "serve"))
+    parser.add_argument("n", type=int)
+    parser.add_argument("--loop", choices=("asyncio", "uvloop"), default="asyncio")
+    parser.add_argument("--duration", type=float, default=3.0)
+    parser.add_argument("--warmup", type=float, default=0.5)
+    parser.add_argument("--cpu", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--profile", metavar="FILE", help="cProfile the measured window into FILE")
+    args = parser.parse_args(argv)
+    if args.kind == "serve":
+        return _serve_main(args.n, args.cpu)
+    summary = run_child(args.kind, args.n, loop=args.loop, duration=args.duration,
+                        warmup=args.warmup, profile=args.profile)  # fmt: skip
+    print(json.dumps(summary))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
