@@ -32,7 +32,7 @@ interval = 0.05
 name = "press1"
 url = "{sim.url}"
 [plc.tags]
-strokes = {{ address = "D100", type = "uint16" }}
+strokes = {{ address = "D100", type = "uint16", writable = true }}
 [mqtt]
 url = "mqtt://{mosquitto.host}:{mosquitto.port}"
 client_id = "cli-test"

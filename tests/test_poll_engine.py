@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plcstack.clients.base import Client
-from plcstack.errors import AddressError, ConnectionLost, PlcError
+from plcstack.errors import AddressError, ConnectionLost, PlcError, PlcTimeout
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller, Quality, Sample, format_stats
 from plcstack.poll.values import DataType
@@ -87,6 +87,7 @@ async def test_values_types_and_merged_requests() -> None:
     assert latest["p1", "run"].value is True
     assert latest["p2", "level"].value == -1
     assert all(s.quality is Quality.GOOD and s.error is None for s in samples)
+    assert all(s.error_type is None for s in samples)
     assert all(s.source_time <= s.receive_time for s in samples)
     # D100..D103 in one request, M5 in another: two frames per scan for three tags
     assert set(fakes["p1"].reads) == {("D100", 4), ("M5", 1)}
@@ -112,6 +113,9 @@ async def test_dead_plc_reports_bad_quality_and_does_not_hold_up_others() -> Non
     assert "connection refused" in dead[0].error
     slow = of(samples, "slow")
     assert slow[0].quality is Quality.BAD and "no answer within" in (slow[0].error or "")
+    # the error's type travels with its text, for consumers that map kinds of failure
+    assert slow[0].error_type is PlcTimeout
+    assert dead[0].error_type is not None and issubclass(dead[0].error_type, ConnectionLost)
     assert poller.stats["dead"].errors >= 1
     assert poller.stats["dead"].connect_failures >= 1
 
@@ -324,3 +328,12 @@ def test_every_sample_is_delivered_dropped_or_pending(queue: int, plcs: int, tak
         assert poller.pending() <= queue
 
     asyncio.run(run())
+
+
+def test_tags_gives_each_tag_with_the_width_of_its_points() -> None:
+    poller, _ = make({"p": [tag("word", "D0", "int16"), tag("bits", "M0", "bool", 4)]})
+    tags = poller.tags("p")
+    assert {name: bits for name, (_, bits) in tags.items()} == {"word": 16, "bits": 1}
+    assert tags["bits"][0].count == 4
+    with pytest.raises(AddressError, match="no PLC named"):
+        poller.tags("nope")

@@ -19,6 +19,7 @@ from plcstack.errors import AddressError, PlcError
 COMMAND_MODULES = [
     "plcstack.cli.demo",
     "plcstack.cli.poll",
+    "plcstack.cli.serve",
     "plcstack.cli.io",
     "plcstack.cli.e71",
     "plcstack.cli.sim",

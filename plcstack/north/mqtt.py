@@ -213,9 +213,13 @@ class MqttSink:
         group_of: dict[tuple[str, str], str] | None = None,
         layout: Any = None,
         buffer: StoreAndForward | None = None,
+        writable: dict[tuple[str, str], bool] | None = None,
     ) -> None:
+        """``writable``: (plc, tag) -> may MQTT clients write it (the tag's ``writable = true``);
+        a tag marked false is refused with ``not_writable``. None: every tag is writable."""
         self.settings = settings
         self.writer = writer
+        self.writable = writable
         self.group_of = group_of or {}
         self.layout = (
             layout
@@ -406,6 +410,13 @@ class MqttSink:
     ) -> tuple[str, str, bool] | None:
         """Run one write; None if confirmed, else ``(code, message, may_have_executed)``."""
         assert self.writer is not None
+        if self.writable is not None and self.writable.get((plc, tag)) is False:
+            return (
+                "not_writable",
+                f"{plc}: write {tag}: the tag is read-only for north-side clients"
+                " (set writable = true in its configuration); not attempted",
+                False,
+            )
         try:
             await self.writer.write_tag(plc, tag, value)
         except AddressError as exc:

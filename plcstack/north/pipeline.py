@@ -46,7 +46,14 @@ class North:
                 from plcstack.north.sparkplug import SparkplugLayout
 
                 layout = SparkplugLayout.for_config(config.mqtt, poller.config)
-            self.mqtt = MqttSink(config.mqtt, writer=poller, group_of=group_of, layout=layout)
+            writable = {
+                (plc.name, tag.name): bool(getattr(tag, "writable", True))
+                for plc in poller.config.plcs
+                for tag in plc.tags
+            }
+            self.mqtt = MqttSink(
+                config.mqtt, writer=poller, group_of=group_of, layout=layout, writable=writable
+            )
             self.sinks.append(self.mqtt)
         self.collector = PlcstackCollector(
             poller, [s for s in self.sinks if hasattr(s, "buffer")], self.rbe

@@ -24,7 +24,12 @@ max_gap = 4
 counter = "D100"                                          # type raw, count 1
 temp = { address = "D102", type = "float32", group = "default" }
 alarms = { address = "M0", type = "bool", count = 16 }
+setpoint = { address = "D110", type = "int16", writable = true }   # north-side servers may write
 ```
+
+Other top-level tables (``[opcua]``, ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``) belong
+to the north side (plcstack.north); the poller checks that they are tables, and the loader checks
+``[mqtt]``, ``[metrics]``, ``[report]`` and ``[influx]`` with :mod:`plcstack.north.config`.
 
 Every problem is a :class:`ConfigError` naming the PLC, the tag and, where it can be found, the
 TOML line, so a typo in a 500-PLC file is found at once and before anything is sent.
@@ -60,6 +65,8 @@ DEFAULT_INTERVAL = 1.0
 DEFAULT_CONCURRENCY: int | None = None
 DEFAULT_QUEUE = 10_000
 DEFAULT_MAX_GAP = 8
+#: top-level tables read by north-side servers from the same file (plcstack.north)
+NORTH_SECTIONS = ("opcua", "mqtt", "metrics", "report", "influx")
 
 
 class ConfigError(AddressError):
@@ -78,6 +85,9 @@ class TagConfig:
     type: DataType = DataType.RAW
     count: int = 1
     group: str = DEFAULT_GROUP
+    #: whether north-side servers (OPC UA) may write this tag; the Python API's ``write_tag`` is
+    #: not limited by it (the program that owns the poller decides for itself)
+    writable: bool = False
 
 
 @dataclass(frozen=True)
@@ -234,12 +244,16 @@ class _Loader:
     def load(self, data: dict[str, Any]) -> PollConfig:
         from plcstack.north.config import NORTH_TABLES, parse_north
 
-        unknown = self._unknown(data, {"poll", "groups", "plc", *NORTH_TABLES})
+        unknown = self._unknown(data, {"poll", "groups", "plc", *NORTH_SECTIONS})
         if unknown:
             raise self.error(
-                f"unknown top-level key(s) {', '.join(unknown)}; expected poll, groups, plc,"
-                f" {', '.join(NORTH_TABLES)}"
+                f"unknown top-level key(s) {', '.join(unknown)}; expected poll, groups, plc"
+                f" or {', '.join(NORTH_SECTIONS)}"
             )
+        for section in NORTH_SECTIONS:
+            if section in data and not isinstance(data[section], dict):
+                raise self.error(f"[{section}] must be a table", section)
+        # [mqtt], [metrics], [report], [influx]: checked now, so a typo stops before any send
         north = {key: data[key] for key in NORTH_TABLES if key in data}
         try:
             parse_north(north)
@@ -392,7 +406,7 @@ class _Loader:
                 f'{where}: expected "ADDRESS" or {{ address = ..., type = ..., count = ... }}',
                 name,
             )
-        unknown = self._unknown(spec, {"address", "type", "count", "group"})
+        unknown = self._unknown(spec, {"address", "type", "count", "group", "writable"})
         if unknown:
             raise self.error(f"{where}: unknown key(s) {', '.join(unknown)}", name)
         address = spec.get("address")
@@ -416,4 +430,7 @@ class _Loader:
                 f"{where}: unknown scan group {tag_group!r} (groups: {', '.join(sorted(groups))})",
                 name,
             )
-        return TagConfig(name, address.strip(), dtype, count, tag_group)
+        writable = spec.get("writable", False)
+        if not isinstance(writable, bool):
+            raise self.error(f"{where}: writable must be true or false, not {writable!r}", name)
+        return TagConfig(name, address.strip(), dtype, count, tag_group, writable)

@@ -183,6 +183,14 @@ class Poller:
     def client(self, plc: str) -> Client:
         return self._plc(plc).client
 
+    def tags(self, plc: str) -> dict[str, tuple[TagConfig, int]]:
+        """Each tag of one PLC with the width of its points in bits (1 bit, 8 byte, 16 word area).
+
+        What a north-side server needs to give a tag its type before the first sample arrives
+        (a ``raw`` tag is a bool, a byte or a word depending on the area).
+        """
+        return dict(self._plc(plc).tags)
+
     async def start(self) -> None:
         if self._running or self._closed:
             return
@@ -528,7 +536,16 @@ class Poller:
             if isinstance(result, PlcError):
                 bad += 1
                 queue.append(
-                    make_sample(name, tag_plan.tag.name, None, bad_q, source, receive, str(result))
+                    make_sample(
+                        name,
+                        tag_plan.tag.name,
+                        None,
+                        bad_q,
+                        source,
+                        receive,
+                        str(result),
+                        type(result),
+                    )
                 )
             else:
                 queue.append(

@@ -1,0 +1,96 @@
+"""``plcstack serve opcua CONFIG.toml``: poll the PLCs of a TOML file and serve them over OPC UA.
+
+The ``[opcua]`` table of the same file sets the endpoint (default ``opc.tcp://127.0.0.1:4840/
+plcstack``: loopback only), security policies and logins; see docs/opcua.md. Runs until Ctrl-C or
+SIGTERM (or ``--duration``), then prints the poller's statistics on stderr.
+
+``plcstack serve opcua --hash-password`` reads a password from stdin and prints the
+``password_hash`` to put under ``[opcua.users.NAME]``.
+
+Needs the optional extra: ``pip install 'plcstack[opcua]'`` (asyncua).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import getpass
+import importlib.util
+import logging
+import sys
+from typing import Any
+
+from plcstack.cli.poll import install_stop_signals, remove_stop_signals
+from plcstack.north.opcua_config import hash_password, load_opcua_config
+from plcstack.poll.config import load_config
+from plcstack.poll.engine import Poller, format_stats
+
+
+def register(subparsers: Any) -> None:
+    serve = subparsers.add_parser(
+        "serve",
+        help="serve the polled PLCs to other systems (opcua)",
+        description="Serve the PLCs of a poll config to other systems.",
+    )
+    servers = serve.add_subparsers(dest="server", required=True, metavar="SERVER")
+    opcua = servers.add_parser(
+        "opcua",
+        help="an OPC UA server fed by the poller (needs plcstack[opcua])",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    opcua.add_argument("config", nargs="?", help="TOML file with [[plc]] tables and [opcua]")
+    opcua.add_argument(
+        "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
+    )
+    opcua.add_argument(
+        "--hash-password",
+        action="store_true",
+        help="read a password from stdin, print its password_hash for [opcua.users.NAME]",
+    )
+    opcua.add_argument("-v", "--verbose", action="store_true", help="log every write (INFO)")
+    opcua.set_defaults(func=run_opcua)
+
+
+async def run_opcua(args: argparse.Namespace) -> int:
+    if args.hash_password:
+        password = (
+            getpass.getpass("password: ") if sys.stdin.isatty() else sys.stdin.readline()
+        ).rstrip("\n")
+        if not password:
+            print("plcstack serve opcua: error: empty password", file=sys.stderr)
+            return 2
+        print(hash_password(password))
+        return 0
+    if args.config is None:
+        print("plcstack serve opcua: error: CONFIG is required", file=sys.stderr)
+        return 2
+    if args.duration is not None and not args.duration > 0:
+        print("plcstack serve opcua: error: --duration must be greater than 0", file=sys.stderr)
+        return 2
+    if importlib.util.find_spec("asyncua") is None:
+        print(
+            "plcstack serve opcua: error: asyncua is not installed; pip install 'plcstack[opcua]'",
+            file=sys.stderr,
+        )
+        return 2
+    logging.basicConfig(
+        level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    logging.getLogger("plcstack").setLevel(logging.INFO if args.verbose else logging.WARNING)
+    config = load_config(args.config)
+    opcua_config = load_opcua_config(args.config)
+    from plcstack.north.opcua import OpcUaServer, run_until  # asyncua: only when serving
+
+    poller = Poller(config)  # every URL and address checked before anything is sent
+    server = OpcUaServer(poller, opcua_config)
+    stop = asyncio.Event()
+    installed = install_stop_signals(stop)
+    try:
+        async with poller, server:
+            print(f"OPC UA server listening on {server.url}", file=sys.stderr, flush=True)
+            await run_until(server, stop, args.duration)
+    finally:
+        remove_stop_signals(installed)
+    print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
+    return 0

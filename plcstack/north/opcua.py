@@ -1,0 +1,613 @@
+"""An OPC UA server in front of the poller: SCADA, MES and historians see the old PLCs as OPC UA.
+
+```python
+from plcstack.north.opcua import OpcUaServer, load_opcua_config
+from plcstack.poll import Poller, load_config
+
+async with Poller(load_config("plant.toml")) as poller:
+    async with OpcUaServer(poller, load_opcua_config("plant.toml")) as server:
+        await server.run()          # feeds every sample of the poller into the address space
+```
+
+or ``plcstack serve opcua plant.toml``. Needs the optional extra ``plcstack[opcua]`` (asyncua,
+LGPL); nothing else in plcstack imports this module.
+
+Address space (namespace ``urn:plcstack`` unless configured)::
+
+    Objects/
+      press1/                 Folder, NodeId ns=N;s=press1, description = the PLC's URL
+        strokes               Variable, NodeId ns=N;s=press1.strokes, DataType UInt16
+        alarms                Variable, Boolean[16] (a tag with count = 16)
+
+Each sample becomes the variable's DataValue: the value, SourceTimestamp = the sample's source
+time (when the request was sent), ServerTimestamp = when the server took it, and a StatusCode
+from the sample's quality (:data:`STATUS_MAP`). A sample equal to the current value and status is
+skipped, so SourceTimestamp is the time of the last change (OPC UA Part 4, 7.7.3) and a
+subscription only hears of changes.
+
+Writes. A client's Write of a tag's Value goes to :meth:`Poller.write_tag` (the same single-flight
+connection the poller reads through) and its Write response is sent only when the PLC confirmed
+the write or it failed; a failure returns the Bad status of :func:`write_status` and logs the full
+:class:`PlcError` text (OPC UA status codes carry no text). The variable is not set from the
+written value: the next poll shows what the PLC holds. Only tags with ``writable = true`` accept
+writes, and only from sessions whose login may write (``anonymous = "write"`` or a user with
+``write = true``).
+
+How writes are intercepted, and why this way: asyncua calls ``InternalServer.attribute_service.
+write(params, user)`` for every Write service call of a session and sends its per-item results as
+the response. Replacing that one object with a subclass (:class:`_WriteService`) lets the server
+await the PLC for each item and answer each with its own status. The other hooks do not fit:
+``set_attribute_value_setter`` is synchronous (it cannot wait for a PLC) and an exception there
+fails the whole request, and the PreWrite callback cannot change the results. The server's own
+value updates go straight into the address space (``Server.write_attribute_value`` ->
+``AddressSpace.write_attribute_value``), which never passes through the attribute service, so they
+cannot reach a PLC; and a write that does reach it without a login of ours (the server's internal
+session) is refused for tag variables.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from types import TracebackType
+from typing import Any, Self, cast
+from urllib.parse import urlsplit, urlunsplit
+
+from asyncua import ua
+from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.server.address_space import AddressSpace, AttributeService
+from asyncua.server.internal_server import InternalServer
+from asyncua.server.server import Server
+from asyncua.server.user_managers import UserManager
+from asyncua.ua.attribute_ids import AttributeIds
+from asyncua.ua.object_ids import ObjectIds
+from asyncua.ua.status_codes import StatusCodes as _S
+
+from plcstack.errors import (
+    AddressError,
+    ConnectFailed,
+    ConnectionLost,
+    LocalProtocolError,
+    PlcError,
+    PlcErrorResponse,
+    PlcTimeout,
+    RemoteProtocolError,
+)
+from plcstack.north.opcua_config import (
+    OpcUaConfig,
+    check_password,
+    load_opcua_config,
+    parse_opcua_config,
+)
+from plcstack.poll.config import ConfigError, TagConfig
+from plcstack.poll.engine import Poller
+from plcstack.poll.samples import Quality, Sample
+
+__all__ = [
+    "STATUS_MAP",
+    "OpcUaConfig",
+    "OpcUaServer",
+    "load_opcua_config",
+    "parse_opcua_config",
+    "read_status",
+    "run_until",
+    "serve",
+    "variant_type",
+    "write_status",
+]
+
+log = logging.getLogger(__name__)
+
+
+def _status(code: int) -> ua.StatusCode:
+    # asyncua types its integer fields with int subclasses (ua.UInt32 ...); plain ints are what
+    # it stores and encodes, so the casts only tell mypy so
+    return ua.StatusCode(cast(ua.UInt32, code))
+
+
+def _node(identifier: str | int, namespace: int = 0) -> ua.NodeId:
+    return ua.NodeId(cast(ua.String, identifier), cast(ua.Int16, namespace))
+
+
+def _utc(t: float) -> ua.DateTime:
+    return cast(ua.DateTime, datetime.fromtimestamp(t, UTC))
+
+
+#: plcstack error type -> OPC UA status of a tag's value, most specific first (the first row whose
+#: type the error is an instance of wins). Documented in docs/opcua.md.
+STATUS_MAP: tuple[tuple[type[PlcError], int, str], ...] = (
+    (PlcTimeout, _S.BadTimeout, "no (complete) answer within the deadline"),
+    (ConnectFailed, _S.BadNoCommunication, "the PLC cannot be connected (refused, unreachable)"),
+    (ConnectionLost, _S.BadCommunicationError, "the connection dropped during the request"),
+    (RemoteProtocolError, _S.BadCommunicationError, "the PLC's reply broke the protocol"),
+    (PlcErrorResponse, _S.BadDeviceFailure, "the PLC answered with an error code"),
+    (AddressError, _S.BadConfigurationError, "address, count or type does not fit the PLC"),
+    (LocalProtocolError, _S.BadInternalError, "plcstack misused its own codec (a bug)"),
+    (PlcError, _S.BadUnexpectedError, "any other failure"),
+)
+#: a tag not polled yet
+INITIAL_STATUS = _S.BadWaitingForInitialData
+
+
+def read_status(error_type: type[PlcError] | None) -> int:
+    """The StatusCode of a bad sample whose error had this type (see :data:`STATUS_MAP`)."""
+    if error_type is not None:
+        for kind, code, _ in STATUS_MAP:
+            if issubclass(error_type, kind):
+                return code
+    return _S.BadUnexpectedError
+
+
+def write_status(error: BaseException) -> int:
+    """The StatusCode a refused or failed write returns.
+
+    As for reads, except that an :class:`AddressError` from a write is a value the tag's type
+    cannot hold (``write_tag`` checks the value before anything is sent): BadOutOfRange.
+    A timeout (BadTimeout) means the write may have been executed.
+    """
+    if isinstance(error, AddressError):
+        return _S.BadOutOfRange
+    if isinstance(error, PlcError):
+        return read_status(type(error))
+    return _S.BadInternalError
+
+
+# -- data types ---------------------------------------------------------------------------------
+
+#: tag type name -> OPC UA built-in type (the DataType NodeId has the same number)
+_VARIANT_TYPES: dict[str, ua.VariantType] = {
+    "bool": ua.VariantType.Boolean,
+    "int8": ua.VariantType.SByte,
+    "uint8": ua.VariantType.Byte,
+    "int16": ua.VariantType.Int16,
+    "uint16": ua.VariantType.UInt16,
+    "int32": ua.VariantType.Int32,
+    "uint32": ua.VariantType.UInt32,
+    "int64": ua.VariantType.Int64,
+    "uint64": ua.VariantType.UInt64,
+    "float32": ua.VariantType.Float,
+    "float64": ua.VariantType.Double,
+    "string": ua.VariantType.String,
+}
+#: a ``raw`` tag is one point: a bit, a byte (S5 byte areas) or a word
+_RAW_TYPES = {1: ua.VariantType.Boolean, 8: ua.VariantType.Byte, 16: ua.VariantType.UInt16}
+
+
+def variant_type(tag: TagConfig, point_bits: int) -> ua.VariantType:
+    """The OPC UA type of one value of ``tag``; a type without its own mapping is a Double."""
+    name = str(getattr(tag.type, "value", tag.type))
+    if name == "raw":
+        return _RAW_TYPES.get(point_bits, ua.VariantType.UInt32)
+    return _VARIANT_TYPES.get(name, ua.VariantType.Double)
+
+
+# -- users ------------------------------------------------------------------------------------
+
+
+@dataclass
+class PlcUser(User):
+    """A session's login as this server knows it: asyncua's ``User`` plus the right to write.
+
+    Never ``UserRole.Admin`` (asyncua lets admins skip access-level checks and edit the address
+    space); only sessions carrying a PlcUser may write to a PLC.
+    """
+
+    may_write: bool = False
+
+
+class _UserManager(UserManager):
+    """asyncua user manager: anonymous per ``anonymous``, user names by PBKDF2 password hash."""
+
+    def __init__(self, config: OpcUaConfig) -> None:
+        self._anonymous = config.anonymous
+        self._users = {u.name: u for u in config.users}
+
+    def get_user(
+        self,
+        iserver: InternalServer,
+        username: str | None = None,
+        password: str | None = None,
+        certificate: Any = None,
+    ) -> User | None:
+        if username is None:
+            if self._anonymous == "none":
+                return None
+            return PlcUser(role=UserRole.User, may_write=self._anonymous == "write")
+        user = self._users.get(username)
+        if user is None or password is None or not check_password(password, user.password_hash):
+            log.warning("OPC UA login refused for user %r", username)
+            return None
+        return PlcUser(role=UserRole.User, name=username, may_write=user.write)
+
+
+# -- the address space --------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class _Binding:
+    """One tag variable: where its samples go and how a written value comes back."""
+
+    plc: str
+    tag: TagConfig
+    nodeid: ua.NodeId
+    vtype: ua.VariantType
+    #: (status, value) last put into the variable: equal samples are skipped
+    last: tuple[int, Any] = field(default=(INITIAL_STATUS, None))
+
+    def variant(self, value: Any) -> ua.Variant:
+        if self.vtype is ua.VariantType.Double:
+            value = [float(v) for v in value] if isinstance(value, list) else float(value)
+        return ua.Variant(value, self.vtype)
+
+    def value_of(self, variant: ua.Variant | None) -> Any:
+        """The Python value to hand to ``write_tag``; raises ValueError on a type mismatch."""
+        if variant is None or variant.VariantType != self.vtype:
+            raise ValueError("type mismatch")
+        value = variant.Value
+        if self.tag.count == 1:
+            if isinstance(value, list | tuple):
+                raise ValueError("array for a scalar")
+            return value
+        if not isinstance(value, list | tuple) or len(value) != self.tag.count:
+            raise ValueError("wrong array length")
+        return list(value)
+
+
+def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -> ua.AddNodesItem:
+    tag = binding.tag
+    item = ua.AddNodesItem()
+    item.RequestedNewNodeId = binding.nodeid
+    item.BrowseName = ua.QualifiedName(tag.name, idx)
+    item.NodeClass = ua.NodeClass.Variable
+    item.ParentNodeId = parent
+    item.ReferenceTypeId = _node(ObjectIds.Organizes)
+    item.TypeDefinition = _node(ObjectIds.BaseDataVariableType)
+    attrs = ua.VariableAttributes()
+    attrs.DisplayName = ua.LocalizedText(tag.name)
+    type_name = getattr(tag.type, "value", tag.type)
+    count = f" x{tag.count}" if tag.count > 1 else ""
+    attrs.Description = ua.LocalizedText(f"{tag.address} {type_name}{count}")
+    attrs.DataType = _node(binding.vtype.value)
+    if tag.count == 1:
+        attrs.ValueRank = ua.ValueRank.Scalar
+        attrs.Value = ua.Variant(None, ua.VariantType.Null)
+    else:
+        attrs.ValueRank = ua.ValueRank.OneDimension
+        attrs.ArrayDimensions = [tag.count]
+        attrs.Value = ua.Variant(None, ua.VariantType.Null)
+    access = ua.AccessLevel.CurrentRead.mask
+    if tag.writable:
+        access |= ua.AccessLevel.CurrentWrite.mask
+    attrs.AccessLevel = access
+    attrs.UserAccessLevel = access
+    attrs.MinimumSamplingInterval = interval * 1000.0  # ms: the tag's scan interval
+    attrs.Historizing = False
+    attrs.WriteMask = 0
+    attrs.UserWriteMask = 0
+    item.NodeAttributes = attrs
+    return item
+
+
+def _folder_item(name: str, description: str, idx: int) -> ua.AddNodesItem:
+    item = ua.AddNodesItem()
+    item.RequestedNewNodeId = _node(name, idx)
+    item.BrowseName = ua.QualifiedName(name, idx)
+    item.NodeClass = ua.NodeClass.Object
+    item.ParentNodeId = _node(ObjectIds.ObjectsFolder)
+    item.ReferenceTypeId = _node(ObjectIds.Organizes)
+    item.TypeDefinition = _node(ObjectIds.FolderType)
+    attrs = ua.ObjectAttributes()
+    attrs.DisplayName = ua.LocalizedText(name)
+    attrs.Description = ua.LocalizedText(description)
+    attrs.EventNotifier = 0
+    item.NodeAttributes = attrs
+    return item
+
+
+# -- writes ---------------------------------------------------------------------------------------
+
+
+#: asyncua's default for callers that name no user (the server itself): an admin
+_INTERNAL_USER = User(role=UserRole.Admin)
+
+
+class _WriteService(AttributeService):
+    """asyncua's attribute service with client writes of tag variables sent to the PLC.
+
+    Items for other nodes (asyncua's own) go to the base class unchanged.
+    """
+
+    def __init__(self, aspace: AddressSpace, owner: OpcUaServer) -> None:
+        super().__init__(aspace)
+        self._owner = owner
+
+    async def write(
+        self, params: ua.WriteParameters, user: User = _INTERNAL_USER
+    ) -> list[ua.StatusCode]:
+        items = params.NodesToWrite
+        results: list[ua.StatusCode | None] = [None] * len(items)
+        others: list[int] = []
+        jobs: dict[str, list[tuple[int, _Binding, Any]]] = {}
+        bindings = self._owner._bindings
+        for i, item in enumerate(items):
+            binding = bindings.get(item.NodeId)
+            if binding is None:
+                others.append(i)
+                continue
+            checked = _check_write(binding, item, user)
+            if isinstance(checked, ua.StatusCode):
+                results[i] = checked
+            else:
+                jobs.setdefault(binding.plc, []).append((i, binding, checked))
+        if others:
+            rest = ua.WriteParameters()
+            rest.NodesToWrite = [items[i] for i in others]
+            for i, status in zip(others, await super().write(rest, user), strict=True):
+                results[i] = status
+        if jobs:
+            for i, status in await self._owner._write_to_plcs(jobs):
+                results[i] = status
+        return [r if r is not None else _status(_S.BadInternalError) for r in results]
+
+
+def _check_write(binding: _Binding, item: ua.WriteValue, user: User) -> ua.StatusCode | Any:
+    """The value to write, or the status that refuses the write before anything is sent."""
+    where = f"{binding.plc}.{binding.tag.name}"
+    if item.AttributeId != AttributeIds.Value:
+        return _status(_S.BadNotWritable)
+    if not isinstance(user, PlcUser):
+        log.warning("OPC UA write of %s refused: not from a client session", where)
+        return _status(_S.BadUserAccessDenied)
+    if not binding.tag.writable:
+        log.warning("OPC UA write of %s refused: the tag is not writable = true", where)
+        return _status(_S.BadNotWritable)
+    if not user.may_write:
+        log.warning("OPC UA write of %s refused: user %s may not write", where, user.name)
+        return _status(_S.BadUserAccessDenied)
+    if item.IndexRange:
+        return _status(_S.BadWriteNotSupported)
+    data = item.Value
+    if data is None:
+        return _status(_S.BadTypeMismatch)
+    if data.StatusCode is not None and not data.StatusCode.is_good():
+        return _status(_S.BadWriteNotSupported)  # a PLC holds values, not statuses
+    try:
+        return binding.value_of(data.Value)
+    except ValueError:
+        return _status(_S.BadTypeMismatch)
+
+
+# -- the server -----------------------------------------------------------------------------------
+
+
+class OpcUaServer:
+    """An asyncua server whose address space mirrors the poller's PLCs and tags.
+
+    ``start()`` builds the address space and listens; feed it with :meth:`run` (it then consumes
+    the poller's samples) or hand it batches through :meth:`send` when another loop owns the
+    poller's samples. Every tag variable reads Bad_WaitingForInitialData until its first sample.
+    """
+
+    def __init__(self, poller: Poller, config: OpcUaConfig | None = None) -> None:
+        self.poller = poller
+        self.config = config if config is not None else OpcUaConfig()
+        self._server: Server | None = None
+        self._bindings: dict[ua.NodeId, _Binding] = {}
+        self._by_tag: dict[tuple[str, str], _Binding] = {}
+        self._writes: set[asyncio.Future[Any]] = set()
+        self.namespace_index = 0
+        self.url = self.config.endpoint
+        #: samples put into the address space / skipped as unchanged (for statistics)
+        self.updates = 0
+        self.unchanged = 0
+        self._plan_bindings()
+
+    def _plan_bindings(self) -> None:
+        """Every tag's node and type, before anything listens (a clash is a ConfigError)."""
+        for plc in self.poller.plcs:
+            if "." in plc:
+                # the NodeId of a tag is "plc.tag": a dot in a PLC name could make two equal
+                raise ConfigError(f"PLC name {plc!r}: the OPC UA server needs names without '.'")
+            for name, (tag, bits) in self.poller.tags(plc).items():
+                nodeid = _node(f"{plc}.{name}", 0)  # index fixed in start()
+                self._by_tag[(plc, name)] = _Binding(plc, tag, nodeid, variant_type(tag, bits))
+
+    def nodeid(self, plc: str, tag: str) -> ua.NodeId:
+        """The NodeId of a tag's variable (after :meth:`start`)."""
+        return self._by_tag[(plc, tag)].nodeid
+
+    @property
+    def server(self) -> Server:
+        """The asyncua server (after :meth:`start`), for what this class does not cover."""
+        if self._server is None:
+            raise RuntimeError("the OPC UA server is not started")
+        return self._server
+
+    # -- life cycle -------------------------------------------------------------------------
+    async def start(self) -> None:
+        if self._server is not None:
+            return
+        config = self.config
+        server = Server(user_manager=_UserManager(config))
+        await server.init()
+        server.set_endpoint(config.endpoint)
+        server.set_server_name(config.server_name)
+        await server.set_application_uri(f"{config.namespace}:server")
+        server.set_security_policy([ua.SecurityPolicyType[p] for p in config.policies])
+        tokens: list[type] = []
+        if config.anonymous != "none":
+            tokens.append(ua.AnonymousIdentityToken)
+        if config.users:
+            tokens.append(ua.UserNameIdentityToken)
+        server.set_identity_tokens(tokens)
+        if config.certificate is not None and config.private_key is not None:
+            try:
+                await server.load_certificate(str(config.certificate))
+                await server.load_private_key(str(config.private_key))
+            except (OSError, ValueError) as exc:
+                raise ConfigError(f"opcua: cannot load certificate or private key: {exc}") from None
+        self.namespace_index = idx = await server.register_namespace(config.namespace)
+        await self._build(server, idx)
+        iserver = server.iserver
+        iserver.attribute_service = _WriteService(iserver.aspace, self)
+        try:
+            await server.start()
+        except OSError as exc:
+            raise PlcError(f"OPC UA server cannot listen on {config.endpoint}: {exc}") from None
+        self._server = server
+        bound = server.bserver
+        if bound is not None:
+            parts = urlsplit(config.endpoint)
+            self.url = urlunsplit(parts._replace(netloc=f"{parts.hostname}:{bound.port}"))
+
+    async def _build(self, server: Server, idx: int) -> None:
+        session = server.iserver.isession
+        groups = self.poller.config.groups
+        urls = {p.name: p.url for p in self.poller.config.plcs}
+        for plc in self.poller.plcs:
+            folder = _node(plc, idx)
+            items = [_folder_item(plc, urls.get(plc, ""), idx)]
+            for (owner, _), binding in self._by_tag.items():
+                if owner != plc:
+                    continue
+                binding.nodeid = _node(f"{plc}.{binding.tag.name}", idx)
+                items.append(_tag_item(binding, folder, idx, groups[binding.tag.group]))
+            for result in await session.add_nodes(items):
+                result.StatusCode.check()
+        self._bindings = {b.nodeid: b for b in self._by_tag.values()}
+        waiting = ua.DataValue(StatusCode=_status(INITIAL_STATUS))
+        for binding in self._bindings.values():
+            await server.write_attribute_value(binding.nodeid, waiting)
+
+    async def aclose(self) -> None:
+        """Stop listening; PLC writes still in flight finish (their outcome is logged)."""
+        server, self._server = self._server, None
+        if server is not None:
+            await server.stop()
+        if self._writes:
+            await asyncio.gather(*self._writes, return_exceptions=True)
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.aclose()
+
+    # -- samples in -------------------------------------------------------------------------
+    async def send(self, samples: Iterable[Sample]) -> None:
+        """Put samples into the address space (the sink side: any sample feed may call this)."""
+        server = self.server
+        by_tag = self._by_tag
+        good = _S.Good
+        now = _utc(time.time())
+        for sample in samples:
+            binding = by_tag.get((sample.plc, sample.tag))
+            if binding is None:
+                continue
+            if sample.quality is Quality.GOOD:
+                status, value = good, sample.value
+            else:
+                status, value = read_status(sample.error_type), None
+            if binding.last == (status, value):
+                self.unchanged += 1
+                continue
+            binding.last = (status, value)
+            try:
+                variant = binding.variant(value) if value is not None else None
+            except (TypeError, ValueError):
+                status, variant = _S.BadTypeMismatch, None
+            data = ua.DataValue(
+                Value=variant,
+                StatusCode=_status(status),
+                SourceTimestamp=_utc(sample.source_time),
+                ServerTimestamp=now,
+            )
+            await server.write_attribute_value(binding.nodeid, data)
+            self.updates += 1
+
+    async def run(self) -> None:
+        """Consume the poller's samples until it is closed (or this task is cancelled)."""
+        poller = self.poller
+        async for sample in poller:
+            batch = [sample]
+            batch.extend(poller.drain())
+            await self.send(batch)
+
+    # -- writes out -------------------------------------------------------------------------
+    async def _write_to_plcs(
+        self, jobs: dict[str, list[tuple[int, _Binding, Any]]]
+    ) -> list[tuple[int, ua.StatusCode]]:
+        """Each PLC's writes in request order, PLCs in parallel; shielded from the client.
+
+        A client that disconnects (cancelling its request) does not cut a PLC exchange short:
+        the write finishes, and its outcome is logged.
+        """
+        task = asyncio.ensure_future(
+            asyncio.gather(*(self._write_plc(items) for items in jobs.values()))
+        )
+        self._writes.add(task)
+        task.add_done_callback(self._writes.discard)
+        per_plc = await asyncio.shield(task)
+        return [pair for results in per_plc for pair in results]
+
+    async def _write_plc(
+        self, items: Sequence[tuple[int, _Binding, Any]]
+    ) -> list[tuple[int, ua.StatusCode]]:
+        out: list[tuple[int, ua.StatusCode]] = []
+        for i, binding, value in items:
+            out.append((i, _status(await self._write_tag(binding, value))))
+        return out
+
+    async def _write_tag(self, binding: _Binding, value: Any) -> int:
+        where = f"{binding.plc}.{binding.tag.name}"
+        try:
+            await self.poller.write_tag(binding.plc, binding.tag.name, value)
+        except Exception as exc:
+            code = write_status(exc)
+            name = _status(code).name
+            if isinstance(exc, PlcError):
+                log.warning("OPC UA write of %s = %r failed (%s): %s", where, value, name, exc)
+            else:
+                log.exception("OPC UA write of %s = %r failed (%s)", where, value, name)
+            return code
+        log.info("OPC UA write of %s = %r confirmed by the PLC", where, value)
+        return _S.Good
+
+
+async def run_until(server: OpcUaServer, stop: asyncio.Event, timeout: float | None = None) -> None:
+    """Feed a started server from its poller until ``stop`` is set or ``timeout`` seconds passed.
+
+    A failure of the feed itself (a bug) is raised, not swallowed with the cancellation.
+    """
+    feeder = asyncio.create_task(server.run(), name="opcua feed")
+    stopper = asyncio.create_task(stop.wait())
+    try:
+        await asyncio.wait({feeder, stopper}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in (feeder, stopper):
+            task.cancel()
+        await asyncio.gather(feeder, stopper, return_exceptions=True)
+    if not feeder.cancelled() and feeder.exception() is not None:
+        raise feeder.exception()  # type: ignore[misc]
+
+
+async def serve(
+    poller: Poller, config: OpcUaConfig | None = None, *, stop: asyncio.Event | None = None
+) -> OpcUaServer:
+    """Serve a started poller over OPC UA until ``stop`` is set (or forever).
+
+    Returns the stopped server, whose counters (``updates``, ``unchanged``) stay readable.
+    """
+    async with OpcUaServer(poller, config) as server:
+        await run_until(server, stop if stop is not None else asyncio.Event())
+    return server

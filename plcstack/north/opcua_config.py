@@ -1,0 +1,303 @@
+"""Settings of the OPC UA server: endpoint, security policies, users. No asyncua import here.
+
+They live in the ``[opcua]`` table of the poller's TOML file, next to the PLCs they serve::
+
+    [opcua]
+    endpoint = "opc.tcp://127.0.0.1:4840/plcstack"   # the default: loopback only
+    namespace = "urn:plcstack"
+    security_policies = ["None"]     # or e.g. ["Basic256Sha256_SignAndEncrypt"] with a certificate
+    certificate = "server-cert.der"  # needed by every policy but None
+    private_key = "server-key.pem"
+    anonymous = "read"               # "none" | "read" | "write"
+
+    [opcua.users.operator]           # user name / password logins
+    password_hash = "pbkdf2_sha256$..."   # plcstack serve opcua --hash-password
+    write = true                     # may write tags marked writable = true
+
+Secure by default: the server binds 127.0.0.1 unless the endpoint names another address,
+anonymous sessions may read but not write, tags are read-only unless ``writable = true``, and
+passwords are stored only as salted PBKDF2 hashes. A configuration that would send passwords in
+plain text to a non-loopback address (users configured, no encrypting policy) is refused.
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+import ipaddress
+import os
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+from plcstack.poll.config import ConfigError
+
+__all__ = [
+    "DEFAULT_ENDPOINT",
+    "SECURITY_POLICIES",
+    "OpcUaConfig",
+    "UserConfig",
+    "check_password",
+    "hash_password",
+    "load_opcua_config",
+    "parse_opcua_config",
+]
+
+DEFAULT_ENDPOINT = "opc.tcp://127.0.0.1:4840/plcstack"
+DEFAULT_NAMESPACE = "urn:plcstack"
+#: the policy names asyncua offers (``ua.SecurityPolicyType``); "None" is accepted for NoSecurity
+SECURITY_POLICIES = (
+    "NoSecurity",
+    "Basic128Rsa15_Sign",
+    "Basic128Rsa15_SignAndEncrypt",
+    "Basic256_Sign",
+    "Basic256_SignAndEncrypt",
+    "Basic256Sha256_Sign",
+    "Basic256Sha256_SignAndEncrypt",
+    "Aes128Sha256RsaOaep_Sign",
+    "Aes128Sha256RsaOaep_SignAndEncrypt",
+    "Aes256Sha256RsaPss_Sign",
+    "Aes256Sha256RsaPss_SignAndEncrypt",
+)
+#: with a certificate and no explicit list: the policies that encrypt and are not deprecated
+SECURE_POLICIES = (
+    "Basic256Sha256_SignAndEncrypt",
+    "Aes128Sha256RsaOaep_SignAndEncrypt",
+    "Aes256Sha256RsaPss_SignAndEncrypt",
+)
+ANONYMOUS_MODES = ("none", "read", "write")
+#: PBKDF2 rounds of new hashes. A login checks one hash inside asyncua's synchronous user
+#: manager, on the event loop: about 30 ms here, a pause the pollers can take at each login.
+HASH_ITERATIONS = 50_000
+_HASH_SCHEME = "pbkdf2_sha256"
+
+
+@dataclass(frozen=True)
+class UserConfig:
+    """One user name / password login; ``write`` lets it write tags marked ``writable``."""
+
+    name: str
+    password_hash: str = field(repr=False)
+    write: bool = False
+
+
+@dataclass(frozen=True)
+class OpcUaConfig:
+    """Everything :class:`plcstack.north.opcua.OpcUaServer` needs besides the poller."""
+
+    endpoint: str = DEFAULT_ENDPOINT
+    namespace: str = DEFAULT_NAMESPACE
+    server_name: str = "plcstack"
+    #: None: ("NoSecurity",) without a certificate, SECURE_POLICIES with one
+    security_policies: tuple[str, ...] | None = None
+    certificate: Path | None = None
+    private_key: Path | None = None
+    anonymous: str = "read"
+    users: tuple[UserConfig, ...] = ()
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    @property
+    def host(self) -> str:
+        return urlsplit(self.endpoint).hostname or ""
+
+    @property
+    def port(self) -> int:
+        port = urlsplit(self.endpoint).port
+        return 4840 if port is None else port
+
+    @property
+    def policies(self) -> tuple[str, ...]:
+        """The effective security policies (asyncua names)."""
+        if self.security_policies is not None:
+            return self.security_policies
+        return SECURE_POLICIES if self.certificate is not None else ("NoSecurity",)
+
+
+def _validate(config: OpcUaConfig) -> None:
+    try:
+        parts = urlsplit(config.endpoint)
+        port = parts.port
+    except ValueError as exc:
+        raise ConfigError(f"opcua.endpoint {config.endpoint!r}: {exc}") from None
+    if parts.scheme != "opc.tcp" or not parts.hostname:
+        raise ConfigError(
+            f'opcua.endpoint must look like "opc.tcp://HOST:PORT/PATH", not {config.endpoint!r}'
+        )
+    if port is not None and not 0 <= port <= 65535:
+        raise ConfigError(f"opcua.endpoint: port {port} is out of range")
+    if not config.namespace:
+        raise ConfigError("opcua.namespace must not be empty")
+    if config.anonymous not in ANONYMOUS_MODES:
+        raise ConfigError(
+            f"opcua.anonymous must be one of {', '.join(ANONYMOUS_MODES)}, not {config.anonymous!r}"
+        )
+    policies = config.policies
+    if not policies:
+        raise ConfigError("opcua.security_policies must name at least one policy")
+    for policy in policies:
+        if policy not in SECURITY_POLICIES:
+            raise ConfigError(
+                f"opcua.security_policies: unknown policy {policy!r} "
+                f"(known: None, {', '.join(SECURITY_POLICIES[1:])})"
+            )
+    if (config.certificate is None) != (config.private_key is None):
+        raise ConfigError("opcua: certificate and private_key go together")
+    needs_certificate = any(p != "NoSecurity" for p in policies)
+    if needs_certificate and (config.certificate is None or config.private_key is None):
+        raise ConfigError(
+            "opcua: security policies other than None need certificate and private_key"
+        )
+    if config.anonymous == "none" and not config.users:
+        raise ConfigError('opcua: anonymous = "none" and no [opcua.users]: nobody could log in')
+    names = [u.name for u in config.users]
+    if len(set(names)) != len(names):
+        raise ConfigError("opcua.users: a user name is used twice")
+    for user in config.users:
+        if not user.name:
+            raise ConfigError("opcua.users: a user name must not be empty")
+        _parse_hash(user.password_hash, user.name)
+    encrypting = any(p.endswith("SignAndEncrypt") for p in policies)
+    if config.users and not encrypting and not _is_loopback(parts.hostname):
+        raise ConfigError(
+            f"opcua: users are configured but no SignAndEncrypt policy is offered, so passwords "
+            f"would cross the network to {parts.hostname} in plain text; add a certificate and "
+            f'e.g. security_policies = ["Basic256Sha256_SignAndEncrypt"]'
+        )
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+# -- passwords --------------------------------------------------------------------------------
+
+
+def hash_password(password: str, *, iterations: int = HASH_ITERATIONS) -> str:
+    """A salted PBKDF2-SHA256 hash to put in ``password_hash`` (the password itself never is)."""
+    salt = os.urandom(16)
+    digest = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
+    return "$".join((_HASH_SCHEME, str(iterations), _b64(salt), _b64(digest)))
+
+
+def check_password(password: str, password_hash: str) -> bool:
+    """Whether ``password`` matches ``password_hash`` (constant-time comparison)."""
+    iterations, salt, digest = _parse_hash(password_hash, None)
+    candidate = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
+    return hmac.compare_digest(candidate, digest)
+
+
+def _b64(data: bytes) -> str:
+    return base64.b64encode(data).decode("ascii")
+
+
+def _parse_hash(text: str, user: str | None) -> tuple[int, bytes, bytes]:
+    where = f"opcua.users.{user}: " if user else ""
+    parts = text.split("$")
+    try:
+        if len(parts) != 4 or parts[0] != _HASH_SCHEME:
+            raise ValueError
+        iterations = int(parts[1])
+        salt = base64.b64decode(parts[2], validate=True)
+        digest = base64.b64decode(parts[3], validate=True)
+        if iterations < 1 or not salt or len(digest) != 32:
+            raise ValueError
+    except ValueError:
+        raise ConfigError(
+            f"{where}password_hash is not a {_HASH_SCHEME}$ITERATIONS$SALT$HASH string "
+            "(make one with: plcstack serve opcua --hash-password)"
+        ) from None
+    return iterations, salt, digest
+
+
+# -- TOML ---------------------------------------------------------------------------------------
+
+_KEYS = {
+    "endpoint",
+    "namespace",
+    "server_name",
+    "security_policies",
+    "certificate",
+    "private_key",
+    "anonymous",
+    "users",
+}
+
+
+def load_opcua_config(path: str | Path) -> OpcUaConfig:
+    """The ``[opcua]`` table of a poller TOML file (defaults if there is none).
+
+    Relative certificate and key paths are taken relative to the file's directory.
+    """
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    section = data.get("opcua", {})
+    return parse_opcua_config(section, base=path.parent)
+
+
+def parse_opcua_config(section: Mapping[str, Any], *, base: Path | None = None) -> OpcUaConfig:
+    """Build an :class:`OpcUaConfig` from the ``[opcua]`` table's contents."""
+    if not isinstance(section, Mapping):
+        raise ConfigError("[opcua] must be a table")
+    unknown = sorted(set(section) - _KEYS)
+    if unknown:
+        raise ConfigError(
+            f"unknown key(s) in [opcua]: {', '.join(unknown)} (known: {', '.join(sorted(_KEYS))})"
+        )
+    options: dict[str, Any] = {}
+    for key in ("endpoint", "namespace", "server_name", "anonymous"):
+        if key in section:
+            options[key] = _string(section, key)
+    if "security_policies" in section:
+        raw = section["security_policies"]
+        if not isinstance(raw, list) or not all(isinstance(p, str) for p in raw):
+            raise ConfigError('opcua.security_policies must be a list of names, e.g. ["None"]')
+        options["security_policies"] = tuple("NoSecurity" if p == "None" else p for p in raw)
+    for key in ("certificate", "private_key"):
+        if key in section:
+            file = Path(_string(section, key))
+            options[key] = file if base is None or file.is_absolute() else base / file
+    users = section.get("users", {})
+    if not isinstance(users, Mapping):
+        raise ConfigError("[opcua.users] must be a table of [opcua.users.NAME] tables")
+    options["users"] = tuple(_user(name, spec) for name, spec in users.items())
+    return OpcUaConfig(**options)
+
+
+def _string(table: Mapping[str, Any], key: str) -> str:
+    value = table[key]
+    if not isinstance(value, str):
+        raise ConfigError(f"opcua.{key} must be a string, not {value!r}")
+    return value
+
+
+def _user(name: str, spec: Any) -> UserConfig:
+    where = f"opcua.users.{name}"
+    if not isinstance(spec, Mapping):
+        raise ConfigError(f"{where} must be a table with password_hash and write")
+    unknown = sorted(set(spec) - {"password_hash", "write"})
+    if unknown:
+        hint = " (store a hash: plcstack serve opcua --hash-password)" if "password" in spec else ""
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}{hint}")
+    password_hash = spec.get("password_hash")
+    if not isinstance(password_hash, str):
+        raise ConfigError(f"{where}: missing password_hash (plcstack serve opcua --hash-password)")
+    write = spec.get("write", False)
+    if not isinstance(write, bool):
+        raise ConfigError(f"{where}: write must be true or false, not {write!r}")
+    return UserConfig(name, password_hash, write)
