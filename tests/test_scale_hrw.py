@@ -122,3 +122,16 @@ def test_cli_polls_only_its_shard(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert polled == expected and expected
     assert main(["poll", str(path), "--shard", "3/3"]) == 2
     assert "shard index" in capsys.readouterr().err
+
+
+def test_cli_scale_options_that_exclude_each_other(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "one.toml"
+    path.write_text('[[plc]]\nname = "p"\nurl = "e71+tcp://127.0.0.1:1"\n[plc.tags]\nx = "D0"\n')
+    assert main(["poll", str(path), "--nats", "nats://127.0.0.1:4222"]) == 2
+    assert "--nats needs --mqtt" in capsys.readouterr().err
+    assert main(["poll", str(path), "--shard", "0/2", "--mqtt", "mqtt://127.0.0.1:1"]) == 2
+    assert "exclude each other" in capsys.readouterr().err
+    assert main(["poll", str(path), "--mqtt", "http://x"]) == 2
+    assert "mqtt://HOST:PORT" in capsys.readouterr().err

@@ -15,7 +15,7 @@ import os
 import signal
 import sys
 from collections.abc import Callable
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 from plcstack.north.config import parse_north
 from plcstack.north.influx import influx_line
@@ -25,6 +25,9 @@ from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Sample
 from plcstack.poll.sinks import FORMATS
 from plcstack.scale import cli as scale_cli
+
+if TYPE_CHECKING:
+    from plcstack.scale.worker import Worker
 
 
 def register(subparsers: Any) -> None:
@@ -87,10 +90,12 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     config = load_config(args.config)
     try:
         config = scale_cli.select(config, args)
+        worker = scale_cli.make_worker(config, args)  # --mqtt: one worker of a cluster
     except ValueError as exc:
         print(f"plcstack poll: error: {exc}", file=sys.stderr)
         return 2
-    poller = Poller(config)  # every URL and address checked here, before anything is sent
+    # every URL and address checked here, before anything is sent
+    poller: Poller | Worker = worker if worker is not None else Poller(config)
     north_config = parse_north(config.north)
     line: Callable[[Sample], str] | None = None
     if args.format == "influx":
@@ -127,7 +132,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     return 0
 
 
-async def _report_stats(poller: Poller, every: float) -> None:
+async def _report_stats(poller: Poller | Worker, every: float) -> None:
     while True:
         await asyncio.sleep(every)
         print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr, flush=True)

@@ -9,10 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any, Generic, Protocol, Self, TypeVar
 
 from plcstack.codecs._common import NEED_DATA
@@ -24,6 +23,7 @@ from plcstack.errors import (
     PlcTimeout,
     RemoteProtocolError,
 )
+from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.url import PlcUrl
@@ -61,7 +61,7 @@ class ClientStats:
     connect_failures: int = 0
 
 
-class Client(ABC):
+class Client(AsyncResource):
     """The API every protocol shares, so the CLI and the poller are protocol-agnostic.
 
     Use as ``async with plcstack.connect(url) as plc:``. A client reconnects by itself when a
@@ -122,17 +122,8 @@ class Client(ABC):
         self._closed = True
         await self.transport.aclose()
 
-    async def __aenter__(self) -> Self:
+    async def aopen(self) -> None:
         await self.open()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.aclose()
 
     def __repr__(self) -> str:
         state = "open" if self.transport.is_open else "closed"

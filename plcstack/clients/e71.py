@@ -78,7 +78,7 @@ def _default_timer(timeout: float) -> int:
     return max(1, min(0xFFFF, int(timeout * 4) - 1))
 
 
-class E71Client(E71CommandsMixin, RequestClient[Response]):
+class E71Client(E71CommandsMixin):
     """Async client for one E71 connection. Use ``async with plcstack.connect(url) as plc``."""
 
     URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {

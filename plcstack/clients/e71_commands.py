@@ -12,13 +12,16 @@
 from __future__ import annotations
 
 import struct
+from abc import abstractmethod
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TypeVar
 
+from plcstack.clients.base import RequestClient
 from plcstack.codecs.e71 import (
     Ack,
     Code,
+    E71ClientConnection,
     ExtensionRequest,
     ExtensionResponse,
     Response,
@@ -53,9 +56,6 @@ from plcstack.codecs.e71_commands import (
 from plcstack.codecs.e71_programs import PROGRAM_COMMANDS, build, parse_response
 from plcstack.errors import AddressError, LocalProtocolError, RemoteProtocolError
 
-if TYPE_CHECKING:
-    from plcstack.codecs.e71 import E71ClientConnection
-
 __all__ = ["CPU_STATES", "CpuStatus", "E71CommandsMixin", "ProgressCallback"]
 
 #: progress callback of streamed reads/writes: (units done, units total)
@@ -77,29 +77,39 @@ class CpuStatus:
     status_word: int
 
 
-class E71CommandsMixin:
-    """The commands of :mod:`plcstack.codecs.e71_commands` as async methods of ``E71Client``."""
+class E71CommandsMixin(RequestClient[Response]):
+    """The commands of :mod:`plcstack.codecs.e71_commands` as async methods of ``E71Client``.
+
+    A base of ``E71Client`` rather than a free-floating mixin: it inherits ``exchange`` from
+    :class:`RequestClient`, and the few E71 pieces it needs from the client are the abstract
+    methods below, which ``E71Client`` must implement (checked when it is instantiated).
+    """
 
     #: §13 A2: ASCII random access buffer answers with a 2-char (default) or 4-char subheader
     rab_ascii_sub_chars: int = 2
+    #: binary or ASCII (set by ``E71Client``)
+    code: Code
+    #: the partner-side codec of the current connection (set by ``E71Client``)
+    codec: E71ClientConnection
+    #: the 06H/07H monitor registration; a 1AH registration replaces it (§7.3)
+    _monitor: tuple[int | None, int | None] = (None, None)
 
-    if TYPE_CHECKING:
-        name: str
-        code: Code
-        codec: E71ClientConnection
-        _monitor: tuple[int | None, int | None]
+    # -- what E71Client provides -----------------------------------------------------------------
+    @abstractmethod
+    def _hdr(self) -> dict[str, int]:
+        """``pc`` and ``timer`` for a request header, as configured now."""
 
-        async def exchange(
-            self, request: Any, what: str, *, is_write: bool, timeout: float | None = None
-        ) -> Any: ...
+    @abstractmethod
+    def _bad(self, message: str, what: str) -> AddressError:
+        """Our caller's misuse, as the error to raise (naming PLC and request)."""
 
-        def _reply_or_raise(self, event: R, what: str) -> R: ...
+    @abstractmethod
+    def _reply_or_raise(self, event: R, what: str) -> R:
+        """The reply, or the PLC's end code as a PlcErrorResponse."""
 
-        def _bad(self, message: str, what: str) -> AddressError: ...
-
-        def _hdr(self) -> dict[str, int]: ...
-
-        async def read_words(self, address: str, count: int = 1) -> list[int]: ...
+    @abstractmethod
+    async def read_words(self, address: str, count: int = 1) -> list[int]:
+        """Words from a word device (used for the CPU status register D9015)."""
 
     _ext_monitor_count: int | None = None
 

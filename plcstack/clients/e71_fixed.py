@@ -45,6 +45,7 @@ from plcstack.errors import (
     PlcTimeout,
     RemoteProtocolError,
 )
+from plcstack.resource import AsyncResource
 from plcstack.transports import ip_transport
 from plcstack.transports.base import Transport
 from plcstack.transports.udp import UdpTransport
@@ -272,7 +273,7 @@ class E71FixedBufferClient(Client):
         await self.send([int(v) for v in values])
 
 
-class E71BroadcastReceiver:
+class E71BroadcastReceiver(AsyncResource):
     """Receives UDP broadcasts an E71 sends without procedure (partner IP FFFFFFFFH, §8.3).
 
     ``async with E71BroadcastReceiver(port) as rx: async for data, (ip, port) in rx: ...``.
@@ -284,7 +285,8 @@ class E71BroadcastReceiver:
         self._queue: asyncio.Queue[tuple[bytes, tuple[str, int]]] = asyncio.Queue()
         self._transport: asyncio.DatagramTransport | None = None
 
-    async def __aenter__(self) -> Self:
+    async def aopen(self) -> None:
+        """Bind the port (``port=0``: a free one, then in :attr:`port`)."""
         loop = asyncio.get_running_loop()
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -299,9 +301,8 @@ class E71BroadcastReceiver:
 
         transport, _ = await loop.create_datagram_endpoint(_Rx, sock=sock)
         self._transport = transport
-        return self
 
-    async def __aexit__(self, *exc: object) -> None:
+    async def aclose(self) -> None:
         if self._transport is not None:
             self._transport.close()
 

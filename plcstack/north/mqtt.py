@@ -214,6 +214,7 @@ class MqttSink:
         layout: Any = None,
         buffer: StoreAndForward | None = None,
         writable: dict[tuple[str, str], bool] | None = None,
+        plcs: Sequence[str] | None = None,
     ) -> None:
         """``writable``: (plc, tag) -> may MQTT clients write it (the tag's ``writable = true``);
         a tag marked false is refused with ``not_writable``. None: every tag is writable."""
@@ -242,7 +243,9 @@ class MqttSink:
         self._client: Any = None
         self._replay_until = -1
         self._writes: set[asyncio.Task[None]] = set()
-        self._plc_by_level = {topic_level(p): p for p in (writer.plcs if writer else [])}
+        if plcs is None:
+            plcs = writer.plcs if writer is not None else []
+        self._plc_by_level = {topic_level(p): p for p in plcs}
         self._task: asyncio.Task[None] | None = None
         self._connected_event = asyncio.Event()
         self._idle = asyncio.Event()  # set while the publisher has nothing to send
@@ -396,8 +399,10 @@ class MqttSink:
         plc = self._plc_by_level.get(level)
         if error is not None or tag is None:
             self._respond(level, request_id, "bad_request", error or "bad request")
-        elif plc is None or self.writer is None:
+        elif plc is None:
             self._respond(level, request_id, "unknown_plc", f"no PLC named {level!r} here")
+        elif self.writer is None:
+            self._respond(level, request_id, "not_writable", "this poller takes no writes")
         elif len(self._writes) >= MAX_PENDING_WRITES:
             self._respond(level, request_id, "busy", "too many writes waiting; not attempted")
         else:

@@ -51,8 +51,15 @@ class North:
                 for plc in poller.config.plcs
                 for tag in plc.tags
             }
+            # a scale-out Worker has no write_tag (yet): its sink refuses writes with the reason
+            writer = poller if hasattr(poller, "write_tag") else None
             self.mqtt = MqttSink(
-                config.mqtt, writer=poller, group_of=group_of, layout=layout, writable=writable
+                config.mqtt,
+                writer=writer,
+                group_of=group_of,
+                layout=layout,
+                writable=writable,
+                plcs=[plc.name for plc in poller.config.plcs],
             )
             self.sinks.append(self.mqtt)
         self.collector = PlcstackCollector(

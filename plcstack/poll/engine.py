@@ -42,7 +42,6 @@ import collections
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any, Self
 
 from plcstack.clients.base import Client
@@ -58,6 +57,7 @@ from plcstack.poll.plan import ScanPlan, build_plan, describe
 from plcstack.poll.samples import Quality, Sample, make_sample
 from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
 from plcstack.poll.values import WordOrder
+from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
 
@@ -114,7 +114,7 @@ def default_client_factory(plc: PlcConfig) -> Client:
     return client
 
 
-class Poller:
+class Poller(AsyncResource):
     """Polls every PLC of a :class:`PollConfig`; iterate over it for :class:`Sample` objects.
 
     Clients and read plans are built in the constructor, so every bad URL or address raises
@@ -223,17 +223,8 @@ class Poller:
         self._update_connection_stats()
         self._wakeup.set()
 
-    async def __aenter__(self) -> Self:
+    async def aopen(self) -> None:
         await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.aclose()
 
     # -- samples ----------------------------------------------------------------------------
     def __aiter__(self) -> Self:

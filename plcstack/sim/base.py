@@ -8,9 +8,9 @@ client should use, so callers never assemble URLs by hand.
 from __future__ import annotations
 
 import asyncio
-from abc import ABC, abstractmethod
-from types import TracebackType
-from typing import Self
+from abc import abstractmethod
+
+from plcstack.resource import AsyncResource
 
 __all__ = ["ConnectionCount", "Simulator", "TcpSimulator", "UdpSimulator"]
 
@@ -37,7 +37,7 @@ class ConnectionCount:
         self.current -= 1
 
 
-class Simulator(ABC):
+class Simulator(AsyncResource):
     """A running simulator. Close it with ``await sim.aclose()`` or ``async with``."""
 
     #: the URL a plcstack client uses to reach this simulator, e.g. ``e71+tcp://127.0.0.1:40001``
@@ -45,17 +45,6 @@ class Simulator(ABC):
 
     @abstractmethod
     async def aclose(self) -> None: ...
-
-    async def __aenter__(self) -> Self:
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.aclose()
 
     async def serve_forever(self) -> None:
         """Serve until cancelled (the CLI's ``plcstack sim``)."""

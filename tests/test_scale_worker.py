@@ -1,0 +1,149 @@
+"""Workers in one process over a simulator fleet, with real mosquitto and nats-server.
+
+The multi-process failover tests (``kill -9``) are in ``test_scale_failover.py``; these check
+the same rules quickly: one poller per PLC, release before handover, fencing before the ttl.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Callable
+
+import pytest
+
+from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.scale.hrw import owner
+from plcstack.scale.worker import Worker, WorkerOptions
+from tests.scale_helpers import CutProxy, Fleet
+from tests.servers import Mosquitto, NatsServer
+
+TTL = 1.0
+INTERVAL = 0.1
+
+
+def fleet_config(fleet: Fleet) -> PollConfig:
+    tags = (TagConfig("x", "D0"),)
+    plcs = tuple(PlcConfig(name, w.sim.url, tags, timeout=0.5) for name, w in fleet.watch.items())
+    return PollConfig(plcs=plcs, groups={"default": INTERVAL})
+
+
+async def until(predicate: Callable[[], bool], timeout: float = 5.0) -> None:
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not predicate():
+        assert loop.time() < deadline, "condition not reached in time"
+        await asyncio.sleep(0.02)
+
+
+@contextlib.asynccontextmanager
+async def worker(
+    config: PollConfig, name: str, mqtt: str, nats: str | None, events: list[str] | None = None
+) -> AsyncIterator[Worker]:
+    options = WorkerOptions(
+        worker=name, mqtt=mqtt, nats=nats, lease_ttl=TTL, retry=0.05, keepalive=2
+    )
+    w = Worker(config, options, on_event=(events.append if events is not None else None))
+    drain = None
+    try:
+        await w.start()
+        drain = asyncio.get_running_loop().create_task(_consume(w))
+        yield w
+    finally:
+        await w.aclose()
+        if drain is not None:
+            drain.cancel()
+
+
+async def _consume(w: Worker) -> None:
+    async for _ in w:
+        pass
+
+
+async def test_two_workers_split_the_fleet_and_hand_over(
+    mosquitto: Mosquitto, nats_server: NatsServer
+) -> None:
+    async with Fleet(8, interval=INTERVAL) as fleet:
+        config = fleet_config(fleet)
+        async with worker(config, "a", mosquitto.url, nats_server.url) as a:
+            await until(lambda: len(a.owned) == 8)  # alone: everything
+            async with worker(config, "b", mosquitto.url, nats_server.url) as b:
+                expect_b = {p for p in fleet.watch if owner(p, ["a", "b"]) == "b"}
+                assert expect_b and len(expect_b) < 8
+                # a stops and releases first; b starts only then
+                await until(lambda: b.owned == expect_b and a.owned.isdisjoint(expect_b))
+                assert a.owned | b.owned == set(fleet.watch)
+                assert b.leases is not None
+                holders = await b.leases.holders()
+                assert holders == {f"plc.{p}": owner(p, ["a", "b"]) for p in fleet.watch}
+            # b left cleanly: released, so a takes its PLCs back at once (no ttl wait)
+            await until(lambda: len(a.owned) == 8, timeout=TTL / 2)
+            loop = asyncio.get_running_loop()
+            mark = loop.time()
+            await fleet.wait_all_polled(mark, timeout=2)
+        assert set(fleet.peaks().values()) == {1}, fleet.peaks()  # never two connections
+
+
+async def test_a_worker_cut_from_nats_stops_before_the_ttl(
+    mosquitto: Mosquitto, nats_server: NatsServer
+) -> None:
+    proxy = CutProxy(nats_server.host, nats_server.port)
+    await proxy.start()
+    events: list[str] = []
+    try:
+        async with Fleet(6, interval=INTERVAL) as fleet:
+            config = fleet_config(fleet)
+            cut_url = f"nats://127.0.0.1:{proxy.port}"
+            async with (
+                worker(config, "a", mosquitto.url, cut_url, events) as a,
+                worker(config, "b", mosquitto.url, nats_server.url) as b,
+            ):
+                mine = {p for p in fleet.watch if owner(p, ["a", "b"]) == "a"}
+                await until(lambda: a.owned == mine and b.owned == set(fleet.watch) - mine)
+                loop = asyncio.get_running_loop()
+                cut = loop.time()
+                proxy.cut()
+                await until(lambda: not a.owned, timeout=TTL)
+                stopped = loop.time() - cut
+                # fencing: a stopped before its leases could expire
+                assert stopped < TTL
+                for name in mine:
+                    assert fleet.watch[name].sim.connection_count.current == 0
+                # a withdrew (standby), so b takes a's PLCs once the leases expired
+                await until(lambda: b.owned == set(fleet.watch), timeout=3 * TTL)
+            assert set(fleet.peaks().values()) == {1}, fleet.peaks()
+        assert any("fence" in e or "stop" in e for e in events), events
+    finally:
+        await proxy.aclose()
+
+
+@pytest.mark.slow  # about 8 s: it watches for three lease times that nothing moves
+async def test_a_worker_cut_from_the_broker_keeps_its_plcs(
+    mosquitto: Mosquitto, nats_server: NatsServer
+) -> None:
+    proxy = CutProxy(mosquitto.host, mosquitto.port)
+    await proxy.start()
+    try:
+        async with Fleet(6, interval=INTERVAL) as fleet:
+            config = fleet_config(fleet)
+            async with (
+                worker(config, "a", f"mqtt://127.0.0.1:{proxy.port}", nats_server.url) as a,
+                worker(config, "b", mosquitto.url, nats_server.url) as b,
+            ):
+                mine = {p for p in fleet.watch if owner(p, ["a", "b"]) == "a"}
+                await until(lambda: a.owned == mine and b.owned == set(fleet.watch) - mine)
+                proxy.cut()  # the broker sends a's Will; b now wants every PLC
+                await until(lambda: b.presence.live == {"b"})
+                loop = asyncio.get_running_loop()
+                mark = loop.time()
+                await asyncio.sleep(3 * TTL)
+                # a still renews its leases, so b cannot take them: a keeps polling
+                assert a.owned == mine and b.owned.isdisjoint(mine)
+                gaps = fleet.longest_gap(mark, loop.time())
+                assert max(gaps.values()) < 0.5, gaps
+                proxy.restore()
+                await until(lambda: b.presence.live == {"a", "b"})
+                assert a.owned == mine
+            assert set(fleet.peaks().values()) == {1}, fleet.peaks()
+    finally:
+        await proxy.aclose()
