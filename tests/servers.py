@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import pwd
 import shutil
 import signal
 import socket
@@ -221,6 +222,9 @@ class Mosquitto(_Server):
             # Keep every queued message of an offline persistent session (the default cap of
             # 1000 would drop replayed data in a test that buffers more than that).
             "max_queued_messages 0",
+            # run as root (CI), mosquitto would switch to the user "mosquitto", which cannot
+            # write the persistence file into our temporary directory: stay who we are
+            *([f"user {pwd.getpwuid(os.geteuid()).pw_name}"] if os.geteuid() == 0 else []),
             "log_type error",
             "log_type warning",
             "log_type notice",

@@ -24,10 +24,10 @@ pytest.importorskip("asyncua")  # the optional extra; CI installs it with [test]
 from asyncua import Client, ua
 from asyncua.ua.uaerrors import UaStatusCodeError
 
+from plcstack import values as vt
 from plcstack.north.opcua import OpcUaServer
 from plcstack.north.opcua_config import OpcUaConfig, UserConfig, hash_password
 from plcstack.poll import PlcConfig, PollConfig, Poller, TagConfig
-from plcstack.poll.values import DataType
 from plcstack.sim import e71, fetchwrite
 from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.sim.s5memory import Area, S5Memory
@@ -80,11 +80,11 @@ def config(press: str, oven: str, flaky: str) -> PollConfig:
                 "press1",
                 press,
                 (
-                    TagConfig("strokes", "D100", DataType.UINT16, writable=True),
-                    TagConfig("force", "D102", DataType.FLOAT32),
+                    TagConfig("strokes", "D100", vt.UINT16, writable=True),
+                    TagConfig("force", "D102", vt.FLOAT32),
                     TagConfig("raw", "D110"),
-                    TagConfig("alarms", "M0", DataType.BOOL, 4),
-                    TagConfig("setpoints", "D120", DataType.INT16, 2, writable=True),
+                    TagConfig("alarms", "M0", vt.BOOL, 4),
+                    TagConfig("setpoints", "D120", vt.INT16, 2, writable=True),
                 ),
                 **fast,  # type: ignore[arg-type]
             ),
@@ -92,16 +92,16 @@ def config(press: str, oven: str, flaky: str) -> PollConfig:
                 "oven2",
                 oven,
                 (
-                    TagConfig("temperature", "DB10.DW0", DataType.INT16),
-                    TagConfig("setpoint", "DB10.DW1", DataType.FLOAT32, writable=True),
-                    TagConfig("status", "MB20", DataType.UINT8),
+                    TagConfig("temperature", "DB10.DW0", vt.INT16),
+                    TagConfig("setpoint", "DB10.DW1", vt.FLOAT32, writable=True),
+                    TagConfig("status", "MB20", vt.UINT8),
                 ),
                 **fast,  # type: ignore[arg-type]
             ),
             PlcConfig(
                 "flaky",
                 flaky,
-                (TagConfig("counter", "D0", DataType.UINT16),),
+                (TagConfig("counter", "D0", vt.UINT16),),
                 **fast,  # type: ignore[arg-type]
             ),
         ),

@@ -12,11 +12,12 @@ import logging
 from abc import abstractmethod
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
-from typing import Any, Generic, Protocol, Self, TypeVar
+from typing import Any, ClassVar, Generic, Protocol, Self, TypeVar, overload
 
 from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
 from plcstack.errors import (
+    AddressError,
     ConnectFailed,
     ConnectionLost,
     PlcError,
@@ -27,13 +28,43 @@ from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.url import PlcUrl
+from plcstack.values import (
+    BOOL,
+    ByteOrder,
+    Endian,
+    ValueType,
+    WordOrder,
+    bits_of_points,
+)
 
-__all__ = ["Client", "ClientCodec", "ClientStats", "Failure", "RequestClient", "Value"]
+__all__ = [
+    "Client",
+    "ClientCodec",
+    "ClientStats",
+    "Failure",
+    "Points",
+    "RequestClient",
+    "Value",
+    "as_points",
+]
 
 _log = logging.getLogger(__name__)
 
 #: what ``read`` returns per point: ``int`` for words/bytes, ``bool`` for bits
 Value = int | bool
+#: the Python type of one value of a :class:`~plcstack.values.ValueType`
+T = TypeVar("T")
+#: what ``write`` takes: one point or a sequence of them
+Points = int | bool | Sequence[int] | Sequence[bool]
+
+
+def as_points(values: Points) -> Sequence[int] | Sequence[bool]:
+    """``values`` as a sequence: a single int or bool (``plc.write("D100", 5)``) becomes a list
+    of one; anything else is returned unchanged for the client's own checks."""
+    if isinstance(values, int):
+        return [values]
+    return values
+
 
 #: default request deadline in seconds; every client takes ``timeout=`` and ``?timeout=``
 DEFAULT_TIMEOUT = 2.0
@@ -69,6 +100,11 @@ class Client(AsyncResource):
     spaced by jittered exponential backoff and requests in between fail at once with
     :class:`ConnectFailed` (saying when the next attempt is due) instead of piling up.
     """
+
+    #: order of the points of a multi-point value (MELSEC: LITTLE, low word first; S5: BIG)
+    word_order: ClassVar[WordOrder] = Endian.BIG
+    #: order of two characters in a word (MELSEC: LITTLE, first character in the low byte)
+    byte_order: ClassVar[ByteOrder] = Endian.BIG
 
     def __init__(
         self,
@@ -222,8 +258,124 @@ class Client(AsyncResource):
         """Read ``count`` points from ``address``: ints for words/bytes, bools for bits."""
 
     @abstractmethod
-    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
-        """Write ``values`` starting at ``address``; returns once the PLC confirmed it."""
+    async def write(self, address: str, values: Points) -> None:
+        """Write ``values`` (one point or a sequence) starting at ``address``; returns once the
+        PLC confirmed it."""
+
+    # -- typed values -----------------------------------------------------------------------
+    def split_bit(self, address: str) -> tuple[str, int | None]:
+        """``(word address, bit)`` for the family's bit-of-a-word notation (``D100.3``,
+        ``DB10.DW5.3``), ``(address, None)`` otherwise. Raises :class:`AddressError` for a
+        bit number the notation does not allow."""
+        return address, None
+
+    def _value_span(
+        self, address: str, vtype: ValueType[Any], count: int, what: str
+    ) -> tuple[str, int | None, int, int]:
+        """``(address to read, bit, point bits, points)`` for ``count`` values; nothing sent."""
+        try:
+            if not isinstance(vtype, ValueType):
+                raise AddressError(f"{vtype!r} is not a value type (e.g. plcstack.values.INT16)")
+            if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+                raise AddressError(f"count must be a positive integer, not {count!r}")
+            base, bit = self.split_bit(address)
+            try:
+                area, _ = self.locate(base, 1)
+                bits = self.point_bits(area)
+            except NotImplementedError:
+                bits = 16
+            if bit is not None:
+                if vtype is not BOOL:
+                    raise AddressError(f"a bit of a word ({address}) is read as BOOL")
+                if bits <= 1 or bit >= bits:
+                    raise AddressError(f"bit {bit} is not a bit of a {bits}-bit point")
+                return base, bit, bits, -(-(bit + count) // bits)
+            vtype.check_area(bits, address)
+            return base, None, bits, count * vtype.points_per_value(bits)
+        except AddressError as exc:
+            raise exc.bind(plc=self.name, request=what) from None
+
+    @overload
+    async def read_as(
+        self,
+        address: str,
+        vtype: ValueType[T],
+        count: None = None,
+        *,
+        word_order: WordOrder | None = None,
+    ) -> T: ...
+
+    @overload
+    async def read_as(
+        self,
+        address: str,
+        vtype: ValueType[T],
+        count: int,
+        *,
+        word_order: WordOrder | None = None,
+    ) -> list[T]: ...
+
+    async def read_as(
+        self,
+        address: str,
+        vtype: ValueType[Any],
+        count: int | None = None,
+        *,
+        word_order: WordOrder | None = None,
+    ) -> Any:
+        """One value of ``vtype`` at ``address`` (``count`` omitted) or a list of ``count``.
+
+        ``await plc.read_as("DB10.DW4", KG)`` is a ``float`` to mypy too; a bit of a word
+        (``D100.3``, ``DB10.DW5.3``) reads as ``BOOL``. Multi-point values use the PLC
+        family's word order unless ``word_order`` is given. One request, like :meth:`read`.
+        """
+        n = 1 if count is None else count
+        what = f"read {address} as {getattr(vtype, 'name', vtype)} x{n}"
+        base, bit, bits, points = self._value_span(address, vtype, n, what)
+        raw = await self.read(base, points)
+        try:
+            if bit is not None:
+                values: list[Any] = bits_of_points(raw, bits, bit, n)
+            else:
+                order = word_order or self.word_order
+                values = vtype.decode_many(raw, n, bits, order, self.byte_order)
+        except PlcError as exc:
+            raise exc.bind(plc=self.name, request=what) from None
+        return values[0] if count is None else values
+
+    async def write_as(
+        self,
+        address: str,
+        vtype: ValueType[T],
+        value: T | list[T],
+        *,
+        word_order: WordOrder | None = None,
+    ) -> None:
+        """Write one value of ``vtype`` (or a ``list`` of values) from ``address`` on.
+
+        Every value is checked first: one that the type cannot hold (NaN as KG, 10000 as
+        BCD16) raises :class:`~plcstack.errors.ValueEncodeError` and nothing is sent. A bit
+        of a word is refused: it would be a read-modify-write racing the PLC program.
+        """
+        values: list[Any] = value if isinstance(value, list) else [value]
+        what = f"write {address} as {getattr(vtype, 'name', vtype)} x{len(values)}"
+        base, bit, bits, _ = self._value_span(address, vtype, max(1, len(values)), what)
+        try:
+            if not values:
+                raise AddressError("no values to write")
+            if bit is not None:
+                raise AddressError(
+                    f"{address} is a bit of a word: writing it would be a read-modify-write "
+                    "that can undo a change the PLC makes in between; write the whole word"
+                )
+            order = word_order or self.word_order
+            points = vtype.encode_many(values, bits, order, self.byte_order)
+        except AddressError as exc:
+            raise exc.bind(plc=self.name, request=what) from None
+        if bits <= 1:
+            await self.write(base, [bool(p) for p in points])
+        else:
+            await self.write(base, [int(p) for p in points])
 
 
 E = TypeVar("E")

@@ -172,6 +172,17 @@ _VARIANT_TYPES: dict[str, ua.VariantType] = {
     "float32": ua.VariantType.Float,
     "float64": ua.VariantType.Double,
     "string": ua.VariantType.String,
+    # plcstack.values types beyond the plain integers (by name; strings "string:N" by kind)
+    "kf": ua.VariantType.Int16,
+    "kh": ua.VariantType.UInt16,
+    "km": ua.VariantType.UInt16,
+    "kz": ua.VariantType.UInt16,
+    "bcd16": ua.VariantType.UInt16,
+    "bcd32": ua.VariantType.UInt32,
+    "kc": ua.VariantType.String,
+    "ky": ua.VariantType.String,  # two bytes, shown as STEP 5 does: "12,255"
+    "kt": ua.VariantType.Double,  # seconds
+    "kg": ua.VariantType.Double,  # the KG range reaches below float32's normal range
 }
 #: a ``raw`` tag is one point: a bit, a byte (S5 byte areas) or a word
 _RAW_TYPES = {1: ua.VariantType.Boolean, 8: ua.VariantType.Byte, 16: ua.VariantType.UInt16}
@@ -179,9 +190,13 @@ _RAW_TYPES = {1: ua.VariantType.Boolean, 8: ua.VariantType.Byte, 16: ua.VariantT
 
 def variant_type(tag: TagConfig, point_bits: int) -> ua.VariantType:
     """The OPC UA type of one value of ``tag``; a type without its own mapping is a Double."""
-    name = str(getattr(tag.type, "value", tag.type))
+    name = tag.type.name
+    if tag.scale is not None:
+        return ua.VariantType.Double  # engineering units
     if name == "raw":
         return _RAW_TYPES.get(point_bits, ua.VariantType.UInt32)
+    if tag.type.kind == "text":
+        return ua.VariantType.String
     return _VARIANT_TYPES.get(name, ua.VariantType.Double)
 
 
@@ -241,6 +256,8 @@ class _Binding:
     def variant(self, value: Any) -> ua.Variant:
         if self.vtype is ua.VariantType.Double:
             value = [float(v) for v in value] if isinstance(value, list) else float(value)
+        elif self.vtype is ua.VariantType.String:  # KY pairs of bytes as "12,255"
+            value = [_text(v) for v in value] if isinstance(value, list) else _text(value)
         return ua.Variant(value, self.vtype)
 
     def value_of(self, variant: ua.Variant | None) -> Any:
@@ -257,6 +274,12 @@ class _Binding:
         return list(value)
 
 
+def _text(value: Any) -> str:
+    if isinstance(value, tuple):
+        return ",".join(str(b) for b in value)
+    return str(value)
+
+
 def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -> ua.AddNodesItem:
     tag = binding.tag
     item = ua.AddNodesItem()
@@ -268,7 +291,7 @@ def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -
     item.TypeDefinition = _node(ObjectIds.BaseDataVariableType)
     attrs = ua.VariableAttributes()
     attrs.DisplayName = ua.LocalizedText(tag.name)
-    type_name = getattr(tag.type, "value", tag.type)
+    type_name = tag.type.name
     count = f" x{tag.count}" if tag.count > 1 else ""
     attrs.Description = ua.LocalizedText(f"{tag.address} {type_name}{count}")
     attrs.DataType = _node(binding.vtype.value)

@@ -140,8 +140,7 @@ class SparkplugLayout:
     @classmethod
     def for_config(cls, settings: Any, poll_config: Any) -> SparkplugLayout:
         tags = {
-            plc.name: [(t.name, t.type.value, t.count) for t in plc.tags]
-            for plc in poll_config.plcs
+            plc.name: [(t.name, t.type.name, t.count) for t in plc.tags] for plc in poll_config.plcs
         }
         return cls(
             settings.group_id, settings.client_id, tags, prefix=settings.prefix, qos=settings.qos
