@@ -140,7 +140,8 @@ def _run_codec(fast: bool, requests: list[Any], stream: bytes, cuts: list[int]) 
     """Send ``requests``, feed ``stream`` in pieces, and record every send and event or error."""
     codec = E71ClientConnection("binary", transport="tcp")
     codec.fast_paths = fast
-    codec._fast_stream = codec._fast_stream and fast
+    if not fast:
+        codec._fast_stream = None
     out: list[Any] = []
     for request in requests:
         try:
@@ -230,3 +231,31 @@ async def test_e71_cached_word_read_follows_pc_and_timer_changes() -> None:
                 await plc.read("D0", 300)  # checks still run for an uncached read
     finally:
         await sim.aclose()
+
+
+# -- the poller's batch iterator -------------------------------------------------------------------
+async def test_poller_batches_give_the_samples_iteration_gives() -> None:
+    from tests.test_poll_engine import make, tag
+
+    poller, _ = make({f"p{i}": [tag("w", "D0", count=4)] for i in range(5)}, interval=0.005)
+    await poller.start()
+    seen: list[Any] = []
+    async with asyncio.timeout(10):
+        async for batch in poller.batches():
+            assert batch, "never an empty batch"
+            seen += batch
+            if len(seen) >= 50:
+                break
+    assert all(s.quality.name == "GOOD" for s in seen)
+    await asyncio.sleep(0.05)  # more samples wait in the buffer
+    await poller.aclose()
+    buffered = list(poller._queue)
+    assert buffered, "the test needs samples left in the buffer"
+    rest = [s async for batch in poller.batches() for s in batch]  # ends: the poller is closed
+    assert rest == buffered
+
+    # the same buffer through the sample iterator
+    again, _ = make({"p0": [tag("w", "D0", count=4)]}, interval=0.005)
+    again._queue.extend(buffered)
+    await again.aclose()
+    assert [s async for s in again] == buffered

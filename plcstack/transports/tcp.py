@@ -86,8 +86,9 @@ class TcpTransport(ProtocolTransport):
         Only meaningful while ``is_open`` (the client asks only then): the descriptor is ours
         until the asyncio transport closes, and it is closing as soon as ``is_open`` is false.
         """
-        fd = self._fd
-        if fd < 0 or _FIONREAD is None or not self.is_open:
+        fd, protocol = self._fd, self._protocol
+        # the descriptor is ours until connection_lost has run (which sets _closed_exc)
+        if fd < 0 or _FIONREAD is None or protocol is None or protocol._closed_exc is not None:
             return True
         try:
             return fcntl.ioctl(fd, _FIONREAD, _NOTHING) != _NOTHING
