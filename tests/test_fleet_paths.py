@@ -3,7 +3,7 @@
 * E71: a word read already checked reuses its request object and bytes; a normal 01H answer
   over TCP is cut and decoded in one step. Against the general path on random answer streams.
 * The check for unsolicited bytes before a request: the general path lets the event loop run
-  once; the fast path asks the kernel (FIONREAD) and skips that pass when nothing waits. Both must
+  once; the fast path asks the kernel (one poll) and skips that pass when nothing waits. Both must
   find stale bytes wherever they are (already delivered, or still in the kernel) and never return
   a stale answer.
 """
@@ -48,6 +48,7 @@ class _StaleServer:
         self.connections = 0
         self.extra = b""
         self.extra_after = b""
+        self.close_after = b""
         self.delay = 0.0
         self.listener = socket.create_server(("127.0.0.1", 0))
         self.port = self.listener.getsockname()[1]
@@ -65,6 +66,8 @@ class _StaleServer:
             for line in lines:
                 answer = line.split()[-1]
                 conn.sendall(answer + b"\n")
+                if answer == self.close_after:
+                    return
                 if self.extra and answer == self.extra_after:
                     time.sleep(self.delay)
                     conn.sendall(self.extra)
@@ -121,6 +124,30 @@ async def test_stale_bytes_are_found_on_both_paths(
         assert stale_server.connections == 2
         assert await client.read("ASK 4") == [4]
         assert stale_server.connections == 2
+
+
+@pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
+@pytest.mark.parametrize("where", ["delivered", "in-kernel"])
+async def test_peer_close_between_requests_reconnects_on_both_paths(
+    stale_server: Any, general: bool, where: str
+) -> None:
+    """The PLC closed the connection after an answer: the next request reconnects at once, as
+    it must when the end of stream waits in the kernel (the fast path's poll reports it)."""
+    client = LineClient(
+        f"line://127.0.0.1:{stale_server.port}", TcpTransport("127.0.0.1", stale_server.port)
+    )
+    client.stale_check_needs_loop_pass = general
+    stale_server.close_after = b"5"
+    async with client:
+        assert await client.read("ASK 5") == [5]
+        if where == "delivered":
+            await asyncio.sleep(0.2)
+        else:
+            time.sleep(0.2)  # noqa: ASYNC251 - the end of stream waits in the kernel
+            assert client.transport.input_waiting()
+        assert await client.read("ASK 6") == [6]
+        assert stale_server.connections == 2
+        assert client.stats.errors == 0
 
 
 @pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
