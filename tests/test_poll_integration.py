@@ -416,7 +416,14 @@ async def test_demo_live_table_on_a_terminal() -> None:
     master, slave = os.openpty()
     chunks: list[bytes] = []
     loop = asyncio.get_running_loop()
-    loop.add_reader(master, lambda: chunks.append(os.read(master, 65536)))
+
+    def drain() -> None:
+        try:
+            chunks.append(os.read(master, 65536))
+        except OSError:  # EIO once the terminal side is closed: nothing more will come
+            loop.remove_reader(master)
+
+    loop.add_reader(master, drain)
     try:
         with os.fdopen(slave, "w", closefd=True) as term:
             args = Namespace(plcs=None, duration=1.5, interval=0.1)
