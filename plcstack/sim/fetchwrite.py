@@ -29,7 +29,12 @@ from plcstack.codecs.fetchwrite import (
 )
 from plcstack.codecs.mk import LifeAckTimer, MkConnection
 from plcstack.errors import RemoteProtocolError
-from plcstack.sim.base import TcpSimulator
+from plcstack.sim.base import (
+    DEFAULT_IDLE_TIMEOUT,
+    DEFAULT_MAX_CONNECTIONS,
+    TcpSimulator,
+    check_idle_timeout,
+)
 from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
 
 __all__ = ["FetchWriteSimulator", "add_cli_arguments", "default_memory", "serve_cli", "start"]
@@ -104,6 +109,7 @@ class FetchWriteSimulator(TcpSimulator):
         self.life_acks_received = 0
         self.life_acks_sent = 0
         self.dropped_dead = 0
+        self.max_connections = DEFAULT_MAX_CONNECTIONS
 
     async def aclose(self) -> None:
         if self.write_server is not None:
@@ -116,6 +122,10 @@ class FetchWriteSimulator(TcpSimulator):
     async def handle(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, role: _Role
     ) -> None:
+        if self.connection_count.current >= self.max_connections:
+            self.refused_connections += 1
+            writer.transport.abort()
+            return
         task = asyncio.current_task()
         if task is not None:
             self.track(task)
@@ -128,6 +138,7 @@ class FetchWriteSimulator(TcpSimulator):
             self.life_timeout if self.mk else None,
             loop.time(),
         )
+        idle_at = loop.time() + (self.idle_timeout or 0.0)
         try:
             while True:
                 while (event := codec.next_event()) is not NEED_DATA:
@@ -138,16 +149,27 @@ class FetchWriteSimulator(TcpSimulator):
                     timer.sent(loop.time())
                     if close:
                         return
+                    # A peer that does not read its answers is not read either until it does
+                    # (drain waits above the write high-water mark): before, answers piled up
+                    # (+1.5 GB in 17 s) and a backlog was worked off long after it was gone.
+                    await writer.drain()
                 if mk is not None:
                     self.life_acks_received += mk.life_acks_received
                     mk.life_acks_received = 0
                 if self.silent:
                     codec = ServerConnection("mk" if self.mk else "raw", mk=mk)
+                wakeup = timer.next_wakeup()
+                if self.idle_timeout is not None and (wakeup is None or idle_at < wakeup):
+                    wakeup = idle_at
                 try:
-                    async with asyncio.timeout_at(timer.next_wakeup()):
+                    async with asyncio.timeout_at(wakeup):
                         data = await reader.read(65536)
                 except TimeoutError:
                     now = loop.time()
+                    if self.idle_timeout is not None and now >= idle_at:
+                        self.idle_closed += 1
+                        log.info("fetchwrite sim: nothing for %s s, closing", self.idle_timeout)
+                        return
                     if timer.dead(now):
                         self.dropped_dead += 1
                         log.info("fetchwrite sim: no life ack for %s s, closing", timer.timeout)
@@ -160,6 +182,8 @@ class FetchWriteSimulator(TcpSimulator):
                     continue
                 if not data:
                     return
+                if self.idle_timeout is not None:
+                    idle_at = loop.time() + self.idle_timeout
                 timer.received(loop.time())
                 codec.receive_data(data)
         except RemoteProtocolError as exc:
@@ -259,13 +283,21 @@ async def start(
     life_ack: float | None = None,
     life_timeout: float | None = None,
     strict: bool = False,
+    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
+    max_connections: int = DEFAULT_MAX_CONNECTIONS,
 ) -> FetchWriteSimulator:
     """Start a FETCH/WRITE simulator; returns once it accepts connections.
 
     ``write_port``: ``None`` serves FETCH and WRITE on ``port``; a number (``0`` = any free
     port) serves FETCH on ``port`` and WRITE on ``write_port``. ``life_ack``: MK keep-alive
     interval in seconds (default off); ``life_timeout`` defaults to 3 x ``life_ack`` (D.C4).
+    ``idle_timeout``: seconds after which a connection that sent nothing is closed (default
+    600, ``None``: never); ``max_connections``: connections at once (per port), further ones
+    are closed at once and counted in ``refused_connections``.
     """
+    idle = check_idle_timeout(idle_timeout)
+    if max_connections < 1:
+        raise ValueError("max_connections must be at least 1")
     if db_start_unit not in ("word", "byte"):
         raise ValueError("db_start_unit must be 'word' or 'byte'")
     if life_ack is not None and not mk:
@@ -305,6 +337,8 @@ async def start(
         strict=strict,
         write_server=write_server,
     )
+    sim.idle_timeout = idle
+    sim.max_connections = max_connections
     holder.append(sim)
     return sim
 
