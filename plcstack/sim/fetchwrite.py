@@ -131,7 +131,8 @@ class FetchWriteSimulator(TcpSimulator):
             self.track(task)
         self.connections += 1
         loop = asyncio.get_running_loop()
-        mk = MkConnection(strict=self.strict) if self.mk else None
+        # a module is lenient with partners that do not count (only strict checks them)
+        mk = MkConnection(strict=self.strict, check_seq=self.strict) if self.mk else None
         codec = ServerConnection("mk" if self.mk else "raw", mk=mk)
         timer = LifeAckTimer(
             self.life_ack if self.mk else None,
