@@ -40,7 +40,9 @@ from plcstack.sim.base import (
     DEFAULT_MAX_CONNECTIONS,
     Simulator,
     TcpSimulator,
+    add_idle_timeout_argument,
     check_idle_timeout,
+    idle_timeout_of,
 )
 from plcstack.sim.s5memory import BLOCK_HEADER_BYTES, BlockType, S5AccessError, S5Memory
 
@@ -414,6 +416,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--pty", action="store_true", help="serve on a new pseudo-terminal instead of TCP"
     )
+    add_idle_timeout_argument(parser)
     parser.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5020, help="TCP port (default 5020; 0 = any)")
     parser.add_argument(
@@ -428,7 +431,9 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         announce(f"serial port {pty_sim.path}")
         sim = pty_sim
     else:
-        tcp_sim = await start(host=args.host, port=args.port, baud=args.baud)
+        tcp_sim = await start(
+            host=args.host, port=args.port, baud=args.baud, idle_timeout=idle_timeout_of(args)
+        )
         announce(f"listening on {tcp_sim.host}:{tcp_sim.port} (TCP)")
         sim = tcp_sim
     await sim.serve_forever()

@@ -7,6 +7,7 @@ client should use, so callers never assemble URLs by hand.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 from abc import abstractmethod
 from collections.abc import Callable
@@ -21,7 +22,9 @@ __all__ = [
     "Simulator",
     "TcpSimulator",
     "UdpSimulator",
+    "add_idle_timeout_argument",
     "check_idle_timeout",
+    "idle_timeout_of",
 ]
 
 #: seconds a simulator keeps a connection on which the client sent nothing. Real modules drop
@@ -41,6 +44,23 @@ def check_idle_timeout(idle_timeout: float | None) -> float | None:
     from plcstack.durations import check_seconds
 
     return check_seconds("idle_timeout", idle_timeout)
+
+
+def add_idle_timeout_argument(parser: argparse.ArgumentParser) -> None:
+    """``--idle-timeout SECONDS`` of every ``plcstack sim`` (0 = never close idle connections)."""
+    parser.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=DEFAULT_IDLE_TIMEOUT,
+        metavar="SECONDS",
+        help="close a connection that sent nothing for this long (default 600; 0 = never)",
+    )
+
+
+def idle_timeout_of(args: argparse.Namespace) -> float | None:
+    """The ``--idle-timeout`` of parsed CLI arguments as ``start()`` takes it (0 -> None)."""
+    value: float | None = getattr(args, "idle_timeout", DEFAULT_IDLE_TIMEOUT)
+    return None if value == 0 else value
 
 
 class IdleWatch:

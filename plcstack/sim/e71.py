@@ -57,7 +57,9 @@ from plcstack.sim.base import (
     Simulator,
     TcpSimulator,
     UdpSimulator,
+    add_idle_timeout_argument,
     check_idle_timeout,
+    idle_timeout_of,
 )
 from plcstack.sim.e71_module import execute_extension, module_of
 from plcstack.sim.melsec_memory import CpuState, MelsecAccessError, MelsecMemory
@@ -445,6 +447,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5000, help="port (default 5000; 0 = any)")
     parser.add_argument("--code", choices=("binary", "ascii"), default="binary")
+    add_idle_timeout_argument(parser)
     parser.add_argument("--transport", choices=("tcp", "udp"), default="tcp")
     parser.add_argument(
         "--cpu-group",
@@ -467,7 +470,12 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         args.cpu_group, state=CpuState(args.state), write_in_run=not args.no_write_in_run
     )
     sim: Simulator = await start(
-        memory, host=args.host, port=args.port, code=args.code, transport=args.transport
+        memory,
+        host=args.host,
+        port=args.port,
+        code=args.code,
+        transport=args.transport,
+        idle_timeout=idle_timeout_of(args),
     )
     assert isinstance(sim, (E71TcpSimulator, E71UdpSimulator))
     announce(f"listening on {sim.host}:{sim.port} ({args.transport.upper()})")

@@ -33,7 +33,9 @@ from plcstack.sim.base import (
     DEFAULT_IDLE_TIMEOUT,
     DEFAULT_MAX_CONNECTIONS,
     TcpSimulator,
+    add_idle_timeout_argument,
     check_idle_timeout,
+    idle_timeout_of,
 )
 from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
 
@@ -131,7 +133,8 @@ class FetchWriteSimulator(TcpSimulator):
             self.track(task)
         self.connections += 1
         loop = asyncio.get_running_loop()
-        mk = MkConnection(strict=self.strict) if self.mk else None
+        # a module is lenient with partners that do not count (only strict checks them)
+        mk = MkConnection(strict=self.strict, check_seq=self.strict) if self.mk else None
         codec = ServerConnection("mk" if self.mk else "raw", mk=mk)
         timer = LifeAckTimer(
             self.life_ack if self.mk else None,
@@ -349,6 +352,7 @@ async def start(
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5030, help="TCP port (default 5030)")
+    add_idle_timeout_argument(parser)
     parser.add_argument(
         "--mk",
         action="store_true",
@@ -382,6 +386,7 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         db_start_unit=args.db_start,
         write_port=args.write_port,
         life_ack=args.life_ack,
+        idle_timeout=idle_timeout_of(args),
     )
     line = f"listening on {sim.host}:{sim.port} (TCP)"
     if sim.write_port is not None:

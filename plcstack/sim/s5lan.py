@@ -34,7 +34,13 @@ from plcstack.codecs.s5lan import (
     estimate_seconds,
     swap_words,
 )
-from plcstack.sim.base import DEFAULT_IDLE_TIMEOUT, TcpSimulator, check_idle_timeout
+from plcstack.sim.base import (
+    DEFAULT_IDLE_TIMEOUT,
+    TcpSimulator,
+    add_idle_timeout_argument,
+    check_idle_timeout,
+    idle_timeout_of,
+)
 from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
 
 __all__ = ["DEFAULT_DATA_WORDS", "S5LanSimulator", "add_cli_arguments", "default_memory", "start"]
@@ -280,9 +286,15 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="delay answers like the module: 50 ms + 1.5 ms per data byte",
     )
+    add_idle_timeout_argument(parser)
 
 
 async def serve_cli(args: argparse.Namespace, announce: Callable[[str], Any]) -> None:
-    sim = await start(host=args.host, port=args.port, realistic_timing=args.realistic_timing)
+    sim = await start(
+        host=args.host,
+        port=args.port,
+        realistic_timing=args.realistic_timing,
+        idle_timeout=idle_timeout_of(args),
+    )
     announce(f"listening on {sim.host}:{sim.port} (TCP)")
     await sim.serve_forever()
