@@ -327,7 +327,7 @@ async def test_no_timer_for_a_delay_below_the_timer_resolution(
             timers.append(delay)
         await real_sleep(delay)
 
-    def wait_until(self: Any, due: float) -> Any:  # the shared scan timer (poll/ticker.py)
+    def wait_until(self: engine.Ticker, due: float) -> asyncio.Future[None]:  # poll/ticker.py
         timers.append(due)
         return real_wait_until(self, due)
 
