@@ -7,8 +7,8 @@ import json
 import math
 from typing import Any
 
+from plcstack.clients import connect
 from plcstack.errors import AddressError
-from plcstack.url import connect
 from plcstack.values import TYPES, Scalar, WordOrder, value_type
 
 _TYPE_HELP = (

@@ -44,6 +44,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Self
 
+from plcstack.clients import connect
 from plcstack.clients.base import Client
 from plcstack.errors import (
     AddressError,
@@ -58,7 +59,6 @@ from plcstack.poll.samples import Quality, Sample, make_sample
 from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
 from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
-from plcstack.url import connect
 from plcstack.values import ByteOrder, Endian, WordOrder
 
 __all__ = [
