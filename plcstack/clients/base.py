@@ -391,12 +391,22 @@ class RequestClient(Client, Generic[E]):
 
     codec: ClientCodec
 
+    #: True: always let the event loop run once before a request (the general path of the
+    #: check for unsolicited bytes), even where the transport could ask the OS instead. Tests
+    #: set it to compare both paths; nothing else needs to.
+    stale_check_needs_loop_pass = False
+
     @abstractmethod
     def new_codec(self) -> ClientCodec:
         """A fresh client-role codec for a new connection."""
 
     def connection_made(self) -> None:
         self.codec = self.new_codec()
+        self._settled = True
+
+    #: the codec holds nothing undecoded: a fresh one, or the last exchange ended with
+    #: ``_check_nothing_follows`` passing
+    _settled = False
 
     async def exchange(
         self, request: Any, what: str, *, is_write: bool, timeout: float | None = None
@@ -408,37 +418,56 @@ class RequestClient(Client, Generic[E]):
         nothing stale can be read later. A write is never retried here.
         """
         async with self._lock:
-            if not self.transport.is_open:
+            transport = self.transport
+            if not transport.is_open:
                 await self._ensure_open(what)
-            # One loop pass reads what the OS already holds for us; anything that arrived since
-            # the last answer (a duplicated answer, the rest of a too-long one, bytes from a
-            # confused peer) would otherwise be decoded as the answer to this request. Without a
-            # transaction id the only safe reaction is a fresh connection before sending.
-            await asyncio.sleep(0)
+                transport = self.transport
+            # Anything that arrived since the last answer (a duplicated answer, the rest of a
+            # too-long one, bytes from a confused peer) would otherwise be decoded as the answer
+            # to this request. Without a transaction id the only safe reaction is a fresh
+            # connection before sending. Bytes the OS holds but the loop has not delivered yet
+            # need two loop passes: in the first, asyncio's selector finds them and queues the
+            # reader *behind* this task; in the second, the reader has run. A transport that can
+            # ask the OS (TCP, UDP: FIONREAD) and hears "nothing waits" spares the request both
+            # passes (fast path; tests/test_fleet_paths.py compares the two).
+            if self.stale_check_needs_loop_pass or transport.input_waiting():
+                await asyncio.sleep(0)
+                await asyncio.sleep(0)
             stale = self._unsolicited_input()
-            if stale is not None or not self.transport.is_open:
+            if stale is not None or not transport.is_open:
                 if stale is not None:
                     _log.warning("%s: %s; reconnecting before %s", self.name, stale, what)
                     self.stats.errors += 1
                 self._drop()
                 await self._ensure_open(what)
+                transport = self.transport
             self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
-            # every chunk of this answer, kept only for the diagnosis on the failure path
-            chunks: list[bytes] = []
+            # every chunk of this answer, kept only for the diagnosis on the failure path (a
+            # list only when the answer comes in more than one chunk)
+            first = b""
+            chunks: list[bytes] | None = None
+            # A settled codec holds no bytes, so right after ``send`` it can only need data:
+            # asking it (as an unsettled one must be asked) would cost a decode attempt.
+            settled, self._settled = self._settled, False
             try:
-                codec, transport = self.codec, self.transport
-                payload = codec.send(request)
-                transport.write(payload)
+                codec = self.codec
+                transport.write(codec.send(request))
                 expires = asyncio.get_running_loop().time() + deadline
-                while True:
-                    event = codec.next_event()
-                    if event is not NEED_DATA:
-                        self._check_nothing_follows(codec)
-                        return event  # type: ignore[no-any-return]
+                event = NEED_DATA if settled else codec.next_event()
+                while event is NEED_DATA:
                     chunk = await transport.read(expires)
-                    chunks.append(chunk)
+                    if chunks is not None:
+                        chunks.append(chunk)
+                    elif first:
+                        chunks = [first, chunk]
+                    else:
+                        first = chunk
                     codec.receive_data(chunk)
+                    event = codec.next_event()
+                self._check_nothing_follows(codec)
+                self._settled = True
+                return event  # type: ignore[no-any-return]
             except asyncio.CancelledError:
                 # The caller gave up (wait_for, a cancelled task) with the answer maybe still on
                 # its way: it must die with the connection, or the codec (still expecting it)
@@ -455,7 +484,7 @@ class RequestClient(Client, Generic[E]):
                     plc=self.name,
                     request=what,
                 )
-                self._with_hint(timeout_error, "timeout", b"".join(chunks))
+                self._with_hint(timeout_error, "timeout", b"".join(chunks or (first,)))
                 raise timeout_error from None
             except (ConnectionLost, RemoteProtocolError) as exc:
                 self.stats.errors += 1
@@ -465,7 +494,7 @@ class RequestClient(Client, Generic[E]):
                 self._with_hint(
                     exc,
                     "closed" if isinstance(exc, ConnectionLost) else "malformed",
-                    b"".join(chunks),
+                    b"".join(chunks or (first,)),
                 )
                 raise exc.bind(plc=self.name, request=what) from None
             except PlcError as exc:
@@ -493,9 +522,14 @@ class RequestClient(Client, Generic[E]):
     def _unsolicited_input(self) -> str | None:
         """Feed bytes received between requests to the idle codec: ``None`` if they were only
         what the protocol allows there (e.g. MK life acks), else what was wrong with them."""
+        received = self.transport.take_received()
+        if not received and self._settled:
+            # The last exchange left the codec with nothing to say (``_check_nothing_follows``)
+            # and nothing came since: asking it again would answer NEED_DATA.
+            return None
         codec = self.codec
         try:
-            for chunk in self.transport.take_received():
+            for chunk in received:
                 codec.receive_data(chunk)
             event = codec.next_event()
         except PlcError as exc:

@@ -78,6 +78,8 @@ R = TypeVar("R")
 
 #: points one read frame carries: 256 bits (00H) or 256 words (01H) (§7.1)
 MAX_POINTS = 256
+#: most (address, count) word reads a client keeps checked and encoded (a poller reads a few)
+_READ_CACHE = 1024
 
 
 def _default_timer(timeout: float) -> int:
@@ -132,6 +134,9 @@ class E71Client(E71CommandsMixin):
         # The monitor registration lives in the PLC, not in the connection: keep what we
         # registered across reconnects so 88H/89H can still be sized.
         self._monitor: tuple[int | None, int | None] = (None, None)
+        #: (address, count) -> (01H request, its "what" text) of word reads already checked;
+        #: a poller reads the same few addresses every scan (see ``read``)
+        self._word_reads: dict[tuple[str, int], tuple[ReadWords, str]] = {}
         self.codec: E71ClientConnection = self.new_codec()
 
     @classmethod
@@ -189,7 +194,11 @@ class E71Client(E71CommandsMixin):
         return list(event.values)
 
     async def _read_words(self, request: ReadWords | MonitorWords, what: str) -> list[int]:
-        event = await self._call(request, what, is_write=False)
+        event = await self.exchange(request, what, is_write=False)
+        return self._words_of_event(event, what)
+
+    def _words_of_event(self, event: Response, what: str) -> list[int]:
+        event = self._reply_or_raise(event, what)
         if not isinstance(event, WordsResponse):  # pragma: no cover - codec guarantees it
             raise RemoteProtocolError("unexpected response", plc=self.name, request=what)
         return list(event.values)
@@ -223,7 +232,21 @@ class E71Client(E71CommandsMixin):
 
     # -- the common API -------------------------------------------------------------------------
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
-        """Bits (``list[bool]``, 00H) of a bit device or words (``list[int]``, 01H); <= 256."""
+        """Bits (``list[bool]``, 00H) of a bit device or words (``list[int]``, 01H); <= 256.
+
+        A word read whose address and count were checked before reuses its request object
+        (parsing, range checks and encoding done once; the header fields are compared on every
+        call, since ``pc`` and ``monitoring_timer`` may change), and awaits the exchange
+        directly: one coroutine frame instead of three on the polling hot path.
+        """
+        cached = self._word_reads.get((address, count))
+        if cached is not None:
+            request, what = cached
+            if request.pc == self.pc and request.timer == self.monitoring_timer:
+                event = await self.exchange(request, what, is_write=False)
+                if type(event) is WordsResponse:
+                    return list(event.values)
+                return self._words_of_event(event, what)
         what = f"read {address} x{count}"
         ref = self._ref(address, what)
         self._check_span(ref, count, MAX_POINTS, what)
@@ -231,9 +254,12 @@ class E71Client(E71CommandsMixin):
             return await self._read_bits(
                 ReadBits(ref, count, pc=self.pc, timer=self.monitoring_timer), what
             )
-        return await self._read_words(
-            ReadWords(ref, count, pc=self.pc, timer=self.monitoring_timer), what
-        )
+        request = ReadWords(ref, count, pc=self.pc, timer=self.monitoring_timer)
+        if type(address) is str and type(count) is int:
+            if len(self._word_reads) >= _READ_CACHE:
+                self._word_reads.clear()
+            self._word_reads[(address, count)] = (request, what)
+        return await self._read_words(request, what)
 
     async def write(self, address: str, values: Points) -> None:
         """Bits to a bit device (02H) or words to a word device (03H); <= 256 points."""
