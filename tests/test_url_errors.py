@@ -61,7 +61,12 @@ def test_bad_urls_are_named(text: str, fragment: str) -> None:
 @pytest.mark.parametrize(
     ("url", "keywords", "option", "fragment"),
     [
-        ("e71+tcp://h:1", {"tiemout": 3}, "tiemout", "unknown option tiemout (keyword): did you mean timeout?"),
+        (
+            "e71+tcp://h:1",
+            {"tiemout": 3},
+            "tiemout",
+            "unknown option tiemout (keyword): did you mean timeout?",
+        ),
         ("e71+tcp://h:1?tiemout=3", {}, "tiemout", "unknown option tiemout (URL query)"),
         ("s5lan://h:1?code=ascii", {}, "code", "does not apply to s5lan://"),
         ("e71+tcp://h:1", {"timeout": 0}, "timeout", "greater than 0"),
