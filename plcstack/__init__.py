@@ -30,6 +30,7 @@ Errors: every failure is a :class:`PlcError` (``AddressError``, ``OptionError``,
 ``ConnectionLost``/``ConnectFailed``, ``RemoteProtocolError``, ``LocalProtocolError``).
 """
 
+from plcstack import sync
 from plcstack.clients import (
     AS511Client,
     Client,
@@ -131,5 +132,6 @@ __all__ = [
     "load_config",
     "parse_url",
     "string",
+    "sync",
     "value_type",
 ]

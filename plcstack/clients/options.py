@@ -175,8 +175,7 @@ def resolve(
                 else:
                     why = f"unknown option {name} ({source}){_suggest(name, known)}"
                 raise OptionError(
-                    f"{why}; {url.scheme}:// takes: "
-                    + ", ".join(o.name for o in schema),
+                    f"{why}; {url.scheme}:// takes: " + ", ".join(o.name for o in schema),
                     option=name,
                 )
         out: dict[str, Any] = {}
