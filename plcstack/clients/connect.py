@@ -66,6 +66,7 @@ def connect(
     write_port: int | None = None,
     life_ack: float | None = None,
     life_timeout: float | None = None,
+    mk_seq: bool | None = None,
     # S5-LAN, AS511, FETCH/WRITE
     strict: bool | None = None,
     **unknown: object,
@@ -98,6 +99,7 @@ def connect(
         "write_port": write_port,
         "life_ack": life_ack,
         "life_timeout": life_timeout,
+        "mk_seq": mk_seq,
         "strict": strict,
     }
     keywords = {name: value for name, value in given.items() if value is not None}

@@ -11,7 +11,10 @@ URL options (keyword arguments of :func:`plcstack.connect` override them):
                       declared dead, its connection closed, and the next request fails with
                       :class:`~plcstack.errors.ConnectionLost` saying so (then reconnects)
 ``life_timeout=S``    see above
-``strict=1``          strict MK receive checks (sequence numbers, reserved flags, 1460 bytes)
+``mk_seq=0``          do not check the MK sequence numbers of answers (for CPs that do not
+                      count them); checked by default, as they are the only way to tell a
+                      delayed copy of an earlier answer from the current one
+``strict=1``          strict MK receive checks (reserved flags, 1460 bytes)
 ``timeout``, ``connect_timeout``  as for every client
 
 Data are big-endian S5 words. Word reads return 0..65535, byte reads 0..255. Writes accept
@@ -107,6 +110,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         seconds("life_ack", None, "MK keep-alive interval (needs mk=1)"),
         seconds("life_timeout", None, "peer silence that declares it dead (default 3 x life_ack)"),
         flag("strict", False, "strict MK receive checks"),
+        flag("mk_seq", True, "check the MK sequence numbers of answers (C.2)"),
     )
 
     codec: ClientConnection
@@ -123,6 +127,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         life_ack: float | None = None,
         life_timeout: float | None = None,
         strict: bool = False,
+        mk_seq: bool = True,
         timeout: float = 2.0,
         connect_timeout: float = 3.0,
         backoff: Backoff | None = None,
@@ -146,6 +151,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         self.life_ack = life_ack
         self.life_timeout = life_timeout
         self.strict = strict
+        self.mk_seq = mk_seq
         #: times a silent peer was declared dead (life ack timeout)
         self.dead_peers = 0
         self._keeper: asyncio.Task[None] | None = None
@@ -163,6 +169,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
                 life_ack=life_ack,
                 life_timeout=life_timeout,
                 strict=strict,
+                mk_seq=mk_seq,
                 timeout=timeout,
                 connect_timeout=connect_timeout,
                 backoff=copy.copy(backoff),  # each connection backs off on its own
@@ -180,7 +187,9 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
     # -- connection life cycle ----------------------------------------------------------------
     def new_codec(self) -> ClientConnection:
         if self.mk:
-            return ClientConnection("mk", mk=MkConnection(strict=self.strict))
+            return ClientConnection(
+                "mk", mk=MkConnection(strict=self.strict, check_seq=self.mk_seq)
+            )
         return ClientConnection("raw")
 
     def connection_made(self) -> None:
