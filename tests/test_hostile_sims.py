@@ -7,6 +7,7 @@ import asyncio
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.codecs.e71 import E71ServerConnection
 from plcstack.codecs.e71_events import BadRequest
 from plcstack.sim import as511 as as511_sim
@@ -14,7 +15,6 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.e71 import E71TcpSimulator
-from plcstack.url import connect
 
 IDLE = 0.3
 

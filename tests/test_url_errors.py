@@ -79,6 +79,8 @@ def test_bad_urls_are_named(text: str, fragment: str) -> None:
         ("as511+tcp://h:1?parity=E", {}, "parity", "does not apply to as511+tcp://"),
         ("as511:///dev/ttyS9?stopbits=3", {}, "stopbits", "not 1, 1.5 or 2"),
         ("e71+tcp://h:1?backoff=1", {}, "backoff", "Python only"),
+        ("e71+tcp://h:1", {"pc": None}, "pc", "not an integer"),
+        ("fetchwrite://h:1", {"mk": None}, "mk", "not a boolean"),
     ],
 )
 def test_bad_options_are_option_errors_naming_the_option(

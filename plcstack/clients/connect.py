@@ -10,6 +10,7 @@ scheme does not take, a misspelt one included (``tiemout=3``), is an
 
 from __future__ import annotations
 
+import enum
 from typing import Final
 
 from plcstack.clients.as511 import AS511Client
@@ -33,6 +34,15 @@ SCHEMES: Final[dict[str, type[Client]]] = {
     "as511+tcp": AS511Client,
 }
 
+
+class _Unset(enum.Enum):
+    """Marks a keyword not given (``None`` is a value: "no write port", "default timer")."""
+
+    UNSET = "unset"
+
+
+UNSET: Final = _Unset.UNSET
+
 #: every option name of every protocol, so one that belongs elsewhere is named as such
 _ALL_OPTIONS: Final = frozenset(
     o.name for cls in SCHEMES.values() for o in (*cls.OPTIONS, *AS511Client.SERIAL_OPTIONS)
@@ -42,38 +52,38 @@ _ALL_OPTIONS: Final = frozenset(
 def connect(
     url: str,
     *,
-    timeout: float | None = None,
-    connect_timeout: float | None = None,
-    backoff: Backoff | None = None,
+    timeout: float | _Unset = UNSET,
+    connect_timeout: float | _Unset = UNSET,
+    backoff: Backoff | _Unset | None = UNSET,
     # E71 (e71+tcp, e71+udp)
-    code: str | None = None,
-    pc: int | None = None,
-    monitoring_timer: int | None = None,
-    rab_ascii_sub_chars: int | None = None,
+    code: str | _Unset = UNSET,
+    pc: int | _Unset = UNSET,
+    monitoring_timer: int | _Unset | None = UNSET,
+    rab_ascii_sub_chars: int | _Unset = UNSET,
     # S5-LAN-LINK (s5lan)
-    header_byte_order: str | None = None,
+    header_byte_order: str | _Unset = UNSET,
     # AS511 (as511, as511+tcp)
-    baud: int | None = None,
-    parity: str | None = None,
-    stopbits: float | None = None,
-    char_timeout: float | None = None,
-    response_timeout: float | None = None,
-    nak_backoff: float | None = None,
-    cache: bool | None = None,
+    baud: int | _Unset = UNSET,
+    parity: str | _Unset = UNSET,
+    stopbits: float | _Unset = UNSET,
+    char_timeout: float | _Unset = UNSET,
+    response_timeout: float | _Unset | None = UNSET,
+    nak_backoff: float | _Unset = UNSET,
+    cache: bool | _Unset = UNSET,
     # FETCH/WRITE (fetchwrite)
-    mk: bool | None = None,
-    db_start: str | None = None,
-    write_port: int | None = None,
-    life_ack: float | None = None,
-    life_timeout: float | None = None,
-    mk_seq: bool | None = None,
+    mk: bool | _Unset = UNSET,
+    db_start: str | _Unset = UNSET,
+    write_port: int | _Unset | None = UNSET,
+    life_ack: float | _Unset | None = UNSET,
+    life_timeout: float | _Unset | None = UNSET,
+    mk_seq: bool | _Unset = UNSET,
     # S5-LAN, AS511, FETCH/WRITE
-    strict: bool | None = None,
+    strict: bool | _Unset = UNSET,
     **unknown: object,
 ) -> Client:
     """The client for ``url``; use it as ``async with connect(url) as plc:``.
 
-    Keywords override the URL's query options (``None`` = not given). The connection is opened
+    Keywords override the URL's query options. The connection is opened
     by ``async with`` or ``await plc.open()``, not here, so creating a client never blocks.
     Raises :class:`~plcstack.errors.AddressError` for a bad URL and
     :class:`~plcstack.errors.OptionError` for a bad or unknown option; nothing is sent.
@@ -102,7 +112,7 @@ def connect(
         "mk_seq": mk_seq,
         "strict": strict,
     }
-    keywords = {name: value for name, value in given.items() if value is not None}
+    keywords = {name: value for name, value in given.items() if value is not UNSET}
     keywords.update(unknown)
     parsed = parse_url(url)
     cls = SCHEMES[parsed.scheme]

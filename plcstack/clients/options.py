@@ -65,8 +65,8 @@ def seconds(name: str, default: float | None, doc: str) -> Option:
     """A duration: a finite number of seconds > 0 (``check_seconds``); ``None`` = not set."""
 
     def check(value: object) -> object:
-        if value is None:
-            return None
+        if value is None and default is None:
+            return None  # "not set" is a value of this option (e.g. no life acks)
         return check_seconds(name, value)
 
     return Option(name, default, float, check, doc)
@@ -77,8 +77,8 @@ def integer(name: str, default: int | None, lo: int, hi: int, doc: str, *, base:
         return int(text, base)
 
     def check(value: object) -> object:
-        if value is None:
-            return None
+        if value is None and default is None:
+            return None  # "not set" is a value of this option
         if isinstance(value, bool) or not isinstance(value, int):
             raise ValueError("not an integer")
         if not lo <= value <= hi:
