@@ -9,6 +9,7 @@ import subprocess
 import sys
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -49,13 +50,13 @@ def machine(s: Simulator) -> sim_as511.AS511Machine:
     return m
 
 
-def client_for(url: str, **options: object) -> AS511Client:
+def client_for(url: str, **options: Any) -> AS511Client:
     plc = connect(url, **options)
     assert isinstance(plc, AS511Client)
     return plc
 
 
-def client(s: Simulator, **options: object) -> AS511Client:
+def client(s: Simulator, **options: Any) -> AS511Client:
     return client_for(s.url, **options)
 
 

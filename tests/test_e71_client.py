@@ -6,6 +6,7 @@ import asyncio
 import math
 import socket
 from collections.abc import AsyncIterator
+from typing import Any
 
 import pytest
 
@@ -35,7 +36,7 @@ async def sim(request: pytest.FixtureRequest) -> AsyncIterator[sim_e71.E71TcpSim
         await s.aclose()
 
 
-def client(url: str, **options: object) -> E71Client:
+def client(url: str, **options: Any) -> E71Client:
     plc = plcstack.connect(url, **options)
     assert isinstance(plc, E71Client)
     return plc

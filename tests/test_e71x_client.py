@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any
 
 import pytest
 
@@ -34,7 +35,7 @@ def state(memory: MelsecMemory) -> CpuState:
     return memory.state  # a call: mypy must not narrow the attribute across awaits
 
 
-def client(url: str, **options: object) -> E71Client:
+def client(url: str, **options: Any) -> E71Client:
     plc = plcstack.connect(url, **options)
     assert isinstance(plc, E71Client)
     return plc

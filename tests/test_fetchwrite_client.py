@@ -8,6 +8,7 @@ import struct
 import subprocess
 import sys
 from collections.abc import AsyncIterator, Callable
+from typing import Any
 
 import pytest
 
@@ -28,7 +29,7 @@ from tests.aio_helpers import ends_quietly
 H = bytes.fromhex
 
 
-def connect(url: str, **options: object) -> FetchWriteClient:
+def connect(url: str, **options: Any) -> FetchWriteClient:
     client = plcurl.connect(url, **options)
     assert isinstance(client, FetchWriteClient)
     return client

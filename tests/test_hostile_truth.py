@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import pathlib
+from typing import Any
 
 import pytest
 
@@ -181,9 +182,10 @@ def test_url_timeouts_must_be_finite_and_positive(value: str) -> None:
 
 @pytest.mark.parametrize("value", [float("inf"), float("nan"), 0, -2.0, True, "2", None])
 @pytest.mark.parametrize("name", ["timeout", "connect_timeout"])
-def test_keyword_timeouts_are_checked_and_named(name: str, value: object) -> None:
+def test_keyword_timeouts_are_checked_and_named(name: str, value: Any) -> None:
     with pytest.raises(AddressError) as info:
-        connect("e71+tcp://127.0.0.1:5000", **{name: value})
+        options: dict[str, Any] = {name: value}
+        connect("e71+tcp://127.0.0.1:5000", **options)
     assert isinstance(info.value, PlcError)
     assert f"option {name}=" in str(info.value)
 
@@ -191,7 +193,8 @@ def test_keyword_timeouts_are_checked_and_named(name: str, value: object) -> Non
 @pytest.mark.parametrize("name", ["char_timeout", "response_timeout"])
 def test_as511_keyword_durations_are_checked(name: str) -> None:
     with pytest.raises(AddressError, match=f"option {name}="):
-        connect("as511+tcp://127.0.0.1:5000", **{name: float("inf")})
+        options: dict[str, Any] = {name: float("inf")}
+        connect("as511+tcp://127.0.0.1:5000", **options)
 
 
 def test_fetchwrite_life_ack_must_be_finite() -> None:

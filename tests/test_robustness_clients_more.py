@@ -9,6 +9,7 @@ import contextlib
 import os
 import re
 from collections.abc import Callable
+from typing import Any
 
 import pytest
 
@@ -123,7 +124,7 @@ async def test_as511_pty_cancelled_read_then_fresh_answers() -> None:
     async with record_loop_errors() as errors:
         sim = await as511_sim.start_pty(char_timeout=0.05)
         try:
-            opts = {"char_timeout": 0.05, "nak_backoff": 0.05}
+            opts: dict[str, Any] = {"char_timeout": 0.05, "nak_backoff": 0.05}
             async with connect(sim.url, timeout=1, **opts) as plc:
                 assert await plc.read("MW100") is not None
                 sim.machine.mute = True
@@ -145,7 +146,7 @@ async def test_as511_pty_dead_line_then_garbage_then_fresh_answers() -> None:
     async with record_loop_errors() as errors:
         sim = await as511_sim.start_pty(char_timeout=0.05)
         try:
-            opts = {"char_timeout": 0.05, "nak_backoff": 0.05}
+            opts: dict[str, Any] = {"char_timeout": 0.05, "nak_backoff": 0.05}
             async with connect(sim.url, timeout=TIMEOUT, **opts) as plc:
                 sim.memory.write_area(Area.FLAGS, 100, b"\x11\x11")
                 assert await plc.read("MW100") == [0x1111]

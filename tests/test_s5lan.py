@@ -9,6 +9,7 @@ import struct
 import sys
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import given, settings
@@ -43,7 +44,7 @@ async def sim() -> AsyncIterator[s5lan.S5LanSimulator]:
         await simulator.aclose()
 
 
-def client_for(sim: s5lan.S5LanSimulator, query: str = "", **options: object) -> S5LanClient:
+def client_for(sim: s5lan.S5LanSimulator, query: str = "", **options: Any) -> S5LanClient:
     url = sim.url + (f"?{query}" if query else "")
     client = plcstack.connect(url, **options)
     assert isinstance(client, S5LanClient)

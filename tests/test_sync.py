@@ -77,7 +77,7 @@ def test_safe_from_several_threads(e71_sim: Any) -> None:
 
 
 def test_help_shows_clients_connect_value_types_and_the_poller() -> None:
-    text = pydoc.render_doc(plcstack, renderer=pydoc.plaintext)
+    text = pydoc.render_doc(plcstack, renderer=pydoc.plaintext)  # type: ignore[attr-defined]
     for item in (
         "class E71Client",
         "class S5LanClient",
