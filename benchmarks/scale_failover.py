@@ -148,6 +148,8 @@ async def main(args: argparse.Namespace) -> dict[str, Any]:
             result["requests_per_s_presence_only"] = round((fleet.requests() - n0) / args.window)
             for p in bare:
                 p.stop()
+            # without leases, a PLC may have two pollers while ownership settles
+            result["presence_only_max_concurrent_connections"] = max(fleet.peaks().values())
             print(
                 f"presence only: CPU % {result['cpu_presence_only_pct']}, "
                 f"{result['requests_per_s_presence_only']} requests/s",
@@ -156,6 +158,8 @@ async def main(args: argparse.Namespace) -> dict[str, Any]:
             await asyncio.sleep(1)
 
             # 2b. automatic mode with leases
+            await asyncio.sleep(0.5)
+            fleet.reset_peaks()
             auto = workers()
             for p in auto:
                 p.start()
@@ -217,7 +221,8 @@ async def main(args: argparse.Namespace) -> dict[str, Any]:
             await wait_holders(observer, plcs, names, 60)
             result["return_s"] = round(loop.time() - back, 2)
             peaks = fleet.peaks()
-            result["max_concurrent_connections_per_plc"] = max(peaks.values())
+            # from the start of the workers with leases, through the kill and the return
+            result["leases_max_concurrent_connections"] = max(peaks.values())
             print(f"peak connections per PLC: {max(peaks.values())}", file=sys.stderr)
             for p in auto:
                 p.stop()

@@ -90,6 +90,12 @@ class Fleet:
     def peaks(self) -> dict[str, int]:
         return {name: w.sim.connection_count.peak for name, w in self.watch.items()}
 
+    def reset_peaks(self) -> None:
+        """Start counting peaks anew (from the connections open now)."""
+        for w in self.watch.values():
+            count = w.sim.connection_count
+            count.peak = count.current
+
     def polled_after(self, t: float) -> dict[str, float | None]:
         """For each PLC, the first time after ``t`` its simulator saw a request (or None)."""
         out: dict[str, float | None] = {}

@@ -6,9 +6,9 @@ they matter:
 
 1. An exclusive PLC is polled only between a successful acquire and its ``fence_at``; every
    successful renew moves ``fence_at`` on. A timer stops polling at ``fence_at`` (the connection
-   is aborted at once, in that event-loop pass), so a worker that cannot renew stops ``guard``
-   seconds before anyone else could take the lease; a renew that finds the lease taken stops it
-   at once.
+   is aborted at once: the socket closes in the next loop pass), so a worker that cannot renew
+   stops ``guard`` seconds before anyone else could take the lease; a renew that finds the lease
+   taken stops it at once.
 2. A PLC that moves away (a worker joined or came back) is stopped first and released after, so
    the new owner's ``create`` succeeds only once the old connection is closed.
 3. A PLC is started only after its lease was acquired, so after a crash the new owner waits for
@@ -370,8 +370,9 @@ class Worker:
         )
 
     def _fence(self, lease: Lease, why: str) -> None:
-        """Stop polling a PLC whose lease may be gone, now (rule 1). Synchronous: the abort of
-        the connection happens in this event-loop pass."""
+        """Stop polling a PLC whose lease may be gone, now (rule 1). Synchronous: the connection
+        is aborted before any other task runs, and the Poller's close, scheduled first, cancels
+        the polling task before it could reconnect."""
         if self._held.get(lease.plc) is not lease:
             return
         del self._held[lease.plc]
