@@ -12,10 +12,13 @@ __all__ = [
     "ConnectFailed",
     "ConnectionLost",
     "LocalProtocolError",
+    "OptionError",
     "PlcError",
     "PlcErrorResponse",
     "PlcTimeout",
     "RemoteProtocolError",
+    "ValueDecodeError",
+    "ValueEncodeError",
 ]
 
 
@@ -48,6 +51,27 @@ class PlcError(Exception):
 
 class AddressError(PlcError, ValueError):
     """A URL, address, count or value is not valid for this protocol; nothing was sent."""
+
+
+class OptionError(AddressError):
+    """A connection option (URL query or keyword) is unknown or has a bad value; nothing was
+    sent. ``option`` names it, so ``connect(url, tiemout=3)`` says which word is wrong."""
+
+    def __init__(
+        self, message: str, *, option: str, plc: str | None = None, request: str | None = None
+    ) -> None:
+        self.option = option
+        super().__init__(message, plc=plc, request=request)
+
+
+class ValueEncodeError(AddressError):
+    """A value cannot be represented in its type (NaN as KG, 10000 as BCD16, a string too
+    long); refused before anything was sent."""
+
+
+class ValueDecodeError(PlcError):
+    """The points read are not a valid value of the requested type (a BCD digit above 9):
+    the PLC holds something else there, or the type is wrong. The connection is fine."""
 
 
 class LocalProtocolError(PlcError):

@@ -59,11 +59,12 @@ async def test_s5_int16_over_bytes_is_big_endian_and_bit_areas_refuse_words() ->
         code, _, err = await cli("read", sim.url, "M0", "--type", "float32")
         assert code == 2
         assert err.strip().splitlines() == [
-            f"plcstack: error: {sim.url}: M0 as float32: "
+            f"plcstack: error: {sim.url}: read M0 as float32 x1: M0: "
             "type float32 cannot be read from a bit area"
         ]
         code, _, err = await cli("write", sim.url, "D0", "70000", "--type", "int16")
         assert code == 2
         assert err.startswith(
-            f"plcstack: error: {sim.url}: write D0: value 70000 is outside -32768..32767"
+            f"plcstack: error: {sim.url}: write D0 as int16 x1: "
+            "70000 cannot be written as int16: outside -32768..32767"
         )

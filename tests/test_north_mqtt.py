@@ -16,7 +16,7 @@ from plcstack.north.buffer import StoreAndForward
 from plcstack.north.mqtt import MqttSettings, MqttSink, parse_mqtt
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
-from plcstack.poll.values import DataType
+from plcstack.values import BOOL, UINT16
 from tests.north_helpers import sample, subscriber
 from tests.poll_fakes import FakeClient
 from tests.servers import Mosquitto
@@ -164,7 +164,7 @@ def make_poller() -> tuple[Poller, dict[str, FakeClient]]:
         fakes[plc.name] = FakeClient(f"fake://{plc.name}", timeout=0.2)
         return fakes[plc.name]
 
-    tags = (TagConfig("speed", "D10", DataType.UINT16), TagConfig("on", "M3", DataType.BOOL))
+    tags = (TagConfig("speed", "D10", UINT16), TagConfig("on", "M3", BOOL))
     config = PollConfig((PlcConfig("press1", "e71+tcp://127.0.0.1:1", tags),), {"default": 60})
     return Poller(config, client_factory=factory), fakes
 

@@ -24,10 +24,11 @@ pytest.importorskip("asyncua")  # the optional extra; CI installs it with [test]
 from asyncua import Client, ua
 from asyncua.ua.uaerrors import UaStatusCodeError
 
+from plcstack import values as vt
 from plcstack.north.opcua import OpcUaServer
 from plcstack.north.opcua_config import OpcUaConfig, UserConfig, hash_password
 from plcstack.poll import PlcConfig, PollConfig, Poller, TagConfig
-from plcstack.poll.values import DataType
+from plcstack.poll.samples import Quality, Sample
 from plcstack.sim import e71, fetchwrite
 from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.sim.s5memory import Area, S5Memory
@@ -80,11 +81,11 @@ def config(press: str, oven: str, flaky: str) -> PollConfig:
                 "press1",
                 press,
                 (
-                    TagConfig("strokes", "D100", DataType.UINT16, writable=True),
-                    TagConfig("force", "D102", DataType.FLOAT32),
+                    TagConfig("strokes", "D100", vt.UINT16, writable=True),
+                    TagConfig("force", "D102", vt.FLOAT32),
                     TagConfig("raw", "D110"),
-                    TagConfig("alarms", "M0", DataType.BOOL, 4),
-                    TagConfig("setpoints", "D120", DataType.INT16, 2, writable=True),
+                    TagConfig("alarms", "M0", vt.BOOL, 4),
+                    TagConfig("setpoints", "D120", vt.INT16, 2, writable=True),
                 ),
                 **fast,  # type: ignore[arg-type]
             ),
@@ -92,16 +93,16 @@ def config(press: str, oven: str, flaky: str) -> PollConfig:
                 "oven2",
                 oven,
                 (
-                    TagConfig("temperature", "DB10.DW0", DataType.INT16),
-                    TagConfig("setpoint", "DB10.DW1", DataType.FLOAT32, writable=True),
-                    TagConfig("status", "MB20", DataType.UINT8),
+                    TagConfig("temperature", "DB10.DW0", vt.INT16),
+                    TagConfig("setpoint", "DB10.DW1", vt.FLOAT32, writable=True),
+                    TagConfig("status", "MB20", vt.UINT8),
                 ),
                 **fast,  # type: ignore[arg-type]
             ),
             PlcConfig(
                 "flaky",
                 flaky,
-                (TagConfig("counter", "D0", DataType.UINT16),),
+                (TagConfig("counter", "D0", vt.UINT16),),
                 **fast,  # type: ignore[arg-type]
             ),
         ),
@@ -462,3 +463,29 @@ strokes = {{ address = "D100", type = "uint16", writable = true }}
             proc.kill()
             await proc.wait()
         await sim.aclose()
+
+
+async def test_submit_is_the_sink_interface_and_keeps_the_newest_sample_per_tag(
+    plant: Plant,
+) -> None:
+    # a second feed (as a fan-out loop after report-by-exception would call it): never blocks
+    server = plant.server
+    handler = Changes()
+    sub = await plant.anonymous.create_subscription(10, handler)
+    try:
+        await sub.subscribe_data_change(plant.node(plant.anonymous, "oven2", "status"))
+        await handler.until(lambda v, dv: v == 13)
+        before = server.coalesced
+        now = time.time()
+        server.submit(
+            [
+                Sample("press1", "nosuch", 1, Quality.GOOD, now, now),  # unknown: ignored
+                Sample("oven2", "status", 1, Quality.GOOD, now, now),
+                Sample("oven2", "status", 2, Quality.GOOD, now, now),  # replaces the 1
+            ]
+        )
+        assert server.coalesced == before + 1
+        seen = await handler.until(lambda v, dv: v != 13)
+        assert seen.Value is not None and seen.Value.Value == 2
+    finally:
+        await sub.delete()

@@ -13,6 +13,7 @@ pytest.importorskip("asyncua")  # the optional extra; CI installs it with [test]
 
 from asyncua import ua
 
+from plcstack import values as vt
 from plcstack.errors import (
     AddressError,
     ConnectFailed,
@@ -34,7 +35,6 @@ from plcstack.north.opcua_config import (
     parse_opcua_config,
 )
 from plcstack.poll.config import ConfigError, TagConfig, parse_config
-from plcstack.poll.values import DataType
 
 ROOT = Path(__file__).resolve().parent.parent
 S = ua.StatusCodes
@@ -77,21 +77,26 @@ def test_the_documented_status_table_is_the_one_in_the_code() -> None:
 @pytest.mark.parametrize(
     ("dtype", "bits", "vtype"),
     [
-        (DataType.RAW, 1, ua.VariantType.Boolean),
-        (DataType.RAW, 8, ua.VariantType.Byte),
-        (DataType.RAW, 16, ua.VariantType.UInt16),
-        (DataType.BOOL, 1, ua.VariantType.Boolean),
-        (DataType.INT8, 8, ua.VariantType.SByte),
-        (DataType.UINT8, 16, ua.VariantType.Byte),
-        (DataType.INT16, 16, ua.VariantType.Int16),
-        (DataType.UINT16, 16, ua.VariantType.UInt16),
-        (DataType.INT32, 16, ua.VariantType.Int32),
-        (DataType.UINT32, 16, ua.VariantType.UInt32),
-        (DataType.FLOAT32, 16, ua.VariantType.Float),
+        (vt.RAW, 1, ua.VariantType.Boolean),
+        (vt.RAW, 8, ua.VariantType.Byte),
+        (vt.RAW, 16, ua.VariantType.UInt16),
+        (vt.BOOL, 1, ua.VariantType.Boolean),
+        (vt.INT8, 8, ua.VariantType.SByte),
+        (vt.UINT8, 16, ua.VariantType.Byte),
+        (vt.INT16, 16, ua.VariantType.Int16),
+        (vt.UINT16, 16, ua.VariantType.UInt16),
+        (vt.INT32, 16, ua.VariantType.Int32),
+        (vt.UINT32, 16, ua.VariantType.UInt32),
+        (vt.FLOAT32, 16, ua.VariantType.Float),
+        (vt.KG, 16, ua.VariantType.Double),
+        (vt.KT, 16, ua.VariantType.Double),
+        (vt.BCD16, 16, ua.VariantType.UInt16),
+        (vt.KF, 16, ua.VariantType.Int16),
+        (vt.string(8), 16, ua.VariantType.String),
     ],
 )
 def test_every_tag_type_has_its_opc_ua_type(
-    dtype: DataType, bits: int, vtype: ua.VariantType
+    dtype: vt.ValueType, bits: int, vtype: ua.VariantType
 ) -> None:
     assert variant_type(TagConfig("t", "D0", dtype), bits) is vtype
 

@@ -16,7 +16,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from plcstack.clients._values import pack_ints, plain_words
 from plcstack.clients.fetchwrite import FetchWriteClient, _encode_values
 from plcstack.clients.s5lan import S5LanClient
 from plcstack.codecs import as511
@@ -25,6 +24,7 @@ from plcstack.codecs.s5lan import ClientConnection, Header, Request
 from plcstack.errors import AddressError, LocalProtocolError, RemoteProtocolError
 from plcstack.s5address import S5Unit, parse_s5_address
 from plcstack.transports.tcp import TcpTransport
+from plcstack.values import pack_ints, plain_words
 
 values_st = st.lists(
     st.one_of(

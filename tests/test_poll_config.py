@@ -8,8 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from plcstack import values as vt
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, load_config, parse_config
-from plcstack.poll.values import DataType, WordOrder
+from plcstack.values import WordOrder
 
 GOOD = """
 [poll]
@@ -50,9 +51,9 @@ def test_full_example() -> None:
     p1, p2 = config.plcs
     assert p1.name == "press1" and p1.max_gap == 4 and p1.timeout == 1.5
     assert [(t.name, t.address, t.type, t.count, t.group) for t in p1.tags] == [
-        ("counter", "D100", DataType.RAW, 1, "fast"),
-        ("temp", "D102", DataType.FLOAT32, 1, "default"),
-        ("alarms", "M0", DataType.BOOL, 16, "fast"),
+        ("counter", "D100", vt.RAW, 1, "fast"),
+        ("temp", "D102", vt.FLOAT32, 1, "default"),
+        ("alarms", "M0", vt.BOOL, 16, "fast"),
     ]
     assert p1.order is WordOrder.LITTLE  # MELSEC default
     assert p2.name == "s5lan://127.0.0.1:5010?timeout=3"  # name defaults to the URL

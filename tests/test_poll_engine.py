@@ -9,11 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from plcstack import values as vt
 from plcstack.clients.base import Client
 from plcstack.errors import AddressError, ConnectionLost, PlcError, PlcTimeout
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller, Quality, Sample, format_stats
-from plcstack.poll.values import DataType
 from tests.poll_fakes import FakeClient
 
 URL = "e71+tcp://127.0.0.1:1"  # never dialled: the fakes stand in for the client
@@ -22,7 +22,7 @@ URL = "e71+tcp://127.0.0.1:1"  # never dialled: the fakes stand in for the clien
 def tag(
     name: str, address: str, type: str = "raw", count: int = 1, group: str = "default"
 ) -> TagConfig:
-    return TagConfig(name, address, DataType(type), count, group)
+    return TagConfig(name, address, vt.value_type(type), count, group)
 
 
 def make(

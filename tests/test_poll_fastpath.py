@@ -15,12 +15,12 @@ from dataclasses import astuple
 
 import pytest
 
+from plcstack import values as vt
 from plcstack.clients.base import Client
 from plcstack.errors import ConnectionLost, PlcErrorResponse, PlcTimeout
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample
-from plcstack.poll.values import DataType
 from tests.poll_fakes import FakeClient
 
 Outcome = list[int] | Callable[[], Exception]
@@ -65,8 +65,8 @@ async def _run(inline: bool) -> tuple[list[tuple[object, ...]], dict[str, int], 
         return fake
 
     tags = (
-        TagConfig("a", "D0", DataType("raw"), 1, "default"),
-        TagConfig("b", "D1", DataType("raw"), 1, "default"),
+        TagConfig("a", "D0", vt.RAW, 1, "default"),
+        TagConfig("b", "D1", vt.RAW, 1, "default"),
     )
     config = PollConfig((PlcConfig("p", "e71+tcp://127.0.0.1:1", tags),), {"default": 0.001})
     poller = Poller(config, client_factory=factory)

@@ -25,10 +25,10 @@ from typing import Any
 
 import pytest
 
+from plcstack import values as vt
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.demo import available_protocols
 from plcstack.poll.engine import Poller, Quality, Sample
-from plcstack.poll.values import DataType
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -116,9 +116,9 @@ def s5_memory(counter: int) -> Any:
 
 
 S5_TAGS = (
-    TagConfig("counter", "DB10.DW0", DataType.UINT16),
-    TagConfig("temp", "DB10.DW2", DataType.FLOAT32),
-    TagConfig("run", "MB0", DataType.UINT8),
+    TagConfig("counter", "DB10.DW0", vt.UINT16),
+    TagConfig("temp", "DB10.DW2", vt.FLOAT32),
+    TagConfig("run", "MB0", vt.UINT8),
 )
 
 PROTOS = [
@@ -127,9 +127,9 @@ PROTOS = [
         "plcstack.sim.e71",
         "e71+tcp",
         (
-            TagConfig("counter", "D0", DataType.UINT16),
-            TagConfig("temp", "D2", DataType.FLOAT32),
-            TagConfig("run", "M0", DataType.BOOL, 4),
+            TagConfig("counter", "D0", vt.UINT16),
+            TagConfig("temp", "D2", vt.FLOAT32),
+            TagConfig("run", "M0", vt.BOOL, 4),
         ),
         e71_memory,
         lambda mem, v: mem.write_words("D", 0, [v]),
@@ -299,7 +299,7 @@ def write_config(path: Path, proto: Proto, urls: list[str], interval: float) -> 
         lines.append(
             f'[[plc]]\nname = "plc{i:03d}"\nurl = "{url}"\n[plc.tags]\n'
             + "".join(
-                f'{t.name} = {{ address = "{t.address}", type = "{t.type.value}", '
+                f'{t.name} = {{ address = "{t.address}", type = "{t.type.name}", '
                 f"count = {t.count} }}\n"
                 for t in proto.tags
             )

@@ -19,6 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from plcstack import values as vt
 from plcstack.clients.base import Client
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import (
@@ -33,15 +34,21 @@ from plcstack.poll.engine import (
 )
 from plcstack.poll.plan import build_plan, decoder
 from plcstack.poll.samples import make_sample as _sample
-from plcstack.poll.values import DataType, WordOrder
+from plcstack.values import WordOrder
 from tests.poll_fakes import FakeClient
 
 URL = "e71+tcp://127.0.0.1:1"  # never dialled: the fakes stand in for the client
 BIG, LITTLE = WordOrder.BIG, WordOrder.LITTLE
 
+#: the types whose decoders take the struct fast paths (and RAW/BOOL)
+PLAIN_TYPES = [
+    vt.value_type(n)
+    for n in ("raw", "bool", "int8", "uint8", "int16", "uint16", "int32", "uint32", "float32")
+]
+
 
 def tag(name: str, address: str, type: str = "raw", count: int = 1) -> TagConfig:
-    return TagConfig(name, address, DataType(type), count)
+    return TagConfig(name, address, vt.value_type(type), count)
 
 
 def make(
@@ -127,16 +134,16 @@ async def take(poller: Poller, n: int) -> list[Sample]:
 # -- decoders -------------------------------------------------------------------------------------
 @settings(max_examples=200, deadline=None)
 @given(
-    dtype=st.sampled_from(list(DataType)),
+    dtype=st.sampled_from(list(PLAIN_TYPES)),
     bits=st.sampled_from([8, 16]),
     order=st.sampled_from([BIG, LITTLE]),
     data=st.data(),
 )
 def test_decoder_agrees_with_value_by_value_even_for_points_out_of_range(
-    dtype: DataType, bits: int, order: WordOrder, data: st.DataObject
+    dtype: vt.ValueType, bits: int, order: WordOrder, data: st.DataObject
 ) -> None:
     # A client may hand out signed or oversized words: the struct path must fall back and mask
-    # them exactly as DataType.decode does, never raise.
+    # them exactly as vt.ValueType.decode does, never raise.
     count = data.draw(st.integers(1, 12))
     n = dtype.points_per_value(bits)
     limit = 1 << bits
@@ -158,21 +165,21 @@ def test_decoder_agrees_with_value_by_value_even_for_points_out_of_range(
     ("dtype", "points", "order", "expected"),
     [
         # golden values, both word orders (MELSEC low word first, S5 high word first)
-        (DataType.INT16, [0xFFFE, 0x8000, 0x7FFF], BIG, [-2, -32768, 32767]),
-        (DataType.UINT16, [0xFFFE, 0], LITTLE, [65534, 0]),
-        (DataType.INT32, [0xFFFF, 0xFFFE], BIG, [-2]),
-        (DataType.INT32, [0xFFFE, 0xFFFF], LITTLE, [-2]),
-        (DataType.UINT32, [0x0001, 0x0002], BIG, [0x00010002]),
-        (DataType.UINT32, [0x0001, 0x0002], LITTLE, [0x00020001]),
-        (DataType.FLOAT32, [0x3FC0, 0x0000, 0xC020, 0x0000], BIG, [1.5, -2.5]),
-        (DataType.FLOAT32, [0x0000, 0x3FC0], LITTLE, [1.5]),
+        (vt.INT16, [0xFFFE, 0x8000, 0x7FFF], BIG, [-2, -32768, 32767]),
+        (vt.UINT16, [0xFFFE, 0], LITTLE, [65534, 0]),
+        (vt.INT32, [0xFFFF, 0xFFFE], BIG, [-2]),
+        (vt.INT32, [0xFFFE, 0xFFFF], LITTLE, [-2]),
+        (vt.UINT32, [0x0001, 0x0002], BIG, [0x00010002]),
+        (vt.UINT32, [0x0001, 0x0002], LITTLE, [0x00020001]),
+        (vt.FLOAT32, [0x3FC0, 0x0000, 0xC020, 0x0000], BIG, [1.5, -2.5]),
+        (vt.FLOAT32, [0x0000, 0x3FC0], LITTLE, [1.5]),
         # out of range: masked like the value-by-value path (-1 & 0xFFFF = 0xFFFF)
-        (DataType.INT16, [-1, 65536 + 5], BIG, [-1, 5]),
-        (DataType.UINT16, [-1], BIG, [65535]),
+        (vt.INT16, [-1, 65536 + 5], BIG, [-1, 5]),
+        (vt.UINT16, [-1], BIG, [65535]),
     ],
 )
 def test_decoder_golden(
-    dtype: DataType, points: list[int], order: WordOrder, expected: list[object]
+    dtype: vt.ValueType, points: list[int], order: WordOrder, expected: list[object]
 ) -> None:
     count = len(expected)
     value = decoder(dtype, count, 16)(list(points), order)
@@ -180,9 +187,9 @@ def test_decoder_golden(
 
 
 def test_equal_tags_share_one_decoder() -> None:
-    a = decoder(DataType.FLOAT32, 4, 16)
-    assert decoder(DataType.FLOAT32, 4, 16) is a
-    assert decoder(DataType.FLOAT32, 5, 16) is not a
+    a = decoder(vt.FLOAT32, 4, 16)
+    assert decoder(vt.FLOAT32, 4, 16) is a
+    assert decoder(vt.FLOAT32, 5, 16) is not a
 
 
 def test_tag_split_over_frames_with_bits_in_a_later_piece_is_refused() -> None:
@@ -434,7 +441,7 @@ def test_pollcost_benchmark_measures_both_sides(capsys: pytest.CaptureFixture[st
     out = capsys.readouterr().out
     assert "bare closed loops" in out and "poller's own cost" in out
     result = asyncio.run(
-        pollcost.measure(3, words=4, dtype=DataType.FLOAT32, seconds=0.05, repeats=1, tags=3)
+        pollcost.measure(3, words=4, dtype=vt.FLOAT32, seconds=0.05, repeats=1, tags=3)
     )
     assert len(result["bare"]) == len(result["poll"]) == 1
     for cpu, gc_seconds in result["bare"] + result["poll"]:

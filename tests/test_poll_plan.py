@@ -9,17 +9,24 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from plcstack import values as vt
 from plcstack.errors import AddressError, PlcTimeout, RemoteProtocolError
 from plcstack.poll.config import TagConfig
 from plcstack.poll.plan import build_plan
-from plcstack.poll.values import DataType, WordOrder
+from plcstack.values import WordOrder
 from tests.poll_fakes import FakeClient
 
 BIG, LITTLE = WordOrder.BIG, WordOrder.LITTLE
 
+#: the types whose decoders take the struct fast paths (and RAW/BOOL)
+PLAIN_TYPES = [
+    vt.value_type(n)
+    for n in ("raw", "bool", "int8", "uint8", "int16", "uint16", "int32", "uint32", "float32")
+]
+
 
 def tag(name: str, address: str, type: str = "raw", count: int = 1) -> TagConfig:
-    return TagConfig(name, address, DataType(type), count)
+    return TagConfig(name, address, vt.value_type(type), count)
 
 
 def shape(plan: object) -> list[tuple[str, int]]:
@@ -146,7 +153,7 @@ def tag_sets(draw: st.DrawFn) -> list[TagConfig]:
             t = draw(st.sampled_from(TYPES))
             count = draw(st.integers(1, 70))
             start = draw(st.integers(0, 200 if area == "B" else 700))
-            width = DataType(t).points_per_value(8 if area == "B" else 16) * count
+            width = vt.value_type(t).points_per_value(8 if area == "B" else 16) * count
             if start + width > (256 if area == "B" else 1000):
                 count, t = 1, "raw"
         out.append(tag(f"t{i}", f"{area}{start}", t, count))
@@ -187,17 +194,17 @@ def test_plan_reads_exactly_what_per_tag_reads_would(
 
 @settings(max_examples=200, deadline=None)
 @given(
-    dtype=st.sampled_from([t for t in DataType if t is not DataType.RAW]),
+    dtype=st.sampled_from([t for t in PLAIN_TYPES if t is not vt.RAW]),
     bits=st.sampled_from([8, 16]),
     order=st.sampled_from([BIG, LITTLE]),
     data=st.data(),
 )
 def test_encode_decode_round_trip(
-    dtype: DataType, bits: int, order: WordOrder, data: st.DataObject
+    dtype: vt.ValueType, bits: int, order: WordOrder, data: st.DataObject
 ) -> None:
-    if dtype is DataType.BOOL:
+    if dtype is vt.BOOL:
         value: object = data.draw(st.booleans())
-    elif dtype is DataType.FLOAT32:
+    elif dtype is vt.FLOAT32:
         value = data.draw(st.floats(width=32, allow_nan=False))
     else:
         n = dtype.bits
@@ -210,24 +217,24 @@ def test_encode_decode_round_trip(
 
 VALUE_CASES = [
     # (type, point bits, order, points, value)
-    (DataType.INT16, 16, BIG, [0xFFFF], -1),
-    (DataType.UINT16, 16, BIG, [0xFFFF], 65535),
-    (DataType.INT32, 16, BIG, [0x0001, 0x0002], 0x00010002),
-    (DataType.INT32, 16, LITTLE, [0x0002, 0x0001], 0x00010002),
-    (DataType.INT32, 16, LITTLE, [0xFFFE, 0xFFFF], -2),
-    (DataType.INT16, 8, BIG, [0x12, 0x34], 0x1234),
-    (DataType.UINT32, 8, BIG, [0xDE, 0xAD, 0xBE, 0xEF], 0xDEADBEEF),
-    (DataType.FLOAT32, 16, BIG, [0x3FC0, 0x0000], 1.5),
-    (DataType.FLOAT32, 16, LITTLE, [0x0000, 0x3FC0], 1.5),
-    (DataType.INT8, 8, BIG, [0x80], -128),
-    (DataType.BOOL, 1, BIG, [True], True),
-    (DataType.BOOL, 16, BIG, [0], False),
+    (vt.INT16, 16, BIG, [0xFFFF], -1),
+    (vt.UINT16, 16, BIG, [0xFFFF], 65535),
+    (vt.INT32, 16, BIG, [0x0001, 0x0002], 0x00010002),
+    (vt.INT32, 16, LITTLE, [0x0002, 0x0001], 0x00010002),
+    (vt.INT32, 16, LITTLE, [0xFFFE, 0xFFFF], -2),
+    (vt.INT16, 8, BIG, [0x12, 0x34], 0x1234),
+    (vt.UINT32, 8, BIG, [0xDE, 0xAD, 0xBE, 0xEF], 0xDEADBEEF),
+    (vt.FLOAT32, 16, BIG, [0x3FC0, 0x0000], 1.5),
+    (vt.FLOAT32, 16, LITTLE, [0x0000, 0x3FC0], 1.5),
+    (vt.INT8, 8, BIG, [0x80], -128),
+    (vt.BOOL, 1, BIG, [True], True),
+    (vt.BOOL, 16, BIG, [0], False),
 ]
 
 
 @pytest.mark.parametrize(("dtype", "bits", "order", "points", "value"), VALUE_CASES)
 def test_value_golden(
-    dtype: DataType, bits: int, order: WordOrder, points: list[int], value: object
+    dtype: vt.ValueType, bits: int, order: WordOrder, points: list[int], value: object
 ) -> None:
     assert dtype.decode(points, bits, order) == value
     assert dtype.encode(value, bits, order) == points
@@ -236,22 +243,22 @@ def test_value_golden(
 @pytest.mark.parametrize(
     ("dtype", "value"),
     [
-        (DataType.INT16, 40000),
-        (DataType.UINT16, -1),
-        (DataType.INT16, 1.5),
-        (DataType.BOOL, 2),
-        (DataType.FLOAT32, "x"),
-        (DataType.FLOAT32, 1e39),
-        (DataType.INT32, True),
+        (vt.INT16, 40000),
+        (vt.UINT16, -1),
+        (vt.INT16, 1.5),
+        (vt.BOOL, 2),
+        (vt.FLOAT32, "x"),
+        (vt.FLOAT32, 1e39),
+        (vt.INT32, True),
     ],
 )
-def test_encode_refuses_values_that_do_not_fit(dtype: DataType, value: object) -> None:
+def test_encode_refuses_values_that_do_not_fit(dtype: vt.ValueType, value: object) -> None:
     with pytest.raises(AddressError):
         dtype.encode(value, 16, BIG)
 
 
 def test_float_nan_decodes() -> None:
-    assert math.isnan(DataType.FLOAT32.decode([0x7FC0, 0], 16, BIG))  # type: ignore[arg-type]
+    assert math.isnan(vt.FLOAT32.decode([0x7FC0, 0], 16, BIG))  # type: ignore[arg-type]
 
 
 def test_multi_bit_type_over_bool_points_is_a_bad_value_not_garbage() -> None:
@@ -264,13 +271,13 @@ def test_multi_bit_type_over_bool_points_is_a_bad_value_not_garbage() -> None:
 
 @settings(max_examples=200, deadline=None)
 @given(
-    dtype=st.sampled_from(list(DataType)),
+    dtype=st.sampled_from(list(PLAIN_TYPES)),
     area=st.sampled_from(["D", "B"]),
     order=st.sampled_from([BIG, LITTLE]),
     data=st.data(),
 )
 def test_split_fast_paths_agree_with_value_by_value_decoding(
-    dtype: DataType, area: str, order: WordOrder, data: st.DataObject
+    dtype: vt.ValueType, area: str, order: WordOrder, data: st.DataObject
 ) -> None:
     bits = 16 if area == "D" else 8
     count = data.draw(st.integers(1, 20))
@@ -278,7 +285,7 @@ def test_split_fast_paths_agree_with_value_by_value_decoding(
     points = data.draw(
         st.lists(st.integers(0, (1 << bits) - 1), min_size=n * count, max_size=n * count)
     )
-    plan = build_plan(FakeClient(), [tag("t", f"{area}0", dtype.value, count)])
+    plan = build_plan(FakeClient(), [tag("t", f"{area}0", dtype.name, count)])
     (result,) = plan.split([points], order)
     expected = [dtype.decode(points[i * n : (i + 1) * n], bits, order) for i in range(count)]
     assert repr(result.value) == repr(expected[0] if count == 1 else expected)

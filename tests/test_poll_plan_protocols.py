@@ -10,11 +10,12 @@ import importlib.util
 
 import pytest
 
+from plcstack import values as vt
 from plcstack.clients.base import Client
 from plcstack.poll.config import TagConfig
 from plcstack.poll.plan import build_plan
-from plcstack.poll.values import DataType, default_word_order
 from plcstack.url import connect, parse_url
+from plcstack.values import default_word_order
 
 URLS = {
     "e71": "e71+tcp://127.0.0.1:5000",
@@ -31,7 +32,7 @@ def client_for(name: str) -> Client:
 
 
 def tag(name: str, address: str, type: str = "raw", count: int = 1) -> TagConfig:
-    return TagConfig(name, address, DataType(type), count)
+    return TagConfig(name, address, vt.value_type(type), count)
 
 
 def shape(client: Client, tags: list[TagConfig], gap: int) -> list[tuple[str, int]]:

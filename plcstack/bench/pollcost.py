@@ -28,12 +28,12 @@ import time
 from collections.abc import Hashable, Sequence
 from typing import Any, Self
 
-from plcstack.clients.base import Client
+from plcstack.clients.base import Client, Points
 from plcstack.poll.config import DEFAULT_GROUP, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
-from plcstack.poll.values import DataType
 from plcstack.transports.base import Transport
 from plcstack.url import PlcUrl
+from plcstack.values import TYPES, ValueType, value_type
 
 __all__ = ["main", "measure"]
 
@@ -93,7 +93,7 @@ class MemoryClient(Client):
         await waiter
         return self.words[:count]
 
-    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+    async def write(self, address: str, values: Points) -> None:
         raise NotImplementedError
 
 
@@ -167,7 +167,7 @@ async def _poll_window(
 
 
 async def measure(
-    plcs: int, *, words: int, dtype: DataType, seconds: float, repeats: int, tags: int = 1
+    plcs: int, *, words: int, dtype: ValueType[Any], seconds: float, repeats: int, tags: int = 1
 ) -> dict[str, list[tuple[float, float]]]:
     """Alternating bare and poller windows: (CPU, GC) seconds per request of each window.
 
@@ -220,11 +220,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--plcs", type=int, default=1000)
     parser.add_argument("--words", type=int, default=64, help="points of each tag")
     parser.add_argument("--tags", type=int, default=1, help="adjacent tags per PLC (one request)")
-    parser.add_argument("--type", default="raw", choices=[t.value for t in DataType])
+    parser.add_argument("--type", default="raw", choices=list(TYPES))
     parser.add_argument("--seconds", type=float, default=1.0)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args(argv)
-    dtype = DataType(args.type)
+    dtype = value_type(args.type)
     result = asyncio.run(
         measure(
             args.plcs,
@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
             tags=args.tags,
         )
     )
-    what = f"{args.tags} x {args.words}-value {dtype.value} tags each, one request"
+    what = f"{args.tags} x {args.words}-value {dtype.name} tags each, one request"
     print(report(result, args.plcs, what))
     return 0
 

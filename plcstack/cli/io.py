@@ -7,15 +7,14 @@ import json
 import math
 from typing import Any
 
-from plcstack.clients.base import Client
 from plcstack.errors import AddressError
-from plcstack.poll.values import DataType, Scalar, WordOrder, default_word_order
-from plcstack.url import connect, parse_url
+from plcstack.url import connect
+from plcstack.values import TYPES, Scalar, WordOrder, value_type
 
-_TYPES = [t.value for t in DataType]
 _TYPE_HELP = (
-    "value type (default raw: one value per point). int32/uint32/float32 span two words; "
-    "COUNT then counts values, not points"
+    f"value type (default raw: one value per point): {', '.join(TYPES)}, string:N[:space]. "
+    "Types wider than a point (int32, float32, kg, bcd32, strings) span several; COUNT then "
+    "counts values, not points. A bit of a word: ADDRESS D100.3 / DB10.DW5.3 with --type bool"
 )
 
 
@@ -43,7 +42,7 @@ def register(subparsers: Any) -> None:
 def _add_common_options(parser: argparse.ArgumentParser) -> None:
     """Options ``read`` and ``write`` share: the deadline and how values map onto points."""
     parser.add_argument("--timeout", type=float, default=None, help="request deadline in seconds")
-    parser.add_argument("--type", choices=_TYPES, default="raw", help=_TYPE_HELP)
+    parser.add_argument("--type", type=_type_name, default="raw", metavar="TYPE", help=_TYPE_HELP)
     parser.add_argument(
         "--word-order",
         choices=("big", "little"),
@@ -69,37 +68,29 @@ def _options(args: argparse.Namespace) -> dict[str, Any]:
     return {"timeout": args.timeout} if args.timeout is not None else {}
 
 
-class _Layout:
-    """How ``--type`` maps values onto the points of ``address`` (the poller's tag types)."""
+def _type_name(text: str) -> str:
+    value_type(text)  # an unknown name is a usage error (exit 2) naming the known types
+    return text
 
-    def __init__(self, plc: Client, args: argparse.Namespace) -> None:
-        self.dtype = DataType(args.type)
-        area, _ = plc.locate(args.address)  # checks the address; nothing is sent
-        self.bits = plc.point_bits(area)
+
+def _order(args: argparse.Namespace) -> WordOrder | None:
+    return WordOrder(args.word_order) if args.word_order else None
+
+
+def _text_value(text: str, kind: str) -> object:
+    """CLI value syntax for a typed write: numbers for numeric types, the text itself for
+    strings, ``12,255`` for KY, true/false for bits."""
+    if kind == "float":
+        return _parse_float(text)
+    if kind == "text":
+        return text
+    if kind == "bytes":
+        parts = text.split(",")
         try:
-            self.dtype.check_area(self.bits, f"{args.address} as {self.dtype.value}")
-        except AddressError as exc:
-            raise exc.bind(plc=plc.name) from None
-        self.per = self.dtype.points_per_value(self.bits)
-        self.order = (
-            WordOrder(args.word_order)
-            if args.word_order
-            else default_word_order(parse_url(args.url).scheme)
-        )
-
-    def decode(self, points: list[int] | list[bool], count: int) -> list[Scalar]:
-        n = self.per
-        return [self.dtype.decode(points[i * n : (i + 1) * n], self.bits, self.order)
-                for i in range(count)]  # fmt: skip
-
-    def encode(self, texts: list[str]) -> list[int | bool]:
-        out: list[int | bool] = []
-        for text in texts:
-            value: Scalar = (
-                _parse_float(text) if self.dtype is DataType.FLOAT32 else parse_value(text)
-            )
-            out += self.dtype.encode(value, self.bits, self.order)
-        return out
+            return tuple(int(p, 0) for p in parts)
+        except ValueError:
+            raise AddressError(f"value {text!r} is not two bytes like 12,255") from None
+    return parse_value(text)
 
 
 def _parse_float(text: str) -> float:
@@ -109,8 +100,10 @@ def _parse_float(text: str) -> float:
         raise AddressError(f"value {text!r} is not a number") from None
 
 
-def _json_value(value: Scalar) -> Scalar | None:
+def _json_value(value: Scalar) -> Scalar | list[int] | None:
     # NaN and infinities are not JSON; say "no number" rather than emit invalid output
+    if isinstance(value, tuple):
+        return list(value)
     return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
@@ -122,9 +115,8 @@ async def run_read(args: argparse.Namespace) -> int:
         if args.type == "raw":
             values: list[Scalar] = list(await plc.read(args.address, args.count))
         else:
-            layout = _Layout(plc, args)
-            points = await plc.read(args.address, args.count * layout.per)
-            values = layout.decode(points, args.count)
+            vtype = value_type(args.type)
+            values = await plc.read_as(args.address, vtype, args.count, word_order=_order(args))
     finally:
         await plc.aclose()
     if args.json:
@@ -139,13 +131,14 @@ async def run_write(args: argparse.Namespace) -> int:
     try:
         if args.type == "raw":
             points: list[int | bool] = [parse_value(v) for v in args.values]
+            await plc.write(args.address, points)
         else:
-            layout = _Layout(plc, args)
+            vtype = value_type(args.type)
             try:
-                points = layout.encode(args.values)
+                typed = [_text_value(v, vtype.kind) for v in args.values]
             except AddressError as exc:
                 raise exc.bind(plc=plc.name, request=f"write {args.address}") from None
-        await plc.write(args.address, points)
+            await plc.write_as(args.address, vtype, typed, word_order=_order(args))
     finally:
         await plc.aclose()
     print(f"{args.address}: wrote {len(args.values)} value(s)")

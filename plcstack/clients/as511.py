@@ -34,8 +34,8 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Self
 
-from plcstack.clients._values import pack_ints
-from plcstack.clients.base import Client
+from plcstack.clients.base import Client, Points, as_points
+from plcstack.clients.s5access import S5Access
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.as511 import (
     DEFAULT_CHAR_TIMEOUT,
@@ -76,6 +76,7 @@ from plcstack.transports.base import Transport
 from plcstack.transports.serial import SerialTransport
 from plcstack.transports.tcp import TcpTransport
 from plcstack.url import PlcUrl
+from plcstack.values import pack_ints
 
 __all__ = ["AREA_BYTES", "BLOCK_TYPES", "AS511Client"]
 
@@ -158,7 +159,7 @@ def _as_user_request(exc: PlcError, what: str) -> PlcError:
     return exc
 
 
-class AS511Client(Client):
+class AS511Client(S5Access, Client):
     """Read and write an S5 CPU through its programming port (spec part B)."""
 
     URL_OPTIONS = Client.COMMON_URL_OPTIONS | {
@@ -632,8 +633,9 @@ class AS511Client(Client):
             return list(struct.unpack(f">{count}H", raw))
         return list(raw)
 
-    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+    async def write(self, address: str, values: Points) -> None:
         """Write in S5 notation; returns once the PLC acknowledged every byte."""
+        values = as_points(values)
         try:
             await self._write(address, values)
         except PlcError as exc:

@@ -12,11 +12,12 @@ import logging
 from abc import abstractmethod
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
-from typing import Any, Generic, Protocol, Self, TypeVar
+from typing import Any, ClassVar, Generic, Protocol, Self, TypeVar, overload
 
 from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
 from plcstack.errors import (
+    AddressError,
     ConnectFailed,
     ConnectionLost,
     PlcError,
@@ -27,13 +28,43 @@ from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.url import PlcUrl
+from plcstack.values import (
+    BOOL,
+    ByteOrder,
+    Endian,
+    ValueType,
+    WordOrder,
+    bits_of_points,
+)
 
-__all__ = ["Client", "ClientCodec", "ClientStats", "Failure", "RequestClient", "Value"]
+__all__ = [
+    "Client",
+    "ClientCodec",
+    "ClientStats",
+    "Failure",
+    "Points",
+    "RequestClient",
+    "Value",
+    "as_points",
+]
 
 _log = logging.getLogger(__name__)
 
 #: what ``read`` returns per point: ``int`` for words/bytes, ``bool`` for bits
 Value = int | bool
+#: the Python type of one value of a :class:`~plcstack.values.ValueType`
+T = TypeVar("T")
+#: what ``write`` takes: one point or a sequence of them
+Points = int | bool | Sequence[int] | Sequence[bool]
+
+
+def as_points(values: Points) -> Sequence[int] | Sequence[bool]:
+    """``values`` as a sequence: a single int or bool (``plc.write("D100", 5)``) becomes a list
+    of one; anything else is returned unchanged for the client's own checks."""
+    if isinstance(values, int):
+        return [values]
+    return values
+
 
 #: default request deadline in seconds; every client takes ``timeout=`` and ``?timeout=``
 DEFAULT_TIMEOUT = 2.0
@@ -69,6 +100,11 @@ class Client(AsyncResource):
     spaced by jittered exponential backoff and requests in between fail at once with
     :class:`ConnectFailed` (saying when the next attempt is due) instead of piling up.
     """
+
+    #: order of the points of a multi-point value (MELSEC: LITTLE, low word first; S5: BIG)
+    word_order: ClassVar[WordOrder] = Endian.BIG
+    #: order of two characters in a word (MELSEC: LITTLE, first character in the low byte)
+    byte_order: ClassVar[ByteOrder] = Endian.BIG
 
     def __init__(
         self,
@@ -222,8 +258,124 @@ class Client(AsyncResource):
         """Read ``count`` points from ``address``: ints for words/bytes, bools for bits."""
 
     @abstractmethod
-    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
-        """Write ``values`` starting at ``address``; returns once the PLC confirmed it."""
+    async def write(self, address: str, values: Points) -> None:
+        """Write ``values`` (one point or a sequence) starting at ``address``; returns once the
+        PLC confirmed it."""
+
+    # -- typed values -----------------------------------------------------------------------
+    def split_bit(self, address: str) -> tuple[str, int | None]:
+        """``(word address, bit)`` for the family's bit-of-a-word notation (``D100.3``,
+        ``DB10.DW5.3``), ``(address, None)`` otherwise. Raises :class:`AddressError` for a
+        bit number the notation does not allow."""
+        return address, None
+
+    def _value_span(
+        self, address: str, vtype: ValueType[Any], count: int, what: str
+    ) -> tuple[str, int | None, int, int]:
+        """``(address to read, bit, point bits, points)`` for ``count`` values; nothing sent."""
+        try:
+            if not isinstance(vtype, ValueType):
+                raise AddressError(f"{vtype!r} is not a value type (e.g. plcstack.values.INT16)")
+            if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+                raise AddressError(f"count must be a positive integer, not {count!r}")
+            base, bit = self.split_bit(address)
+            try:
+                area, _ = self.locate(base, 1)
+                bits = self.point_bits(area)
+            except NotImplementedError:
+                bits = 16
+            if bit is not None:
+                if vtype is not BOOL:
+                    raise AddressError(f"a bit of a word ({address}) is read as BOOL")
+                if bits <= 1 or bit >= bits:
+                    raise AddressError(f"bit {bit} is not a bit of a {bits}-bit point")
+                return base, bit, bits, -(-(bit + count) // bits)
+            vtype.check_area(bits, address)
+            return base, None, bits, count * vtype.points_per_value(bits)
+        except AddressError as exc:
+            raise exc.bind(plc=self.name, request=what) from None
+
+    @overload
+    async def read_as(
+        self,
+        address: str,
+        vtype: ValueType[T],
+        count: None = None,
+        *,
+        word_order: WordOrder | None = None,
+    ) -> T: ...
+
+    @overload
+    async def read_as(
+        self,
+        address: str,
+        vtype: ValueType[T],
+        count: int,
+        *,
+        word_order: WordOrder | None = None,
+    ) -> list[T]: ...
+
+    async def read_as(
+        self,
+        address: str,
+        vtype: ValueType[Any],
+        count: int | None = None,
+        *,
+        word_order: WordOrder | None = None,
+    ) -> Any:
+        """One value of ``vtype`` at ``address`` (``count`` omitted) or a list of ``count``.
+
+        ``await plc.read_as("DB10.DW4", KG)`` is a ``float`` to mypy too; a bit of a word
+        (``D100.3``, ``DB10.DW5.3``) reads as ``BOOL``. Multi-point values use the PLC
+        family's word order unless ``word_order`` is given. One request, like :meth:`read`.
+        """
+        n = 1 if count is None else count
+        what = f"read {address} as {getattr(vtype, 'name', vtype)} x{n}"
+        base, bit, bits, points = self._value_span(address, vtype, n, what)
+        raw = await self.read(base, points)
+        try:
+            if bit is not None:
+                values: list[Any] = bits_of_points(raw, bits, bit, n)
+            else:
+                order = word_order or self.word_order
+                values = vtype.decode_many(raw, n, bits, order, self.byte_order)
+        except PlcError as exc:
+            raise exc.bind(plc=self.name, request=what) from None
+        return values[0] if count is None else values
+
+    async def write_as(
+        self,
+        address: str,
+        vtype: ValueType[T],
+        value: T | list[T],
+        *,
+        word_order: WordOrder | None = None,
+    ) -> None:
+        """Write one value of ``vtype`` (or a ``list`` of values) from ``address`` on.
+
+        Every value is checked first: one that the type cannot hold (NaN as KG, 10000 as
+        BCD16) raises :class:`~plcstack.errors.ValueEncodeError` and nothing is sent. A bit
+        of a word is refused: it would be a read-modify-write racing the PLC program.
+        """
+        values: list[Any] = value if isinstance(value, list) else [value]
+        what = f"write {address} as {getattr(vtype, 'name', vtype)} x{len(values)}"
+        base, bit, bits, _ = self._value_span(address, vtype, max(1, len(values)), what)
+        try:
+            if not values:
+                raise AddressError("no values to write")
+            if bit is not None:
+                raise AddressError(
+                    f"{address} is a bit of a word: writing it would be a read-modify-write "
+                    "that can undo a change the PLC makes in between; write the whole word"
+                )
+            order = word_order or self.word_order
+            points = vtype.encode_many(values, bits, order, self.byte_order)
+        except AddressError as exc:
+            raise exc.bind(plc=self.name, request=what) from None
+        if bits <= 1:
+            await self.write(base, [bool(p) for p in points])
+        else:
+            await self.write(base, [int(p) for p in points])
 
 
 E = TypeVar("E")
@@ -234,12 +386,22 @@ class RequestClient(Client, Generic[E]):
 
     codec: ClientCodec
 
+    #: True: always let the event loop run once before a request (the general path of the
+    #: check for unsolicited bytes), even where the transport could ask the OS instead. Tests
+    #: set it to compare both paths; nothing else needs to.
+    stale_check_needs_loop_pass = False
+
     @abstractmethod
     def new_codec(self) -> ClientCodec:
         """A fresh client-role codec for a new connection."""
 
     def connection_made(self) -> None:
         self.codec = self.new_codec()
+        self._settled = True
+
+    #: the codec holds nothing undecoded: a fresh one, or the last exchange ended with
+    #: ``_check_nothing_follows`` passing
+    _settled = False
 
     async def exchange(
         self, request: Any, what: str, *, is_write: bool, timeout: float | None = None
@@ -251,37 +413,56 @@ class RequestClient(Client, Generic[E]):
         nothing stale can be read later. A write is never retried here.
         """
         async with self._lock:
-            if not self.transport.is_open:
+            transport = self.transport
+            if not transport.is_open:
                 await self._ensure_open(what)
-            # One loop pass reads what the OS already holds for us; anything that arrived since
-            # the last answer (a duplicated answer, the rest of a too-long one, bytes from a
-            # confused peer) would otherwise be decoded as the answer to this request. Without a
-            # transaction id the only safe reaction is a fresh connection before sending.
-            await asyncio.sleep(0)
+                transport = self.transport
+            # Anything that arrived since the last answer (a duplicated answer, the rest of a
+            # too-long one, bytes from a confused peer) would otherwise be decoded as the answer
+            # to this request. Without a transaction id the only safe reaction is a fresh
+            # connection before sending. Bytes the OS holds but the loop has not delivered yet
+            # need two loop passes: in the first, asyncio's selector finds them and queues the
+            # reader *behind* this task; in the second, the reader has run. A transport that can
+            # ask the OS (TCP, UDP: FIONREAD) and hears "nothing waits" spares the request both
+            # passes (fast path; tests/test_fleet_paths.py compares the two).
+            if self.stale_check_needs_loop_pass or transport.input_waiting():
+                await asyncio.sleep(0)
+                await asyncio.sleep(0)
             stale = self._unsolicited_input()
-            if stale is not None or not self.transport.is_open:
+            if stale is not None or not transport.is_open:
                 if stale is not None:
                     _log.warning("%s: %s; reconnecting before %s", self.name, stale, what)
                     self.stats.errors += 1
                 self._drop()
                 await self._ensure_open(what)
+                transport = self.transport
             self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
-            # every chunk of this answer, kept only for the diagnosis on the failure path
-            chunks: list[bytes] = []
+            # every chunk of this answer, kept only for the diagnosis on the failure path (a
+            # list only when the answer comes in more than one chunk)
+            first = b""
+            chunks: list[bytes] | None = None
+            # A settled codec holds no bytes, so right after ``send`` it can only need data:
+            # asking it (as an unsettled one must be asked) would cost a decode attempt.
+            settled, self._settled = self._settled, False
             try:
-                codec, transport = self.codec, self.transport
-                payload = codec.send(request)
-                transport.write(payload)
+                codec = self.codec
+                transport.write(codec.send(request))
                 expires = asyncio.get_running_loop().time() + deadline
-                while True:
-                    event = codec.next_event()
-                    if event is not NEED_DATA:
-                        self._check_nothing_follows(codec)
-                        return event  # type: ignore[no-any-return]
+                event = NEED_DATA if settled else codec.next_event()
+                while event is NEED_DATA:
                     chunk = await transport.read(expires)
-                    chunks.append(chunk)
+                    if chunks is not None:
+                        chunks.append(chunk)
+                    elif first:
+                        chunks = [first, chunk]
+                    else:
+                        first = chunk
                     codec.receive_data(chunk)
+                    event = codec.next_event()
+                self._check_nothing_follows(codec)
+                self._settled = True
+                return event  # type: ignore[no-any-return]
             except asyncio.CancelledError:
                 # The caller gave up (wait_for, a cancelled task) with the answer maybe still on
                 # its way: it must die with the connection, or the codec (still expecting it)
@@ -298,7 +479,7 @@ class RequestClient(Client, Generic[E]):
                     plc=self.name,
                     request=what,
                 )
-                self._with_hint(timeout_error, "timeout", b"".join(chunks))
+                self._with_hint(timeout_error, "timeout", b"".join(chunks or (first,)))
                 raise timeout_error from None
             except (ConnectionLost, RemoteProtocolError) as exc:
                 self.stats.errors += 1
@@ -308,7 +489,7 @@ class RequestClient(Client, Generic[E]):
                 self._with_hint(
                     exc,
                     "closed" if isinstance(exc, ConnectionLost) else "malformed",
-                    b"".join(chunks),
+                    b"".join(chunks or (first,)),
                 )
                 raise exc.bind(plc=self.name, request=what) from None
             except PlcError as exc:
@@ -336,9 +517,14 @@ class RequestClient(Client, Generic[E]):
     def _unsolicited_input(self) -> str | None:
         """Feed bytes received between requests to the idle codec: ``None`` if they were only
         what the protocol allows there (e.g. MK life acks), else what was wrong with them."""
+        received = self.transport.take_received()
+        if not received and self._settled:
+            # The last exchange left the codec with nothing to say (``_check_nothing_follows``)
+            # and nothing came since: asking it again would answer NEED_DATA.
+            return None
         codec = self.codec
         try:
-            for chunk in self.transport.take_received():
+            for chunk in received:
                 codec.receive_data(chunk)
             event = codec.next_event()
         except PlcError as exc:

@@ -18,12 +18,10 @@ MELSEC CPUs store them (D0 = 0000H, D1 = 3F40H is 0.75, spec §3 rule 10).
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Self, TypeVar
 
-from plcstack.clients._values import plain_words
-from plcstack.clients.base import RequestClient
+from plcstack.clients.base import Points, RequestClient, as_points
 from plcstack.clients.e71_commands import E71CommandsMixin
 from plcstack.codecs.e71 import (
     DEFAULT_PC,
@@ -64,6 +62,7 @@ from plcstack.transports import ip_transport
 from plcstack.transports.base import Transport
 from plcstack.transports.udp import UdpTransport
 from plcstack.url import PlcUrl
+from plcstack.values import FLOAT32, INT32, Endian, plain_words
 
 __all__ = ["MAX_POINTS", "E71Client"]
 
@@ -72,6 +71,8 @@ R = TypeVar("R")
 
 #: points one read frame carries: 256 bits (00H) or 256 words (01H) (§7.1)
 MAX_POINTS = 256
+#: most (address, count) word reads a client keeps checked and encoded (a poller reads a few)
+_READ_CACHE = 1024
 
 
 def _default_timer(timeout: float) -> int:
@@ -80,6 +81,9 @@ def _default_timer(timeout: float) -> int:
 
 class E71Client(E71CommandsMixin):
     """Async client for one E71 connection. Use ``async with plcstack.connect(url) as plc``."""
+
+    word_order = Endian.LITTLE  # D100 low word, D101 high word (spec §3 rule 10)
+    byte_order = Endian.LITTLE  # "12" in D0 reads 3231H
 
     URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {
         "code",
@@ -114,6 +118,9 @@ class E71Client(E71CommandsMixin):
         # The monitor registration lives in the PLC, not in the connection: keep what we
         # registered across reconnects so 88H/89H can still be sized.
         self._monitor: tuple[int | None, int | None] = (None, None)
+        #: (address, count) -> (01H request, its "what" text) of word reads already checked;
+        #: a poller reads the same few addresses every scan (see ``read``)
+        self._word_reads: dict[tuple[str, int], tuple[ReadWords, str]] = {}
         self.codec: E71ClientConnection = self.new_codec()
 
     @classmethod
@@ -192,7 +199,11 @@ class E71Client(E71CommandsMixin):
         return list(event.values)
 
     async def _read_words(self, request: ReadWords | MonitorWords, what: str) -> list[int]:
-        event = await self._call(request, what, is_write=False)
+        event = await self.exchange(request, what, is_write=False)
+        return self._words_of_event(event, what)
+
+    def _words_of_event(self, event: Response, what: str) -> list[int]:
+        event = self._reply_or_raise(event, what)
         if not isinstance(event, WordsResponse):  # pragma: no cover - codec guarantees it
             raise RemoteProtocolError("unexpected response", plc=self.name, request=what)
         return list(event.values)
@@ -226,7 +237,21 @@ class E71Client(E71CommandsMixin):
 
     # -- the common API -------------------------------------------------------------------------
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
-        """Bits (``list[bool]``, 00H) of a bit device or words (``list[int]``, 01H); <= 256."""
+        """Bits (``list[bool]``, 00H) of a bit device or words (``list[int]``, 01H); <= 256.
+
+        A word read whose address and count were checked before reuses its request object
+        (parsing, range checks and encoding done once; the header fields are compared on every
+        call, since ``pc`` and ``monitoring_timer`` may change), and awaits the exchange
+        directly: one coroutine frame instead of three on the polling hot path.
+        """
+        cached = self._word_reads.get((address, count))
+        if cached is not None:
+            request, what = cached
+            if request.pc == self.pc and request.timer == self.monitoring_timer:
+                event = await self.exchange(request, what, is_write=False)
+                if type(event) is WordsResponse:
+                    return list(event.values)
+                return self._words_of_event(event, what)
         what = f"read {address} x{count}"
         ref = self._ref(address, what)
         self._check_span(ref, count, MAX_POINTS, what)
@@ -234,12 +259,16 @@ class E71Client(E71CommandsMixin):
             return await self._read_bits(
                 ReadBits(ref, count, pc=self.pc, timer=self.monitoring_timer), what
             )
-        return await self._read_words(
-            ReadWords(ref, count, pc=self.pc, timer=self.monitoring_timer), what
-        )
+        request = ReadWords(ref, count, pc=self.pc, timer=self.monitoring_timer)
+        if type(address) is str and type(count) is int:
+            if len(self._word_reads) >= _READ_CACHE:
+                self._word_reads.clear()
+            self._word_reads[(address, count)] = (request, what)
+        return await self._read_words(request, what)
 
-    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+    async def write(self, address: str, values: Points) -> None:
         """Bits to a bit device (02H) or words to a word device (03H); <= 256 points."""
+        values = as_points(values)
         what = f"write {address} x{len(values)}"
         ref = self._ref(address, what)
         self._check_span(ref, len(values), MAX_POINTS, what)
@@ -279,50 +308,34 @@ class E71Client(E71CommandsMixin):
             raise self._bad(problem, what)
         await self._call(request, what, is_write=True)
 
-    # -- 32-bit helpers (low word first) -------------------------------------------------------
-    def _word_device(self, address: str, what: str) -> None:
-        if self._ref(address, what).device.is_bit:
-            raise self._bad("32-bit values need a word device (D, W, R, TN, CN)", what)
-
+    # -- 32-bit helpers (low word first): thin aliases of read_as/write_as ----------------------
     async def read_int32(self, address: str, count: int = 1) -> list[int]:
         """``count`` signed 32-bit integers from ``2 * count`` words, low word first."""
-        what = f"read int32 {address} x{count}"
-        self._word_device(address, what)
-        words = await self._read_words_checked(address, 2 * count, what)
-        raw = struct.pack(f"<{len(words)}H", *words)
-        return list(struct.unpack(f"<{count}i", raw))
+        return await self.read_as(address, INT32, count)
 
     async def write_int32(self, address: str, values: Sequence[int]) -> None:
-        what = f"write int32 {address} x{len(values)}"
-        self._word_device(address, what)
-        for v in values:
-            if isinstance(v, bool) or not isinstance(v, int) or not -(2**31) <= v < 2**32:
-                raise self._bad(f"value {v!r} does not fit 32 bits", what)
-        raw = struct.pack(f"<{len(values)}I", *(v & 0xFFFFFFFF for v in values))
-        await self.write(address, list(struct.unpack(f"<{2 * len(values)}H", raw)))
+        """Signed 32-bit integers, low word first (``write_as(address, UINT32, ...)`` for
+        unsigned ones)."""
+        await self.write_as(address, INT32, list(values))
 
     async def read_float(self, address: str, count: int = 1) -> list[float]:
         """``count`` IEEE 754 single floats from ``2 * count`` words, low word first."""
-        what = f"read float {address} x{count}"
-        self._word_device(address, what)
-        words = await self._read_words_checked(address, 2 * count, what)
-        raw = struct.pack(f"<{len(words)}H", *words)
-        return list(struct.unpack(f"<{count}f", raw))
+        return await self.read_as(address, FLOAT32, count)
 
     async def write_float(self, address: str, values: Sequence[float]) -> None:
-        what = f"write float {address} x{len(values)}"
-        self._word_device(address, what)
-        try:
-            raw = struct.pack(f"<{len(values)}f", *values)
-        except (struct.error, OverflowError, TypeError) as exc:
-            raise self._bad(f"values are not 32-bit floats: {exc}", what) from None
-        await self.write(address, list(struct.unpack(f"<{2 * len(values)}H", raw)))
+        await self.write_as(address, FLOAT32, list(values))
 
-    async def _read_words_checked(self, address: str, count: int, what: str) -> list[int]:
-        if not 1 <= count <= MAX_POINTS:
-            raise self._bad(f"at most {MAX_POINTS // 2} 32-bit values per request", what)
-        values = await self.read(address, count)
-        return [int(v) for v in values]
+    def split_bit(self, address: str) -> tuple[str, int | None]:
+        """``D100.3`` / ``D100.F``: bit 0-F (hexadecimal, as GX Developer writes it) of a word."""
+        head, dot, tail = address.rpartition(".")
+        if not dot:
+            return address, None
+        if len(tail) != 1 or tail.upper() not in "0123456789ABCDEF":
+            raise AddressError(
+                f"{address!r}: the bit of a word is one hexadecimal digit 0-F (D100.F)",
+                plc=self.name,
+            )
+        return head, int(tail, 16)
 
     # -- many spans ----------------------------------------------------------------------------
     async def read_many(self, items: Sequence[tuple[str, int]]) -> list[list[int] | list[bool]]:

@@ -25,7 +25,7 @@ import socket
 from collections.abc import AsyncIterator, Sequence
 from typing import Any, Self
 
-from plcstack.clients.base import Client
+from plcstack.clients.base import Client, Points, as_points
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.e71 import Code
 from plcstack.codecs.e71_buffers import (
@@ -268,9 +268,9 @@ class E71FixedBufferClient(Client):
             )
         return values
 
-    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+    async def write(self, address: str, values: Points) -> None:
         """Send ``values`` as one telegram (``address`` is ignored)."""
-        await self.send([int(v) for v in values])
+        await self.send([int(v) for v in as_points(values)])
 
 
 class E71BroadcastReceiver(AsyncResource):

@@ -27,8 +27,8 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Final, Literal, Self
 
-from plcstack.clients._values import pack_ints
-from plcstack.clients.base import RequestClient
+from plcstack.clients.base import Points, RequestClient, as_points
+from plcstack.clients.s5access import S5Access
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.fetchwrite import (
     ClientConnection,
@@ -47,6 +47,7 @@ from plcstack.s5address import FETCHWRITE_ORG, S5Address, S5Area, S5Unit, parse_
 from plcstack.transports.backoff import Backoff
 from plcstack.transports.tcp import TcpTransport
 from plcstack.url import PlcUrl
+from plcstack.values import pack_ints
 
 __all__ = ["MAX_JOB_BYTES", "FetchWriteClient"]
 
@@ -97,7 +98,7 @@ class _MkTcpTransport(TcpTransport):
         return chunks
 
 
-class FetchWriteClient(RequestClient[Response]):
+class FetchWriteClient(S5Access, RequestClient[Response]):
     """Read and write S5 memory through a CP's FETCH/WRITE service (raw TCP or MK header)."""
 
     codec: ClientConnection
@@ -295,7 +296,7 @@ class FetchWriteClient(RequestClient[Response]):
             )
         return response
 
-    async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
+    async def read(self, address: str, count: int = 1) -> list[int]:
         what = f"read {address} x{count}"
         plan = (
             self._read_plans.get((address, count))
@@ -327,7 +328,8 @@ class FetchWriteClient(RequestClient[Response]):
             self._read_plans[(address, count)] = plan
         return plan
 
-    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+    async def write(self, address: str, values: Points) -> None:
+        values = as_points(values)
         n = len(values)
         what = f"write {address} x{n}"
         plan = self._write_plans.get((address, n)) if type(address) is str else None

@@ -35,8 +35,8 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, NamedTuple, Self
 
-from plcstack.clients._values import pack_ints
-from plcstack.clients.base import RequestClient
+from plcstack.clients.base import Points, RequestClient, as_points
+from plcstack.clients.s5access import S5Access
 from plcstack.codecs.s5lan import (
     HEADER_BYTE_ORDER,
     MAX_DATA_BYTES,
@@ -61,6 +61,7 @@ from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
 from plcstack.transports.backoff import Backoff
 from plcstack.transports.tcp import TcpTransport
 from plcstack.url import PlcUrl
+from plcstack.values import pack_ints
 
 __all__ = ["S5LanClient"]
 
@@ -115,7 +116,7 @@ def _area_key(area: Hashable) -> AreaKey:
     raise AddressError(f"{area!r} is not an S5-LAN area key from locate()")
 
 
-class S5LanClient(RequestClient[Response]):
+class S5LanClient(S5Access, RequestClient[Response]):
     """One S5-LAN module (and so one PLC). See the module docstring for values and limits."""
 
     URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {"header_byte_order", "strict"}
@@ -209,7 +210,8 @@ class S5LanClient(RequestClient[Response]):
         skip = plan.addr.offset % 2
         return list(swap_words(wire)[skip : skip + count])
 
-    async def write(self, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+    async def write(self, address: str, values: Points) -> None:
+        values = as_points(values)
         n = len(values)
         plan = self._write_plans.get((address, n)) if type(address) is str else None
         if plan is None:

@@ -74,6 +74,7 @@ from plcstack.codecs.e71_events import (
 )
 from plcstack.codecs.e71_framing import (
     REQUEST_RULES,
+    StreamResponses,
     Transport,
     Unframed,
     decode_request,
@@ -223,12 +224,23 @@ class E71ClientConnection:
     registration acknowledged on this connection, to size 88H/89H responses.
     """
 
+    #: the polling fast paths (binary code, 01H read in words): the last request's bytes reused
+    #: when the same request object is sent again, and a normal answer over TCP decoded in one
+    #: step. Tests switch them off to prove both paths give the same bytes, events and errors.
+    fast_paths = True
+
     def __init__(self, code: Code | str = Code.BINARY, *, transport: Transport = "tcp") -> None:
         self.code = as_code(code)
         self.transport = transport
         self._unit = 2 if self.code is Code.ASCII else 1
         self._framer = response_framer(transport, self.code)
         self._pending: deque[E71Request] = deque()
+        self._fast_stream = (
+            self.fast_paths and self._unit == 1 and isinstance(self._framer, StreamResponses)
+        )
+        #: the last ReadWords sent and its encoding (frozen: the same object encodes the same)
+        self._last_read: ReadWords | None = None
+        self._last_bytes = b""
         #: points registered by the last acknowledged 06H / words by the last 07H
         self.monitor_bits: int | None = None
         self.monitor_words: int | None = None
@@ -238,6 +250,9 @@ class E71ClientConnection:
         return len(self._pending)
 
     def send(self, request: Request | ExtensionRequest) -> bytes:
+        if request is self._last_read:
+            self._pending.append(request)
+            return self._last_bytes
         if isinstance(request, MonitorBits) and self.monitor_bits is None:
             raise LocalProtocolError("monitor 08H before a bit registration (06H) was acknowledged")
         if isinstance(request, MonitorWords) and self.monitor_words is None:
@@ -245,6 +260,8 @@ class E71ClientConnection:
                 "monitor 09H before a word registration (07H) was acknowledged"
             )
         data = encode_request(request, self.code)
+        if type(request) is ReadWords and self.fast_paths:
+            self._last_read, self._last_bytes = request, data
         self._pending.append(request)
         return data
 
@@ -253,6 +270,15 @@ class E71ClientConnection:
 
     def next_event(self) -> Response | ExtensionResponse | NeedData:
         pending = self._pending
+        if self._fast_stream and pending and type(req := pending[0]) is ReadWords:
+            # 01H in binary over TCP: a normal answer (81H 00H + the words) is cut and decoded
+            # at once; anything else (short, an error code, a trailer to skip) takes the
+            # general path below, which decides exactly as before.
+            framer = cast(StreamResponses, self._framer)
+            normal = framer.take_normal(0x81, 2 + 2 * req.count)
+            if normal is not None:
+                pending.popleft()
+                return WordsResponse(1, _words_struct(req.count).unpack_from(normal, 2))
         frame = self._framer.next_frame(pending[0] if pending else None, self._response_size)
         if frame is NEED_DATA:
             return NEED_DATA
@@ -308,7 +334,7 @@ class E71ClientConnection:
     def _finish(self, req: Request, body: bytes) -> Response:
         cls = type(req)
         if type(req) is ReadWords and self._unit == 1:
-            return WordsResponse(1, struct.unpack(f"<{req.count}H", body))
+            return WordsResponse(1, _words_struct(req.count).unpack(body))
         if cls is WriteWords or cls is WriteBits:
             return Ack(req.COMMAND)  # a write's normal answer carries no data (_data_length 0)
         r = Reader(body, self.code is Code.ASCII)
@@ -352,3 +378,14 @@ class E71ClientConnection:
             return Reader(data, self.code is Code.ASCII).num(1)
         except Malformed:
             raise RemoteProtocolError(f"malformed abnormal code {data!r}") from None
+
+
+_WORDS_STRUCTS: dict[int, struct.Struct] = {}
+
+
+def _words_struct(count: int) -> struct.Struct:
+    """``<countH``, compiled once per count (at most 256 of them)."""
+    compiled = _WORDS_STRUCTS.get(count)
+    if compiled is None:
+        compiled = _WORDS_STRUCTS[count] = struct.Struct(f"<{count}H")
+    return compiled

@@ -374,6 +374,15 @@ class StreamResponses:
         """A 5BH answer was taken: a 00H trailer may follow it (§13 A3)."""
         self._skip_trailer = True
 
+    def take_normal(self, subheader: int, size: int) -> bytes | None:
+        """Binary only: the ``size`` bytes of a normal answer (``subheader``, end code 00H) if
+        they are all buffered and no trailer is to be skipped, else ``None`` (and nothing
+        taken): the fast path of :meth:`next_frame` for an answer whose size is known."""
+        buf = self._buf
+        if self._skip_trailer or len(buf) < size or buf[0] != subheader or buf[1] != 0:
+            return None
+        return buf.take(size)
+
     def next_frame(self, request: E71Request | None, size_of: SizeOf) -> bytes | NeedData:
         buf = self._buf
         have = len(buf)

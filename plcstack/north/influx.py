@@ -73,6 +73,10 @@ def _field(key: str, value: object, errors: list[str]) -> str | None:
             return f"{key}_float={value!r}"
         errors.append(f"non-finite value {value!r}")
         return None
+    if isinstance(value, str):  # string and KC tags (plcstack.values)
+        return f"{key}_str={_string(value)}"
+    if isinstance(value, tuple):  # KY: two bytes, as STEP 5 displays them ("12,255")
+        return f"{key}_str={_string(','.join(str(b) for b in value))}"
     errors.append(f"value of unsupported type {type(value).__name__}")
     return None
 

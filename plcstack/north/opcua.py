@@ -172,6 +172,17 @@ _VARIANT_TYPES: dict[str, ua.VariantType] = {
     "float32": ua.VariantType.Float,
     "float64": ua.VariantType.Double,
     "string": ua.VariantType.String,
+    # plcstack.values types beyond the plain integers (by name; strings "string:N" by kind)
+    "kf": ua.VariantType.Int16,
+    "kh": ua.VariantType.UInt16,
+    "km": ua.VariantType.UInt16,
+    "kz": ua.VariantType.UInt16,
+    "bcd16": ua.VariantType.UInt16,
+    "bcd32": ua.VariantType.UInt32,
+    "kc": ua.VariantType.String,
+    "ky": ua.VariantType.String,  # two bytes, shown as STEP 5 does: "12,255"
+    "kt": ua.VariantType.Double,  # seconds
+    "kg": ua.VariantType.Double,  # the KG range reaches below float32's normal range
 }
 #: a ``raw`` tag is one point: a bit, a byte (S5 byte areas) or a word
 _RAW_TYPES = {1: ua.VariantType.Boolean, 8: ua.VariantType.Byte, 16: ua.VariantType.UInt16}
@@ -179,9 +190,13 @@ _RAW_TYPES = {1: ua.VariantType.Boolean, 8: ua.VariantType.Byte, 16: ua.VariantT
 
 def variant_type(tag: TagConfig, point_bits: int) -> ua.VariantType:
     """The OPC UA type of one value of ``tag``; a type without its own mapping is a Double."""
-    name = str(getattr(tag.type, "value", tag.type))
+    name = tag.type.name
+    if tag.scale is not None:
+        return ua.VariantType.Double  # engineering units
     if name == "raw":
         return _RAW_TYPES.get(point_bits, ua.VariantType.UInt32)
+    if tag.type.kind == "text":
+        return ua.VariantType.String
     return _VARIANT_TYPES.get(name, ua.VariantType.Double)
 
 
@@ -241,6 +256,8 @@ class _Binding:
     def variant(self, value: Any) -> ua.Variant:
         if self.vtype is ua.VariantType.Double:
             value = [float(v) for v in value] if isinstance(value, list) else float(value)
+        elif self.vtype is ua.VariantType.String:  # KY pairs of bytes as "12,255"
+            value = [_text(v) for v in value] if isinstance(value, list) else _text(value)
         return ua.Variant(value, self.vtype)
 
     def value_of(self, variant: ua.Variant | None) -> Any:
@@ -257,6 +274,12 @@ class _Binding:
         return list(value)
 
 
+def _text(value: Any) -> str:
+    if isinstance(value, tuple):
+        return ",".join(str(b) for b in value)
+    return str(value)
+
+
 def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -> ua.AddNodesItem:
     tag = binding.tag
     item = ua.AddNodesItem()
@@ -268,7 +291,7 @@ def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -
     item.TypeDefinition = _node(ObjectIds.BaseDataVariableType)
     attrs = ua.VariableAttributes()
     attrs.DisplayName = ua.LocalizedText(tag.name)
-    type_name = getattr(tag.type, "value", tag.type)
+    type_name = tag.type.name
     count = f" x{tag.count}" if tag.count > 1 else ""
     attrs.Description = ua.LocalizedText(f"{tag.address} {type_name}{count}")
     attrs.DataType = _node(binding.vtype.value)
@@ -387,9 +410,11 @@ def _check_write(binding: _Binding, item: ua.WriteValue, user: User) -> ua.Statu
 class OpcUaServer:
     """An asyncua server whose address space mirrors the poller's PLCs and tags.
 
-    ``start()`` builds the address space and listens; feed it with :meth:`run` (it then consumes
-    the poller's samples) or hand it batches through :meth:`send` when another loop owns the
-    poller's samples. Every tag variable reads Bad_WaitingForInitialData until its first sample.
+    ``start()`` builds the address space and listens. Feed it with :meth:`run` (it then consumes
+    the poller's samples itself), or, when another loop owns the poller's samples and fans them
+    out to several sinks (after report-by-exception), with :meth:`submit` (the sinks' common
+    interface: never blocks) or ``await`` :meth:`send`. Every tag variable reads
+    Bad_WaitingForInitialData until its first sample.
     """
 
     def __init__(self, poller: Poller, config: OpcUaConfig | None = None) -> None:
@@ -404,6 +429,11 @@ class OpcUaServer:
         #: samples put into the address space / skipped as unchanged (for statistics)
         self.updates = 0
         self.unchanged = 0
+        #: submitted samples replaced by a newer one of the same tag before they were applied
+        self.coalesced = 0
+        self._pending: dict[tuple[str, str], Sample] = {}
+        self._wakeup = asyncio.Event()
+        self._applier: asyncio.Task[None] | None = None
         self._plan_bindings()
 
     def _plan_bindings(self) -> None:
@@ -459,6 +489,7 @@ class OpcUaServer:
         except OSError as exc:
             raise PlcError(f"OPC UA server cannot listen on {config.endpoint}: {exc}") from None
         self._server = server
+        self._applier = asyncio.create_task(self._apply_submitted(), name="opcua submitted")
         bound = server.bserver
         if bound is not None:
             parts = urlsplit(config.endpoint)
@@ -485,6 +516,10 @@ class OpcUaServer:
 
     async def aclose(self) -> None:
         """Stop listening; PLC writes still in flight finish (their outcome is logged)."""
+        applier, self._applier = self._applier, None
+        if applier is not None:
+            applier.cancel()
+            await asyncio.gather(applier, return_exceptions=True)
         server, self._server = self._server, None
         if server is not None:
             await server.stop()
@@ -534,6 +569,36 @@ class OpcUaServer:
             )
             await server.write_attribute_value(binding.nodeid, data)
             self.updates += 1
+
+    def submit(self, samples: Iterable[Sample]) -> None:
+        """The sinks' common interface: never blocks, holds at most one sample per tag.
+
+        Samples are applied by a task of the server; when it falls behind, a tag's newer sample
+        replaces its older one (an OPC UA variable holds the current value; ``coalesced`` counts
+        the replaced ones). Samples of tags this server does not know are ignored.
+        """
+        pending = self._pending
+        known = self._by_tag
+        for sample in samples:
+            key = (sample.plc, sample.tag)
+            if key not in known:
+                continue
+            if key in pending:
+                self.coalesced += 1
+            pending[key] = sample
+        if pending:
+            self._wakeup.set()
+
+    async def _apply_submitted(self) -> None:
+        while True:
+            await self._wakeup.wait()
+            self._wakeup.clear()
+            batch = list(self._pending.values())
+            self._pending.clear()
+            try:
+                await self.send(batch)
+            except Exception:  # one bad batch must not end the feed of every later one
+                log.exception("OPC UA server: applying %d samples failed", len(batch))
 
     async def run(self) -> None:
         """Consume the poller's samples until it is closed (or this task is cancelled)."""

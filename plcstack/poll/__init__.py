@@ -10,11 +10,10 @@ from plcstack.poll.config import (
 )
 from plcstack.poll.engine import PlcStats, Poller, Quality, Sample, format_stats
 from plcstack.poll.plan import ReadRequest, ScanPlan, build_plan
-from plcstack.poll.values import DataType, WordOrder
+from plcstack.values import Scale, ValueType, WordOrder, value_type
 
 __all__ = [
     "ConfigError",
-    "DataType",
     "PlcConfig",
     "PlcStats",
     "PollConfig",
@@ -22,11 +21,14 @@ __all__ = [
     "Quality",
     "ReadRequest",
     "Sample",
+    "Scale",
     "ScanPlan",
     "TagConfig",
+    "ValueType",
     "WordOrder",
     "build_plan",
     "format_stats",
     "load_config",
     "parse_config",
+    "value_type",
 ]

@@ -24,8 +24,14 @@ max_gap = 4
 counter = "D100"                                          # type raw, count 1
 temp = { address = "D102", type = "float32", group = "default" }
 alarms = { address = "M0", type = "bool", count = 16 }
-setpoint = { address = "D110", type = "int16", writable = true }   # north-side servers may write
+level = { address = "D110", type = "int16", scale = [0, 4000, 0.0, 100.0] }   # raw -> engineering
+door = { address = "D120.3", type = "bool" }              # bit 3 of D120 (S5: "DB10.DW5.3")
+setpoint = { address = "D130", type = "int16", writable = true }   # north-side servers may write
 ```
+
+Tag types are the value types of :mod:`plcstack.values` by name (``int16``, ``float32``, ``kg``,
+``kt``, ``bcd16``, ``string:10``, ...). ``scale = [raw_lo, raw_hi, eng_lo, eng_hi]`` maps a number
+linearly onto engineering units (writes map back).
 
 Other top-level tables (``[opcua]``) belong to the north-side servers and are read by them; the
 poller only checks that they are tables.
@@ -45,8 +51,18 @@ from pathlib import Path
 from typing import Any
 
 from plcstack.errors import AddressError
-from plcstack.poll.values import DataType, WordOrder, default_word_order
 from plcstack.url import parse_url
+from plcstack.values import (
+    RAW,
+    TYPES,
+    ByteOrder,
+    Scale,
+    ValueType,
+    WordOrder,
+    default_byte_order,
+    default_word_order,
+    value_type,
+)
 
 __all__ = [
     "ConfigError",
@@ -77,13 +93,19 @@ class ConfigError(AddressError):
 
 @dataclass(frozen=True)
 class TagConfig:
-    """One tag: ``count`` values of ``type`` starting at ``address``, scanned in ``group``."""
+    """One tag: ``count`` values of ``type`` starting at ``address``, scanned in ``group``.
+
+    ``address`` may name a bit of a word (``D100.3``, ``DB10.DW5.3``) for ``type`` bool; such a
+    tag is read-only (writing one bit of a word would be a read-modify-write that races the PLC).
+    ``scale`` maps the raw number linearly onto engineering units (the sample carries a float).
+    """
 
     name: str
     address: str
-    type: DataType = DataType.RAW
+    type: ValueType[Any] = RAW
     count: int = 1
     group: str = DEFAULT_GROUP
+    scale: Scale | None = None
     #: whether north-side servers (OPC UA) may write this tag; the Python API's ``write_tag`` is
     #: not limited by it (the program that owns the poller decides for itself)
     writable: bool = False
@@ -108,6 +130,11 @@ class PlcConfig:
         if self.word_order is not None:
             return self.word_order
         return default_word_order(parse_url(self.url).scheme)
+
+    @property
+    def byte_order(self) -> ByteOrder:
+        """Order of the characters in a word (text types): the PLC family's."""
+        return default_byte_order(parse_url(self.url).scheme)
 
 
 @dataclass(frozen=True)
@@ -158,6 +185,12 @@ def validate(config: PollConfig) -> None:
             tag_names.add(tag.name)
             if tag.count < 1:
                 raise ConfigError(f"{where}: count must be at least 1", plc=plc.name)
+            if not isinstance(tag.type, ValueType):
+                raise ConfigError(f"{where}: type must be a ValueType", plc=plc.name)
+            if tag.scale is not None and tag.type.kind not in ("int", "float"):
+                raise ConfigError(
+                    f"{where}: scale needs a numeric type, not {tag.type.name}", plc=plc.name
+                )
             if tag.group not in config.groups:
                 raise ConfigError(
                     f"{where}: unknown scan group {tag.group!r} "
@@ -394,7 +427,7 @@ class _Loader:
                 f'{where}: expected "ADDRESS" or {{ address = ..., type = ..., count = ... }}',
                 name,
             )
-        unknown = self._unknown(spec, {"address", "type", "count", "group", "writable"})
+        unknown = self._unknown(spec, {"address", "type", "count", "group", "scale", "writable"})
         if unknown:
             raise self.error(f"{where}: unknown key(s) {', '.join(unknown)}", name)
         address = spec.get("address")
@@ -402,13 +435,27 @@ class _Loader:
             raise self.error(f"{where}: missing address", name)
         type_name = spec.get("type", "raw")
         try:
-            dtype = DataType(type_name)
-        except ValueError:
+            dtype = value_type(type_name)
+        except AddressError:
             raise self.error(
                 f"{where}: unknown type {type_name!r} "
-                f"(types: {', '.join(t.value for t in DataType)})",
+                f"(types: {', '.join(TYPES)}, string:N[:space])",
                 name,
             ) from None
+        scale: Scale | None = None
+        if "scale" in spec:
+            raw_scale = spec["scale"]
+            if not isinstance(raw_scale, list) or len(raw_scale) != 4:
+                raise self.error(
+                    f"{where}: scale must be [raw_lo, raw_hi, eng_lo, eng_hi], not {raw_scale!r}",
+                    name,
+                )
+            try:
+                scale = Scale(*raw_scale)
+            except AddressError as exc:
+                raise self.error(f"{where}: {exc.message}", name) from None
+            if dtype.kind not in ("int", "float"):
+                raise self.error(f"{where}: scale needs a numeric type, not {dtype.name}", name)
         count = spec.get("count", 1)
         if isinstance(count, bool) or not isinstance(count, int) or count < 1:
             raise self.error(f"{where}: count must be a positive integer, not {count!r}", name)
@@ -421,4 +468,6 @@ class _Loader:
         writable = spec.get("writable", False)
         if not isinstance(writable, bool):
             raise self.error(f"{where}: writable must be true or false, not {writable!r}", name)
-        return TagConfig(name, address.strip(), dtype, count, tag_group, writable)
+        return TagConfig(
+            name, address.strip(), dtype, count, tag_group, scale=scale, writable=writable
+        )

@@ -12,13 +12,12 @@ import asyncio
 import importlib
 import inspect
 import math
-import struct
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
-from plcstack.poll.values import DataType
+from plcstack.values import BOOL, FLOAT32, INT16, KG, RAW, UINT16, Endian
 
 __all__ = ["PROTOCOLS", "DemoPlant", "DemoProtocol", "available_protocols", "start_plant"]
 
@@ -31,13 +30,13 @@ def _sine(t: float, amplitude: float, period: float) -> float:
 
 
 def _float_words_low_first(value: float) -> list[int]:
-    raw = int.from_bytes(struct.pack(">f", value), "big")
-    return [raw & 0xFFFF, raw >> 16]
+    """An IEEE float as MELSEC keeps it (D2 low word, D3 high word)."""
+    return [int(p) for p in FLOAT32.encode(value, 16, Endian.LITTLE)]
 
 
-def _float_words_high_first(value: float) -> list[int]:
-    raw = int.from_bytes(struct.pack(">f", value), "big")
-    return [raw >> 16, raw & 0xFFFF]
+def _kg_words(value: float) -> list[int]:
+    """An S5 KG real as the CPU keeps it (exponent in the high byte of the first word)."""
+    return [int(p) for p in KG.encode(value, 16, Endian.BIG)]
 
 
 # -- PLC programs: memory, tick number, seconds since start --------------------------------------
@@ -55,10 +54,10 @@ def melsec_program(mem: Any, tick: int, t: float) -> None:
 
 
 MELSEC_TAGS = (
-    TagConfig("counter", "D0", DataType.UINT16),
-    TagConfig("sine", "D1", DataType.INT16),
-    TagConfig("temp", "D2", DataType.FLOAT32),
-    TagConfig("light", "M0", DataType.BOOL, 8),
+    TagConfig("counter", "D0", UINT16),
+    TagConfig("sine", "D1", INT16),
+    TagConfig("temp", "D2", FLOAT32),
+    TagConfig("light", "M0", BOOL, 8),
 )
 
 
@@ -72,17 +71,17 @@ def s5_program(mem: Any, tick: int, t: float) -> None:
     from plcstack.sim.s5memory import Area
 
     sine = round(_sine(t, 1000, 10.0))
-    words = [tick & 0xFFFF, sine & 0xFFFF, *_float_words_high_first(20.0 + _sine(t, 5.0, 30.0))]
+    words = [tick & 0xFFFF, sine & 0xFFFF, *_kg_words(20.0 + _sine(t, 5.0, 30.0))]
     mem.write_db_words(10, 0, words)
     light = (tick // 5) % 8
     mem.write_area(Area.FLAGS, 0, bytes([1 << light]))
 
 
 S5_TAGS = (
-    TagConfig("counter", "DB10.DW0", DataType.UINT16),
-    TagConfig("sine", "DB10.DW1", DataType.INT16),
-    TagConfig("temp", "DB10.DW2", DataType.FLOAT32),
-    TagConfig("light", "MB0", DataType.RAW),
+    TagConfig("counter", "DB10.DW0", UINT16),
+    TagConfig("sine", "DB10.DW1", INT16),
+    TagConfig("temp", "DB10.DW2", KG),
+    TagConfig("light", "MB0", RAW),
 )
 
 

@@ -53,13 +53,13 @@ from plcstack.errors import (
     PlcTimeout,
 )
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
-from plcstack.poll.plan import ScanPlan, build_plan, describe
+from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, describe, encode_tag
 from plcstack.poll.samples import Quality, Sample, make_sample
 from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
-from plcstack.poll.values import WordOrder
 from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
+from plcstack.values import ByteOrder, Endian, WordOrder
 
 __all__ = [
     "LATENCY_WINDOW",
@@ -94,8 +94,9 @@ class _Plc:
     client: Client
     groups: list[_Group]
     stats: PlcStats
-    tags: dict[str, tuple[TagConfig, int]]  # name -> (tag, point bits)
-    order: WordOrder = WordOrder.BIG
+    tags: dict[str, TagPlan]  # name -> the tag's plan (point bits, bit of a word)
+    order: WordOrder = Endian.BIG
+    byte_order: ByteOrder = Endian.BIG
     task: asyncio.Task[None] | None = None
 
 
@@ -153,7 +154,7 @@ class Poller(AsyncResource):
         except AddressError as exc:
             raise AddressError(exc.message, plc=plc.name, request=exc.request) from None
         groups: list[_Group] = []
-        tags: dict[str, tuple[TagConfig, int]] = {}
+        tags: dict[str, TagPlan] = {}
         for name, interval in self.config.groups.items():
             members = tuple(t for t in plc.tags if t.group == name)
             if not members:
@@ -165,8 +166,8 @@ class Poller(AsyncResource):
                 raise
             groups.append(_Group(name, interval, members, plan))
             for tag_plan in plan.tags:
-                tags[tag_plan.tag.name] = (tag_plan.tag, tag_plan.point_bits)
-        return _Plc(plc, client, groups, PlcStats(), tags, plc.order)
+                tags[tag_plan.tag.name] = tag_plan
+        return _Plc(plc, client, groups, PlcStats(), tags, plc.order, client.byte_order)
 
     # -- life cycle -------------------------------------------------------------------------
     @property
@@ -189,7 +190,7 @@ class Poller(AsyncResource):
         What a north-side server needs to give a tag its type before the first sample arrives
         (a ``raw`` tag is a bool, a byte or a word depending on the area).
         """
-        return dict(self._plc(plc).tags)
+        return {name: (p.tag, p.point_bits) for name, p in self._plc(plc).tags.items()}
 
     async def start(self) -> None:
         if self._running or self._closed:
@@ -301,9 +302,17 @@ class Poller(AsyncResource):
         """
         state = self._plc(plc)
         try:
-            config, bits = state.tags[tag]
+            tag_plan = state.tags[tag]
         except KeyError:
             raise AddressError(f"no tag named {tag!r}", plc=plc, request=f"write {tag}") from None
+        config, bits = tag_plan.tag, tag_plan.point_bits
+        if tag_plan.bit is not None:
+            raise AddressError(
+                f"tag {tag!r} is a bit of a word ({config.address}) and is read-only: writing "
+                "one bit of a word would be a read-modify-write racing the PLC program",
+                plc=plc,
+                request=f"write {tag}",
+            )
         items: Sequence[object]
         if config.count == 1:
             items = [value]
@@ -321,15 +330,12 @@ class Poller(AsyncResource):
                 plc=plc,
                 request=f"write {tag}",
             )
-        points: list[int | bool] = []
-        order = state.order
-        for item in items:
-            try:
-                points.extend(config.type.encode(item, bits, order))
-            except AddressError as exc:
-                raise AddressError(
-                    f"tag {tag!r}: {exc.message}", plc=plc, request=f"write {tag}"
-                ) from None
+        try:
+            points = encode_tag(config, items, bits, state.order, state.byte_order)
+        except AddressError as exc:
+            raise type(exc)(
+                f"tag {tag!r}: {exc.message}", plc=plc, request=f"write {tag}"
+            ) from None
         if all(isinstance(p, bool) for p in points):
             await self.write(plc, config.address, [bool(p) for p in points])
         else:

@@ -15,11 +15,24 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from plcstack.clients.base import Client
 from plcstack.errors import AddressError, PlcError, RemoteProtocolError
 from plcstack.poll.config import TagConfig
-from plcstack.poll.values import DataType, Scalar, TagValue, WordOrder
+from plcstack.values import (
+    BOOL,
+    RAW,
+    ByteOrder,
+    Endian,
+    Point,
+    Scalar,
+    Scale,
+    TagValue,
+    ValueType,
+    WordOrder,
+    bits_of_points,
+)
 
 __all__ = [
     "Piece",
@@ -29,7 +42,9 @@ __all__ = [
     "TagResult",
     "build_plan",
     "describe",
+    "encode_tag",
     "point_bits",
+    "split_bit",
 ]
 
 #: the point width a client without a ``point_bits(area)`` hook is assumed to have (words)
@@ -60,6 +75,10 @@ class TagPlan:
     tag: TagConfig
     pieces: tuple[Piece, ...]
     point_bits: int
+    #: the bit within the first point for a bit-of-a-word tag (``D100.3``), else None
+    bit: int | None = None
+    #: order of the characters in a word (text types): the client's family
+    byte_order: ByteOrder = Endian.BIG
     #: the requests this tag needs, ascending (precomputed: the poller reads it every scan)
     request_ids: tuple[int, ...] = field(init=False, repr=False, compare=False)
     #: ``decode(points, order)`` for exactly this tag's points (shared by equal tags)
@@ -68,7 +87,11 @@ class TagPlan:
     def __post_init__(self) -> None:
         # frozen: the precomputed fields are set once here, like a constructor would
         object.__setattr__(self, "request_ids", tuple(sorted({p.request for p in self.pieces})))
-        object.__setattr__(self, "decode", decoder(self.tag.type, self.tag.count, self.point_bits))
+        tag = self.tag
+        decode = decoder(tag.type, tag.count, self.point_bits, self.bit, self.byte_order)
+        if tag.scale is not None:
+            decode = _scaled(decode, tag.scale)
+        object.__setattr__(self, "decode", decode)
 
     @property
     def requests(self) -> set[int]:
@@ -151,10 +174,13 @@ class ScanPlan:
         if bits_seen and plan.tag.type not in _BIT_TYPES:
             # A client returns ``list[int]`` or ``list[bool]``, never a mix: one look per piece.
             return AddressError(
-                f"type {plan.tag.type.value} cannot be read from a bit area "
+                f"type {plan.tag.type.name} cannot be read from a bit area "
                 f"(tag {plan.tag.name!r} at {plan.tag.address})"
             )
-        return plan.decode(points, order)
+        try:
+            return plan.decode(points, order)
+        except PlcError as exc:  # points that are no valid value of the type (a BCD digit > 9)
+            return exc.bind(request=f"tag {plan.tag.name!r} at {plan.tag.address}")
 
 
 def _short(reply: Sequence[int | bool], request: ReadRequest) -> PlcError:
@@ -169,65 +195,96 @@ def _describe(request: ReadRequest) -> str:
 
 
 #: ``decode(points, order) -> value`` of one tag (exactly its points, in read order)
-Decoder = Callable[[Sequence[int | bool], WordOrder], TagValue]
+Decoder = Callable[[Sequence[Point], WordOrder], TagValue]
 
-_BIT_TYPES = (DataType.RAW, DataType.BOOL)
+_BIT_TYPES = (RAW, BOOL)
 #: struct codes of a point and of a value, for the decoders that go through ``struct``
 _POINT_CODE = {8: "B", 16: "H"}
+#: types decoded through ``struct`` (by name: KF is an int16, KH and KM are uint16)
 _VALUE_CODE = {
-    DataType.INT8: "b",
-    DataType.UINT8: "B",
-    DataType.INT16: "h",
-    DataType.UINT16: "H",
-    DataType.INT32: "i",
-    DataType.UINT32: "I",
-    DataType.FLOAT32: "f",
+    "int8": "b",
+    "uint8": "B",
+    "int16": "h",
+    "kf": "h",
+    "uint16": "H",
+    "kh": "H",
+    "km": "H",
+    "int32": "i",
+    "uint32": "I",
+    "float32": "f",
 }
-_DECODERS: dict[tuple[DataType, int, int], Decoder] = {}
+_DECODERS: dict[tuple[ValueType[Any], int, int, int | None, ByteOrder], Decoder] = {}
 #: distinct (type, count, point width) decoders kept; beyond that new ones are not cached
 _DECODER_CACHE_SIZE = 4096
 
 
-def decoder(dtype: DataType, count: int, point_bits: int) -> Decoder:
+def decoder(
+    dtype: ValueType[Any],
+    count: int,
+    point_bits: int,
+    bit: int | None = None,
+    byte_order: ByteOrder = Endian.BIG,
+) -> Decoder:
     """The decoder of ``count`` values of ``dtype`` over ``point_bits``-bit points.
 
     Chosen once per tag when a plan is built (and shared by equal tags of every PLC, so a
     thousand PLCs with the same tags hold one decoder each kind), not per scan. Every decoder
-    gives exactly what :meth:`DataType.decode` gives value by value (property-tested).
+    gives exactly what :meth:`ValueType.decode` gives value by value (property-tested).
     """
-    key = (dtype, count, point_bits)
+    key = (dtype, count, point_bits, bit, byte_order)
     found = _DECODERS.get(key)
     if found is None:
-        found = _make_decoder(dtype, count, point_bits)
+        found = _make_decoder(dtype, count, point_bits, bit, byte_order)
         if len(_DECODERS) < _DECODER_CACHE_SIZE:
             _DECODERS[key] = found
     return found
 
 
-def _make_decoder(dtype: DataType, count: int, bits: int) -> Decoder:
+def _scaled(decode: Decoder, scale: Scale) -> Decoder:
+    to_eng = scale.to_eng
+
+    def scaled(points: Sequence[Point], order: WordOrder) -> TagValue:
+        value = decode(points, order)
+        if isinstance(value, list):
+            return [to_eng(v) for v in value]  # type: ignore[arg-type]
+        return to_eng(value)  # type: ignore[arg-type]
+
+    return scaled
+
+
+def _make_decoder(
+    dtype: ValueType[Any], count: int, bits: int, bit: int | None, byte_order: ByteOrder
+) -> Decoder:
     scalar = count == 1
-    if dtype is DataType.RAW:
+    if bit is not None:
+
+        def bits_of_word(points: Sequence[Point], order: WordOrder) -> TagValue:
+            found: list[bool] = bits_of_points(points, bits, bit, count)
+            return found[0] if scalar else list(found)
+
+        return bits_of_word
+    if dtype is RAW:
         if scalar:
             return lambda points, order: points[0]
         return lambda points, order: list(points)
-    if dtype is DataType.BOOL:
+    if dtype is BOOL:
         if scalar:
             return lambda points, order: bool(points[0])
         return lambda points, order: [bool(p) for p in points]
-    slow = _value_by_value(dtype, count, bits)
+    slow = _value_by_value(dtype, count, bits, byte_order)
     point_code, n = _POINT_CODE.get(bits), dtype.points_per_value(bits)
-    if point_code is None or dtype.bits < bits or dtype.bits != n * bits:
-        return slow  # e.g. int8 in a 16-bit word: masked value by value
+    value_code = _VALUE_CODE.get(dtype.name)
+    if value_code is None or point_code is None or dtype.bits < bits or dtype.bits != n * bits:
+        return slow  # e.g. int8 in a 16-bit word, or KG/KT/BCD/text: value by value
     # All points of the tag packed as big- or little-endian point words, then unpacked as values:
     # the word order of the PLC family is the byte order of the whole run (MELSEC: low word
     # first = little-endian; S5: big-endian). A point out of range (a client returning signed
     # words, say) makes ``pack`` fail, and the value-by-value path masks it as before.
-    value_code = _VALUE_CODE[dtype]
     pack_big = struct.Struct(f">{n * count}{point_code}").pack
     if value_code == point_code:
         # uint16 in words, uint8 in bytes: the values are the points once they are in range
         # (pack checks that in C); no new int objects.
-        def same(points: Sequence[int | bool], order: WordOrder) -> TagValue:
+        def same(points: Sequence[Point], order: WordOrder) -> TagValue:
             try:
                 pack_big(*points)
             except struct.error:
@@ -238,9 +295,9 @@ def _make_decoder(dtype: DataType, count: int, bits: int) -> Decoder:
     pack_little = struct.Struct(f"<{n * count}{point_code}").pack
     unpack_big = struct.Struct(f">{count}{value_code}").unpack
     unpack_little = struct.Struct(f"<{count}{value_code}").unpack
-    big = WordOrder.BIG
+    big = Endian.BIG
 
-    def fast(points: Sequence[int | bool], order: WordOrder) -> TagValue:
+    def fast(points: Sequence[Point], order: WordOrder) -> TagValue:
         try:
             if order is big:
                 values: tuple[Scalar, ...] = unpack_big(pack_big(*points))
@@ -253,27 +310,52 @@ def _make_decoder(dtype: DataType, count: int, bits: int) -> Decoder:
     return fast
 
 
-def _value_by_value(dtype: DataType, count: int, bits: int) -> Decoder:
+def _value_by_value(dtype: ValueType[Any], count: int, bits: int, byte_order: ByteOrder) -> Decoder:
     n = dtype.points_per_value(bits)
-    if n == 1 and dtype is not DataType.FLOAT32:
+    if n == 1 and dtype.kind == "int" and dtype.name in _VALUE_CODE:
         # one point per value (int8 in a word, or a point out of range): mask and sign-extend
         mask = (1 << dtype.bits) - 1
         half, full = 1 << (dtype.bits - 1), 1 << dtype.bits
         signed = dtype.signed
 
-        def masked(points: Sequence[int | bool], order: WordOrder) -> TagValue:
+        def masked(points: Sequence[Point], order: WordOrder) -> TagValue:
             values: list[Scalar] = [int(p) & mask for p in points]
             if signed:
-                values = [v - full if v >= half else v for v in values]
+                values = [v - full if v >= half else v for v in values]  # type: ignore[operator]
             return values[0] if count == 1 else values
 
         return masked
 
-    def general(points: Sequence[int | bool], order: WordOrder) -> TagValue:
-        values = [dtype.decode(points[i * n : (i + 1) * n], bits, order) for i in range(count)]
+    decode = dtype.decode
+
+    def general(points: Sequence[Point], order: WordOrder) -> TagValue:
+        values = [
+            decode(points[i * n : (i + 1) * n], bits, order, byte_order) for i in range(count)
+        ]
         return values[0] if count == 1 else values
 
     return general
+
+
+def split_bit(client: Client, address: str) -> tuple[str, int | None]:
+    """``(address, bit)`` of a bit-of-a-word address (``D100.3``), else ``(address, None)``."""
+    return client.split_bit(address)
+
+
+def encode_tag(
+    tag: TagConfig,
+    values: Sequence[object],
+    point_bits: int,
+    word_order: WordOrder,
+    byte_order: ByteOrder,
+) -> list[Point]:
+    """The points that write ``values`` (one per ``count``) to ``tag``: scaled back to raw and
+    encoded; raises :class:`AddressError` (a :class:`~plcstack.errors.ValueEncodeError` for a
+    value the type cannot hold) before anything is sent."""
+    vtype, scale = tag.type, tag.scale
+    if scale is not None:
+        values = [scale.to_raw(v, vtype) for v in values]
+    return vtype.encode_many(values, point_bits, word_order, byte_order)
 
 
 def point_bits(client: Client, area: Hashable | None) -> int:
@@ -293,24 +375,36 @@ class _Span:
     start: int
     points: int
     point_bits: int
+    bit: int | None = None
 
 
 def _locate(client: Client, tag: TagConfig) -> _Span | None:
     """``None`` when the client cannot merge; raises AddressError naming the tag."""
+    address, bit = client.split_bit(tag.address)
     try:
-        area, index = client.locate(tag.address, 1)
+        area, index = client.locate(address, 1)
         limit = client.max_points(area)
     except NotImplementedError:
+        if bit is not None:
+            raise AddressError("this client cannot read a bit of a word") from None
         return None
     bits = point_bits(client, area)
-    tag.type.check_area(bits, f"tag {tag.name!r} at {tag.address}")
-    points = tag.count * tag.type.points_per_value(bits)
+    where = f"tag {tag.name!r} at {tag.address}"
+    if bit is not None:
+        if tag.type is not BOOL:
+            raise AddressError(f"{where}: a bit of a word is read as type bool")
+        if bits <= 1 or bit >= bits:
+            raise AddressError(f"{where}: bit {bit} is not a bit of a {bits}-bit point")
+        points = -(-(bit + tag.count) // bits)
+    else:
+        tag.type.check_area(bits, where)
+        points = tag.count * tag.type.points_per_value(bits)
     if points > 1:
         # Make the client check that the last point exists, whatever the frame limit.
         client.locate(client.address_at(area, index + points - 1), 1)
     if limit < 1:
         raise AddressError(f"client reports max_points {limit} for {tag.address}")
-    return _Span(tag, area, index, points, bits)
+    return _Span(tag, area, index, points, bits, bit)
 
 
 def build_plan(
@@ -327,6 +421,7 @@ def build_plan(
     requests: list[ReadRequest] = []
     pieces: dict[str, list[Piece]] = {}
     bits_of: dict[str, int] = {}
+    bit_of: dict[str, int | None] = {}
     tag_list = list(tags)
     spans: list[_Span] = []
     for tag in tag_list:
@@ -346,6 +441,7 @@ def build_plan(
         else:
             spans.append(span)
             bits_of[tag.name] = span.point_bits
+            bit_of[tag.name] = span.bit
             pieces[tag.name] = []
 
     # Group by area (areas need not be orderable: keep the first-seen order of areas).
@@ -363,7 +459,11 @@ def build_plan(
             )
             for name, first, length in batch.members:
                 pieces[name].append(Piece(len(requests) - 1, first - batch.start, length))
-    plans = tuple(TagPlan(tag, tuple(pieces[tag.name]), bits_of[tag.name]) for tag in tag_list)
+    byte_order: ByteOrder = getattr(client, "byte_order", Endian.BIG)
+    plans = tuple(
+        TagPlan(tag, tuple(pieces[tag.name]), bits_of[tag.name], bit_of.get(tag.name), byte_order)
+        for tag in tag_list
+    )
     return ScanPlan(tuple(requests), plans)
 
 

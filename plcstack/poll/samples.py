@@ -6,7 +6,7 @@ import enum
 from dataclasses import dataclass, fields
 
 from plcstack.errors import PlcError
-from plcstack.poll.values import TagValue
+from plcstack.values import TagValue
 
 __all__ = ["Quality", "Sample", "make_sample"]
 

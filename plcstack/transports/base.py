@@ -63,6 +63,16 @@ class Transport(ABC):
         The request clients check between requests that nothing unsolicited arrived."""
         return []
 
+    def input_waiting(self) -> bool:
+        """Whether bytes may wait in the OS that the event loop has not handed to us yet.
+
+        ``True`` when the transport cannot tell (the default): the client then lets the loop
+        run once before a request, so that such bytes reach ``take_received``. A transport
+        that can ask the OS cheaply (TCP: ``FIONREAD``) answers ``False`` when nothing waits,
+        which spares every request that loop pass.
+        """
+        return True
+
 
 class QueueProtocolMixin:
     """asyncio protocol half shared by TCP, UDP and serial: a chunk queue and one waiting reader.

@@ -5,6 +5,14 @@ from __future__ import annotations
 import asyncio
 import socket
 
+try:
+    import fcntl
+    import termios
+
+    _FIONREAD: int | None = termios.FIONREAD
+except ImportError:  # pragma: no cover - not on Unix: input_waiting() always says "maybe"
+    _FIONREAD = None
+
 from plcstack.errors import ConnectionLost
 from plcstack.transports.base import ProtocolTransport, QueueProtocolMixin, open_with_timeout
 
@@ -14,6 +22,8 @@ __all__ = ["TcpTransport"]
 #: bytes one receive takes at most; larger replies simply arrive in several chunks. Every reply
 #: of our protocols but the largest FETCH/WRITE and S5-LAN ones fits in one.
 RECEIVE_BUFFER = 4096
+#: FIONREAD's argument and its answer when nothing waits (a C int)
+_NOTHING = bytes(4)
 
 
 class _TcpProtocol(QueueProtocolMixin, asyncio.BufferedProtocol):
@@ -50,6 +60,8 @@ class TcpTransport(ProtocolTransport):
         super().__init__(f"{host}:{port}")
         self.host = host
         self.port = port
+        #: the socket's descriptor while open, for FIONREAD; -1 when unknown or closed
+        self._fd = -1
 
     async def open(self, timeout: float | None) -> None:
         self.abort()
@@ -60,15 +72,37 @@ class TcpTransport(ProtocolTransport):
             timeout,
         )
         sock = transport.get_extra_info("socket")
+        fd = -1
         if sock is not None:
             # Requests are small and latency-bound: never let Nagle hold one back.
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            fd = sock.fileno()
         self._transport, self._protocol = transport, protocol
+        self._fd = fd
+
+    def input_waiting(self) -> bool:
+        """Ask the kernel (FIONREAD) whether received bytes wait that the loop has not read.
+
+        Only meaningful while ``is_open`` (the client asks only then): the descriptor is ours
+        until the asyncio transport closes, and it is closing as soon as ``is_open`` is false.
+        """
+        fd = self._fd
+        if fd < 0 or _FIONREAD is None or not self.is_open:
+            return True
+        try:
+            return fcntl.ioctl(fd, _FIONREAD, _NOTHING) != _NOTHING
+        except OSError:
+            return True
+
+    def abort(self) -> None:
+        self._fd = -1
+        super().abort()
 
     def _send(self, data: bytes) -> None:
         self._transport.write(data)  # type: ignore[union-attr]
 
     async def aclose(self) -> None:
+        self._fd = -1
         transport, protocol = self._transport, self._protocol
         self._transport = None
         self._protocol = None

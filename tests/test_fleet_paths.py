@@ -1,0 +1,232 @@
+"""Issue 16's fast paths decide exactly as the general paths they shortcut.
+
+* E71: a word read already checked reuses its request object and bytes; a normal 01H answer
+  over TCP is cut and decoded in one step. Against the general path on random answer streams.
+* The check for unsolicited bytes before a request: the general path lets the event loop run
+  once; the fast path asks the kernel (FIONREAD) and skips that pass when nothing waits. Both must
+  find stale bytes wherever they are (already delivered, or still in the kernel) and never return
+  a stale answer.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import socket
+import threading
+import time
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from plcstack import connect
+from plcstack.clients.e71 import E71Client
+from plcstack.codecs._common import NEED_DATA
+from plcstack.codecs.e71 import (
+    Code,
+    E71ClientConnection,
+    ReadBits,
+    ReadWords,
+    encode_request,
+    parse_address,
+)
+from plcstack.errors import AddressError, PlcError
+from plcstack.sim import e71 as sim_e71
+from plcstack.transports.tcp import TcpTransport
+from tests.test_client_base import LineClient
+
+
+class _StaleServer:
+    """Answers "ASK n" with "n"; ``extra`` bytes follow the answer to ``extra_after`` (a
+    duplicated or confused answer), ``delay`` seconds later. Runs in threads, not on the test's
+    event loop, so that it sends while the loop is blocked (bytes reach the kernel, not us)."""
+
+    def __init__(self) -> None:
+        self.connections = 0
+        self.extra = b""
+        self.extra_after = b""
+        self.delay = 0.0
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self.listener.getsockname()[1]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                conn, _ = self.listener.accept()
+                self.connections += 1
+                threading.Thread(target=self._serve, args=(conn,), daemon=True).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        with conn, contextlib.suppress(OSError), conn.makefile("rb") as lines:
+            for line in lines:
+                answer = line.split()[-1]
+                conn.sendall(answer + b"\n")
+                if self.extra and answer == self.extra_after:
+                    time.sleep(self.delay)
+                    conn.sendall(self.extra)
+
+
+@pytest.fixture
+def stale_server() -> Any:
+    srv = _StaleServer()
+    yield srv
+    srv.listener.close()
+
+
+async def test_input_waiting_sees_bytes_the_loop_has_not_read(stale_server: Any) -> None:
+    transport = TcpTransport("127.0.0.1", stale_server.port)
+    await transport.open(1.0)
+    try:
+        transport.write(b"ASK 1\n")
+        assert await transport.read() == b"1\n"
+        assert not transport.input_waiting()  # nothing in the kernel, nothing delivered
+        transport.write(b"ASK 2\n")
+        time.sleep(0.2)  # noqa: ASYNC251 - blocks the loop: the answer waits in the kernel
+        assert transport.input_waiting()
+        assert transport.take_received() == []
+        await asyncio.sleep(0.05)  # the loop reads it now
+        assert not transport.input_waiting()
+        assert transport.take_received() == [b"2\n"]
+    finally:
+        transport.abort()
+    assert transport.input_waiting()  # closed: "cannot tell", the general path
+
+
+@pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
+@pytest.mark.parametrize("where", ["delivered", "in-kernel"])
+async def test_stale_bytes_are_found_on_both_paths(
+    stale_server: Any, general: bool, where: str
+) -> None:
+    client = LineClient(
+        f"line://127.0.0.1:{stale_server.port}", TcpTransport("127.0.0.1", stale_server.port)
+    )
+    client.stale_check_needs_loop_pass = general
+    async with client:
+        assert await client.read("ASK 1") == [1]
+        stale_server.extra = b"77\n"  # a second answer to "ASK 2", 20 ms late
+        stale_server.extra_after = b"2"
+        stale_server.delay = 0.02
+        assert await client.read("ASK 2") == [2]
+        if where == "delivered":
+            await asyncio.sleep(0.2)  # the loop has read the stale answer into the protocol
+        else:
+            time.sleep(0.2)  # noqa: ASYNC251 - the stale answer waits in the kernel
+        # never 77: the stale answer is found, the connection replaced, the request sent anew
+        assert await client.read("ASK 3") == [3]
+        assert client.stats.errors == 1
+        assert stale_server.connections == 2
+        assert await client.read("ASK 4") == [4]
+        assert stale_server.connections == 2
+
+
+@pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
+async def test_clean_requests_are_the_same_on_both_paths(stale_server: Any, general: bool) -> None:
+    client = LineClient(
+        f"line://127.0.0.1:{stale_server.port}", TcpTransport("127.0.0.1", stale_server.port)
+    )
+    client.stale_check_needs_loop_pass = general
+    async with client:
+        assert [await client.read(f"ASK {i}") for i in range(20)] == [[i] for i in range(20)]
+        assert client.stats.errors == 0 and client.stats.requests == 20
+    assert stale_server.connections == 1
+
+
+# -- E71 codec: reused request bytes, one-step decoding of a normal 01H answer -------------------
+def _run_codec(fast: bool, requests: list[Any], stream: bytes, cuts: list[int]) -> list[Any]:
+    """Send ``requests``, feed ``stream`` in pieces, and record every send and event or error."""
+    codec = E71ClientConnection("binary", transport="tcp")
+    codec.fast_paths = fast
+    codec._fast_stream = codec._fast_stream and fast
+    out: list[Any] = []
+    for request in requests:
+        try:
+            out.append(("sent", codec.send(request)))
+        except PlcError as exc:
+            out.append(("send error", type(exc).__name__, str(exc)))
+    pieces = [stream[a:b] for a, b in itertools.pairwise([0, *sorted(cuts), len(stream)])]
+    for piece in pieces:
+        codec.receive_data(piece)
+        while True:
+            try:
+                event = codec.next_event()
+            except PlcError as exc:
+                out.append(("error", type(exc).__name__, str(exc)))
+                return out
+            if event is NEED_DATA:
+                break
+            out.append(("event", event))
+    return out
+
+
+_D0 = parse_address("D0")
+_M0 = parse_address("M0")
+_READ = ReadWords(_D0, 3)
+_REQUESTS = [_READ, _READ, ReadWords(_D0, 1), ReadBits(_M0, 4), _READ]
+_answers = st.sampled_from(
+    [
+        b"\x81\x00\x01\x00\x02\x00\x03\x00",  # normal, 3 words
+        b"\x81\x00\x01\x00",  # normal, 1 word
+        b"\x80\x00\x11",  # normal 00H, 4 bits
+        b"\x81\x5b\x10\x00",  # 5BH + abnormal code + trailer
+        b"\x81\x5b\x10",  # 5BH without trailer (Q series)
+        b"\x81\x51",  # error end code
+        b"\x82\x00",  # wrong subheader
+        b"\x00",
+        b"\x81",
+    ]
+)
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    answers=st.lists(_answers, min_size=1, max_size=6),
+    cuts=st.lists(st.integers(0, 40), max_size=5),
+    tail=st.binary(max_size=4),
+)
+def test_e71_fast_paths_decide_as_the_general_path(
+    answers: list[bytes], cuts: list[int], tail: bytes
+) -> None:
+    stream = b"".join(answers) + tail
+    cuts = [c for c in cuts if c <= len(stream)]
+    assert _run_codec(True, _REQUESTS, stream, cuts) == _run_codec(False, _REQUESTS, stream, cuts)
+
+
+def test_e71_reused_request_bytes_are_its_encoding() -> None:
+    codec = E71ClientConnection("binary")
+    first = codec.send(_READ)
+    assert codec.send(_READ) is first  # reused...
+    assert first == encode_request(_READ, Code.BINARY)  # ...and what the encoder gives
+    other = ReadWords(_D0, 3, pc=0x01)
+    assert codec.send(other) == encode_request(other, Code.BINARY) != first
+
+
+async def test_e71_cached_word_read_follows_pc_and_timer_changes() -> None:
+    """The client's cache of checked reads keys on (address, count) and compares the header
+    fields on every call: a changed ``pc`` or ``monitoring_timer`` is sent as changed."""
+    sim = await sim_e71.start()
+    try:
+        async with connect(sim.url) as plc:
+            assert isinstance(plc, E71Client)
+            sent: list[bytes] = []
+            send = plc.transport.write
+
+            def spy(data: bytes) -> None:
+                sent.append(bytes(data))
+                send(data)
+
+            plc.transport.write = spy  # type: ignore[method-assign]
+            first = await plc.read("D0", 4)
+            assert await plc.read("D0", 4) == first
+            timer = plc.monitoring_timer + 1
+            plc.monitoring_timer = timer
+            assert await plc.read("D0", 4) == first
+            assert sent[0] == sent[1] != sent[2]
+            assert sent[2] == encode_request(ReadWords(_D0, 4, pc=plc.pc, timer=timer), Code.BINARY)
+            with pytest.raises(AddressError):
+                await plc.read("D0", 300)  # checks still run for an uncached read
+    finally:
+        await sim.aclose()
