@@ -200,12 +200,21 @@ def fetchwrite_hint(failure: Failure, reply: bytes, *, mk: bool, first: bool) ->
 
 
 def s5lan_hint(failure: Failure, reply: bytes, *, first: bool) -> str:
-    """S5-LAN-LINK: another protocol on the port (byte order is hinted on the error reply,
-    and a closed first request already names the one-connection limit)."""
+    """S5-LAN-LINK: another protocol on the port (byte order is hinted on the error reply),
+    or a first request closed unanswered. The latter is what the module does to a second
+    connection, but also what other services do to bytes they cannot parse: the hint names the
+    rule as one possible cause and blames no other client (we have no evidence of one)."""
     if reply:
         if _looks_like_s5lan(reply):
             return ""
         return _other_protocol(reply, "an S5-LAN-LINK module")
+    if first and failure == "closed":
+        return (
+            "the peer closed the connection before answering the first request on it; an "
+            "S5-LAN module accepts one connection at a time and closes any further one, so "
+            "check whether another connection to it is open; else the port is probably not an "
+            "S5-LAN module"
+        )
     if first and failure == "timeout":
         return (
             "the peer accepted the connection but sent nothing; an S5-LAN module answers every "

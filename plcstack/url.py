@@ -7,6 +7,7 @@ and the same string works in the CLI, the poller's TOML and the Python API.
 from __future__ import annotations
 
 import importlib
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qsl, urlsplit
@@ -102,6 +103,9 @@ class PlcUrl:
             raise AddressError(
                 f"option {name}={self.options[name]!r} is not a number", plc=self.raw
             ) from None
+        if not math.isfinite(value):
+            # "inf" and "nan" parse as floats; no option of ours means anything infinite
+            raise AddressError(f"option {name}={value} must be a finite number", plc=self.raw)
         if not value > lo:
             raise AddressError(f"option {name}={value} must be greater than {lo}", plc=self.raw)
         return value

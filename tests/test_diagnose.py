@@ -25,7 +25,6 @@ from plcstack.diagnose import (
     s5lan_hint,
 )
 from plcstack.errors import (
-    ConnectFailed,
     ConnectionLost,
     PlcError,
     PlcErrorResponse,
@@ -275,13 +274,16 @@ async def test_s5lan_client_against_e71() -> None:
     assert "MELSEC E71 in binary mode" in hint and "e71+tcp://" in hint
 
 
-async def test_s5lan_client_against_fetchwrite_port_keeps_its_own_explanation() -> None:
-    """A first request closed by the peer already names the one-connection limit; no second
-    (guessing) hint is added."""
+async def test_s5lan_client_against_fetchwrite_port_names_both_causes() -> None:
+    """A first request closed unanswered: the request was sent, so it is a lost connection
+    (not ``ConnectFailed``); the hint names the one-connection rule as a thing to check and
+    the wrong port as the alternative, and blames no other client."""
     async with await fwsim.start(mk=True) as sim:
         exc = await failure_of(f"s5lan://{hostport(sim)}?{FAST}", read("DB10.DW0"))
-    assert type(exc) is ConnectFailed
-    assert "Hint:" not in exc.message
+    assert type(exc) is ConnectionLost
+    hint = hint_of(exc)
+    assert "accepts one connection at a time" in hint and "not an S5-LAN module" in hint
+    assert "another client" not in exc.message
 
 
 async def test_s5lan_header_byte_order_hint_still_given() -> None:

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from plcstack import values as vt
 from plcstack.clients.base import Client
-from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.poll.config import MIN_INTERVAL, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import (
     LATENCY_WINDOW,
     MAX_SCANS_WITHOUT_YIELD,
@@ -103,6 +103,10 @@ class Starved(BaseException):
     """
 
 
+#: wall time one RunawayFake read takes: longer than the shortest scan interval the poller allows
+READ_COST = 1.2 * MIN_INTERVAL
+
+
 class RunawayFake(FakeClient):
     """Answers without ever suspending; records how many reads ran within one loop pass."""
 
@@ -113,6 +117,10 @@ class RunawayFake(FakeClient):
         self.per_tick: collections.Counter[int] = collections.Counter()
 
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
+        # Each read costs a little more than the shortest scan interval, so the next scan is
+        # always due at once: the poller never needs a timer and only its own yields let the
+        # loop turn (an interval below one read cost is what these tests are about).
+        time.sleep(READ_COST)  # noqa: ASYNC251 - blocking the loop is the point here
         tick = self.ticker.ticks
         self.per_tick[tick] += 1
         if self.per_tick[tick] > 10 * MAX_SCANS_WITHOUT_YIELD:
@@ -336,8 +344,8 @@ async def test_a_client_that_never_suspends_cannot_starve_the_loop() -> None:
         return client
 
     with ticker:
-        # interval far below a read: every scan is due at once and no timer is ever needed
-        poller, fakes = make({"p": [tag("a", "D0")]}, interval=1e-6, fake=fake)
+        # interval below a read's cost: every scan is due at once and no timer is ever needed
+        poller, fakes = make({"p": [tag("a", "D0")]}, interval=MIN_INTERVAL, fake=fake)
         async with poller:
             for _ in range(50):
                 await asyncio.sleep(0)
@@ -363,7 +371,7 @@ async def test_a_dead_plc_polled_without_pause_yields_after_every_failed_scan() 
         return client
 
     with ticker:
-        poller, fakes = make({"dead": [tag("a", "D0")]}, interval=1e-6, fake=fake)
+        poller, fakes = make({"dead": [tag("a", "D0")]}, interval=MIN_INTERVAL, fake=fake)
         async with poller:
             bad = await take(poller, 30)
     runaway = fakes["dead"]

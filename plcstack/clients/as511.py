@@ -63,6 +63,7 @@ from plcstack.codecs.as511 import (
     write_job,
 )
 from plcstack.diagnose import Failure, as511_hint
+from plcstack.durations import check_seconds
 from plcstack.errors import (
     AddressError,
     ConnectionLost,
@@ -185,6 +186,9 @@ class AS511Client(S5Access, Client):
         **base: Any,
     ) -> None:
         super().__init__(name, transport, **base)
+        char_timeout = check_seconds("char_timeout", char_timeout, plc=name)
+        if response_timeout is not None:
+            response_timeout = check_seconds("response_timeout", response_timeout, plc=name)
         if line_byte_time is None:
             line_byte_time = (
                 transport.byte_time
@@ -204,8 +208,6 @@ class AS511Client(S5Access, Client):
         self._sysparams: SystemAddresses | None = None
         # A serial line resynchronises by the 500 ms silence rule; TCP may be half-open.
         self._drop_on_error = not isinstance(transport, SerialTransport)
-        #: PG state when the last byte/deadline was processed (what a failed write had reached)
-        self._last_state = PGState.IDLE
 
     # -- construction -----------------------------------------------------------------------
     @classmethod
@@ -241,74 +243,79 @@ class AS511Client(S5Access, Client):
     async def transact(
         self, job: Job, what: str, *, is_write: bool = False, nak_meaning: str | None = None
     ) -> bytes:
-        """Run one AS511 transaction and return its unstuffed data frame (b"" without one)."""
+        """Run one AS511 transaction and return its unstuffed data frame (b"" without one).
+
+        Failures go through the clients' one failure policy (:meth:`Client.request_failed`);
+        what a failed write had reached is the codec's :attr:`PGConnection.delivery`.
+        """
         async with self._lock:
             await self._ensure_open(what)
             self.stats.requests += 1
             # every chunk received during this transaction, kept only for the failure hint
             chunks: list[bytes] = []
+            pg = self.pg
             try:
                 event = await self._run(job, chunks)
             except asyncio.CancelledError:
                 # The caller gave up mid-transaction: the PG must start over (B5.5 silence on a
                 # line, a new connection on TCP), or every later request finds the transaction
                 # "already in progress".
-                self.pg.reset(asyncio.get_running_loop().time())
+                pg.reset(asyncio.get_running_loop().time())
                 if self._drop_on_error:
                     self._drop()
                 raise
-            except PlcTimeout as exc:
-                self.stats.timeouts += 1
-                self.stats.errors += 1
-                if is_write:
-                    exc.message += "; " + self._write_outcome()
-                if self._drop_on_error:
-                    self._drop()
-                self._with_hint(exc, "timeout", b"".join(chunks))
-                raise exc.bind(plc=self.name, request=what) from None
-            except (ConnectionLost, RemoteProtocolError) as exc:
-                self.stats.errors += 1
-                self._drop()
-                if is_write:
-                    exc.message += "; " + self._write_outcome()
-                failure: Failure = "closed" if isinstance(exc, ConnectionLost) else "malformed"
-                self._with_hint(exc, failure, b"".join(chunks))
-                raise exc.bind(plc=self.name, request=what) from None
+            except (PlcTimeout, ConnectionLost, RemoteProtocolError) as exc:
+                failure: Failure = (
+                    "timeout"
+                    if isinstance(exc, PlcTimeout)
+                    else "closed"
+                    if isinstance(exc, ConnectionLost)
+                    else "malformed"
+                )
+                # a serial line resynchronises from a timeout by silence (B5.5)
+                drop = self._drop_on_error or failure != "timeout"
+                raise self.request_failed(
+                    exc,
+                    failure,
+                    b"".join(chunks),
+                    what,
+                    is_write=is_write,
+                    sent=True,
+                    drop=drop,
+                    outcome=pg.delivery.value,
+                ) from None
+            if isinstance(event, Timeout):
+                state = PGState(event.state)
+                executing = state in (PGState.W_ACK2, PGState.W_STX2) or (
+                    state is PGState.W_STX3 and not job.has_response
+                )
+                wait = pg.response_timeout if executing else pg.char_timeout
+                error = PlcTimeout(
+                    f"no complete answer within {wait:g} s (waiting for {_WAITING_FOR[state]})"
+                )
+                raise self.request_failed(
+                    error,
+                    "timeout",
+                    b"".join(chunks),
+                    what,
+                    is_write=is_write,
+                    sent=True,
+                    drop=self._drop_on_error,
+                    outcome=pg.delivery.value,
+                )
+            if self._unproven:
+                self._answered()
         if isinstance(event, Response):
             return event.data
-        if isinstance(event, Nak):
-            self.stats.errors += 1
-            meaning = _NAK_MEANING[event.step].format(fn=event.fn)
-            if event.step == "params" and nak_meaning:
-                meaning = nak_meaning
-            raise PlcErrorResponse(0x15, meaning, plc=self.name, request=what, code_text="DLE NAK")
-        self.stats.timeouts += 1
         self.stats.errors += 1
-        state = PGState(event.state)
-        executing = state in (PGState.W_ACK2, PGState.W_STX2) or (
-            state is PGState.W_STX3 and not job.has_response
-        )
-        wait = self.pg.response_timeout if executing else self.pg.char_timeout
-        message = f"no complete answer within {wait:g} s (waiting for {_WAITING_FOR[state]})"
-        if is_write:
-            message += "; " + self._write_outcome(state)
-        if self._drop_on_error:
-            self._drop()
-        error = PlcTimeout(message, plc=self.name, request=what)
-        self._with_hint(error, "timeout", b"".join(chunks))
-        raise error
+        meaning = _NAK_MEANING[event.step].format(fn=event.fn)
+        if event.step == "params" and nak_meaning:
+            meaning = nak_meaning
+        raise PlcErrorResponse(0x15, meaning, plc=self.name, request=what, code_text="DLE NAK")
 
     def diagnose(self, failure: Failure, reply: bytes) -> str:
         serial = isinstance(self.transport, SerialTransport)
         return as511_hint(failure, reply, serial=serial, first=self.first_on_connection())
-
-    def _write_outcome(self, state: PGState | None = None) -> str:
-        state = state if state is not None else self._last_state
-        if state in (PGState.W_ACK1, PGState.W_STX1, PGState.W_ACCEPT):
-            return "the data had not been sent, nothing was written"
-        if state in (PGState.W_STX3, PGState.W_END):
-            return "the PLC had acknowledged the data (DLE ACK), so the write was executed"
-        return "the write may or may not have been executed"
 
     async def _run(self, job: Job, chunks: list[bytes]) -> Response | Nak | Timeout:
         loop = asyncio.get_running_loop()
@@ -326,14 +333,12 @@ class AS511Client(S5Access, Client):
                         continue
                     pg.receive_data(data, loop.time())
                 pg.submit(job, max(loop.time(), pg.ready_at))
-                self._last_state = pg.state
                 self.transport.write(pg.data_to_send())
                 while True:
                     event = pg.next_event()
                     if event is not NEED_DATA:
                         return event
                     deadline = pg.deadline
-                    self._last_state = pg.state
                     try:
                         data = await self.transport.read(deadline)
                     except TimeoutError:

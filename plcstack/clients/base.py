@@ -16,6 +16,7 @@ from typing import Any, ClassVar, Generic, Protocol, Self, TypeVar, overload
 
 from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
+from plcstack.durations import check_seconds
 from plcstack.errors import (
     AddressError,
     ConnectFailed,
@@ -70,6 +71,11 @@ def as_points(values: Points) -> Sequence[int] | Sequence[bool]:
 DEFAULT_TIMEOUT = 2.0
 DEFAULT_CONNECT_TIMEOUT = 3.0
 
+#: what a failed write says once any byte of it left this host: no reply means no knowledge
+MAY_OR_MAY_NOT = "the write may or may not have been executed"
+#: what a failed write says when it failed before a byte of it was sent
+NOT_SENT = "the write was not sent, so nothing was written"
+
 
 class ClientCodec(Protocol):
     """The client role of a request/response Sans-IO codec (E71, S5-LAN, FETCH/WRITE)."""
@@ -115,21 +121,28 @@ class Client(AsyncResource):
         connect_timeout: float = DEFAULT_CONNECT_TIMEOUT,
         backoff: Backoff | None = None,
     ) -> None:
-        if timeout <= 0 or connect_timeout <= 0:
-            raise ValueError("timeouts must be positive")
         self.name = name
         self.transport = transport
-        self.timeout = timeout
-        self.connect_timeout = connect_timeout
+        self.timeout = check_seconds("timeout", timeout, plc=name)
+        self.connect_timeout = check_seconds("connect_timeout", connect_timeout, plc=name)
         self.backoff = backoff if backoff is not None else Backoff()
         self.stats = ClientStats()
         self._lock = asyncio.Lock()
         self._next_attempt = 0.0
-        self._last_connect_error: PlcError | None = None
+        #: what the last failed connect (or unproven connection) said; "" after a connect
+        self._backoff_detail = ""
         self._closed = False
         #: ``stats.requests`` when the connection was made: tells the failure path whether the
         #: request that failed was the first one on this connection (no cost on the hot path)
         self._requests_at_connect = 0
+        #: the current connection has not yet produced one valid answer. Backoff is reset by
+        #: the first valid answer, not by TCP getting in: a peer that accepts and then garbles
+        #: or closes every time would otherwise be reconnected at full speed.
+        self._unproven = True
+        #: connections in a row that closed or garbled before one valid answer
+        self._unproven_failures = 0
+        #: why requests fail fast until ``_next_attempt`` ("PLC unreachable", ...)
+        self._backoff_reason = "PLC unreachable"
 
     # -- construction -----------------------------------------------------------------------
     @classmethod
@@ -146,6 +159,10 @@ class Client(AsyncResource):
         return out
 
     COMMON_URL_OPTIONS = frozenset({"timeout", "connect_timeout"})
+
+    #: fresh connections in a row that may close or garble before one valid answer before
+    #: reconnects back off (see :meth:`request_failed`)
+    UNPROVEN_FAILURES_BEFORE_BACKOFF = 2
 
     # -- life cycle -------------------------------------------------------------------------
     async def open(self) -> None:
@@ -170,16 +187,29 @@ class Client(AsyncResource):
             await self.transport.open(self.connect_timeout)
         except PlcError as exc:
             self.stats.connect_failures += 1
-            loop = asyncio.get_running_loop()
-            self._next_attempt = loop.time() + self.backoff.next_delay()
             exc.bind(plc=self.name, request="connect")
-            self._last_connect_error = exc
+            self._back_off(exc.message, "PLC unreachable")
             raise
         self.stats.connects += 1
         self._requests_at_connect = self.stats.requests
-        self.backoff.reset()
-        self._last_connect_error = None
+        self._unproven = True
+        self._backoff_detail = ""
         self.connection_made()
+
+    def _back_off(self, detail: str, reason: str) -> None:
+        """Refuse reconnects until the backoff delay has passed; requests meanwhile fail at once
+        with :class:`ConnectFailed` (nothing of them is sent) naming ``reason`` and ``detail``."""
+        loop = asyncio.get_running_loop()
+        self._next_attempt = loop.time() + self.backoff.next_delay()
+        self._backoff_detail = detail
+        self._backoff_reason = reason
+
+    def _answered(self) -> None:
+        """The connection produced a valid answer: it works, so the backoff starts over.
+        Callers test ``_unproven`` first, keeping the hot path at one attribute read."""
+        self._unproven = False
+        self._unproven_failures = 0
+        self.backoff.reset()
 
     async def _ensure_open(self, what: str) -> None:
         if self.transport.is_open:
@@ -188,9 +218,9 @@ class Client(AsyncResource):
             raise ConnectionLost("client is closed", plc=self.name, request=what)
         loop = asyncio.get_running_loop()
         wait = self._next_attempt - loop.time()
-        if wait > 0 and self._last_connect_error is not None:
+        if wait > 0 and self._backoff_detail:
             raise ConnectFailed(
-                f"PLC unreachable ({self._last_connect_error.message}); "
+                f"{self._backoff_reason} ({self._backoff_detail}); "
                 f"next reconnect attempt in {wait:.1f} s",
                 plc=self.name,
                 request=what,
@@ -213,18 +243,59 @@ class Client(AsyncResource):
         ``""`` when the evidence supports nothing. See :mod:`plcstack.diagnose`."""
         return ""
 
-    def _with_hint(self, exc: PlcError, failure: Failure, reply: bytes) -> None:
+    def _hint(self, failure: Failure, reply: bytes) -> str:
+        """``". Hint: ..."`` to end an error message with, or ``""``."""
         try:
             hint = self.diagnose(failure, reply)
         except Exception:  # a diagnosis must never replace the error it explains
             _log.exception("%s: diagnosis failed", self.name)
-            return
-        if hint:
-            exc.message += f". Hint: {hint}"
+            return ""
+        return f". Hint: {hint}" if hint else ""
 
     def _drop(self) -> None:
         self.transport.abort()
         self.connection_dropped()
+
+    def request_failed(
+        self,
+        exc: PlcError,
+        failure: Failure,
+        reply: bytes,
+        what: str,
+        *,
+        is_write: bool,
+        sent: bool,
+        drop: bool = True,
+        outcome: str | None = None,
+    ) -> PlcError:
+        """The one failure policy of every client (request/response and AS511 alike) for a
+        request that got no valid answer: count it, close the connection (``drop``; an AS511
+        serial line resynchronises by silence instead), say for a write whether it may have
+        been executed, add the diagnosis of ``reply`` (every byte received for the request),
+        back off when a fresh connection never answered validly, and bind PLC and request.
+
+        ``sent`` says whether any byte of the request left this host; ``outcome`` overrides the
+        write wording when the protocol knows better (an AS511 acknowledgement). Returns the
+        exception for the caller to raise.
+        """
+        self.stats.errors += 1
+        if failure == "timeout":
+            self.stats.timeouts += 1
+        if drop:
+            self._drop()
+        hint = self._hint(failure, reply)
+        if sent and failure != "timeout" and self._unproven and drop:
+            # Closed or garbled before one valid answer on this connection. Once is a glitch
+            # (the next request reconnects at once); again on the next fresh connection, and
+            # the one after would most likely meet the same, so reconnects back off as after a
+            # refused connect (a timeout already spaces attempts by its own deadline).
+            self._unproven_failures += 1
+            if self._unproven_failures >= self.UNPROVEN_FAILURES_BEFORE_BACKOFF:
+                self._back_off(exc.message + hint, "no valid answer on the last connection")
+        if is_write:
+            exc.message += "; " + (outcome or (MAY_OR_MAY_NOT if sent else NOT_SENT))
+        exc.message += hint
+        return exc.bind(plc=self.name, request=what)
 
     # -- the API ----------------------------------------------------------------------------
     def locate(self, address: str, count: int = 1) -> tuple[Hashable, int]:
@@ -445,9 +516,11 @@ class RequestClient(Client, Generic[E]):
             # A settled codec holds no bytes, so right after ``send`` it can only need data:
             # asking it (as an unsettled one must be asked) would cost a decode attempt.
             settled, self._settled = self._settled, False
+            sent = False  # whether any byte of the request left this host (failure wording)
             try:
                 codec = self.codec
                 transport.write(codec.send(request))
+                sent = True
                 expires = asyncio.get_running_loop().time() + deadline
                 event = NEED_DATA if settled else codec.next_event()
                 while event is NEED_DATA:
@@ -462,6 +535,8 @@ class RequestClient(Client, Generic[E]):
                     event = codec.next_event()
                 self._check_nothing_follows(codec)
                 self._settled = True
+                if self._unproven:
+                    self._answered()
                 return event  # type: ignore[no-any-return]
             except asyncio.CancelledError:
                 # The caller gave up (wait_for, a cancelled task) with the answer maybe still on
@@ -470,28 +545,22 @@ class RequestClient(Client, Generic[E]):
                 self._drop()
                 raise
             except TimeoutError:
-                self.stats.timeouts += 1
-                self.stats.errors += 1
-                self._drop()
-                outcome = "; the write may or may not have been executed" if is_write else ""
                 timeout_error = PlcTimeout(
-                    f"no complete answer within {deadline:g} s, connection closed{outcome}",
-                    plc=self.name,
-                    request=what,
+                    f"no complete answer within {deadline:g} s, connection closed"
                 )
-                self._with_hint(timeout_error, "timeout", b"".join(chunks or (first,)))
-                raise timeout_error from None
-            except (ConnectionLost, RemoteProtocolError) as exc:
-                self.stats.errors += 1
-                self._drop()
-                if is_write:
-                    exc.message += "; the write may or may not have been executed"
-                self._with_hint(
-                    exc,
-                    "closed" if isinstance(exc, ConnectionLost) else "malformed",
+                raise self.request_failed(
+                    timeout_error,
+                    "timeout",
                     b"".join(chunks or (first,)),
-                )
-                raise exc.bind(plc=self.name, request=what) from None
+                    what,
+                    is_write=is_write,
+                    sent=sent,
+                ) from None
+            except (ConnectionLost, RemoteProtocolError) as exc:
+                failure: Failure = "closed" if isinstance(exc, ConnectionLost) else "malformed"
+                raise self.request_failed(
+                    exc, failure, b"".join(chunks or (first,)), what, is_write=is_write, sent=sent
+                ) from None
             except PlcError as exc:
                 self.stats.errors += 1
                 raise exc.bind(plc=self.name, request=what) from None

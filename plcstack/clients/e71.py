@@ -25,6 +25,7 @@ from plcstack.clients.base import Points, RequestClient, as_points
 from plcstack.clients.e71_commands import E71CommandsMixin
 from plcstack.codecs.e71 import (
     DEFAULT_PC,
+    END_CODES,
     WIDEST_RANGES,
     BitsResponse,
     Code,
@@ -177,11 +178,24 @@ class E71Client(E71CommandsMixin):
 
     async def _call(self, request: Request, what: str, *, is_write: bool) -> Response:
         event: Response = await self.exchange(request, what, is_write=is_write)
-        return self._reply_or_raise(event, what)
+        return self._reply_or_raise(event, what, is_write=is_write)
 
-    def _reply_or_raise(self, event: R, what: str) -> R:
-        """The reply, or the PLC's end code as :class:`PlcErrorResponse` with its meaning."""
+    def _reply_or_raise(self, event: R, what: str, *, is_write: bool = False) -> R:
+        """The reply, or the PLC's end code as :class:`PlcErrorResponse` with its meaning.
+
+        An end code outside the documented table (§10) is no refusal we can vouch for: random
+        bytes such as ``83 25`` decode as "end code 25H", and calling that a PLC error would
+        tell the caller an executed write was refused. It is a :class:`RemoteProtocolError`
+        under the failure policy (connection closed, "may or may not" for a write)."""
         if isinstance(event, ErrorResponse):
+            if event.end_code not in END_CODES:
+                undocumented = RemoteProtocolError(
+                    f"the answer carries end code {event.end_code:02X}H, which the E71 does "
+                    "not define (§10); not taken as a refusal"
+                )
+                raise self.request_failed(
+                    undocumented, "malformed", b"", what, is_write=is_write, sent=True
+                )
             self.count_error()
             raise PlcErrorResponse(
                 event.end_code,

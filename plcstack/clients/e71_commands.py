@@ -104,8 +104,9 @@ class E71CommandsMixin(RequestClient[Response]):
         """Our caller's misuse, as the error to raise (naming PLC and request)."""
 
     @abstractmethod
-    def _reply_or_raise(self, event: R, what: str) -> R:
-        """The reply, or the PLC's end code as a PlcErrorResponse."""
+    def _reply_or_raise(self, event: R, what: str, *, is_write: bool = False) -> R:
+        """The reply, or the PLC's end code as a PlcErrorResponse (an undocumented end code
+        as a RemoteProtocolError, may-or-may-not for a write)."""
 
     @abstractmethod
     async def read_words(self, address: str, count: int = 1) -> list[int]:
@@ -122,7 +123,7 @@ class E71CommandsMixin(RequestClient[Response]):
         except LocalProtocolError as exc:
             raise self._bad(exc.message, what) from None
         event: Response | ExtensionResponse = await self.exchange(request, what, is_write=is_write)
-        return self._reply_or_raise(event, what)
+        return self._reply_or_raise(event, what, is_write=is_write)
 
     async def _xwords(self, request: ExtensionRequest, what: str) -> list[int]:
         event = await self._xcall(request, what, is_write=False)

@@ -42,6 +42,7 @@ from plcstack.codecs.fetchwrite import (
 )
 from plcstack.codecs.mk import LifeAckTimer, MkConnection
 from plcstack.diagnose import Failure, fetchwrite_hint
+from plcstack.durations import check_seconds
 from plcstack.errors import AddressError, ConnectionLost, PlcError, PlcErrorResponse
 from plcstack.s5address import FETCHWRITE_ORG, S5Address, S5Area, S5Unit, parse_s5_address
 from plcstack.transports.backoff import Backoff
@@ -123,10 +124,10 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
             raise AddressError(f"db_start must be 'word' or 'byte', not {db_start!r}", plc=name)
         if (life_ack is not None or life_timeout is not None) and not mk:
             raise AddressError("life acks exist only with the MK header: add mk=1", plc=name)
-        if (life_ack is not None and life_ack <= 0) or (
-            life_timeout is not None and life_timeout <= 0
-        ):
-            raise AddressError("life_ack and life_timeout must be positive", plc=name)
+        if life_ack is not None:
+            life_ack = check_seconds("life_ack", life_ack, plc=name)
+        if life_timeout is not None:
+            life_timeout = check_seconds("life_timeout", life_timeout, plc=name)
         if life_ack is not None and life_timeout is None:
             life_timeout = 3 * life_ack  # D.C4
         transport = _MkTcpTransport(host, port) if mk else TcpTransport(host, port)

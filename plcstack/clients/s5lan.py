@@ -22,13 +22,15 @@ many values were confirmed written, because S5-LAN has no way to make it atomic.
 Each request's deadline is ``max(timeout, 2 * (50 ms + 1.5 ms/byte) + 1 s)`` (spec A.8 [R]):
 reading 2048 bytes takes the module about 3.1 s, so a fixed 2 s deadline would kill healthy reads.
 
-The module accepts one connection at a time and closes any further one at once; the client
-reports that as :class:`~plcstack.errors.ConnectFailed` saying so, not as a vague lost connection.
+The module accepts one connection at a time and closes any further one at once. The client cannot
+tell that from other reasons to close, and its request was already sent, so it is reported as
+:class:`~plcstack.errors.ConnectionLost` (for a write: "may or may not have been executed") with
+a hint naming the one-connection rule as one possible cause; the next attempt waits for the
+backoff, as after a refused connect.
 """
 
 from __future__ import annotations
 
-import asyncio
 import enum
 import logging
 import struct
@@ -52,13 +54,10 @@ from plcstack.codecs.s5lan import (
 from plcstack.diagnose import Failure, s5lan_hint
 from plcstack.errors import (
     AddressError,
-    ConnectFailed,
-    ConnectionLost,
     PlcError,
     PlcErrorResponse,
 )
 from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
-from plcstack.transports.backoff import Backoff
 from plcstack.transports.tcp import TcpTransport
 from plcstack.url import PlcUrl
 from plcstack.values import pack_ints
@@ -120,6 +119,8 @@ class S5LanClient(S5Access, RequestClient[Response]):
     """One S5-LAN module (and so one PLC). See the module docstring for values and limits."""
 
     URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {"header_byte_order", "strict"}
+    #: a module closes every connection beyond its one at once (A.2): back off at the first
+    UNPROVEN_FAILURES_BEFORE_BACKOFF = 1
 
     def __init__(
         self,
@@ -139,11 +140,8 @@ class S5LanClient(S5Access, RequestClient[Response]):
         self.header_byte_order: ByteOrder = header_byte_order
         self.strict = strict
         self._seq = 0
-        self._answers_on_connection = 0
         self._read_plans: dict[tuple[str, int], _Plan] = {}
         self._write_plans: dict[tuple[str, int], _Plan] = {}
-        b = self.backoff
-        self._refusal_backoff = Backoff(b.initial, b.maximum, b.factor, b.jitter)
         self.codec: ClientConnection = self.new_codec()
 
     @classmethod
@@ -163,10 +161,6 @@ class S5LanClient(S5Access, RequestClient[Response]):
 
     def new_codec(self) -> ClientConnection:
         return ClientConnection(header_byte_order=self.header_byte_order, strict=self.strict)
-
-    def connection_made(self) -> None:
-        super().connection_made()
-        self._answers_on_connection = 0
 
     # -- poller hooks ------------------------------------------------------------------------
     def locate(self, address: str, count: int = 1) -> tuple[Hashable, int]:
@@ -331,29 +325,7 @@ class S5LanClient(S5Access, RequestClient[Response]):
     async def _request(self, req: Request, what: str, *, is_write: bool, total: str) -> Response:
         n = req.header.data_len or 0
         deadline = max(self.timeout, 2.0 * estimate_seconds(n) + 1.0)
-        try:
-            response: Response = await self.exchange(req, what, is_write=is_write, timeout=deadline)
-        except ConnectFailed:
-            raise
-        except ConnectionLost as exc:
-            if self._answers_on_connection == 0 and self.codec.bytes_received == 0:
-                refused = ConnectFailed(
-                    "the S5-LAN module closed the connection before answering the first request: "
-                    "it allows only one connection at a time, so another client (or a stale "
-                    f"session) is probably connected ({exc.message})",
-                    plc=self.name,
-                    request=what,
-                )
-                # TCP got in, so the base class reset its backoff; a busy module must still not
-                # be hammered, so refusals back off on their own schedule.
-                self.stats.connect_failures += 1
-                loop = asyncio.get_running_loop()
-                self._next_attempt = loop.time() + self._refusal_backoff.next_delay()
-                self._last_connect_error = refused
-                raise refused from None
-            raise
-        self._answers_on_connection += 1
-        self._refusal_backoff.reset()
+        response: Response = await self.exchange(req, what, is_write=is_write, timeout=deadline)
         if response.echo_mismatch:
             _log.warning(
                 "%s: %s: answer echoes %s differently from the request (accepted, strict=0)",

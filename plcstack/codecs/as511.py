@@ -49,6 +49,7 @@ __all__ = [
     "AGConnection",
     "AGEvent",
     "BlockInfo",
+    "Delivery",
     "Done",
     "Idled",
     "Job",
@@ -400,6 +401,19 @@ class PGState(enum.Enum):
     W_END = "W_END"  # terminate byte + DLE ETX
 
 
+class Delivery(enum.Enum):
+    """How far the parameter frame of the current (or last) job got: for a write (03h, whose
+    parameters carry the data) what the PLC can have done with it. Kept after an abort, so the
+    driver can say the truth about a failed write (B.4 steps 8-10)."""
+
+    #: the parameter frame was not queued for sending: nothing can have been executed
+    NOT_SENT = "the data had not been sent, nothing was written"
+    #: queued, but no DLE ACK for it: the PLC may have executed it and the answer got lost
+    SENT = "the write may or may not have been executed"
+    #: the AG answered DLE ACK after the parameter frame: it accepted and executed the job
+    ACKNOWLEDGED = "the PLC had acknowledged the data (DLE ACK), so the write was executed"
+
+
 #: [R] B5.2/D.B5: DLE NAK is accepted at step 2 (busy), 4 (unsupported function), 9 (refused)
 _NAK_STEPS = {
     PGState.W_ACK1: "ready",
@@ -442,6 +456,8 @@ class PGConnection:
         self.ready_at = 0.0
         #: when the current state times out; ``None`` when idle
         self.deadline: float | None = None
+        #: how far the current or last job's parameter frame got (see :class:`Delivery`)
+        self.delivery = Delivery.NOT_SENT
         self._out = bytearray()
         self._events: deque[PGEvent | RemoteProtocolError] = deque()
         self._dle = False
@@ -463,6 +479,7 @@ class PGConnection:
                 f"the line must be silent until {self.ready_at:.3f} (back-off after an abort)"
             )
         self.job = job
+        self.delivery = Delivery.NOT_SENT
         self._dle = False
         self._send(bytes([STX]))
         self._enter(PGState.W_ACK1, now, sent=1)
@@ -592,10 +609,10 @@ class PGConnection:
             elif state is PGState.W_ACK1:
                 self._send(bytes([job.fn]))
                 self._enter(PGState.W_STX1, now, sent=1)
-            elif job.has_response:
-                self._enter(PGState.W_STX2, now, slow=True)
             else:
-                self._enter(PGState.W_STX3, now, slow=True)
+                self.delivery = Delivery.ACKNOWLEDGED
+                next_state = PGState.W_STX2 if job.has_response else PGState.W_STX3
+                self._enter(next_state, now, slow=True)
             return
         if state is PGState.W_STX1:
             if self._dle:
@@ -649,6 +666,7 @@ class PGConnection:
             self._send(DLE_ACK)
             if accept:
                 self._send(stuff(job.params) + bytes([DLE, EOT]))
+                self.delivery = Delivery.SENT
                 sent = 4 + len(job.params) + job.params.count(DLE)
                 self._enter(PGState.W_ACK2, now, sent=sent, slow=True)
             else:

@@ -8,7 +8,7 @@ max_gap = 8             # unused points one merged request may carry between two
 timeout = 2.0           # request deadline in seconds (a URL's ?timeout= wins)
 connect_timeout = 3.0
 backoff_max = 30.0      # longest wait between reconnect attempts to a dead PLC (seconds)
-interval = 1.0          # interval of the scan group "default"
+interval = 1.0          # interval of the scan group "default" (at least 0.001 s)
 
 [groups]                # more scan groups: name = interval in seconds
 fast = 0.1
@@ -65,6 +65,7 @@ from plcstack.values import (
 )
 
 __all__ = [
+    "MIN_INTERVAL",
     "ConfigError",
     "PlcConfig",
     "PollConfig",
@@ -75,6 +76,12 @@ __all__ = [
 
 DEFAULT_GROUP = "default"
 DEFAULT_INTERVAL = 1.0
+#: shortest scan interval (seconds). A scan is at least one request per PLC; below a millisecond
+#: the "interval" only measures how fast a dead PLC can be turned into bad samples (1e-300 gave
+#: 15,000 a second of them), never how fast a PLC answers.
+MIN_INTERVAL = 0.001
+#: deepest nesting of tables and arrays a config may use; ours needs 4 ([[plc]] > tags > tag)
+MAX_TOML_DEPTH = 32
 #: no global cap by default: each PLC already has one request in flight at most, and a cap lets
 #: a crowd of dead or slow PLCs (each holding a slot for a whole timeout) delay the healthy ones
 DEFAULT_CONCURRENCY: int | None = None
@@ -160,8 +167,15 @@ def validate(config: PollConfig) -> None:
     if config.queue < 1:
         raise ConfigError("poll.queue must be at least 1")
     for name, interval in config.groups.items():
-        if not (isinstance(interval, int | float) and math.isfinite(interval) and interval > 0):
-            raise ConfigError(f"scan group {name!r}: interval must be a positive number of seconds")
+        if not (
+            isinstance(interval, int | float)
+            and math.isfinite(interval)
+            and interval >= MIN_INTERVAL
+        ):
+            raise ConfigError(
+                f"scan group {name!r}: interval must be a number of seconds "
+                f"of at least {MIN_INTERVAL:g}, not {interval!r}"
+            )
     seen: set[str] = set()
     for plc in config.plcs:
         if plc.name in seen:
@@ -218,7 +232,35 @@ def parse_config(text: str, *, source: str = "<config>") -> PollConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{source}: not valid TOML: {exc}") from None
+    except RecursionError:
+        # tomllib recurses per nesting level; 500 levels escaped as a traceback (exit 1)
+        raise ConfigError(
+            f"{source}: tables or arrays nested too deeply to parse (a poll config needs 4 levels)"
+        ) from None
+    if _depth(data) > MAX_TOML_DEPTH:
+        raise ConfigError(
+            f"{source}: tables or arrays nested more than {MAX_TOML_DEPTH} deep "
+            "(a poll config needs 4 levels)"
+        )
     return _Loader(text, source).load(data)
+
+
+def _depth(value: Any) -> int:
+    """Nesting depth of parsed TOML, without recursion (so any depth tomllib accepted is safe)."""
+    deepest = 0
+    stack: list[tuple[Any, int]] = [(value, 1)]
+    while stack:
+        item, level = stack.pop()
+        if isinstance(item, dict):
+            children: Any = item.values()
+        elif isinstance(item, list):
+            children = item
+        else:
+            continue
+        deepest = max(deepest, level)
+        if level <= MAX_TOML_DEPTH:  # one level beyond the limit is enough to refuse
+            stack.extend((child, level + 1) for child in children)
+    return deepest
 
 
 class _Loader:
@@ -256,6 +298,13 @@ class _Loader:
             raise self.error(f"{what} {key} must be a number, not {value!r}", key)
         if not (math.isfinite(value) and value > 0):
             raise self.error(f"{what} {key} must be greater than 0, got {value!r}", key)
+        is_interval = what.endswith("interval") or (what == "poll" and key == "interval")
+        if is_interval and value < MIN_INTERVAL:
+            raise self.error(
+                f"{what} {key} must be at least {MIN_INTERVAL:g} s (the documented lower "
+                f"bound for scan intervals), got {value!r}",
+                key,
+            )
         return float(value)
 
     def _int(self, table: Mapping[str, Any], key: str, default: int, lo: int, what: str) -> int:
