@@ -10,7 +10,7 @@ from typing import Any
 
 import aiomqtt
 
-from plcstack.poll.engine import Quality, Sample
+from plcstack.poll.samples import Quality, Sample
 
 
 def sample(

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import pwd
 import shutil
 import signal
 import socket
@@ -221,6 +222,9 @@ class Mosquitto(_Server):
             # Keep every queued message of an offline persistent session (the default cap of
             # 1000 would drop replayed data in a test that buffers more than that).
             "max_queued_messages 0",
+            # run as root (CI), mosquitto would switch to the user "mosquitto", which cannot
+            # write the persistence file into our temporary directory: stay who we are
+            *([f"user {pwd.getpwuid(os.geteuid()).pw_name}"] if os.geteuid() == 0 else []),
             "log_type error",
             "log_type warning",
             "log_type notice",
@@ -306,6 +310,35 @@ class Influxd(_Server):
                 return int(r.status) == 204
         except OSError:
             return False
+
+    def request(self, method: str, path: str, body: bytes = b"") -> tuple[int, str]:
+        """One HTTP request to influxd: (status, body text); HTTP errors are returned."""
+        import urllib.error
+        import urllib.request
+
+        req = urllib.request.Request(f"{self.url}{path}", data=body or None, method=method)
+        try:
+            with urllib.request.urlopen(req, timeout=10) as r:
+                return int(r.status), r.read().decode()
+        except urllib.error.HTTPError as exc:
+            return exc.code, exc.read().decode()
+
+    def create_database(self, name: str) -> None:
+        """CREATE DATABASE and wait until a write to it is no longer "database not found"."""
+        import urllib.parse
+
+        status, text = self.request(
+            "POST", "/query?q=" + urllib.parse.quote(f'CREATE DATABASE "{name}"')
+        )
+        if status != 200 or '"error"' in text:
+            raise ServerUnavailable(f"influxd: CREATE DATABASE {name}: {status} {text}")
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            status, text = self.request("GET", "/query?q=SHOW+DATABASES")
+            if f'"{name}"' in text:
+                return
+            time.sleep(0.05)
+        raise ServerUnavailable(f"influxd: database {name} did not appear: {text}")
 
     def _command(self) -> list[str]:
         conf = self.dir / "influxdb.conf"

@@ -79,7 +79,7 @@ async def test_the_example_batch_loads_into_influxdb(influxd: Influxd) -> None:
     kinds = {type(s.value).__name__ for s in samples}
     assert {"int", "float", "list"} <= kinds  # ints, floats (one NaN) and a list of bools
     lines = [influx_line(s) for s in samples]
-    assert post(f"{influxd.url}/query?q=CREATE+DATABASE+plant", b"")[0] == 200
+    influxd.create_database("plant")
     status, body = post(f"{influxd.url}/write?db=plant&precision=ns", "\n".join(lines).encode())
     assert status == 204, body
     stored = query(influxd, "SELECT COUNT(quality) FROM plc")[0]["values"][0][1]
@@ -102,7 +102,7 @@ NAMES = ["a\\b", "ab\\", "a\\,b", "x y", "k=v", "c,d", "two\\\\", "new\nline", "
 
 
 def test_names_survive_influxdb_escaping(influxd: Influxd) -> None:
-    assert post(f"{influxd.url}/query?q=CREATE+DATABASE+plant", b"")[0] == 200
+    influxd.create_database("plant")
     lines = [
         influx_line(Sample(name, "t", i, Quality.GOOD, 1.0 + i, 1.0 + i), measurement="m " + name)
         for i, name in enumerate(NAMES)

@@ -164,7 +164,11 @@ def make_poller() -> tuple[Poller, dict[str, FakeClient]]:
         fakes[plc.name] = FakeClient(f"fake://{plc.name}", timeout=0.2)
         return fakes[plc.name]
 
-    tags = (TagConfig("speed", "D10", UINT16), TagConfig("on", "M3", BOOL))
+    tags = (
+        TagConfig("speed", "D10", UINT16, writable=True),
+        TagConfig("on", "M3", BOOL, writable=True),
+        TagConfig("locked", "D20", UINT16),
+    )
     config = PollConfig((PlcConfig("press1", "e71+tcp://127.0.0.1:1", tags),), {"default": 60})
     return Poller(config, client_factory=factory), fakes
 
@@ -172,7 +176,8 @@ def make_poller() -> tuple[Poller, dict[str, FakeClient]]:
 async def test_writes_are_confirmed_or_refused_with_the_reason(mosquitto: Mosquitto) -> None:
     poller, fakes = make_poller()
     async with poller:
-        sink = MqttSink(settings(mosquitto), writer=poller)
+        writable = {("press1", t.name): t.writable for t in poller.config.plcs[0].tags}
+        sink = MqttSink(settings(mosquitto), writer=poller, writable=writable)
         await sink.start()
         await sink.wait_connected(5)
         async with (
@@ -195,6 +200,7 @@ async def test_writes_are_confirmed_or_refused_with_the_reason(mosquitto: Mosqui
                 '{"id": 3, "tag": "speed", "value": 70000}': "wrong_type",
                 '{"id": 4, "tag": "speed", "value": "fast"}': "wrong_type",
                 '{"id": 5, "tag": "speed"}': "bad_request",
+                '{"id": 9, "tag": "locked", "value": 1}': "not_writable",
                 "not json": "bad_request",
             }
             for request, code in refused.items():

@@ -31,6 +31,7 @@ INFLUX = [
     (7, H + 'value_int=7i,quality="good" 1795307490123456000'),
     (True, H + 'value_bool=true,quality="good" 1795307490123456000'),
     ([1, -2], H + 'value_int_0=1i,value_int_1=-2i,quality="good" 1795307490123456000'),
+    ('a "b"\\', H + 'value_str="a \\"b\\"\\\\",quality="good" 1795307490123456000'),
     (float("nan"), H + 'quality="bad",error="non-finite value nan" 1795307490123456000'),
     (
         [1.5, float("-inf")],

@@ -45,13 +45,11 @@ async def test_mosquitto_stop_and_restart_on_the_same_port(mosquitto: Mosquitto)
 
 
 def test_influxd_takes_a_write_and_answers_a_query(influxd: Influxd) -> None:
-    def post(path: str, body: bytes) -> int:
-        req = urllib.request.Request(f"{influxd.url}{path}", data=body, method="POST")
-        with urllib.request.urlopen(req, timeout=5) as r:
-            return int(r.status)
-
-    assert post("/query?q=CREATE+DATABASE+t", b"") == 200
-    assert post("/write?db=t&precision=ns", b"m,plc=a v=1i 1000000000\n") == 204
+    influxd.create_database("t")
+    assert influxd.request("POST", "/write?db=t&precision=ns", b"m,plc=a v=1i 1000000000\n") == (
+        204,
+        "",
+    )
     with urllib.request.urlopen(f"{influxd.url}/query?db=t&q=SELECT+v+FROM+m", timeout=5) as r:
         result = json.loads(r.read())
     assert result["results"][0]["series"][0]["values"] == [["1970-01-01T00:00:01Z", 1]]

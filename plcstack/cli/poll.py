@@ -10,13 +10,19 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import functools
 import os
 import signal
 import sys
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TextIO
 
+from plcstack.north.config import parse_north
+from plcstack.north.influx import influx_line
+from plcstack.north.pipeline import North
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
+from plcstack.poll.samples import Sample
 from plcstack.poll.sinks import FORMATS
 from plcstack.scale import cli as scale_cli
 
@@ -33,7 +39,11 @@ def register(subparsers: Any) -> None:
     )
     poll.add_argument("config", help="TOML file with [[plc]] tables (example: examples/plant.toml)")
     poll.add_argument(
-        "--format", choices=sorted(FORMATS), default="jsonl", help="output format (default jsonl)"
+        "--format",
+        choices=[*sorted(FORMATS), "none"],
+        default="jsonl",
+        help="output format on stdout (default jsonl; none: only the sinks of the config, e.g."
+        " [mqtt])",
     )
     poll.add_argument(
         "--duration",
@@ -86,12 +96,19 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return 2
     # every URL and address checked here, before anything is sent
     poller: Poller | Worker = worker if worker is not None else Poller(config)
-    line = FORMATS[args.format]
+    north_config = parse_north(config.north)
+    line: Callable[[Sample], str] | None = None
+    if args.format == "influx":
+        line = functools.partial(influx_line, measurement=north_config.influx_measurement)
+    elif args.format != "none":
+        line = FORMATS[args.format]
+    emit = _emitter(line, out)
     stop = asyncio.Event()
     installed = install_stop_signals(stop)
+    north = North(poller, north_config)
     try:
-        async with poller:
-            consumer = asyncio.create_task(_write_samples(poller, line, out, stop))
+        async with poller, north:
+            consumer = asyncio.create_task(_write_samples(north, emit, out, stop))
             stopper = asyncio.create_task(stop.wait())
             helpers = {consumer, stopper}
             every = getattr(args, "stats_every", None)
@@ -103,15 +120,14 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
             for task in helpers:
                 task.cancel()
             await asyncio.gather(*helpers, return_exceptions=True)
+            await poller.aclose()
+            try:
+                # samples of the last scans, taken after the consumer stopped: none is lost
+                north.deliver(poller.drain(), emit)
+            except BrokenPipeError:
+                _silence_stdout(out)
     finally:
         remove_stop_signals(installed)
-    try:
-        # samples of the last scans, taken after the consumer stopped: none is lost
-        for sample in poller.drain():
-            out.write(line(sample) + "\n")
-        _flush(out)
-    except BrokenPipeError:
-        _silence_stdout(out)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
     return 0
 
@@ -137,14 +153,24 @@ def _flush(out: TextIO) -> None:
         out.flush()
 
 
+def _emitter(
+    line: Callable[[Sample], str] | None, out: TextIO
+) -> Callable[[list[Sample]], None] | None:
+    if line is None:
+        return None
+
+    def emit(batch: list[Sample]) -> None:
+        out.write("".join([line(s) + "\n" for s in batch]))
+        _flush(out)  # a batch is written: hand it on before waiting for the next scan
+
+    return emit
+
+
 async def _write_samples(
-    poller: Poller | Worker, line: Any, out: TextIO, stop: asyncio.Event
+    north: North, emit: Callable[[list[Sample]], None] | None, out: TextIO, stop: asyncio.Event
 ) -> None:
     try:
-        async for sample in poller:
-            out.write(line(sample) + "\n")
-            if not poller.pending():
-                out.flush()  # a batch is written: hand it on before waiting for the next scan
+        await north.run(emit)
     except BrokenPipeError:
         _silence_stdout(out)
         stop.set()  # the reader went away: stop polling, still report statistics on stderr

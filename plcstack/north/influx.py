@@ -9,7 +9,8 @@ conflict" and the whole batch is refused. So the field name says the type::
     plc,plc=press1,tag=alarms value_bool_0=true,value_bool_1=false,quality="good" 1795...
     plc,plc=oven2,tag=temp quality="bad",error="oven2: read DB10.DW0 x1: no answer ..." 1795...
 
-* ``value_int`` (``i`` suffix), ``value_float``, ``value_bool``; a tag with ``count > 1`` has
+* ``value_int`` (``i`` suffix), ``value_float``, ``value_bool``, ``value_str`` (string types such
+  as ``string:10``); a tag with ``count > 1`` has
   one field per element, ``value_<type>_<index>``;
 * ``quality`` (``"good"``/``"bad"``) always, ``error`` (string) when bad;
 * a non-finite float (NaN or infinity in a float32 register) cannot be a field value: the sample
@@ -31,7 +32,7 @@ from __future__ import annotations
 import math
 import re
 
-from plcstack.poll.engine import Quality, Sample
+from plcstack.poll.samples import Quality, Sample
 
 __all__ = ["DEFAULT_MEASUREMENT", "influx_line", "measurement_text", "tag_text"]
 
@@ -77,6 +78,8 @@ def _field(key: str, value: object, errors: list[str]) -> str | None:
         return f"{key}_str={_string(value)}"
     if isinstance(value, tuple):  # KY: two bytes, as STEP 5 displays them ("12,255")
         return f"{key}_str={_string(','.join(str(b) for b in value))}"
+    if isinstance(value, str):
+        return f"{key}_str={_string(value)}"
     errors.append(f"value of unsupported type {type(value).__name__}")
     return None
 

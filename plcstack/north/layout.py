@@ -35,10 +35,11 @@ A PLC is ``online`` while its latest scan delivered at least one good value and 
 a whole scan came back bad (unreachable, timed out); the status is published when it changes.
 
 Write error codes: ``bad_request`` (not JSON, no ``tag`` or ``value``), ``unknown_plc``,
-``unknown_tag``, ``wrong_type`` (value does not fit the tag's type or count), ``plc_error`` (the
-PLC refused or did not answer; ``may_have_executed`` tells whether the write could still have
-happened, e.g. after a timeout), ``busy`` (too many writes waiting). ``id`` is echoed as given
-(any JSON value; ``null`` if the request had none or was not JSON).
+``unknown_tag``, ``not_writable`` (the tag lacks ``writable = true``: north-side clients may write
+only tags marked so, as for OPC UA), ``wrong_type`` (value does not fit the tag's type or
+count), ``plc_error`` (the PLC refused or did not answer; ``may_have_executed`` tells whether
+the write could still have happened, e.g. after a timeout), ``busy`` (too many writes waiting).
+``id`` is echoed as given (any JSON value; ``null`` if the request had none or was not JSON).
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ import re
 from collections.abc import Iterable, Sequence
 from typing import Any
 
-from plcstack.poll.engine import Quality, Sample
+from plcstack.poll.samples import Quality, Sample
 
 __all__ = [
     "data_payload",

@@ -48,7 +48,7 @@ from plcstack.north.layout import (
     write_response_topic,
 )
 from plcstack.poll.config import ConfigError
-from plcstack.poll.engine import Sample
+from plcstack.poll.samples import Sample
 from plcstack.transports.backoff import Backoff
 
 __all__ = ["MqttSettings", "MqttSink", "Writer", "parse_mqtt"]
@@ -213,9 +213,14 @@ class MqttSink:
         group_of: dict[tuple[str, str], str] | None = None,
         layout: Any = None,
         buffer: StoreAndForward | None = None,
+        writable: dict[tuple[str, str], bool] | None = None,
+        plcs: Sequence[str] | None = None,
     ) -> None:
+        """``writable``: (plc, tag) -> may MQTT clients write it (the tag's ``writable = true``);
+        a tag marked false is refused with ``not_writable``. None: every tag is writable."""
         self.settings = settings
         self.writer = writer
+        self.writable = writable
         self.group_of = group_of or {}
         self.layout = (
             layout
@@ -238,7 +243,9 @@ class MqttSink:
         self._client: Any = None
         self._replay_until = -1
         self._writes: set[asyncio.Task[None]] = set()
-        self._plc_by_level = {topic_level(p): p for p in (writer.plcs if writer else [])}
+        if plcs is None:
+            plcs = writer.plcs if writer is not None else []
+        self._plc_by_level = {topic_level(p): p for p in plcs}
         self._task: asyncio.Task[None] | None = None
         self._connected_event = asyncio.Event()
         self._idle = asyncio.Event()  # set while the publisher has nothing to send
@@ -370,6 +377,8 @@ class MqttSink:
 
     async def _publish(self, client: Any, m: Message, prepare: Any) -> None:
         payload = m.payload if prepare is None else prepare(m, m.seq <= self._replay_until)
+        if payload is None:  # the layout says this one is obsolete (an old session's birth)
+            return
         await client.publish(m.topic, payload, qos=m.qos, retain=m.retain)
 
     # -- in: write requests ---------------------------------------------------------------------
@@ -384,12 +393,16 @@ class MqttSink:
         handler = getattr(self.layout, "handle", None)
         if handler is not None and handler(self, topic, payload):
             return
+        if not hasattr(self.layout, "parse_write"):
+            return
         level, request_id, tag, value, error = self.layout.parse_write(topic, payload)
         plc = self._plc_by_level.get(level)
         if error is not None or tag is None:
             self._respond(level, request_id, "bad_request", error or "bad request")
-        elif plc is None or self.writer is None:
+        elif plc is None:
             self._respond(level, request_id, "unknown_plc", f"no PLC named {level!r} here")
+        elif self.writer is None:
+            self._respond(level, request_id, "not_writable", "this poller takes no writes")
         elif len(self._writes) >= MAX_PENDING_WRITES:
             self._respond(level, request_id, "busy", "too many writes waiting; not attempted")
         else:
@@ -402,6 +415,13 @@ class MqttSink:
     ) -> tuple[str, str, bool] | None:
         """Run one write; None if confirmed, else ``(code, message, may_have_executed)``."""
         assert self.writer is not None
+        if self.writable is not None and self.writable.get((plc, tag)) is False:
+            return (
+                "not_writable",
+                f"{plc}: write {tag}: the tag is read-only for north-side clients"
+                " (set writable = true in its configuration); not attempted",
+                False,
+            )
         try:
             await self.writer.write_tag(plc, tag, value)
         except AddressError as exc:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from plcstack.poll.config import ConfigError
-from plcstack.poll.engine import Quality, Sample
+from plcstack.poll.samples import Quality, Sample
 
 __all__ = ["ReportByException", "ReportPolicy", "parse_report"]
 

@@ -33,8 +33,9 @@ Tag types are the value types of :mod:`plcstack.values` by name (``int16``, ``fl
 ``kt``, ``bcd16``, ``string:10``, ...). ``scale = [raw_lo, raw_hi, eng_lo, eng_hi]`` maps a number
 linearly onto engineering units (writes map back).
 
-Other top-level tables (``[opcua]``) belong to the north-side servers and are read by them; the
-poller only checks that they are tables.
+Other top-level tables (``[opcua]``, ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``) belong
+to the north side (plcstack.north); the poller checks that they are tables, and the loader checks
+``[mqtt]``, ``[metrics]``, ``[report]`` and ``[influx]`` with :mod:`plcstack.north.config`.
 
 Every problem is a :class:`ConfigError` naming the PLC, the tag and, where it can be found, the
 TOML line, so a typo in a 500-PLC file is found at once and before anything is sent.
@@ -88,7 +89,7 @@ DEFAULT_CONCURRENCY: int | None = None
 DEFAULT_QUEUE = 10_000
 DEFAULT_MAX_GAP = 8
 #: top-level tables read by north-side servers from the same file (plcstack.north)
-NORTH_SECTIONS = ("opcua",)
+NORTH_SECTIONS = ("opcua", "mqtt", "metrics", "report", "influx")
 
 
 class ConfigError(AddressError):
@@ -152,6 +153,9 @@ class PollConfig:
     groups: Mapping[str, float] = field(default_factory=lambda: {DEFAULT_GROUP: DEFAULT_INTERVAL})
     concurrency: int | None = DEFAULT_CONCURRENCY
     queue: int = DEFAULT_QUEUE
+    #: the north side's tables ([mqtt], [metrics], [report], [influx]) as read from the TOML,
+    #: checked by plcstack.north.config when the file is loaded
+    north: Mapping[str, Any] = field(default_factory=dict, compare=False)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -320,6 +324,8 @@ class _Loader:
         return sorted(set(table) - allowed)
 
     def load(self, data: dict[str, Any]) -> PollConfig:
+        from plcstack.north.config import NORTH_TABLES, parse_north
+
         unknown = self._unknown(data, {"poll", "groups", "plc", *NORTH_SECTIONS})
         if unknown:
             raise self.error(
@@ -329,6 +335,12 @@ class _Loader:
         for section in NORTH_SECTIONS:
             if section in data and not isinstance(data[section], dict):
                 raise self.error(f"[{section}] must be a table", section)
+        # [mqtt], [metrics], [report], [influx]: checked now, so a typo stops before any send
+        north = {key: data[key] for key in NORTH_TABLES if key in data}
+        try:
+            parse_north(north)
+        except ConfigError as exc:
+            raise self.error(exc.message, next(iter(north), None)) from None
         poll = data.get("poll", {})
         if not isinstance(poll, dict):
             raise self.error("[poll] must be a table", "poll")
@@ -386,7 +398,7 @@ class _Loader:
         self.plc_index, self.plc_name = -1, None
         if not plcs:
             raise self.error("no PLC configured: add a [[plc]] table with name, url and tags")
-        return PollConfig(tuple(plcs), groups, concurrency, queue)
+        return PollConfig(tuple(plcs), groups, concurrency, queue, north)
 
     def _plc(
         self,

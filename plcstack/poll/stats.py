@@ -21,7 +21,7 @@ class LatencyWindow:
     first.
     """
 
-    __slots__ = ("_data", "_next", "maxlen")
+    __slots__ = ("_data", "_next", "maxlen", "total")
 
     def __init__(self, values: Iterable[float] = (), maxlen: int = LATENCY_WINDOW) -> None:
         if maxlen < 1:
@@ -29,10 +29,13 @@ class LatencyWindow:
         self.maxlen = maxlen
         self._data = array.array("f")
         self._next = 0  # once full: the index of the oldest value, overwritten next
+        #: latencies ever appended (for consumers that want only the new ones: see tail)
+        self.total = 0
         for value in values:
             self.append(value)
 
     def append(self, value: float) -> None:
+        self.total += 1
         data = self._data
         if len(data) < self.maxlen:
             data.append(value)
@@ -43,6 +46,21 @@ class LatencyWindow:
 
     def __len__(self) -> int:
         return len(self._data)
+
+    def tail(self, n: int) -> list[float]:
+        """The newest ``n`` latencies (fewer if the window holds fewer), oldest first.
+
+        With :attr:`total`, a consumer such as the metrics histogram takes exactly what was
+        appended since it last looked, without copying the whole window.
+        """
+        data, size = self._data, len(self._data)
+        n = min(n, size)
+        if n <= 0:
+            return []
+        end = self._next if size == self.maxlen else size  # one past the newest
+        if n <= end:
+            return list(data[end - n : end])
+        return list(data[size - (n - end) :]) + list(data[:end])
 
     def __iter__(self) -> Iterator[float]:
         data, cut = self._data, self._next

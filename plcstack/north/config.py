@@ -1,0 +1,59 @@
+"""The north-side tables of the poll TOML: ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``.
+
+They sit next to ``[poll]`` and ``[[plc]]`` in the same file; the poll loader keeps them as raw
+tables (``PollConfig.north``) and checks them here at load time, so a typo is a
+:class:`ConfigError` before anything is sent. Each table is optional: without ``[mqtt]`` there is
+no MQTT sink, without ``[metrics]`` no HTTP server, without ``[report]`` every sample is reported.
+
+```toml
+[influx]
+measurement = "plc"        # measurement name of --format influx (default "plc")
+```
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from plcstack.north.influx import DEFAULT_MEASUREMENT
+from plcstack.north.metrics import MetricsSettings, parse_metrics
+from plcstack.north.mqtt import MqttSettings, parse_mqtt
+from plcstack.north.rbe import PASS_ALL, parse_report
+from plcstack.poll.config import ConfigError
+
+__all__ = ["NORTH_TABLES", "NorthConfig", "parse_north"]
+
+#: top-level TOML tables that belong to the north side
+NORTH_TABLES = ("mqtt", "metrics", "report", "influx")
+
+
+@dataclass(frozen=True)
+class NorthConfig:
+    mqtt: MqttSettings | None = None
+    metrics: MetricsSettings | None = None
+    report: Any = PASS_ALL
+    influx_measurement: str = DEFAULT_MEASUREMENT
+
+    @property
+    def reports_by_exception(self) -> bool:
+        return self.report is not PASS_ALL
+
+
+def parse_north(tables: Mapping[str, Any], env: dict[str, str] | None = None) -> NorthConfig:
+    influx = tables.get("influx", {})
+    if not isinstance(influx, dict):
+        raise ConfigError("[influx] must be a table")
+    unknown = sorted(set(influx) - {"measurement"})
+    if unknown:
+        raise ConfigError(f"[influx]: unknown key(s) {', '.join(unknown)}")
+    measurement = influx.get("measurement", DEFAULT_MEASUREMENT)
+    if not isinstance(measurement, str) or not measurement.strip():
+        raise ConfigError("[influx] measurement must be a non-empty string")
+    return NorthConfig(
+        mqtt=parse_mqtt(tables["mqtt"], env) if "mqtt" in tables else None,
+        metrics=parse_metrics(tables["metrics"]) if "metrics" in tables else None,
+        report=parse_report(tables.get("report")),
+        influx_measurement=measurement,
+    )

@@ -1,0 +1,307 @@
+"""``/metrics`` (Prometheus text format) and ``/healthz`` over a small asyncio HTTP server.
+
+prometheus-client (the ``metrics`` extra) renders the text; the numbers come from the poller's
+own counters at scrape time (a custom collector, so nothing is counted twice and the poll path
+pays nothing per request), plus the latency histogram, which is fed once a second from each
+PLC's latency window (only the latencies added since the last look, via ``LatencyWindow.tail``).
+
+Exported (``plc`` label per PLC)::
+
+    plcstack_plc_up                      1 if the PLC's latest sample was good, else 0
+    plcstack_requests_total              requests sent
+    plcstack_errors_total                failed requests and writes
+    plcstack_reconnects_total            connections (re)established after the first
+    plcstack_connect_failures_total
+    plcstack_overruns_total              scans that ran past their next due time
+    plcstack_samples_total / plcstack_bad_samples_total
+    plcstack_writes_total
+    plcstack_request_latency_seconds     histogram
+    plcstack_dropped_samples_total       (no label) samples dropped for a slow consumer
+    plcstack_buffer_backlog_messages     store-and-forward backlog, per sink
+    plcstack_buffer_backlog_bytes
+    plcstack_buffer_dropped_messages_total  dropped by the byte budget
+    plcstack_mqtt_connected, plcstack_mqtt_sent_total, plcstack_mqtt_replayed_total
+    plcstack_rbe_suppressed_total        samples held back by report-by-exception
+
+``/healthz`` answers 200 ``ok`` while the poller runs, 503 with the reason otherwise. The server
+binds 127.0.0.1 unless ``[metrics] host`` says otherwise: metrics name every PLC of the plant.
+Requests are read with a size limit and a deadline; anything but ``GET`` of these two paths gets
+404/405, never a crash.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import bisect
+import contextlib
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from plcstack.poll.config import ConfigError
+from plcstack.poll.samples import Quality, Sample
+
+__all__ = [
+    "LATENCY_BUCKETS",
+    "MetricsServer",
+    "MetricsSettings",
+    "PlcstackCollector",
+    "parse_metrics",
+]
+
+#: histogram bucket bounds in seconds (PLC requests: a few ms on a LAN, up to the deadline)
+LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
+#: a request head larger than this is refused
+MAX_REQUEST = 8192
+
+
+@dataclass(frozen=True)
+class MetricsSettings:
+    host: str = "127.0.0.1"
+    port: int = 9108
+
+
+def parse_metrics(table: Any) -> MetricsSettings:
+    """``[metrics]``: ``host`` (default 127.0.0.1), ``port`` (default 9108; 0 = any free port)."""
+    if not isinstance(table, dict):
+        raise ConfigError("[metrics] must be a table")
+    unknown = sorted(set(table) - {"host", "port"})
+    if unknown:
+        raise ConfigError(f"[metrics]: unknown key(s) {', '.join(unknown)}")
+    host = table.get("host", "127.0.0.1")
+    port = table.get("port", 9108)
+    if not isinstance(host, str) or not host:
+        raise ConfigError("[metrics] host must be a non-empty string")
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+        raise ConfigError(f"[metrics] port must be 0..65535, got {port!r}")
+    return MetricsSettings(host, port)
+
+
+class _Histogram:
+    __slots__ = ("counts", "seen", "sum")
+
+    def __init__(self) -> None:
+        self.counts = [0] * (len(LATENCY_BUCKETS) + 1)  # last: above the largest bound
+        self.sum = 0.0
+        self.seen = 0  # LatencyWindow.total at the last look
+
+    def add(self, values: Iterable[float]) -> None:
+        counts = self.counts
+        for v in values:
+            counts[bisect.bisect_left(LATENCY_BUCKETS, v)] += 1
+            self.sum += v
+
+    def buckets(self) -> list[tuple[str, float]]:
+        out, running = [], 0
+        for bound, count in zip(LATENCY_BUCKETS, self.counts, strict=False):
+            running += count
+            out.append((repr(bound), float(running)))
+        out.append(("+Inf", float(running + self.counts[-1])))
+        return out
+
+
+class PlcstackCollector:
+    """A prometheus-client collector over a poller, its sinks and the RBE filter.
+
+    ``poller`` needs ``stats`` (name -> PlcStats), ``dropped`` and ``plcs``; ``sinks`` are
+    objects with ``buffer`` (a StoreAndForward) and ``stats`` (SinkStats) and ``connected``.
+    """
+
+    def __init__(self, poller: Any, sinks: Sequence[Any] = (), rbe: Any = None) -> None:
+        self.poller = poller
+        self.sinks = list(sinks)
+        self.rbe = rbe
+        self._up: dict[str, bool] = {}
+        self._histograms: dict[str, _Histogram] = {}
+
+    def observe(self, samples: Iterable[Sample]) -> None:
+        """Note which PLCs delivered good data (called with every batch, before RBE)."""
+        up = self._up
+        good = Quality.GOOD
+        for s in samples:
+            up[s.plc] = s.quality is good
+
+    def refresh(self) -> None:
+        """Move the latencies added since the last call into the histograms."""
+        for name, stats in self.poller.stats.items():
+            h = self._histograms.get(name)
+            if h is None:
+                h = self._histograms[name] = _Histogram()
+            window = stats.latencies
+            new = window.total - h.seen
+            if new > 0:
+                h.add(window.tail(new))
+                h.seen = window.total
+
+    def collect(self) -> Iterator[Any]:
+        from prometheus_client.core import (
+            CounterMetricFamily,
+            GaugeMetricFamily,
+            HistogramMetricFamily,
+        )
+
+        self.refresh()
+        stats = self.poller.stats
+        up = GaugeMetricFamily(
+            "plcstack_plc_up", "1 if the PLC's latest sample was good", labels=["plc"]
+        )
+        for name in stats:
+            up.add_metric([name], 1.0 if self._up.get(name) else 0.0)
+        yield up
+        counters = [
+            ("requests", "requests sent to the PLC"),
+            ("errors", "failed requests and writes"),
+            ("reconnects", "connections re-established"),
+            ("connect_failures", "failed connection attempts"),
+            ("overruns", "scans that ran past their next due time"),
+            ("samples", "samples delivered"),
+            ("bad_samples", "samples of bad quality"),
+            ("writes", "writes requested"),
+        ]
+        for field, doc in counters:
+            family = CounterMetricFamily(f"plcstack_{field}", doc, labels=["plc"])
+            for name, s in stats.items():
+                family.add_metric([name], float(getattr(s, field)))
+            yield family
+        hist = HistogramMetricFamily(
+            "plcstack_request_latency_seconds", "PLC request latency", labels=["plc"]
+        )
+        for name, h in self._histograms.items():
+            hist.add_metric([name], h.buckets(), h.sum)
+        yield hist
+        yield CounterMetricFamily(
+            "plcstack_dropped_samples",
+            "samples dropped because the consumer fell behind",
+            value=float(getattr(self.poller, "dropped", 0)),
+        )
+        if self.sinks:
+            gauges: dict[str, tuple[str, Callable[[Any], float]]] = {
+                "plcstack_buffer_backlog_messages": ("messages waiting", lambda k: len(k.buffer)),
+                "plcstack_buffer_backlog_bytes": (
+                    "bytes waiting",
+                    lambda k: k.buffer.backlog_bytes,
+                ),
+                "plcstack_mqtt_connected": ("1 while connected", lambda k: float(k.connected)),
+            }
+            for metric, (doc, get) in gauges.items():
+                g = GaugeMetricFamily(metric, doc, labels=["sink"])
+                for i, sink in enumerate(self.sinks):
+                    g.add_metric([str(i)], float(get(sink)))
+                yield g
+            totals: dict[str, tuple[str, Callable[[Any], float]]] = {
+                "plcstack_buffer_dropped_messages": (
+                    "messages dropped by the byte budget",
+                    lambda k: k.buffer.dropped,
+                ),
+                "plcstack_mqtt_sent": (
+                    "messages acknowledged by the broker",
+                    lambda k: k.stats.sent,
+                ),
+                "plcstack_mqtt_replayed": (
+                    "messages sent after a reconnect",
+                    lambda k: k.stats.replayed,
+                ),
+            }
+            for metric, (doc, get) in totals.items():
+                c = CounterMetricFamily(metric, doc, labels=["sink"])
+                for i, sink in enumerate(self.sinks):
+                    c.add_metric([str(i)], float(get(sink)))
+                yield c
+        if self.rbe is not None:
+            yield CounterMetricFamily(
+                "plcstack_rbe_suppressed",
+                "samples held back by report-by-exception",
+                value=float(self.rbe.suppressed),
+            )
+
+
+class MetricsServer:
+    """Serves ``/metrics`` and ``/healthz``; ``healthy()`` returns None or the reason it is not."""
+
+    def __init__(
+        self,
+        collector: PlcstackCollector,
+        settings: MetricsSettings | None = None,
+        healthy: Callable[[], str | None] = lambda: None,
+    ) -> None:
+        from prometheus_client import CollectorRegistry
+
+        self.collector = collector
+        self.settings = settings or MetricsSettings()
+        self.healthy = healthy
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(collector)
+        self._server: asyncio.Server | None = None
+        self._refresher: asyncio.Task[None] | None = None
+        self.port = self.settings.port
+
+    async def start(self) -> None:
+        self._server = await asyncio.start_server(
+            self._handle, self.settings.host, self.settings.port, limit=MAX_REQUEST
+        )
+        self.port = self._server.sockets[0].getsockname()[1]
+        self._refresher = asyncio.create_task(self._refresh_loop())
+
+    async def _refresh_loop(self) -> None:
+        while True:
+            await asyncio.sleep(1.0)
+            self.collector.refresh()
+
+    async def aclose(self) -> None:
+        if self._refresher is not None:
+            self._refresher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._refresher
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+
+    async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            async with asyncio.timeout(5):
+                try:
+                    head = await reader.readuntil(b"\r\n\r\n")
+                except asyncio.LimitOverrunError:
+                    head = b"TOO-LARGE / HTTP/1.1\r\n\r\n"
+            request_line = head.split(b"\r\n", 1)[0].decode("latin-1")
+            parts = request_line.split()
+            method, path = (parts[0], parts[1]) if len(parts) >= 2 else ("", "")
+            path = path.split("?", 1)[0]
+            if method == "TOO-LARGE":
+                status, ctype, body = "431 Request Header Fields Too Large", "text/plain", b"\n"
+            elif path not in ("/metrics", "/healthz"):
+                status, ctype, body = "404 Not Found", "text/plain", b"not found\n"
+            elif method not in ("GET", "HEAD"):
+                status, ctype, body = "405 Method Not Allowed", "text/plain", b"GET only\n"
+            elif path == "/healthz":
+                reason = self.healthy()
+                if reason is None:
+                    status, ctype, body = "200 OK", "text/plain", b"ok\n"
+                else:
+                    status, ctype, body = (
+                        "503 Service Unavailable",
+                        "text/plain",
+                        (reason + "\n").encode(),
+                    )
+            else:
+                from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+                status, ctype, body = "200 OK", CONTENT_TYPE_LATEST, generate_latest(self.registry)
+            writer.write(
+                f"HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\nContent-Length: {len(body)}\r\n"
+                "Connection: close\r\n\r\n".encode()
+            )
+            if method != "HEAD":
+                writer.write(body)
+            await writer.drain()
+        except (
+            TimeoutError,
+            asyncio.IncompleteReadError,
+            asyncio.LimitOverrunError,
+            ConnectionError,
+        ):
+            pass
+        finally:
+            writer.close()
+            with contextlib.suppress(ConnectionError):
+                await writer.wait_closed()
