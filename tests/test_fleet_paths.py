@@ -3,7 +3,7 @@
 * E71: a word read already checked reuses its request object and bytes; a normal 01H answer
   over TCP is cut and decoded in one step. Against the general path on random answer streams.
 * The check for unsolicited bytes before a request: the general path lets the event loop run
-  once; the fast path asks the kernel (FIONREAD) and skips that pass when nothing waits. Both must
+  once; the fast path asks the kernel (one poll) and skips that pass when nothing waits. Both must
   find stale bytes wherever they are (already delivered, or still in the kernel) and never return
   a stale answer.
 """
@@ -48,6 +48,7 @@ class _StaleServer:
         self.connections = 0
         self.extra = b""
         self.extra_after = b""
+        self.close_after = b""
         self.delay = 0.0
         self.listener = socket.create_server(("127.0.0.1", 0))
         self.port = self.listener.getsockname()[1]
@@ -65,6 +66,8 @@ class _StaleServer:
             for line in lines:
                 answer = line.split()[-1]
                 conn.sendall(answer + b"\n")
+                if answer == self.close_after:
+                    return
                 if self.extra and answer == self.extra_after:
                     time.sleep(self.delay)
                     conn.sendall(self.extra)
@@ -124,6 +127,30 @@ async def test_stale_bytes_are_found_on_both_paths(
 
 
 @pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
+@pytest.mark.parametrize("where", ["delivered", "in-kernel"])
+async def test_peer_close_between_requests_reconnects_on_both_paths(
+    stale_server: Any, general: bool, where: str
+) -> None:
+    """The PLC closed the connection after an answer: the next request reconnects at once, as
+    it must when the end of stream waits in the kernel (the fast path's poll reports it)."""
+    client = LineClient(
+        f"line://127.0.0.1:{stale_server.port}", TcpTransport("127.0.0.1", stale_server.port)
+    )
+    client.stale_check_needs_loop_pass = general
+    stale_server.close_after = b"5"
+    async with client:
+        assert await client.read("ASK 5") == [5]
+        if where == "delivered":
+            await asyncio.sleep(0.2)
+        else:
+            time.sleep(0.2)  # noqa: ASYNC251 - the end of stream waits in the kernel
+            assert client.transport.input_waiting()
+        assert await client.read("ASK 6") == [6]
+        assert stale_server.connections == 2
+        assert client.stats.errors == 0
+
+
+@pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
 async def test_clean_requests_are_the_same_on_both_paths(stale_server: Any, general: bool) -> None:
     client = LineClient(
         f"line://127.0.0.1:{stale_server.port}", TcpTransport("127.0.0.1", stale_server.port)
@@ -140,7 +167,8 @@ def _run_codec(fast: bool, requests: list[Any], stream: bytes, cuts: list[int]) 
     """Send ``requests``, feed ``stream`` in pieces, and record every send and event or error."""
     codec = E71ClientConnection("binary", transport="tcp")
     codec.fast_paths = fast
-    codec._fast_stream = codec._fast_stream and fast
+    if not fast:
+        codec._fast_stream = None
     out: list[Any] = []
     for request in requests:
         try:
@@ -230,3 +258,31 @@ async def test_e71_cached_word_read_follows_pc_and_timer_changes() -> None:
                 await plc.read("D0", 300)  # checks still run for an uncached read
     finally:
         await sim.aclose()
+
+
+# -- the poller's batch iterator -------------------------------------------------------------------
+async def test_poller_batches_give_the_samples_iteration_gives() -> None:
+    from tests.test_poll_engine import make, tag
+
+    poller, _ = make({f"p{i}": [tag("w", "D0", count=4)] for i in range(5)}, interval=0.005)
+    await poller.start()
+    seen: list[Any] = []
+    async with asyncio.timeout(10):
+        async for batch in poller.batches():
+            assert batch, "never an empty batch"
+            seen += batch
+            if len(seen) >= 50:
+                break
+    assert all(s.quality.name == "GOOD" for s in seen)
+    await asyncio.sleep(0.05)  # more samples wait in the buffer
+    await poller.aclose()
+    buffered = list(poller._queue)
+    assert buffered, "the test needs samples left in the buffer"
+    rest = [s async for batch in poller.batches() for s in batch]  # ends: the poller is closed
+    assert rest == buffered
+
+    # the same buffer through the sample iterator
+    again, _ = make({"p0": [tag("w", "D0", count=4)]}, interval=0.005)
+    again._queue.extend(buffered)
+    await again.aclose()
+    assert [s async for s in again] == buffered

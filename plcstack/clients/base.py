@@ -494,7 +494,7 @@ class RequestClient(Client, Generic[E]):
             # connection before sending. Bytes the OS holds but the loop has not delivered yet
             # need two loop passes: in the first, asyncio's selector finds them and queues the
             # reader *behind* this task; in the second, the reader has run. A transport that can
-            # ask the OS (TCP, UDP: FIONREAD) and hears "nothing waits" spares the request both
+            # ask the OS (TCP: one ``poll``) and hears "nothing waits" spares the request both
             # passes (fast path; tests/test_fleet_paths.py compares the two).
             if self.stale_check_needs_loop_pass or transport.input_waiting():
                 await asyncio.sleep(0)

@@ -70,6 +70,19 @@ class ReceiveBuffer:
             self._pos = 0
         return out
 
+    def take_prefixed(self, prefix: bytes, n: int) -> bytes | None:
+        """Take exactly ``n`` bytes if that many are buffered and they start with ``prefix``;
+        else ``None``, and nothing is taken (a decoder's fast path for a known answer)."""
+        buf, pos = self._buf, self._pos
+        if len(buf) - pos < n or not buf.startswith(prefix, pos):
+            return None
+        self._pos = end = pos + n
+        out = bytes(buf[pos:end])
+        if end > 4096 and end * 2 > len(buf):
+            del buf[:end]
+            self._pos = 0
+        return out
+
     def take_all(self) -> bytes:
         return self.take(len(self))
 

@@ -235,8 +235,12 @@ class E71ClientConnection:
         self._unit = 2 if self.code is Code.ASCII else 1
         self._framer = response_framer(transport, self.code)
         self._pending: deque[E71Request] = deque()
-        self._fast_stream = (
-            self.fast_paths and self._unit == 1 and isinstance(self._framer, StreamResponses)
+        framer = self._framer
+        #: the TCP framer when the 01H fast path applies (binary), else None
+        self._fast_stream: StreamResponses | None = (
+            framer
+            if self.fast_paths and self._unit == 1 and isinstance(framer, StreamResponses)
+            else None
         )
         #: the last ReadWords sent and its encoding (frozen: the same object encodes the same)
         self._last_read: ReadWords | None = None
@@ -270,12 +274,12 @@ class E71ClientConnection:
 
     def next_event(self) -> Response | ExtensionResponse | NeedData:
         pending = self._pending
-        if self._fast_stream and pending and type(req := pending[0]) is ReadWords:
+        stream = self._fast_stream
+        if stream is not None and pending and type(req := pending[0]) is ReadWords:
             # 01H in binary over TCP: a normal answer (81H 00H + the words) is cut and decoded
             # at once; anything else (short, an error code, a trailer to skip) takes the
             # general path below, which decides exactly as before.
-            framer = cast(StreamResponses, self._framer)
-            normal = framer.take_normal(0x81, 2 + 2 * req.count)
+            normal = stream.take_normal(b"\x81\x00", 2 + 2 * req.count)
             if normal is not None:
                 pending.popleft()
                 return WordsResponse(1, _words_struct(req.count).unpack_from(normal, 2))

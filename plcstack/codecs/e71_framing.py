@@ -374,14 +374,14 @@ class StreamResponses:
         """A 5BH answer was taken: a 00H trailer may follow it (§13 A3)."""
         self._skip_trailer = True
 
-    def take_normal(self, subheader: int, size: int) -> bytes | None:
-        """Binary only: the ``size`` bytes of a normal answer (``subheader``, end code 00H) if
-        they are all buffered and no trailer is to be skipped, else ``None`` (and nothing
-        taken): the fast path of :meth:`next_frame` for an answer whose size is known."""
-        buf = self._buf
-        if self._skip_trailer or len(buf) < size or buf[0] != subheader or buf[1] != 0:
+    def take_normal(self, head: bytes, size: int) -> bytes | None:
+        """Binary only: the ``size`` bytes of a normal answer starting with ``head``
+        (subheader, end code 00H) if they are all buffered and no trailer is to be skipped,
+        else ``None`` (and nothing taken): the fast path of :meth:`next_frame` for an answer
+        whose size is known."""
+        if self._skip_trailer:
             return None
-        return buf.take(size)
+        return self._buf.take_prefixed(head, size)
 
     def next_frame(self, request: E71Request | None, size_of: SizeOf) -> bytes | NeedData:
         buf = self._buf

@@ -40,7 +40,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Self
 
@@ -238,6 +238,24 @@ class Poller(AsyncResource):
             self._wakeup.clear()
             await self._wakeup.wait()
         return self._queue.popleft()
+
+    async def batches(self) -> AsyncIterator[list[Sample]]:
+        """Every sample, in the order ``async for sample in poller`` gives them, as lists: all
+        that is buffered at each wake-up (never an empty list). Ends like the sample iterator.
+
+        For consumers of many PLCs: one wake-up and one list per event-loop pass instead of
+        one ``__anext__`` per sample (at 1000 PLCs, 10 Hz: 10,000 coroutine steps a second).
+        """
+        queue = self._queue
+        while True:
+            while not queue:
+                if self._closed:
+                    return
+                self._wakeup.clear()
+                await self._wakeup.wait()
+            batch = list(queue)
+            queue.clear()
+            yield batch
 
     def pending(self) -> int:
         """Samples buffered and not yet taken by the consumer."""

@@ -68,7 +68,7 @@ class Transport(ABC):
 
         ``True`` when the transport cannot tell (the default): the client then lets the loop
         run once before a request, so that such bytes reach ``take_received``. A transport
-        that can ask the OS cheaply (TCP: ``FIONREAD``) answers ``False`` when nothing waits,
+        that can ask the OS cheaply (TCP: one ``poll``) answers ``False`` when nothing waits,
         which spares every request that loop pass.
         """
         return True

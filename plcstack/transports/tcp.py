@@ -3,27 +3,27 @@
 from __future__ import annotations
 
 import asyncio
+import select
 import socket
-
-try:
-    import fcntl
-    import termios
-
-    _FIONREAD: int | None = termios.FIONREAD
-except ImportError:  # pragma: no cover - not on Unix: input_waiting() always says "maybe"
-    _FIONREAD = None
 
 from plcstack.errors import ConnectionLost
 from plcstack.transports.base import ProtocolTransport, QueueProtocolMixin, open_with_timeout
 
 __all__ = ["TcpTransport"]
 
+#: what makes a socket "have something for the loop": data, end of stream, an error
+_READABLE = (
+    getattr(select, "POLLIN", 0)
+    | getattr(select, "POLLPRI", 0)
+    | getattr(select, "POLLRDHUP", 0)
+    | getattr(select, "POLLERR", 0)
+    | getattr(select, "POLLHUP", 0)
+)
+
 
 #: bytes one receive takes at most; larger replies simply arrive in several chunks. Every reply
 #: of our protocols but the largest FETCH/WRITE and S5-LAN ones fits in one.
 RECEIVE_BUFFER = 4096
-#: FIONREAD's argument and its answer when nothing waits (a C int)
-_NOTHING = bytes(4)
 
 
 class _TcpProtocol(QueueProtocolMixin, asyncio.BufferedProtocol):
@@ -60,8 +60,8 @@ class TcpTransport(ProtocolTransport):
         super().__init__(f"{host}:{port}")
         self.host = host
         self.port = port
-        #: the socket's descriptor while open, for FIONREAD; -1 when unknown or closed
-        self._fd = -1
+        #: a poll object watching the socket while open (``input_waiting``); None when closed
+        self._watch: select.poll | None = None
 
     async def open(self, timeout: float | None) -> None:
         self.abort()
@@ -72,37 +72,40 @@ class TcpTransport(ProtocolTransport):
             timeout,
         )
         sock = transport.get_extra_info("socket")
-        fd = -1
+        watch = None
         if sock is not None:
             # Requests are small and latency-bound: never let Nagle hold one back.
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            fd = sock.fileno()
+            if hasattr(select, "poll"):
+                watch = select.poll()
+                watch.register(sock.fileno(), _READABLE)
         self._transport, self._protocol = transport, protocol
-        self._fd = fd
+        self._watch = watch
 
     def input_waiting(self) -> bool:
-        """Ask the kernel (FIONREAD) whether received bytes wait that the loop has not read.
+        """Ask the kernel (one ``poll`` with timeout 0) whether the socket has anything the loop
+        has not handled yet: received bytes, the peer's end of stream, an error.
 
-        Only meaningful while ``is_open`` (the client asks only then): the descriptor is ours
-        until the asyncio transport closes, and it is closing as soon as ``is_open`` is false.
+        The descriptor is ours until ``connection_lost`` has run (which sets ``_closed_exc``);
+        after that, or without ``poll``, the answer is "maybe" (``True``).
         """
-        fd = self._fd
-        if fd < 0 or _FIONREAD is None or not self.is_open:
+        watch, protocol = self._watch, self._protocol
+        if watch is None or protocol is None or protocol._closed_exc is not None:
             return True
         try:
-            return fcntl.ioctl(fd, _FIONREAD, _NOTHING) != _NOTHING
+            return bool(watch.poll(0))
         except OSError:
             return True
 
     def abort(self) -> None:
-        self._fd = -1
+        self._watch = None
         super().abort()
 
     def _send(self, data: bytes) -> None:
         self._transport.write(data)  # type: ignore[union-attr]
 
     async def aclose(self) -> None:
-        self._fd = -1
+        self._watch = None
         transport, protocol = self._transport, self._protocol
         self._transport = None
         self._protocol = None
