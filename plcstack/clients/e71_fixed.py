@@ -57,6 +57,9 @@ __all__ = ["E71BroadcastReceiver", "E71FixedBufferClient", "Message"]
 Message = tuple[int, ...] | bytes
 
 _END = object()
+#: messages received and not yet taken by ``receive`` before the reader stops reading (without
+#: procedure the PLC sends at will; a consumer that falls behind must not cost memory)
+INBOX_MAX = 64
 
 
 class E71FixedBufferClient(Client):
@@ -84,6 +87,8 @@ class E71FixedBufferClient(Client):
         self._udp = isinstance(transport, UdpTransport)
         self.codec: FixedBufferConnection | RawBufferConnection = self._new_codec()
         self._inbox: asyncio.Queue[Message | object] = asyncio.Queue()
+        #: set when a message was taken from a full inbox (the reader waits for it)
+        self._space = asyncio.Event()
         self._ack: asyncio.Future[int] | None = None
         self._reader: asyncio.Task[None] | None = None
 
@@ -120,6 +125,11 @@ class E71FixedBufferClient(Client):
     async def _read_loop(self, codec: FixedBufferConnection | RawBufferConnection) -> None:
         try:
             while True:
+                # Flow control: with INBOX_MAX messages nobody took yet, stop reading; the
+                # transport's bounded queue then pauses the socket and TCP stops the PLC.
+                while self._inbox.qsize() >= INBOX_MAX:
+                    self._space.clear()
+                    await self._space.wait()
                 codec.receive_data(await self.transport.read())
                 while (event := codec.next_event()) is not NEED_DATA:
                     self._dispatch(event)
@@ -229,6 +239,7 @@ class E71FixedBufferClient(Client):
         try:
             async with asyncio.timeout(timeout):
                 item = await self._inbox.get()
+            self._space.set()
         except TimeoutError:
             raise PlcTimeout(
                 f"no fixed-buffer message within {timeout:g} s", plc=self.name, request="receive"

@@ -117,11 +117,34 @@ class FixedBufferConnection:
         return w.getvalue()
 
     # -- receiving ------------------------------------------------------------------------------
+    @property
+    def max_held(self) -> int:
+        """Bytes this connection holds received and undecoded at most: while we owe the peer
+        our answer it may only have sent one telegram and its answer to ours (§8.1), so twice
+        the largest telegram is generous; more is a peer that ignores the procedure."""
+        return 2 * (4 + 2 * FIXED_BUFFER_MAX_WORDS[self.code]) * self._u
+
+    @property
+    def held(self) -> int:
+        """Bytes received and not yet decoded (the counter the bound is tested on)."""
+        return len(self._buf) + sum(len(d) for d in self._datagrams)
+
     def receive_data(self, data: bytes) -> None:
         if self.transport == "udp":
+            if len(self._datagrams) >= 2:
+                # one telegram and one answer may wait for our acknowledgement (§8.1)
+                raise RemoteProtocolError(
+                    "fixed buffer: the peer sent a third datagram while our answer to its "
+                    "telegram was still owed (the procedure allows one at a time)"
+                )
             self._datagrams.append(bytes(data))
-        else:
-            self._buf.feed(data)
+            return
+        if len(self._buf) + len(data) > self.max_held:
+            raise RemoteProtocolError(
+                f"fixed buffer: the peer sent more than {self.max_held} bytes while our answer "
+                "to its telegram was still owed (the procedure allows one telegram at a time)"
+            )
+        self._buf.feed(data)
 
     def next_event(self) -> FixedBufferData | FixedBufferAck | FixedBufferError | NeedData:
         if self.owe_ack:

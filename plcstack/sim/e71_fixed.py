@@ -36,6 +36,7 @@ from plcstack.codecs.e71_buffers import (
     FixedBufferError,
     RawBufferConnection,
 )
+from plcstack.errors import RemoteProtocolError
 from plcstack.sim.base import Simulator
 
 __all__ = ["FixedBufferSimulator", "start_fixed_buffer"]
@@ -215,7 +216,13 @@ class _TcpConn(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         if self.transport is None:
             return
-        self.codec.receive_data(data)
+        try:
+            self.codec.receive_data(data)
+        except RemoteProtocolError:
+            # a partner that floods while its telegram waits for our answer: close, as the
+            # codec holds no more than the procedure allows
+            self.transport.abort()
+            return
         self.pump()
 
     def pump(self) -> None:
@@ -245,7 +252,10 @@ class _UdpEndpoint(asyncio.DatagramProtocol):
         sim.partner = (addr[0], addr[1])
         codec = sim._udp_codec
         assert codec is not None
-        codec.receive_data(data)
+        try:
+            codec.receive_data(data)
+        except RemoteProtocolError:
+            return  # more datagrams than the procedure allows while an answer is owed: dropped
         sim._pump(codec)
 
 

@@ -12,11 +12,19 @@ import asyncio
 import collections
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Coroutine
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
 
-__all__ = ["ProtocolTransport", "QueueProtocolMixin", "Transport", "open_with_timeout"]
+__all__ = [
+    "MAX_QUEUED",
+    "ProtocolTransport",
+    "QueueProtocolMixin",
+    "ReceiveCounters",
+    "Transport",
+    "open_with_timeout",
+]
 
 T = TypeVar("T")
 
@@ -74,17 +82,53 @@ class Transport(ABC):
         return True
 
 
+#: bytes a connection holds received and unread before it stops reading (TCP, serial) or drops
+#: datagrams (UDP). The largest legal answer of our protocols is a little over 2 KiB (S5-LAN,
+#: FETCH/WRITE), so 64 KiB is a small multiple of it; a peer that streams to an idle client
+#: (measured before: 2 GB in 10 s over TCP) is held here, the rest stays in the kernel's buffer
+#: and TCP flow control stops the peer.
+MAX_QUEUED = 64 * 1024
+
+
+@dataclass
+class ReceiveCounters:
+    """What a transport's receive queue holds and has held: the bound of item 1 of issue 11 is
+    asserted on these, not on the process's memory."""
+
+    #: bytes received and not yet read now
+    queued: int = 0
+    #: the most ``queued`` ever was
+    peak: int = 0
+    #: times reading was paused because ``queued`` passed the limit (stream transports)
+    pauses: int = 0
+    #: datagrams (UDP) dropped because ``queued`` passed the limit, and their bytes
+    dropped: int = 0
+    dropped_bytes: int = 0
+
+
 class QueueProtocolMixin:
     """asyncio protocol half shared by TCP, UDP and serial: a chunk queue and one waiting reader.
 
     Hand-rolled instead of ``asyncio.StreamReader`` because the hot path of a poll is "write, wait
     for one short reply": one future per wait and no extra buffering copies keep us close to the
     raw-asyncio floor the benchmarks compare against.
+
+    The queue is bounded by ``max_queued`` bytes: above it a stream transport pauses reading
+    (asyncio flow control; resumed once the reader took the queue) and a datagram transport
+    drops what arrives, counting it. Nobody reads between requests, so only a peer sending
+    unasked can fill it; the request clients then find those bytes and reconnect.
     """
 
-    def _init_queue(self, peer: str) -> None:
+    #: drop datagrams instead of pausing (UDP: a datagram socket cannot push back)
+    _drop_when_full = False
+
+    def _init_queue(self, peer: str, max_queued: int = MAX_QUEUED) -> None:
         self._peer = peer
         self._chunks: collections.deque[bytes] = collections.deque()
+        self.max_queued = max_queued
+        self.counters = ReceiveCounters()
+        self._paused = False
+        self._flow: asyncio.BaseTransport | None = None
         self._waiter: asyncio.Future[None] | None = None
         self._closed_exc: BaseException | None = None
         #: deadline of the wait in progress (``None``: none, or a wait without deadline)
@@ -93,7 +137,24 @@ class QueueProtocolMixin:
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at = 0.0
 
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self._flow = transport
+
     def _push(self, data: bytes) -> None:
+        counters = self.counters
+        queued = counters.queued + len(data)
+        if queued > self.max_queued:
+            if self._drop_when_full:
+                counters.dropped += 1
+                counters.dropped_bytes += len(data)
+                return
+            if not self._paused and self._flow is not None:
+                self._paused = True
+                counters.pauses += 1
+                self._flow.pause_reading()  # type: ignore[attr-defined]
+        counters.queued = queued
+        if queued > counters.peak:
+            counters.peak = queued
         self._chunks.append(data)
         waiter = self._waiter
         if waiter is not None and not waiter.done():
@@ -127,8 +188,21 @@ class QueueProtocolMixin:
         if join and len(self._chunks) > 1:
             data = b"".join(self._chunks)
             self._chunks.clear()
-            return data
-        return self._chunks.popleft()
+        else:
+            data = self._chunks.popleft()
+        self._taken(len(data))
+        return data
+
+    def _taken(self, n: int) -> None:
+        """``n`` queued bytes were handed to the reader: resume reading once the queue is empty
+        (not at the first byte below the limit, which would pause again at once)."""
+        counters = self.counters
+        counters.queued -= n
+        if self._paused and not self._chunks:
+            self._paused = False
+            flow = self._flow
+            if flow is not None and not flow.is_closing():
+                flow.resume_reading()  # type: ignore[attr-defined]
 
     def _arm(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
         if self._timer is not None:
@@ -188,11 +262,19 @@ class ProtocolTransport(Transport):
         return self._protocol._next_chunk(self._join, deadline)
 
     def take_received(self) -> list[bytes]:
-        if self._protocol is None or not self._protocol._chunks:
+        protocol = self._protocol
+        if protocol is None or not protocol._chunks:
             return []
-        chunks = list(self._protocol._chunks)
-        self._protocol._chunks.clear()
+        chunks = list(protocol._chunks)
+        protocol._chunks.clear()
+        protocol._taken(protocol.counters.queued)
         return chunks
+
+    @property
+    def counters(self) -> ReceiveCounters:
+        """Receive-queue counters of the current connection (fresh ones when closed)."""
+        protocol = self._protocol
+        return protocol.counters if protocol is not None else ReceiveCounters()
 
     def abort(self) -> None:
         transport = self._transport

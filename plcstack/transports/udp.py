@@ -10,6 +10,8 @@ __all__ = ["UdpTransport"]
 
 
 class _UdpProtocol(QueueProtocolMixin, asyncio.DatagramProtocol):
+    _drop_when_full = True  # a datagram socket cannot push back: count and drop
+
     def __init__(self, peer: str) -> None:
         self._init_queue(peer)
         self.remote: tuple[str, int] | None = None
