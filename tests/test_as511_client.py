@@ -315,8 +315,8 @@ def test_cli_sim_and_read(mode: str) -> None:
             assert line.startswith("serial port /dev/pts/")
             url = "as511://" + line.removeprefix("serial port ")
         else:
-            assert line.startswith("listening on 127.0.0.1:")
-            url = "as511+tcp://" + line.removeprefix("listening on ")
+            assert line.startswith("listening on 127.0.0.1:") and line.endswith(" (TCP)")
+            url = "as511+tcp://" + line.removeprefix("listening on ").removesuffix(" (TCP)")
         out = subprocess.run(
             [sys.executable, "-m", "plcstack", "read", url, "DB5.DW0", "4", "--json"],
             capture_output=True,

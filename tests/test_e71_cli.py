@@ -104,8 +104,8 @@ async def test_sim_subcommand_announces_and_serves() -> None:
     try:
         assert proc.stdout is not None
         line = (await asyncio.wait_for(proc.stdout.readline(), 30)).decode()
-        assert line.startswith("listening on 127.0.0.1:")
-        port = int(line.rsplit(":", 1)[1])
+        assert line.startswith("listening on 127.0.0.1:") and line.endswith(" (UDP)\n")
+        port = int(line.split()[2].rsplit(":", 1)[1])
         rc, out, err = await run_cli(
             "read", f"e71+udp://127.0.0.1:{port}?code=ascii", "D9000", "2", "--json"
         )

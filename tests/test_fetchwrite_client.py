@@ -439,7 +439,8 @@ def test_cli_sim_and_read_write(capsys: pytest.CaptureFixture[str]) -> None:
         assert proc.stdout is not None
         line = proc.stdout.readline()
         assert line.startswith("listening on 127.0.0.1:")
-        url = f"fetchwrite://{line.split()[-1]}?mk=1"
+        assert line.endswith(" (TCP)\n")
+        url = f"fetchwrite://{line.split()[2]}?mk=1"
         assert main(["read", url, "DB10.DW5", "3", "--json"]) == 0
         assert capsys.readouterr().out.strip() == (
             '{"address": "DB10.DW5", "values": [4096, 4097, 4098]}'
@@ -465,7 +466,7 @@ async def test_cli_serve_cli_in_process() -> None:
     lines: list[str] = []
     task = asyncio.create_task(fwsim.serve_cli(args, lines.append))
     await wait_for(lambda: bool(lines))
-    assert lines[0].startswith("listening on 127.0.0.1:") and "(WRITE)" in lines[0]
+    assert lines[0].startswith("listening on 127.0.0.1:") and "(TCP, WRITE)" in lines[0]
     task.cancel()
     with contextlib.suppress(asyncio.CancelledError):
         await task

@@ -534,7 +534,7 @@ async def test_cli_sim_serves_until_stopped() -> None:
     try:
         assert proc.stdout is not None
         line = (await asyncio.wait_for(proc.stdout.readline(), 30)).decode().strip()
-        match = re.fullmatch(r"listening on 127\.0\.0\.1:(\d+)", line)
+        match = re.fullmatch(r"listening on 127\.0\.0\.1:(\d+) \(TCP\)", line)
         assert match is not None, line
         port = int(match.group(1))
         assert port != 0

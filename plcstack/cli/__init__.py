@@ -2,7 +2,19 @@
 
 Each subcommand lives in its own module with a ``register(subparsers)`` function that sets
 ``func`` on its parser: an ``async def`` taking the parsed arguments and returning the exit code.
-Exit codes: 0 success, 1 a PLC-side failure (error code, timeout, dead peer), 2 bad usage.
+
+One exit-code rule for every subcommand (``EXIT_CODES``, also in ``plcstack --help``):
+
+====  ==========================================================================================
+0     success (also ``--help``, ``--version``, and a SIGTERM that ends ``poll``/``demo``/``sim``)
+1     the PLC side failed: error code, timeout, unreachable or lost connection, malformed answer
+2     bad usage: options, URL, address, value, config file, a simulator that cannot start
+130   interrupted with Ctrl-C (SIGINT); ``poll`` and ``demo`` still print their statistics first
+====  ==========================================================================================
+
+Every failure is exactly one line on stderr, ``plcstack: error: ...``. A bug (an exception that is
+no ``PlcError``) is one line too, ``plcstack: internal error: ...`` with exit 1; the traceback
+follows only with ``--log-level debug`` (``-vv``).
 """
 
 from __future__ import annotations
@@ -10,10 +22,13 @@ from __future__ import annotations
 import argparse
 import asyncio
 import importlib
+import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
+from plcstack import __version__
 from plcstack.errors import AddressError, PlcError
+from plcstack.logs import LEVELS, configure
 
 #: subcommand modules, in the order ``--help`` lists them
 COMMAND_MODULES = [
@@ -26,29 +41,106 @@ COMMAND_MODULES = [
     "plcstack.cli.bench",
 ]
 
+EXIT_OK = 0
+EXIT_PLC = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+EXIT_CODES = (
+    "exit codes: 0 success; 1 the PLC side failed (error code, timeout, unreachable); "
+    "2 bad usage (options, URL, address, value, config, a simulator that cannot start); "
+    "130 Ctrl-C"
+)
+
+_log = logging.getLogger("plcstack.cli")
+
+
+class UsageError(Exception):
+    """Bad usage found after parsing (a simulator that cannot bind, a missing option, a file
+    that cannot be read): exit 2 with this one-line message."""
+
+
+def plain_text(doc: str | None) -> str:
+    """A module docstring as a help text: reStructuredText's double backticks dropped."""
+    return (doc or "").replace("``", "")
+
+
+def add_logging_options(parser: argparse.ArgumentParser) -> None:
+    """``-v``/``--log-level`` on ``parser``. SUPPRESS defaults, so the value given on the top
+    level (``plcstack -v read ...``) survives a subcommand that did not repeat it."""
+    group = parser.add_argument_group("logging")
+    group.add_argument(
+        "-v",
+        "--verbose",
+        action="count",
+        default=argparse.SUPPRESS,
+        help="more log output on stderr: -v info, -vv debug (with the frame trace)",
+    )
+    group.add_argument(
+        "--log-level",
+        choices=LEVELS,
+        type=str.lower,
+        default=argparse.SUPPRESS,
+        help="log level (default warning); debug shows every frame as hex",
+    )
+
+
+def _all_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser]:
+    yield parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in dict.fromkeys(action.choices.values()):  # aliases share a parser
+                yield from _all_parsers(sub)
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="plcstack",
         description="Read, write, poll and simulate legacy PLCs (MELSEC E71, Siemens S5).",
+        epilog=EXIT_CODES + ". Documentation: the docs/ folder of the source distribution; "
+        "examples: plcstack demo --write-config FILE.",
     )
+    parser.add_argument("--version", action="version", version=f"plcstack {__version__}")
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(subparsers)
+    for each in _all_parsers(parser):
+        add_logging_options(each)
     return parser
+
+
+def _level(args: argparse.Namespace) -> str:
+    explicit: str | None = getattr(args, "log_level", None)
+    if explicit is not None:
+        return explicit
+    verbose: int = getattr(args, "verbose", 0)
+    return "warning" if verbose == 0 else "info" if verbose == 1 else "debug"
+
+
+def _fail(kind: str, message: object) -> None:
+    # one line, whatever the message holds
+    text = " ".join(str(message).split()) or "(no message)"
+    print(f"plcstack: {kind}: {text}", file=sys.stderr, flush=True)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    unconfigure = configure(_level(args))
     try:
         code: int = asyncio.run(args.func(args))
     except KeyboardInterrupt:
-        return 130
-    except AddressError as exc:
-        print(f"plcstack: error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_INTERRUPTED
+    except (AddressError, UsageError) as exc:
+        _fail("error", exc)
+        return EXIT_USAGE
     except PlcError as exc:
-        print(f"plcstack: error: {exc}", file=sys.stderr)
-        return 1
+        _fail("error", exc)
+        return EXIT_PLC
+    except Exception as exc:
+        _log.debug("traceback of the internal error", exc_info=True)
+        _fail("internal error", f"{type(exc).__name__}: {exc} (a bug; -vv shows the traceback)")
+        return EXIT_PLC
+    finally:
+        unconfigure()
     return code

@@ -2,7 +2,7 @@
 
 On a terminal the table is redrawn in place (ANSI escapes, no curses); when stdout is not a
 terminal every sample is printed as one plain line. Runs until Ctrl-C unless ``--duration`` is
-given; the poller's statistics go to stderr at the end.
+given; the poller's statistics go to stderr at the end. Exit 0, or 130 after Ctrl-C.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ import sys
 import time
 from typing import Any, TextIO
 
-from plcstack.cli.poll import install_stop_signals, remove_stop_signals
+from plcstack.cli import plain_text
+from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
 from plcstack.poll.demo import DemoPlant, start_plant
 from plcstack.poll.engine import Poller, Quality, Sample, format_stats
 
@@ -29,7 +30,7 @@ def register(subparsers: Any) -> None:
     demo = subparsers.add_parser(
         "demo",
         help="simulate PLCs of every protocol and poll them all (live table)",
-        description=__doc__,
+        description=plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     demo.add_argument(
@@ -90,7 +91,7 @@ async def run_demo(args: argparse.Namespace, out: TextIO | None = None) -> int:
             print("plcstack demo: no simulator is available", file=sys.stderr)
             return 1
         poller = Poller(plant.config)
-        stop = asyncio.Event()
+        stop = StopEvent()
         installed = install_stop_signals(stop)
         live = out.isatty() and os.environ.get("TERM") != "dumb"
         try:
@@ -111,7 +112,7 @@ async def run_demo(args: argparse.Namespace, out: TextIO | None = None) -> int:
         with contextlib.suppress(BrokenPipeError, ValueError):
             out.flush()
         print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
-        return 0
+        return stop.exit_code()
     finally:
         await plant.aclose()
 

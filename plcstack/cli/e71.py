@@ -1,6 +1,6 @@
 """E71-only commands: ``plcstack info|run|stop|loopback URL``, the random access buffer
 (``plcstack rab-read|rab-write``) and the EXPERIMENTAL program/parameter/comment area transfer
-(``plcstack e71-area read|write``, [R] layout of spec §7.8) with a progress bar."""
+(``plcstack e71-area read|write``, the bodies passed on as opaque bytes) with a progress bar."""
 
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ def register(subparsers: Any) -> None:
 
     p = subparsers.add_parser(
         "e71-area",
-        help="E71: EXPERIMENTAL read/write of parameters, programs, comments ([R] layout)",
+        help="E71: EXPERIMENTAL read/write of parameters, programs, comments (bodies are opaque)",
     )
     sub = p.add_subparsers(dest="direction", required=True, metavar="read|write")
     r = sub.add_parser("read", help="read an area to a file (or hex to stdout)")

@@ -2,7 +2,7 @@
 
 stdout carries only samples (JSON lines or InfluxDB line protocol), so Telegraf's ``execd`` input
 or a pipe can consume it; the statistics go to stderr when polling ends (``--duration`` elapsed,
-Ctrl-C, SIGTERM, or the reader of stdout went away).
+Ctrl-C, SIGTERM, or the reader of stdout went away). Exit 0, or 130 after Ctrl-C.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import sys
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TextIO
 
+from plcstack.cli import plain_text
 from plcstack.north.config import parse_north
 from plcstack.north.influx import influx_line
 from plcstack.north.pipeline import North
@@ -34,7 +35,7 @@ def register(subparsers: Any) -> None:
     poll = subparsers.add_parser(
         "poll",
         help="poll the PLCs of a TOML config; samples on stdout, statistics on stderr",
-        description=__doc__,
+        description=plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     poll.add_argument("config", help="TOML file with [[plc]] tables (example: examples/plant.toml)")
@@ -62,13 +63,30 @@ def register(subparsers: Any) -> None:
     poll.set_defaults(func=run_poll)
 
 
+class StopEvent(asyncio.Event):
+    """Set to end polling; ``by`` is the signal that set it, if one did."""
+
+    by: signal.Signals | None = None
+
+    def exit_code(self) -> int:
+        """130 after Ctrl-C (the rule for every subcommand), else 0: SIGTERM is how a
+        supervisor (Telegraf's execd, systemd) ends a poller, not a failure."""
+        return 130 if self.by is signal.SIGINT else 0
+
+
 def install_stop_signals(stop: asyncio.Event) -> list[signal.Signals]:
     """SIGINT/SIGTERM end polling gracefully (so the statistics still get printed)."""
     loop = asyncio.get_running_loop()
     installed = []
+
+    def stopped_by(sig: signal.Signals) -> None:
+        if isinstance(stop, StopEvent) and stop.by is None:
+            stop.by = sig
+        stop.set()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, stop.set)
+            loop.add_signal_handler(sig, stopped_by, sig)
             installed.append(sig)
     return installed
 
@@ -103,7 +121,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     elif args.format != "none":
         line = FORMATS[args.format]
     emit = _emitter(line, out)
-    stop = asyncio.Event()
+    stop = StopEvent()
     installed = install_stop_signals(stop)
     north = North(poller, north_config)
     try:
@@ -129,7 +147,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     finally:
         remove_stop_signals(installed)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
-    return 0
+    return stop.exit_code()
 
 
 async def _report_stats(poller: Poller | Worker, every: float) -> None:

@@ -13,14 +13,13 @@ Needs the optional extra: ``pip install 'plcstack[opcua]'`` (asyncua).
 from __future__ import annotations
 
 import argparse
-import asyncio
 import getpass
 import importlib.util
-import logging
 import sys
 from typing import Any
 
-from plcstack.cli.poll import install_stop_signals, remove_stop_signals
+from plcstack.cli import plain_text
+from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
 from plcstack.north.opcua_config import hash_password, load_opcua_config
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
@@ -36,7 +35,7 @@ def register(subparsers: Any) -> None:
     opcua = servers.add_parser(
         "opcua",
         help="an OPC UA server fed by the poller (needs plcstack[opcua])",
-        description=__doc__,
+        description=plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     opcua.add_argument("config", nargs="?", help="TOML file with [[plc]] tables and [opcua]")
@@ -48,7 +47,6 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="read a password from stdin, print its password_hash for [opcua.users.NAME]",
     )
-    opcua.add_argument("-v", "--verbose", action="store_true", help="log every write (INFO)")
     opcua.set_defaults(func=run_opcua)
 
 
@@ -74,17 +72,14 @@ async def run_opcua(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    logging.basicConfig(
-        level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
-    logging.getLogger("plcstack").setLevel(logging.INFO if args.verbose else logging.WARNING)
+    # -v (INFO) logs every write; the log options are the ones every subcommand has
     config = load_config(args.config)
     opcua_config = load_opcua_config(args.config)
     from plcstack.north.opcua import OpcUaServer, run_until  # asyncua: only when serving
 
     poller = Poller(config)  # every URL and address checked before anything is sent
     server = OpcUaServer(poller, opcua_config)
-    stop = asyncio.Event()
+    stop = StopEvent()
     installed = install_stop_signals(stop)
     try:
         async with poller, server:
@@ -93,4 +88,4 @@ async def run_opcua(args: argparse.Namespace) -> int:
     finally:
         remove_stop_signals(installed)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
-    return 0
+    return stop.exit_code()

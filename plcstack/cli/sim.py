@@ -2,15 +2,24 @@
 
 A simulator module ``plcstack.sim.NAME`` takes part by defining
 ``add_cli_arguments(parser)`` and ``async serve_cli(args, announce)``; ``serve_cli`` calls
-``announce("listening on HOST:PORT")`` (or ``"serial port PATH"``) once it accepts clients, then
-serves until cancelled. Scripts and tests wait for that one line on stdout.
+``announce("listening on HOST:PORT (TCP)")`` (or ``"serial port PATH"``) once it accepts clients,
+then serves until cancelled. Scripts and tests wait for that one line on stdout.
+
+Anything that goes wrong before that line (a port in use or out of range, a host name that does
+not resolve, an option the simulator refuses) is a start-up error: one line on stderr, exit 2.
+Ctrl-C ends the simulator with exit 130, SIGTERM with exit 0.
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import contextlib
 import importlib
+import signal
 from typing import Any
+
+from plcstack.cli import UsageError
 
 #: simulator name -> module
 SIMULATORS = {
@@ -19,6 +28,9 @@ SIMULATORS = {
     "as511": "plcstack.sim.as511",
     "fetchwrite": "plcstack.sim.fetchwrite",
 }
+
+#: port options every simulator may have, checked before anything is bound
+_PORT_OPTIONS = ("port", "write_port")
 
 
 def register(subparsers: Any) -> None:
@@ -33,16 +45,64 @@ def register(subparsers: Any) -> None:
             continue  # not built in this version: `plcstack sim NAME` then says invalid choice
         parser = kinds.add_parser(name, help=(module.__doc__ or "").strip().splitlines()[0])
         module.add_cli_arguments(parser)
-        parser.set_defaults(func=_runner(module))
+        parser.set_defaults(func=_runner(name, module))
 
 
-def _announce(line: str) -> None:
-    print(line, flush=True)
+def check_options(args: argparse.Namespace) -> None:
+    """Option values no simulator can use, refused before anything is bound."""
+    for option in _PORT_OPTIONS:
+        value = getattr(args, option, None)
+        if value is not None and not 0 <= value <= 65535:
+            flag = "--" + option.replace("_", "-")
+            raise UsageError(f"{flag} {value}: a port is 0..65535 (0 = any free port)")
+    baud = getattr(args, "baud", None)
+    if baud is not None and baud <= 0:
+        raise UsageError(f"--baud {baud}: a baud rate is a positive number, e.g. 9600")
 
 
-def _runner(module: Any) -> Any:
+def _runner(name: str, module: Any) -> Any:
     async def run(args: argparse.Namespace) -> int:
-        await module.serve_cli(args, _announce)
+        check_options(args)
+        started = False
+
+        def announce(line: str) -> None:
+            nonlocal started
+            started = True
+            print(line, flush=True)
+
+        task = asyncio.current_task()
+        assert task is not None
+        loop = asyncio.get_running_loop()
+        terminated = False
+
+        def on_sigterm() -> None:
+            nonlocal terminated
+            terminated = True
+            task.cancel()
+
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(signal.SIGTERM, on_sigterm)
+        try:
+            await module.serve_cli(args, announce)
+        except (OSError, ValueError, OverflowError) as exc:
+            if started:
+                raise
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            where = _where(args)
+            raise UsageError(f"sim {name} cannot start{where}: {reason}") from None
+        except asyncio.CancelledError:
+            if not terminated:
+                raise
+        finally:
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.remove_signal_handler(signal.SIGTERM)
         return 0
 
     return run
+
+
+def _where(args: argparse.Namespace) -> str:
+    host, port = getattr(args, "host", None), getattr(args, "port", None)
+    if getattr(args, "pty", False) or host is None or port is None:
+        return ""
+    return f" on {host}:{port}"

@@ -25,6 +25,7 @@ from plcstack.errors import (
     PlcTimeout,
     RemoteProtocolError,
 )
+from plcstack.logs import install_trace
 from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
@@ -123,6 +124,8 @@ class Client(AsyncResource):
     ) -> None:
         self.name = name
         self.transport = transport
+        # the DEBUG frame trace (plcstack.frames.PROTOCOL); nothing at all on the path when off
+        install_trace(transport, name, type(self).__module__.rpartition(".")[2])
         self.timeout = check_seconds("timeout", timeout, plc=name)
         self.connect_timeout = check_seconds("connect_timeout", connect_timeout, plc=name)
         self.backoff = backoff if backoff is not None else Backoff()

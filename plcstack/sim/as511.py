@@ -382,7 +382,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         "--pty", action="store_true", help="serve on a new pseudo-terminal instead of TCP"
     )
     parser.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
-    parser.add_argument("--port", type=int, default=0, help="TCP port (default: any free port)")
+    parser.add_argument("--port", type=int, default=5020, help="TCP port (default 5020; 0 = any)")
     parser.add_argument(
         "--baud", type=int, default=None, help="emulate the line rate of this baud rate at 8E1"
     )
@@ -396,6 +396,6 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         sim = pty_sim
     else:
         tcp_sim = await start(host=args.host, port=args.port, baud=args.baud)
-        announce(f"listening on {tcp_sim.host}:{tcp_sim.port}")
+        announce(f"listening on {tcp_sim.host}:{tcp_sim.port} (TCP)")
         sim = tcp_sim
     await sim.serve_forever()

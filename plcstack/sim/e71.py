@@ -415,7 +415,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         "--cpu-group",
         choices=[g.value for g in CpuGroup],
         default="VII",
-        help="device ranges of spec §5.2 (default VII = A3A/A3U/A4U)",
+        help="CPU group, which sets the device ranges (default VII = A3A/A3U/A4U; see docs/e71.md)",
     )
     parser.add_argument(
         "--state", choices=[s.value for s in CpuState], default="RUN", help="CPU state"
@@ -435,5 +435,5 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         memory, host=args.host, port=args.port, code=args.code, transport=args.transport
     )
     assert isinstance(sim, (E71TcpSimulator, E71UdpSimulator))
-    announce(f"listening on {sim.host}:{sim.port}")
+    announce(f"listening on {sim.host}:{sim.port} ({args.transport.upper()})")
     await sim.serve_forever()

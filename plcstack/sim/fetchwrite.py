@@ -315,7 +315,11 @@ async def start(
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5030, help="TCP port (default 5030)")
-    parser.add_argument("--mk", action="store_true", help="use the Tani MK header (C.1)")
+    parser.add_argument(
+        "--mk",
+        action="store_true",
+        help="wrap every telegram in the Tani MK header (CPs set up for it)",
+    )
     parser.add_argument(
         "--db-start",
         choices=("word", "byte"),
@@ -336,7 +340,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
 
 async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -> None:
     if args.life_ack is not None and not args.mk:
-        raise SystemExit("plcstack sim fetchwrite: --life-ack needs --mk")
+        raise ValueError("--life-ack needs --mk (life acks exist only in the Tani MK header)")
     sim = await start(
         host=args.host,
         port=args.port,
@@ -345,8 +349,11 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         write_port=args.write_port,
         life_ack=args.life_ack,
     )
-    line = f"listening on {sim.host}:{sim.port}"
+    line = f"listening on {sim.host}:{sim.port} (TCP)"
     if sim.write_port is not None:
-        line += f" (FETCH), {sim.host}:{sim.write_port} (WRITE)"
+        line = (
+            f"listening on {sim.host}:{sim.port} (TCP, FETCH), "
+            f"{sim.host}:{sim.write_port} (TCP, WRITE)"
+        )
     announce(line)
     await sim.serve_forever()

@@ -263,5 +263,5 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
 
 async def serve_cli(args: argparse.Namespace, announce: Callable[[str], Any]) -> None:
     sim = await start(host=args.host, port=args.port, realistic_timing=args.realistic_timing)
-    announce(f"listening on {sim.host}:{sim.port}")
+    announce(f"listening on {sim.host}:{sim.port} (TCP)")
     await sim.serve_forever()
