@@ -62,6 +62,8 @@ def press_memory() -> MelsecMemory:
     mem = MelsecMemory()
     mem.write_words("D", 100, [7, 0, 0x0000, 0x3FC0])  # strokes 7, force = 1.5 (low word first)
     mem.write_words("D", 110, [0xFFFF])  # raw word
+    mem.write_words("D", 130, [2000])  # level: 50 %
+    mem.write_words("D", 140, [0x12A4])  # not BCD: the digit A
     mem.write_bits("M", 0, [True, False, True, True])
     return mem
 
@@ -86,6 +88,15 @@ def config(press: str, oven: str, flaky: str) -> PollConfig:
                     TagConfig("raw", "D110"),
                     TagConfig("alarms", "M0", vt.BOOL, 4),
                     TagConfig("setpoints", "D120", vt.INT16, 2, writable=True),
+                    TagConfig(
+                        "level",
+                        "D130",
+                        vt.INT16,
+                        scale=vt.Scale(0, 4000, 0.0, 100.0),
+                        unit="%",
+                        writable=True,
+                    ),
+                    TagConfig("bcd", "D140", vt.BCD16),
                 ),
                 **fast,  # type: ignore[arg-type]
             ),
@@ -93,9 +104,10 @@ def config(press: str, oven: str, flaky: str) -> PollConfig:
                 "oven2",
                 oven,
                 (
-                    TagConfig("temperature", "DB10.DW0", vt.INT16),
+                    TagConfig("temperature", "DB10.DW0", vt.INT16, unit="°C"),
                     TagConfig("setpoint", "DB10.DW1", vt.FLOAT32, writable=True),
                     TagConfig("status", "MB20", vt.UINT8),
+                    TagConfig("pair", "DB10.DW3", vt.KY, writable=True),
                 ),
                 **fast,  # type: ignore[arg-type]
             ),
@@ -185,7 +197,7 @@ async def test_browse_one_folder_per_plc_and_one_variable_per_tag(plant: Plant) 
     assert (await press.read_type_definition()) == ua.NodeId(ua.ObjectIds.FolderType)
     assert (await press.read_description()).Text == plant.poller.config.plcs[0].url
     names = sorted([(await c.read_browse_name()).Name for c in await press.get_children()])
-    assert names == ["alarms", "force", "raw", "setpoints", "strokes"]
+    assert names == ["alarms", "bcd", "force", "level", "raw", "setpoints", "strokes"]
     expected = {
         ("press1", "strokes"): ua.VariantType.UInt16,
         ("press1", "force"): ua.VariantType.Float,
@@ -195,6 +207,8 @@ async def test_browse_one_folder_per_plc_and_one_variable_per_tag(plant: Plant) 
         ("oven2", "temperature"): ua.VariantType.Int16,
         ("oven2", "setpoint"): ua.VariantType.Float,
         ("oven2", "status"): ua.VariantType.Byte,
+        ("press1", "level"): ua.VariantType.Double,  # scaled: engineering units
+        ("press1", "bcd"): ua.VariantType.UInt16,
     }
     for (plc, tag), vtype in expected.items():
         node = plant.node(client, plc, tag)
@@ -213,6 +227,33 @@ async def test_browse_one_folder_per_plc_and_one_variable_per_tag(plant: Plant) 
     }
     interval = await strokes.read_attribute(ua.AttributeIds.MinimumSamplingInterval)
     assert interval.Value.Value == pytest.approx(50.0)
+
+
+async def test_a_scaled_tag_is_an_analog_item_with_its_range_and_unit(plant: Plant) -> None:
+    client = plant.anonymous
+    level = plant.node(client, "press1", "level")
+    assert await level.read_type_definition() == ua.NodeId(ua.ObjectIds.AnalogItemType)
+    props = {(await p.read_browse_name()).Name: p for p in await level.get_properties()}
+    assert set(props) == {"EURange", "EngineeringUnits"}
+    assert await props["EURange"].read_value() == ua.Range(0.0, 100.0)
+    unit = await props["EngineeringUnits"].read_value()
+    assert unit.DisplayName.Text == "%"
+    assert unit.NamespaceUri == "http://www.opcfoundation.org/UA/units/un/cefact"
+    assert unit.UnitId == (ord("P") << 8) | ord("1")  # UNECE "P1": percent
+    # a unit without scaling: BaseAnalogType with EngineeringUnits only
+    temperature = plant.node(client, "oven2", "temperature")
+    assert await temperature.read_type_definition() == ua.NodeId(ua.ObjectIds.BaseAnalogType)
+    (prop,) = await temperature.get_properties()
+    assert (await prop.read_value()).UnitId == 0x43454C  # "CEL"
+    # no unit, no scale: a plain variable without properties
+    assert await plant.node(client, "press1", "force").get_properties() == []
+    # values and writes are in engineering units
+    dv = await wait_for(level, good)
+    assert dv.Value.Value == pytest.approx(50.0)
+    await plant.node(plant.operator, "press1", "level").write_value(
+        ua.DataValue(ua.Variant(25.0, ua.VariantType.Double))
+    )
+    assert plant.press.read_words("D", 130, 1) == [1000]
 
 
 # -- reads ----------------------------------------------------------------------------------------
@@ -236,6 +277,14 @@ async def test_read_gives_the_plc_values_with_their_types_and_source_time(plant:
     # the source time is when the poller sent the request: before the server took the sample
     assert dv.SourceTimestamp <= dv.ServerTimestamp
     assert abs(dv.SourceTimestamp.timestamp() - time.time()) < 60
+
+
+async def test_points_that_are_no_value_of_the_type_read_bad_out_of_range(plant: Plant) -> None:
+    node = plant.node(plant.anonymous, "press1", "bcd")
+    dv = await wait_for(
+        node, lambda dv: not good(dv) and dv.StatusCode.value != S.BadWaitingForInitialData
+    )
+    assert dv.StatusCode.value == S.BadOutOfRange
 
 
 async def test_unchanged_samples_keep_the_time_of_the_last_change(plant: Plant) -> None:
@@ -298,6 +347,15 @@ async def test_write_completes_when_the_plc_confirmed_it(plant: Plant) -> None:
     array = plant.node(plant.operator, "press1", "setpoints")
     await array.write_value(ua.DataValue(ua.Variant([-1, 300], ua.VariantType.Int16)))
     assert plant.press.read_words("D", 120, 2) == [0xFFFF, 300]
+
+    # KY reads as STEP 5 shows it ("12,255") and is written the same way
+    pair = plant.node(plant.operator, "oven2", "pair")
+    await pair.write_value(ua.DataValue(ua.Variant("12,255", ua.VariantType.String)))
+    assert plant.oven.read_db_words(10, 3, 1) == [0x0CFF]
+    await wait_for(pair, lambda dv: good(dv) and dv.Value.Value == "12,255")
+    with pytest.raises(UaStatusCodeError) as err:
+        await pair.write_value(ua.DataValue(ua.Variant("12", ua.VariantType.String)))
+    assert err.value.code == S.BadTypeMismatch
 
 
 async def test_write_refused_for_a_read_only_tag(plant: Plant) -> None:

@@ -23,8 +23,9 @@ from plcstack.errors import (
     PlcErrorResponse,
     PlcTimeout,
     RemoteProtocolError,
+    ValueDecodeError,
 )
-from plcstack.north.opcua import STATUS_MAP, read_status, variant_type, write_status
+from plcstack.north.opcua import STATUS_MAP, read_status, unit_id, variant_type, write_status
 from plcstack.north.opcua_config import (
     DEFAULT_ENDPOINT,
     OpcUaConfig,
@@ -51,6 +52,7 @@ HASH = hash_password("pw", iterations=1)
         (ConnectionLost, S.BadCommunicationError),
         (RemoteProtocolError, S.BadCommunicationError),
         (PlcErrorResponse, S.BadDeviceFailure),
+        (ValueDecodeError, S.BadOutOfRange),
         (AddressError, S.BadConfigurationError),
         (LocalProtocolError, S.BadInternalError),
         (PlcError, S.BadUnexpectedError),
@@ -74,31 +76,46 @@ def test_the_documented_status_table_is_the_one_in_the_code() -> None:
         assert f"| `{kind.__name__}` | `{name}` |" in text, (kind.__name__, name)
 
 
-@pytest.mark.parametrize(
-    ("dtype", "bits", "vtype"),
-    [
-        (vt.RAW, 1, ua.VariantType.Boolean),
-        (vt.RAW, 8, ua.VariantType.Byte),
-        (vt.RAW, 16, ua.VariantType.UInt16),
-        (vt.BOOL, 1, ua.VariantType.Boolean),
-        (vt.INT8, 8, ua.VariantType.SByte),
-        (vt.UINT8, 16, ua.VariantType.Byte),
-        (vt.INT16, 16, ua.VariantType.Int16),
-        (vt.UINT16, 16, ua.VariantType.UInt16),
-        (vt.INT32, 16, ua.VariantType.Int32),
-        (vt.UINT32, 16, ua.VariantType.UInt32),
-        (vt.FLOAT32, 16, ua.VariantType.Float),
-        (vt.KG, 16, ua.VariantType.Double),
-        (vt.KT, 16, ua.VariantType.Double),
-        (vt.BCD16, 16, ua.VariantType.UInt16),
-        (vt.KF, 16, ua.VariantType.Int16),
-        (vt.string(8), 16, ua.VariantType.String),
-    ],
-)
-def test_every_tag_type_has_its_opc_ua_type(
-    dtype: vt.ValueType, bits: int, vtype: ua.VariantType
-) -> None:
-    assert variant_type(TagConfig("t", "D0", dtype), bits) is vtype
+#: every named value type -> its OPC UA type (16-bit points; raw depends on the point width)
+EXPECTED_TYPES = {
+    "raw": ua.VariantType.UInt16,
+    "bool": ua.VariantType.Boolean,
+    "int8": ua.VariantType.SByte,
+    "uint8": ua.VariantType.Byte,
+    "int16": ua.VariantType.Int16,
+    "uint16": ua.VariantType.UInt16,
+    "int32": ua.VariantType.Int32,
+    "uint32": ua.VariantType.UInt32,
+    "float32": ua.VariantType.Float,
+    "bcd16": ua.VariantType.UInt16,
+    "bcd32": ua.VariantType.UInt32,
+    "kf": ua.VariantType.Int16,
+    "kh": ua.VariantType.UInt16,
+    "km": ua.VariantType.UInt16,
+    "ky": ua.VariantType.String,
+    "kc": ua.VariantType.String,
+    "kt": ua.VariantType.Double,
+    "kz": ua.VariantType.UInt16,
+    "kg": ua.VariantType.Double,
+}
+
+
+def test_every_value_type_has_its_opc_ua_type() -> None:
+    # a new value type must be given its OPC UA type here (and in docs/opcua.md) deliberately
+    assert set(EXPECTED_TYPES) == set(vt.TYPES)
+    for name, vtype in EXPECTED_TYPES.items():
+        assert variant_type(TagConfig("t", "D0", vt.value_type(name)), 16) is vtype, name
+    assert variant_type(TagConfig("t", "D0", vt.string(8)), 16) is ua.VariantType.String
+    assert variant_type(TagConfig("t", "M0", vt.RAW), 1) is ua.VariantType.Boolean
+    assert variant_type(TagConfig("t", "MB0", vt.RAW), 8) is ua.VariantType.Byte
+    scaled = TagConfig("t", "D0", vt.INT16, scale=vt.Scale(0, 1, 0.0, 1.0))
+    assert variant_type(scaled, 16) is ua.VariantType.Double
+
+
+def test_unit_ids_are_unece_codes() -> None:
+    assert unit_id("°C") == 0x43454C  # "CEL"
+    assert unit_id("%") == 0x5031  # "P1"
+    assert unit_id("furlong/fortnight") == -1
 
 
 # -- configuration --------------------------------------------------------------------------------
@@ -170,15 +187,18 @@ name = "press1"
 url = "e71+tcp://127.0.0.1:5000"
 [plc.tags]
 strokes = { address = "D100", type = "uint16", writable = true }
-force = "D102"
+force = { address = "D102", unit = "kN" }
 """
     config = parse_config(text)
     tags = {t.name: t for t in config.plcs[0].tags}
     assert tags["strokes"].writable and not tags["force"].writable
+    assert tags["force"].unit == "kN" and tags["strokes"].unit is None
     path = tmp_path / "plant.toml"
     path.write_text(text, encoding="utf-8")
     opcua = load_opcua_config(path)
     assert opcua.port == 4841 and opcua.anonymous == "write"
+    with pytest.raises(ConfigError, match="unit must be a non-empty string"):
+        parse_config(text.replace('unit = "kN"', "unit = 3"))
     with pytest.raises(ConfigError, match="writable must be true or false"):
         parse_config(text.replace("writable = true", 'writable = "yes"'))
     with pytest.raises(ConfigError, match=r"\[opcua\] must be a table"):

@@ -76,6 +76,7 @@ from plcstack.errors import (
     PlcErrorResponse,
     PlcTimeout,
     RemoteProtocolError,
+    ValueDecodeError,
 )
 from plcstack.north.opcua_config import (
     OpcUaConfig,
@@ -125,6 +126,7 @@ STATUS_MAP: tuple[tuple[type[PlcError], int, str], ...] = (
     (ConnectionLost, _S.BadCommunicationError, "the connection dropped during the request"),
     (RemoteProtocolError, _S.BadCommunicationError, "the PLC's reply broke the protocol"),
     (PlcErrorResponse, _S.BadDeviceFailure, "the PLC answered with an error code"),
+    (ValueDecodeError, _S.BadOutOfRange, "the points are no valid value of the type (BCD > 9)"),
     (AddressError, _S.BadConfigurationError, "address, count or type does not fit the PLC"),
     (LocalProtocolError, _S.BadInternalError, "plcstack misused its own codec (a bug)"),
     (PlcError, _S.BadUnexpectedError, "any other failure"),
@@ -167,11 +169,7 @@ _VARIANT_TYPES: dict[str, ua.VariantType] = {
     "uint16": ua.VariantType.UInt16,
     "int32": ua.VariantType.Int32,
     "uint32": ua.VariantType.UInt32,
-    "int64": ua.VariantType.Int64,
-    "uint64": ua.VariantType.UInt64,
     "float32": ua.VariantType.Float,
-    "float64": ua.VariantType.Double,
-    "string": ua.VariantType.String,
     # plcstack.values types beyond the plain integers (by name; strings "string:N" by kind)
     "kf": ua.VariantType.Int16,
     "kh": ua.VariantType.UInt16,
@@ -265,13 +263,27 @@ class _Binding:
         if variant is None or variant.VariantType != self.vtype:
             raise ValueError("type mismatch")
         value = variant.Value
+        convert = _from_ky if self.tag.type.name == "ky" else _same
         if self.tag.count == 1:
             if isinstance(value, list | tuple):
                 raise ValueError("array for a scalar")
-            return value
+            return convert(value)
         if not isinstance(value, list | tuple) or len(value) != self.tag.count:
             raise ValueError("wrong array length")
-        return list(value)
+        return [convert(v) for v in value]
+
+
+def _same(value: Any) -> Any:
+    return value
+
+
+def _from_ky(text: Any) -> tuple[int, int]:
+    """A KY value as read ("12,255") back into its two bytes; ValueError if it is not one."""
+    parts = str(text).split(",")
+    if len(parts) != 2:
+        raise ValueError("KY is two bytes: 'high,low'")
+    high, low = (int(p.strip()) for p in parts)
+    return high, low
 
 
 def _text(value: Any) -> str:
@@ -288,7 +300,7 @@ def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -
     item.NodeClass = ua.NodeClass.Variable
     item.ParentNodeId = parent
     item.ReferenceTypeId = _node(ObjectIds.Organizes)
-    item.TypeDefinition = _node(ObjectIds.BaseDataVariableType)
+    item.TypeDefinition = _node(_type_definition(tag))
     attrs = ua.VariableAttributes()
     attrs.DisplayName = ua.LocalizedText(tag.name)
     type_name = tag.type.name
@@ -313,6 +325,108 @@ def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -
     attrs.UserWriteMask = 0
     item.NodeAttributes = attrs
     return item
+
+
+#: UNECE Recommendation 20 common codes of frequent units (OPC UA Part 8, 5.6.3: UnitId is the
+#: code's three characters packed into an Int32); other units get UnitId -1 ("unknown")
+_UNECE = {
+    "°C": "CEL",
+    "degC": "CEL",
+    "°F": "FAH",
+    "K": "KEL",
+    "%": "P1",
+    "bar": "BAR",
+    "mbar": "MBR",
+    "Pa": "PAL",
+    "kPa": "KPA",
+    "MPa": "MPA",
+    "m": "MTR",
+    "cm": "CMT",
+    "mm": "MMT",
+    "m/s": "MTS",
+    "A": "AMP",
+    "mA": "4K",
+    "V": "VLT",
+    "W": "WTT",
+    "kW": "KWT",
+    "Hz": "HTZ",
+    "s": "SEC",
+    "min": "MIN",
+    "h": "HUR",
+    "kg": "KGM",
+    "t": "TNE",
+    "N": "NEW",
+    "l": "LTR",
+    "rpm": "RPM",
+}
+UNECE_NAMESPACE = "http://www.opcfoundation.org/UA/units/un/cefact"
+
+
+def unit_id(unit: str) -> int:
+    """The OPC UA UnitId of a unit symbol (UNECE common code), -1 if not in the table."""
+    code = _UNECE.get(unit)
+    if code is None:
+        return -1
+    value = 0
+    for char in code:
+        value = (value << 8) | ord(char)
+    return value
+
+
+def _property_item(
+    owner: ua.NodeId, owner_id: str, name: str, value: Any, datatype: int, idx: int
+) -> ua.AddNodesItem:
+    item = ua.AddNodesItem()
+    item.RequestedNewNodeId = _node(f"{owner_id}#{name}", idx)
+    item.BrowseName = ua.QualifiedName(name, 0)  # standard property names live in namespace 0
+    item.NodeClass = ua.NodeClass.Variable
+    item.ParentNodeId = owner
+    item.ReferenceTypeId = _node(ObjectIds.HasProperty)
+    item.TypeDefinition = _node(ObjectIds.PropertyType)
+    attrs = ua.VariableAttributes()
+    attrs.DisplayName = ua.LocalizedText(name)
+    attrs.DataType = _node(datatype)
+    attrs.Value = ua.Variant(value)
+    attrs.ValueRank = ua.ValueRank.Scalar
+    attrs.AccessLevel = ua.AccessLevel.CurrentRead.mask
+    attrs.UserAccessLevel = ua.AccessLevel.CurrentRead.mask
+    item.NodeAttributes = attrs
+    return item
+
+
+def _eu_items(binding: _Binding, idx: int) -> list[ua.AddNodesItem]:
+    """EURange (from ``scale``) and EngineeringUnits (from ``unit``) of an analog tag."""
+    tag = binding.tag
+    text = f"{binding.plc}.{tag.name}"
+    items = []
+    if tag.scale is not None:
+        lo, hi = sorted((float(tag.scale.eng_lo), float(tag.scale.eng_hi)))
+        items.append(
+            _property_item(binding.nodeid, text, "EURange", ua.Range(lo, hi), ObjectIds.Range, idx)
+        )
+    if tag.unit is not None:
+        info = ua.EUInformation(
+            NamespaceUri=UNECE_NAMESPACE,
+            UnitId=cast(ua.Int32, unit_id(tag.unit)),
+            DisplayName=ua.LocalizedText(tag.unit),
+            Description=ua.LocalizedText(tag.unit),
+        )
+        items.append(
+            _property_item(
+                binding.nodeid, text, "EngineeringUnits", info, ObjectIds.EUInformation, idx
+            )
+        )
+    return items
+
+
+def _type_definition(tag: TagConfig) -> int:
+    """AnalogItemType when the tag is scaled (its EURange is mandatory there), BaseAnalogType
+    with a unit only, else BaseDataVariableType."""
+    if tag.scale is not None:
+        return ObjectIds.AnalogItemType
+    if tag.unit is not None:
+        return ObjectIds.BaseAnalogType
+    return ObjectIds.BaseDataVariableType
 
 
 def _folder_item(name: str, description: str, idx: int) -> ua.AddNodesItem:
@@ -445,6 +559,15 @@ class OpcUaServer:
             for name, (tag, bits) in self.poller.tags(plc).items():
                 nodeid = _node(f"{plc}.{name}", 0)  # index fixed in start()
                 self._by_tag[(plc, name)] = _Binding(plc, tag, nodeid, variant_type(tag, bits))
+        # property NodeIds are "plc.tag#EURange": a tag named "x#EURange" would clash
+        ids: set[str] = set(self.poller.plcs)
+        for plc, name in self._by_tag:
+            mine = [f"{plc}.{name}"]
+            mine += [f"{plc}.{name}#{p}" for p in ("EURange", "EngineeringUnits")]
+            for text in mine:
+                if text in ids:
+                    raise ConfigError(f"tag {name!r}: its OPC UA NodeId {text!r} is taken", plc=plc)
+                ids.add(text)
 
     def nodeid(self, plc: str, tag: str) -> ua.NodeId:
         """The NodeId of a tag's variable (after :meth:`start`)."""
@@ -507,6 +630,7 @@ class OpcUaServer:
                     continue
                 binding.nodeid = _node(f"{plc}.{binding.tag.name}", idx)
                 items.append(_tag_item(binding, folder, idx, groups[binding.tag.group]))
+                items.extend(_eu_items(binding, idx))
             for result in await session.add_nodes(items):
                 result.StatusCode.check()
         self._bindings = {b.nodeid: b for b in self._by_tag.values()}

@@ -24,7 +24,7 @@ max_gap = 4
 counter = "D100"                                          # type raw, count 1
 temp = { address = "D102", type = "float32", group = "default" }
 alarms = { address = "M0", type = "bool", count = 16 }
-level = { address = "D110", type = "int16", scale = [0, 4000, 0.0, 100.0] }   # raw -> engineering
+level = { address = "D110", type = "int16", scale = [0, 4000, 0.0, 100.0], unit = "%" }
 door = { address = "D120.3", type = "bool" }              # bit 3 of D120 (S5: "DB10.DW5.3")
 setpoint = { address = "D130", type = "int16", writable = true }   # north-side servers may write
 ```
@@ -117,6 +117,9 @@ class TagConfig:
     #: whether north-side servers (OPC UA) may write this tag; the Python API's ``write_tag`` is
     #: not limited by it (the program that owns the poller decides for itself)
     writable: bool = False
+    #: engineering unit of the value (``"°C"``, ``"bar"``), for north-side servers (OPC UA
+    #: EngineeringUnits); the poller itself does not use it
+    unit: str | None = None
 
 
 @dataclass(frozen=True)
@@ -488,7 +491,9 @@ class _Loader:
                 f'{where}: expected "ADDRESS" or {{ address = ..., type = ..., count = ... }}',
                 name,
             )
-        unknown = self._unknown(spec, {"address", "type", "count", "group", "scale", "writable"})
+        unknown = self._unknown(
+            spec, {"address", "type", "count", "group", "scale", "writable", "unit"}
+        )
         if unknown:
             raise self.error(f"{where}: unknown key(s) {', '.join(unknown)}", name)
         address = spec.get("address")
@@ -529,6 +534,16 @@ class _Loader:
         writable = spec.get("writable", False)
         if not isinstance(writable, bool):
             raise self.error(f"{where}: writable must be true or false, not {writable!r}", name)
+        unit = spec.get("unit")
+        if unit is not None and (not isinstance(unit, str) or not unit.strip()):
+            raise self.error(f"{where}: unit must be a non-empty string, not {unit!r}", name)
         return TagConfig(
-            name, address.strip(), dtype, count, tag_group, scale=scale, writable=writable
+            name,
+            address.strip(),
+            dtype,
+            count,
+            tag_group,
+            scale=scale,
+            writable=writable,
+            unit=unit,
         )
