@@ -33,7 +33,7 @@ from plcstack.codecs.e71 import (
     encode_request,
     parse_address,
 )
-from plcstack.errors import AddressError, PlcError
+from plcstack.errors import AddressError, PlcError, PlcTimeout
 from plcstack.sim import e71 as sim_e71
 from plcstack.transports.tcp import TcpTransport
 from tests.test_client_base import LineClient
@@ -286,3 +286,30 @@ async def test_poller_batches_give_the_samples_iteration_gives() -> None:
     again._queue.extend(buffered)
     await again.aclose()
     assert [s async for s in again] == buffered
+
+
+# -- AS511: the transaction's overall bound without an asyncio.timeout context --------------------
+async def test_as511_chattering_line_still_ends_at_the_transaction_bound() -> None:
+    """A peer that never stops sending keeps every per-byte deadline alive; the transaction's
+    overall bound (checked after each chunk since issue 16) must still end the request."""
+
+    async def chatter(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(ConnectionError, asyncio.CancelledError):
+            while True:
+                writer.write(b"\x00")
+                await writer.drain()
+                await asyncio.sleep(0.01)
+
+    server = await asyncio.start_server(chatter, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    try:
+        async with connect(f"as511+tcp://127.0.0.1:{port}?timeout=0.3") as plc:
+            with pytest.raises(PlcError):  # the first byte is no DLE: the transaction aborts
+                await plc.read("DB1.DW0", 1)
+            started = time.monotonic()
+            # the next one waits for the line's silence after an abort (B5.5), which never comes
+            with pytest.raises(PlcTimeout, match="stuck"):
+                await plc.read("DB1.DW0", 1)
+            assert time.monotonic() - started < 10
+    finally:
+        server.close()

@@ -18,16 +18,26 @@ import cProfile
 import importlib
 import os
 import pstats
+import statistics
 import subprocess
 import sys
+import time
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 import plcstack
-from plcstack.bench.cases.conn import Kind, check_stack, open_stack, stack_op, start_sim
+from plcstack.bench.cases.conn import (
+    Kind,
+    check_floor,
+    check_stack,
+    open_stack,
+    stack_op,
+    start_sim,
+)
 from plcstack.bench.cases.fanout import PACKAGE_PARENT
 from plcstack.bench.cases.protocols import by_key
+from plcstack.bench.floor import open_floor
 from plcstack.bench.runner import measure_workers
 
 __all__ = ["layer_of", "main"]
@@ -116,6 +126,57 @@ async def _client(url: str, key: str, kind: Kind, seconds: float) -> tuple[Any, 
     return profiler, sample.ops
 
 
+async def _cpu(url: str, key: str, kind: Kind, seconds: float, repeats: int) -> str:
+    """Process CPU per request of the floor and the stack, alternating, one connection each,
+    the simulator in another process: a ratio that load on a shared machine barely moves
+    (wall-clock ops/s of the ``conn`` rows swing by 0.3 there)."""
+    case = by_key(key)
+    job_builder = case.floor_read if kind == "read" else case.floor_write
+    assert job_builder is not None
+    job = job_builder()
+    parsed = plcstack.parse_url(url)
+    assert parsed.host is not None and parsed.port is not None
+    floor = await open_floor(parsed.host, parsed.port, udp=case.udp)
+    client = await open_stack(case, url)
+    lines = [
+        f"{'floor us/req':>13} {'stack us/req':>13} {'floor/stack':>12}"
+        f" {'floor req/s':>12} {'stack req/s':>12} {'stack/floor':>12}"
+    ]
+    try:
+        await check_floor(floor, job)
+        await check_stack(client, case, kind)
+        stack = stack_op(client, case, kind)
+
+        def floor_op() -> Any:
+            return floor.run(job)
+
+        async def cpu_per_op(op: Any) -> tuple[float, float]:
+            started = time.process_time()
+            sample = await measure_workers([op], duration=seconds)
+            cpu = (time.process_time() - started) / max(1, sample.ops) * 1e6
+            return cpu, sample.ops / sample.seconds
+
+        await measure_workers([floor_op], duration=0.2)  # warm-up
+        await measure_workers([stack], duration=0.2)
+        ratios, rates = [], []
+        for _ in range(repeats):
+            (f, f_rate), (st, s_rate) = await cpu_per_op(floor_op), await cpu_per_op(stack)
+            ratios.append(f / st)
+            rates.append(s_rate / f_rate)
+            lines.append(
+                f"{f:13.1f} {st:13.1f} {f / st:12.2f}"
+                f" {f_rate:12.0f} {s_rate:12.0f} {s_rate / f_rate:12.2f}"
+            )
+        lines.append(
+            f"median CPU ratio floor/stack {statistics.median(ratios):.2f}, "
+            f"median rate ratio stack/floor {statistics.median(rates):.2f}"
+        )
+    finally:
+        await client.aclose()
+        await floor.aclose()
+    return "\n".join(lines)
+
+
 def report(profiler: Any, requests: int, top: int) -> str:
     stats = pstats.Stats(profiler)
     lines = [f"{requests} requests profiled"]
@@ -152,6 +213,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--top", type=int, default=25)
     parser.add_argument("--poll", type=int, metavar="N", help="profile the poller over N PLCs")
     parser.add_argument("--serve", type=int, metavar="N", help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--cpu",
+        type=int,
+        metavar="REPEATS",
+        help="no profile: process CPU per request of floor and stack, alternating REPEATS times",
+    )
     args = parser.parse_args(argv)
     if args.serve:
         asyncio.run(_serve(args.protocol, args.serve))
@@ -168,6 +235,10 @@ def main(argv: list[str] | None = None) -> int:
         urls = server.stdout.readline().split()
         for url in urls:
             plcstack.parse_url(url)
+        if args.cpu:
+            print(f"{args.protocol} {args.kind} x64, one connection, simulator in another process")
+            print(asyncio.run(_cpu(urls[0], args.protocol, args.kind, args.seconds, args.cpu)))
+            return 0
         if args.poll:
             profiler, requests = asyncio.run(_poller(urls, args.protocol, args.seconds))
         else:

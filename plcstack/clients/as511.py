@@ -323,32 +323,47 @@ class AS511Client(S5Access, Client):
         out_bytes = 20 + 2 * len(job.params)
         in_bytes = 20 + 2 * (job.response_length or 64)
         cap = self.timeout + (out_bytes + in_bytes) * self.line_byte_time + pg.backoff
+        # The whole transaction's bound, checked in the loop rather than by an
+        # ``asyncio.timeout`` context (a timer and a context per transaction; AS511 runs 2-3
+        # transactions per read): every wait is capped by it, and a peer that keeps sending
+        # bytes meets the check after each chunk.
+        give_up = loop.time() + cap
+        transport = self.transport
         try:
-            async with asyncio.timeout(cap):
-                # B5.1/B5.5: after an abort, wait for 500 ms of silence before the next STX.
-                while (wait := pg.ready_at - loop.time()) > 0:
-                    try:
-                        data = await self.transport.read(loop.time() + wait)
-                    except TimeoutError:
-                        continue
-                    pg.receive_data(data, loop.time())
-                pg.submit(job, max(loop.time(), pg.ready_at))
-                self.transport.write(pg.data_to_send())
-                while True:
-                    event = pg.next_event()
-                    if event is not NEED_DATA:
-                        return event
-                    deadline = pg.deadline
-                    try:
-                        data = await self.transport.read(deadline)
-                    except TimeoutError:
-                        pg.timer(max(loop.time(), deadline or 0.0))
-                    else:
-                        chunks.append(data)
-                        pg.receive_data(data, loop.time())
-                    out = pg.data_to_send()
-                    if out:
-                        self.transport.write(out)
+            # B5.1/B5.5: after an abort, wait for 500 ms of silence before the next STX.
+            while (wait := pg.ready_at - loop.time()) > 0:
+                try:
+                    data = await transport.read(min(loop.time() + wait, give_up))
+                except TimeoutError:
+                    if loop.time() >= give_up:
+                        raise
+                    continue
+                pg.receive_data(data, loop.time())
+                if loop.time() >= give_up:
+                    raise TimeoutError
+            pg.submit(job, max(loop.time(), pg.ready_at))
+            transport.write(pg.data_to_send())
+            while True:
+                event = pg.next_event()
+                if event is not NEED_DATA:
+                    return event
+                deadline = pg.deadline
+                capped = deadline is None or deadline > give_up
+                try:
+                    data = await transport.read(give_up if capped else deadline)
+                except TimeoutError:
+                    if capped:
+                        raise
+                    pg.timer(max(loop.time(), deadline or 0.0))
+                else:
+                    chunks.append(data)
+                    now = loop.time()
+                    if now >= give_up:
+                        raise TimeoutError from None
+                    pg.receive_data(data, now)
+                out = pg.data_to_send()
+                if out:
+                    transport.write(out)
         except TimeoutError:
             state = pg.state
             pg.reset(loop.time())

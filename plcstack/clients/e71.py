@@ -18,7 +18,7 @@ MELSEC CPUs store them (D0 = 0000H, D1 = 3F40H is 0.75, spec §3 rule 10).
 
 from __future__ import annotations
 
-from collections.abc import Hashable, Sequence
+from collections.abc import Callable, Coroutine, Hashable, Sequence
 from typing import Any, Self, TypeVar
 
 from plcstack.clients.base import Points, RequestClient, as_points
@@ -122,6 +122,8 @@ class E71Client(E71CommandsMixin):
         #: (address, count) -> (01H request, its "what" text) of word reads already checked;
         #: a poller reads the same few addresses every scan (see ``read``)
         self._word_reads: dict[tuple[str, int], tuple[ReadWords, str]] = {}
+        #: bound once: a bound method made per read would be one more object per request
+        self._finish: Callable[[Response, str], list[int]] = self._finish_words
         self.codec: E71ClientConnection = self.new_codec()
 
     @classmethod
@@ -250,22 +252,28 @@ class E71Client(E71CommandsMixin):
         return tuple(out)
 
     # -- the common API -------------------------------------------------------------------------
-    async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
+    def read(self, address: str, count: int = 1) -> Coroutine[Any, Any, list[int] | list[bool]]:
         """Bits (``list[bool]``, 00H) of a bit device or words (``list[int]``, 01H); <= 256.
 
         A word read whose address and count were checked before reuses its request object
         (parsing, range checks and encoding done once; the header fields are compared on every
-        call, since ``pc`` and ``monitoring_timer`` may change), and awaits the exchange
-        directly: one coroutine frame instead of three on the polling hot path.
+        call, since ``pc`` and ``monitoring_timer`` may change), and is the exchange coroutine
+        itself: no coroutine of its own on the polling hot path. Not ``async`` for that reason;
+        every error still comes from awaiting the result, as from any ``async def``.
         """
         cached = self._word_reads.get((address, count))
         if cached is not None:
             request, what = cached
             if request.pc == self.pc and request.timer == self.monitoring_timer:
-                event = await self.exchange(request, what, is_write=False)
-                if type(event) is WordsResponse:
-                    return list(event.values)
-                return self._words_of_event(event, what)
+                return self.exchange(request, what, is_write=False, finish=self._finish)
+        return self._read(address, count)
+
+    def _finish_words(self, event: Response, what: str) -> list[int]:
+        if type(event) is WordsResponse:
+            return list(event.values)
+        return self._words_of_event(event, what)
+
+    async def _read(self, address: str, count: int) -> list[int] | list[bool]:
         what = f"read {address} x{count}"
         ref = self._ref(address, what)
         self._check_span(ref, count, MAX_POINTS, what)

@@ -27,7 +27,7 @@ How it behaves, and why:
   data block) is not retried in that scan; from the next scan on, its tags are read separately so
   one bad address does not blank its neighbours.
 
-Cost (``python -m benchmarks.pollcost``): about 8 us of CPU per request on top of the client's
+Cost (``python -m plcstack.bench.pollcost``): about 8 us of CPU per request on top of the client's
 read and 1-2 us per sample. With a thousand busy PLCs, most of what remains is the garbage
 collector traversing the samples that wait for the consumer (each holds a list of values): an
 application that polls that many can raise the first GC threshold (measured with
