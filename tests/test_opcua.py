@@ -22,7 +22,7 @@ import pytest_asyncio
 pytest.importorskip("asyncua")  # the optional extra; CI installs it with [test]
 
 from asyncua import Client, ua
-from asyncua.ua.uaerrors import UaStatusCodeError
+from asyncua.ua.uaerrors import UaError, UaStatusCodeError
 
 from plcstack import values as vt
 from plcstack.north.opcua import OpcUaServer
@@ -547,3 +547,81 @@ async def test_submit_is_the_sink_interface_and_keeps_the_newest_sample_per_tag(
         assert seen.Value is not None and seen.Value.Value == 2
     finally:
         await sub.delete()
+
+
+# -- security policies ----------------------------------------------------------------------------
+
+
+async def make_certificate(directory: Path, name: str, uri: str, server: bool) -> tuple[Path, Path]:
+    from asyncua.crypto.cert_gen import setup_self_signed_certificate
+    from cryptography.x509.oid import ExtendedKeyUsageOID
+
+    key, cert = directory / f"{name}-key.pem", directory / f"{name}-cert.der"
+    use = ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH
+    await setup_self_signed_certificate(
+        key, cert, uri, "localhost", [ExtendedKeyUsageOID.CLIENT_AUTH, use], {"commonName": name}
+    )
+    return cert, key
+
+
+@pytest.mark.slow  # a second server, RSA keys: several seconds
+async def test_an_encrypting_policy_with_a_certificate_and_no_anonymous_logins(
+    tmp_path: Path,
+) -> None:
+    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+
+    server_cert, server_key = await make_certificate(
+        tmp_path, "server", "urn:plcstack:server", True
+    )
+    client_cert, client_key = await make_certificate(tmp_path, "client", "urn:test:client", False)
+    memory = press_memory()
+    sim = await e71.start(memory)
+    poller = Poller(
+        PollConfig(
+            (PlcConfig("press1", sim.url, (TagConfig("strokes", "D100", vt.UINT16),)),),
+            groups={"default": 0.05},
+        )
+    )
+    config = OpcUaConfig(
+        endpoint="opc.tcp://127.0.0.1:0/plcstack",
+        certificate=server_cert,
+        private_key=server_key,
+        security_policies=("Basic256Sha256_SignAndEncrypt",),
+        anonymous="none",
+        users=(UserConfig("operator", hash_password(PASSWORDS["operator"], iterations=1000)),),
+    )
+    try:
+        async with poller, OpcUaServer(poller, config) as server:
+            feed = asyncio.create_task(server.run())
+            try:
+                # the only endpoint encrypts: a client without security is turned away
+                with pytest.raises(UaError, match="No matching endpoints"):
+                    async with Client(with_login(server.url, "operator")) as plain:
+                        await plain.nodes.objects.get_children()
+                secure = Client(with_login(server.url, "operator"))
+                await secure.set_security(
+                    SecurityPolicyBasic256Sha256,
+                    str(client_cert),
+                    str(client_key),
+                    mode=ua.MessageSecurityMode.SignAndEncrypt,
+                )
+                async with secure:
+                    idx = await secure.get_namespace_index("urn:plcstack")
+                    node = secure.get_node(ua.NodeId("press1.strokes", idx))
+                    assert (await wait_for(node, good)).Value.Value == 7
+                # without a login (anonymous = "none") even an encrypted session is refused
+                anonymous = Client(server.url)
+                await anonymous.set_security(
+                    SecurityPolicyBasic256Sha256,
+                    str(client_cert),
+                    str(client_key),
+                    mode=ua.MessageSecurityMode.SignAndEncrypt,
+                )
+                with pytest.raises(UaStatusCodeError):
+                    async with anonymous:
+                        pass
+            finally:
+                feed.cancel()
+                await asyncio.gather(feed, return_exceptions=True)
+    finally:
+        await sim.aclose()

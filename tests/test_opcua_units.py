@@ -25,7 +25,14 @@ from plcstack.errors import (
     RemoteProtocolError,
     ValueDecodeError,
 )
-from plcstack.north.opcua import STATUS_MAP, read_status, unit_id, variant_type, write_status
+from plcstack.north.opcua import (
+    STATUS_MAP,
+    read_status,
+    same_value,
+    unit_id,
+    variant_type,
+    write_status,
+)
 from plcstack.north.opcua_config import (
     DEFAULT_ENDPOINT,
     OpcUaConfig,
@@ -110,6 +117,13 @@ def test_every_value_type_has_its_opc_ua_type() -> None:
     assert variant_type(TagConfig("t", "MB0", vt.RAW), 8) is ua.VariantType.Byte
     scaled = TagConfig("t", "D0", vt.INT16, scale=vt.Scale(0, 1, 0.0, 1.0))
     assert variant_type(scaled, 16) is ua.VariantType.Double
+
+
+def test_a_nan_that_stays_is_no_change() -> None:
+    nan = float("nan")
+    assert same_value(nan, float("nan")) and same_value([1.0, nan], [1.0, float("nan")])
+    assert not same_value(nan, 1.0) and not same_value([nan], [nan, nan])
+    assert same_value(3, 3) and not same_value(3, 4) and not same_value(None, 0)
 
 
 def test_unit_ids_are_unece_codes() -> None:

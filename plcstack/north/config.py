@@ -1,4 +1,5 @@
-"""The north-side tables of the poll TOML: ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``.
+"""The north-side tables of the poll TOML: ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``,
+``[opcua]``.
 
 They sit next to ``[poll]`` and ``[[plc]]`` in the same file; the poll loader keeps them as raw
 tables (``PollConfig.north``) and checks them here at load time, so a typo is a
@@ -20,13 +21,14 @@ from typing import Any
 from plcstack.north.influx import DEFAULT_MEASUREMENT
 from plcstack.north.metrics import MetricsSettings, parse_metrics
 from plcstack.north.mqtt import MqttSettings, parse_mqtt
+from plcstack.north.opcua_config import OpcUaConfig, parse_opcua_config
 from plcstack.north.rbe import PASS_ALL, parse_report
 from plcstack.poll.config import ConfigError
 
 __all__ = ["NORTH_TABLES", "NorthConfig", "parse_north"]
 
 #: top-level TOML tables that belong to the north side
-NORTH_TABLES = ("mqtt", "metrics", "report", "influx")
+NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua")
 
 
 @dataclass(frozen=True)
@@ -35,6 +37,9 @@ class NorthConfig:
     metrics: MetricsSettings | None = None
     report: Any = PASS_ALL
     influx_measurement: str = DEFAULT_MEASUREMENT
+    #: checked here; ``plcstack serve opcua`` reads it again with load_opcua_config, which
+    #: takes relative certificate paths relative to the TOML file
+    opcua: OpcUaConfig | None = None
 
     @property
     def reports_by_exception(self) -> bool:
@@ -56,4 +61,5 @@ def parse_north(tables: Mapping[str, Any], env: dict[str, str] | None = None) ->
         metrics=parse_metrics(tables["metrics"]) if "metrics" in tables else None,
         report=parse_report(tables.get("report")),
         influx_measurement=measurement,
+        opcua=parse_opcua_config(tables["opcua"]) if "opcua" in tables else None,
     )

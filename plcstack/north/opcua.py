@@ -278,7 +278,7 @@ class _Binding:
         if variant is None or variant.VariantType != self.vtype:
             raise ValueError("type mismatch")
         value = variant.Value
-        convert = _from_ky if self.tag.type.name == "ky" else _same
+        convert = _from_ky if self.tag.type.name == "ky" else _as_is
         if self.tag.count == 1:
             if isinstance(value, list | tuple):
                 raise ValueError("array for a scalar")
@@ -288,8 +288,20 @@ class _Binding:
         return [convert(v) for v in value]
 
 
-def _same(value: Any) -> Any:
+def _as_is(value: Any) -> Any:
     return value
+
+
+def same_value(a: Any, b: Any) -> bool:
+    """Equality for "unchanged?", with NaN equal to NaN: a register stuck at a NaN pattern is
+    one value, not a change every scan (plain ``==`` says NaN != NaN)."""
+    if a == b:
+        return True
+    if isinstance(a, float) and isinstance(b, float):
+        return a != a and b != b
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        return all(same_value(x, y) for x, y in zip(a, b, strict=True))
+    return False
 
 
 def _from_ky(text: Any) -> tuple[int, int]:
@@ -692,7 +704,8 @@ class OpcUaServer:
                 status, value = good, sample.value
             else:
                 status, value = read_status(sample.error_type), None
-            if binding.last == (status, value):
+            last_status, last_value = binding.last
+            if last_status == status and same_value(last_value, value):
                 self.unchanged += 1
                 continue
             binding.last = (status, value)
