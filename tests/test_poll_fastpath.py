@@ -101,7 +101,7 @@ async def test_script_gives_the_expected_samples(inline: bool) -> None:
     values = [(tag, value) for _, tag, value, quality, _ in samples if quality is Quality.GOOD]
     assert [value for _, value in values] == [1, 2, 3, 4, 5, 6, 7, 8]
     assert [tag for tag, _ in values] == ["a", "b"] * 4
-    errors = [error for *_, error in samples if error is not None]
+    errors = [str(error) for *_, error in samples if error is not None]
     assert len(errors) == 8 and all(e.startswith("p: read D0 x2: ") for e in errors)
     assert counters == {
         "requests": 9,

@@ -1,11 +1,61 @@
-"""Pieces every Sans-IO codec shares: the NEED_DATA sentinel and a receive buffer."""
+"""Pieces every Sans-IO codec shares: the event base, the ERROR state, NEED_DATA, a buffer.
+
+Every protocol has the same shape (h11/wsproto style): a ``ClientConnection`` and a
+``ServerConnection`` per codec module, ``send(event) -> bytes``, ``receive_data(data)``,
+``next_event() -> Event | NEED_DATA``. Events derive from :class:`Event`. A connection whose peer
+sent bytes it refused (:class:`RemoteProtocolError`) is in the ERROR state (:class:`ErrorState`)
+and refuses further use: it can no longer know where the next message starts.
+"""
 
 from __future__ import annotations
 
 import enum
 from typing import Final
 
-__all__ = ["NEED_DATA", "NeedData", "ReceiveBuffer"]
+from plcstack.errors import LocalProtocolError, RemoteProtocolError
+
+__all__ = ["NEED_DATA", "ErrorState", "Event", "NeedData", "ReceiveBuffer"]
+
+
+class Event:
+    """Base of every codec event (requests, responses, acks, refusals) of every protocol.
+
+    Events are frozen dataclasses with slots; this base adds no fields, so ``isinstance(x,
+    Event)`` tells a protocol event from anything else (e.g. ``NEED_DATA``).
+    """
+
+    __slots__ = ()
+
+
+class ErrorState:
+    """The ERROR state of h11/wsproto for one connection object.
+
+    A connection records the :class:`RemoteProtocolError` it raised (:meth:`_broken`); from then
+    on :meth:`_check_usable` raises :class:`LocalProtocolError` naming that first error, so a
+    caller cannot go on decoding a stream whose framing is lost. Make a new connection object
+    (the clients do on reconnect).
+    """
+
+    #: the RemoteProtocolError that put this connection in the ERROR state, or None
+    error: RemoteProtocolError | None = None
+
+    @property
+    def errored(self) -> bool:
+        """Whether the connection is in the ERROR state."""
+        return self.error is not None
+
+    def _check_usable(self) -> None:
+        if self.error is not None:
+            raise LocalProtocolError(
+                f"{type(self).__name__} is in the ERROR state after: {self.error.message}; "
+                "use a new connection"
+            )
+
+    def _broken(self, exc: RemoteProtocolError) -> RemoteProtocolError:
+        """Enter the ERROR state because of ``exc``; returns it for ``raise``."""
+        if self.error is None:
+            self.error = exc
+        return exc
 
 
 class NeedData(enum.Enum):

@@ -6,14 +6,17 @@ both roles are machines that take received bytes *and the current time*, queue b
 (:meth:`data_to_send`) and expose the next ``deadline`` at which the driver must call
 :meth:`timer`. Nothing here reads a clock, sleeps or does I/O.
 
-* :class:`PGConnection` runs one transaction (:class:`Job`) at a time (B.9.1) and reports one
-  event per job: :class:`Response`, :class:`Nak` or :class:`Timeout`. Bytes that break the
-  protocol make :meth:`PGConnection.next_event` raise :class:`RemoteProtocolError` once. After any
-  abort the machine refuses to start the next job until the line was silent for ``backoff``
-  (500 ms; B5.1/B5.5); :attr:`PGConnection.ready_at` says when.
-* :class:`AGConnection` is the PLC side (B.9.2): it emits :class:`Request` and the owner answers
-  with :meth:`AGConnection.respond` or :meth:`AGConnection.refuse` (DLE NAK). On a gap or a
-  wrong byte it silently returns to idle, as a CPU does.
+* :class:`ClientConnection` (the manual's PG; alias ``PGConnection``) runs one transaction
+  (:class:`Job`) at a time (B.9.1) and reports one event per job: :class:`Response`,
+  :class:`Nak` or :class:`Timeout`. Bytes that break the protocol make
+  :meth:`ClientConnection.next_event` raise :class:`RemoteProtocolError` once. After any abort
+  the machine refuses to start the next job until the line was silent for ``backoff`` (500 ms;
+  B5.1/B5.5); :attr:`ClientConnection.ready_at` says when. Unlike the stream protocols there is
+  no ERROR state: the line itself resynchronises after the silence, as the manual prescribes.
+* :class:`ServerConnection` (the manual's AG; alias ``AGConnection``) is the PLC side (B.9.2):
+  it emits :class:`Request` and the owner answers with :meth:`ServerConnection.respond` or
+  :meth:`ServerConnection.refuse` (DLE NAK). On a gap or a wrong byte it silently returns to
+  idle, as a CPU does.
 
 Helpers build the parameter frames of the functions this library uses (18h, 1Ah, 04h, 03h, 1Bh,
 1Eh, stop/start through 03h; B.7) and parse their answers.
@@ -26,7 +29,7 @@ import struct
 from collections import deque
 from dataclasses import dataclass
 
-from plcstack.codecs._common import NEED_DATA, NeedData
+from plcstack.codecs._common import NEED_DATA, Event, NeedData
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
 __all__ = [
@@ -49,6 +52,7 @@ __all__ = [
     "AGConnection",
     "AGEvent",
     "BlockInfo",
+    "ClientConnection",
     "Delivery",
     "Done",
     "Idled",
@@ -58,6 +62,7 @@ __all__ = [
     "PGEvent",
     "Request",
     "Response",
+    "ServerConnection",
     "SystemAddresses",
     "Timeout",
     "Unstuffer",
@@ -363,7 +368,7 @@ def parse_read(payload: bytes, length: int, *, strict: bool = False) -> bytes:
 
 # -- PG (client) machine (B.9.1) --------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
-class Response:
+class Response(Event):
     """The transaction completed; ``data`` is the unstuffed data frame (empty for writes)."""
 
     fn: int
@@ -371,7 +376,7 @@ class Response:
 
 
 @dataclass(frozen=True, slots=True)
-class Nak:
+class Nak(Event):
     """The AG answered DLE NAK at ``step`` ("ready", "function" or "params"; B5.1/B5.2)."""
 
     fn: int
@@ -379,7 +384,7 @@ class Nak:
 
 
 @dataclass(frozen=True, slots=True)
-class Timeout:
+class Timeout(Event):
     """The AG did not answer within the character timeout while the PG was in ``state``."""
 
     fn: int
@@ -422,7 +427,7 @@ _NAK_STEPS = {
 }
 
 
-class PGConnection:
+class ClientConnection:
     """The PG (client) side of AS511, one transaction at a time (B.9.1).
 
     Drive it like this: ``submit(job, now)`` (only when ``now >= ready_at``), send
@@ -685,7 +690,7 @@ class PGConnection:
 
 # -- AG (PLC) machine (B.9.2) ------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
-class Request:
+class Request(Event):
     """The PG sent a complete parameter frame; answer with ``respond()`` or ``refuse()``."""
 
     fn: int
@@ -693,14 +698,14 @@ class Request:
 
 
 @dataclass(frozen=True, slots=True)
-class Done:
+class Done(Event):
     """The PG acknowledged the terminate frame: the transaction is complete."""
 
     fn: int
 
 
 @dataclass(frozen=True, slots=True)
-class Idled:
+class Idled(Event):
     """The AG dropped a transaction (gap, unexpected byte, bad frame; B5.6) and is idle again."""
 
     reason: str
@@ -728,7 +733,7 @@ DEFAULT_FUNCTIONS = frozenset(
 )
 
 
-class AGConnection:
+class ServerConnection:
     """The AG (PLC) side of AS511 (B.9.2). Never raises on received bytes.
 
     ``busy`` makes it answer the next STX with DLE NAK (the "AG busy" case of B5.2).
@@ -908,3 +913,8 @@ class AGConnection:
             self.deadline = None
             self._response = None
             self._events.append(Done(self.fn))
+
+
+#: the manual's names: PG (programming device, our client) and AG (the PLC)
+PGConnection = ClientConnection
+AGConnection = ServerConnection

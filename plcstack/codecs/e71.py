@@ -2,15 +2,18 @@
 
 Reference: ``shared/specs/melsec-e71.md`` (section numbers below refer to it).
 
-* :class:`E71ClientConnection` is the partner (PC) side: ``send(request) -> bytes`` encodes a
-  request and remembers it in a FIFO, because a 1E response can only be sized and decoded with
-  the request it answers (§11.2); ``receive_data``/``next_event`` yield :class:`Ack`,
-  :class:`BitsResponse`, :class:`WordsResponse` or :class:`ErrorResponse`.
-* :class:`E71ServerConnection` is the E71 side (the simulator): it frames requests of the WHOLE
-  command table of §7.1 (00H-21H, 39H-3CH) plus 60H-62H by the length rules of §11.1, returns typed
-  requests for the commands implemented here (00H-09H), :class:`OpaqueRequest` (the raw frame) for
-  the other defined codes, and :class:`BadRequest` (with the end code a real E71 sends) for what
-  cannot be parsed. ``send(response) -> bytes`` encodes the answer.
+* :class:`ClientConnection` (alias ``E71ClientConnection``) is the partner (PC) side:
+  ``send(request) -> bytes`` encodes a request and remembers it in a FIFO, because a 1E
+  response can only be sized and decoded with the request it answers (§11.2);
+  ``receive_data``/``next_event`` yield :class:`Ack`, :class:`BitsResponse`,
+  :class:`WordsResponse` or :class:`ErrorResponse`. After a malformed response it is in the
+  ERROR state and refuses further use.
+* :class:`ServerConnection` (alias ``E71ServerConnection``) is the E71 side (the simulator): it
+  frames requests of the WHOLE command table of §7.1 (00H-21H, 39H-3CH) plus 60H-62H by the
+  length rules of §11.1, returns typed requests for the commands implemented here (00H-09H),
+  :class:`OpaqueRequest` (the raw frame) for the other defined codes, and :class:`BadRequest`
+  (with the end code a real E71 sends) for what cannot be parsed: it never raises on input.
+  ``send(response) -> bytes`` encodes the answer.
 
 The codec is split along its seams; this module holds the two connections and re-exports the
 names of the others, so ``from plcstack.codecs.e71 import ...`` keeps working:
@@ -31,7 +34,7 @@ import struct
 from collections import deque
 from typing import cast
 
-from plcstack.codecs._common import NEED_DATA, NeedData
+from plcstack.codecs._common import NEED_DATA, ErrorState, NeedData
 from plcstack.codecs.e71_devices import (
     DEVICE_BY_CODE,
     SPECIAL_FIRST,
@@ -110,6 +113,7 @@ __all__ = [
     "Ack",
     "BadRequest",
     "BitsResponse",
+    "ClientConnection",
     "Code",
     "CpuGroup",
     "Device",
@@ -130,6 +134,7 @@ __all__ = [
     "RegisterMonitorWords",
     "Request",
     "Response",
+    "ServerConnection",
     "TestBits",
     "TestWords",
     "Transport",
@@ -151,7 +156,7 @@ __all__ = [
 ]
 
 
-class E71ServerConnection:
+class ServerConnection:
     """The E71 side of one connection (TCP stream or UDP datagrams).
 
     ``next_event()`` returns a typed request, an :class:`OpaqueRequest`, a :class:`BadRequest`
@@ -216,7 +221,7 @@ class E71ServerConnection:
         return encode_response(response, self.code, abnormal_trailer=self.abnormal_trailer)
 
 
-class E71ClientConnection:
+class ClientConnection(ErrorState):
     """The partner side of one connection: encode requests, decode their responses in order.
 
     Responses carry no sequence number, so each is sized and decoded with the request it answers
@@ -254,6 +259,8 @@ class E71ClientConnection:
         return len(self._pending)
 
     def send(self, request: Request | ExtensionRequest) -> bytes:
+        if self.error is not None:
+            self._check_usable()
         if request is self._last_read:
             self._pending.append(request)
             return self._last_bytes
@@ -270,9 +277,15 @@ class E71ClientConnection:
         return data
 
     def receive_data(self, data: bytes) -> None:
+        if self.error is not None:
+            self._check_usable()
         self._framer.feed(data)
 
     def next_event(self) -> Response | ExtensionResponse | NeedData:
+        """The response to the oldest pending request, or ``NEED_DATA``. A malformed response
+        raises :class:`RemoteProtocolError` and leaves the connection in the ERROR state."""
+        if self.error is not None:
+            self._check_usable()
         pending = self._pending
         stream = self._fast_stream
         if stream is not None and pending and type(req := pending[0]) is ReadWords:
@@ -283,14 +296,17 @@ class E71ClientConnection:
             if normal is not None:
                 pending.popleft()
                 return WordsResponse(1, _words_struct(req.count).unpack_from(normal, 2))
-        frame = self._framer.next_frame(pending[0] if pending else None, self._response_size)
-        if frame is NEED_DATA:
-            return NEED_DATA
-        req = pending.popleft()
-        if isinstance(req, ExtensionRequest):
-            event = req.decode_response(frame, self.code)
-        else:
-            event = self._decode(cast("Request", req), frame)
+        try:
+            frame = self._framer.next_frame(pending[0] if pending else None, self._response_size)
+            if frame is NEED_DATA:
+                return NEED_DATA
+            req = pending.popleft()
+            if isinstance(req, ExtensionRequest):
+                event = req.decode_response(frame, self.code)
+            else:
+                event = self._decode(cast("Request", req), frame)
+        except RemoteProtocolError as exc:
+            raise self._broken(exc) from None
         if isinstance(event, ErrorResponse) and event.end_code == 0x5B:
             self._framer.after_abnormal()
         return event
@@ -393,3 +409,8 @@ def _words_struct(count: int) -> struct.Struct:
     if compiled is None:
         compiled = _WORDS_STRUCTS[count] = struct.Struct(f"<{count}H")
     return compiled
+
+
+#: the names of the first versions, used throughout the package's E71 code
+E71ClientConnection = ClientConnection
+E71ServerConnection = ServerConnection

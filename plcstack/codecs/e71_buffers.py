@@ -24,7 +24,7 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Final, Literal
 
-from plcstack.codecs._common import NEED_DATA, NeedData, ReceiveBuffer
+from plcstack.codecs._common import NEED_DATA, Event, NeedData, ReceiveBuffer
 from plcstack.codecs.e71_commands import FIXED_BUFFER_MAX_WORDS, FixedBufferData
 from plcstack.codecs.e71_wire import Code, Malformed, Reader, Writer
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
@@ -51,7 +51,7 @@ RAW_MAX_BYTES: Final = 2046
 
 
 @dataclass(frozen=True, slots=True)
-class FixedBufferAck:
+class FixedBufferAck(Event):
     """``E0`` + end code: the peer's answer to our telegram (00H = taken)."""
 
     end_code: int = 0
@@ -62,7 +62,7 @@ class FixedBufferAck:
 
 
 @dataclass(frozen=True, slots=True)
-class FixedBufferError:
+class FixedBufferError(Event):
     """E71 side: a telegram the E71 refuses; answer it with :meth:`FixedBufferConnection.refuse`
     (``subheader | 80H`` + end code: ``E0 52``, or e.g. ``E5 50`` for a telegram starting 65H)."""
 
@@ -96,6 +96,17 @@ class FixedBufferConnection:
         self.owe_ack = False
 
     # -- sending --------------------------------------------------------------------------------
+    def send(self, event: FixedBufferData | FixedBufferAck | FixedBufferError) -> bytes:
+        """One entry point for all three: a telegram (:meth:`send_data`), the answer to the
+        peer's telegram (:meth:`send_ack`) or, E71 side, a refusal (:meth:`refuse`)."""
+        if isinstance(event, FixedBufferData):
+            return self.send_data(event.values)
+        if isinstance(event, FixedBufferAck):
+            return self.send_ack(event.end_code)
+        if isinstance(event, FixedBufferError):
+            return self.refuse(event)
+        raise LocalProtocolError(f"cannot send {type(event).__name__} as a fixed-buffer message")
+
     def send_data(self, values: tuple[int, ...] | list[int]) -> bytes:
         """Encode a data telegram (1-1017 words binary, 1-508 ASCII)."""
         if self.awaiting_ack:

@@ -15,6 +15,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import ClassVar, Final
 
+from plcstack.codecs._common import Event
 from plcstack.codecs.e71_devices import DeviceRef, check_ref, dev_value
 from plcstack.codecs.e71_end_codes import ABNORMAL_CODES, END_CODES
 from plcstack.codecs.e71_limits import command_limit, head_ok, limit_error, unit_error
@@ -50,7 +51,7 @@ __all__ = [
 ]
 
 
-class E71Request:
+class E71Request(Event):
     """Every request the partner sends: it knows its command code and encodes itself.
 
     A plain base rather than an ``abc.ABC``: ``isinstance`` on the core request classes is on
@@ -326,7 +327,7 @@ class MonitorWords(_Header):
 
 
 @dataclass(frozen=True, slots=True)
-class OpaqueRequest:
+class OpaqueRequest(Event):
     """A defined command this version does not interpret (server side): the whole raw frame.
 
     ``frame`` is exactly the bytes received (ASCII text for ASCII), so a later version can parse
@@ -338,7 +339,7 @@ class OpaqueRequest:
 
 
 @dataclass(frozen=True, slots=True)
-class BadRequest:
+class BadRequest(Event):
     """A request the E71 answers with ``end_code`` without executing it (server side).
 
     ``pc`` is the PC number when it could be read (a wrong PC number takes precedence over most
@@ -379,14 +380,14 @@ REQUEST_TYPES: Final = (
 
 
 @dataclass(frozen=True, slots=True)
-class Ack:
+class Ack(Event):
     """Normal completion without data (82H-87H)."""
 
     command: int
 
 
 @dataclass(frozen=True, slots=True)
-class BitsResponse:
+class BitsResponse(Event):
     """Normal completion with bit data in bit units (80H, 88H)."""
 
     command: int
@@ -394,7 +395,7 @@ class BitsResponse:
 
 
 @dataclass(frozen=True, slots=True)
-class WordsResponse:
+class WordsResponse(Event):
     """Normal completion with words (81H, 89H)."""
 
     command: int
@@ -402,7 +403,7 @@ class WordsResponse:
 
 
 @dataclass(frozen=True, slots=True)
-class ErrorResponse:
+class ErrorResponse(Event):
     """Abnormal completion: ``end_code`` and, after 5BH, the ``abnormal_code`` (§4.3, §10)."""
 
     command: int
@@ -431,7 +432,7 @@ Response = Ack | BitsResponse | WordsResponse | ErrorResponse
 # Extension hook: commands beyond 00H-09H live in their own modules (e71_commands, e71_buffers)
 
 
-class ExtensionResponse(abc.ABC):
+class ExtensionResponse(Event, abc.ABC):
     """A response type defined by an extension module; it encodes itself (server side)."""
 
     __slots__ = ()

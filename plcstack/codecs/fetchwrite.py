@@ -18,7 +18,7 @@ import struct
 from dataclasses import dataclass
 from typing import Final, Literal
 
-from plcstack.codecs._common import NEED_DATA, NeedData, ReceiveBuffer
+from plcstack.codecs._common import NEED_DATA, ErrorState, Event, NeedData, ReceiveBuffer
 from plcstack.codecs.mk import LifeAck, Message, MkConnection
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
@@ -126,7 +126,7 @@ def data_bytes(org: int, length: int) -> int:
 
 
 @dataclass(frozen=True, slots=True)
-class FetchRequest:
+class FetchRequest(Event):
     """FETCH ``length`` units of ``org`` (block ``db`` for DB/DX/DE) from ``start``."""
 
     org: int
@@ -136,7 +136,7 @@ class FetchRequest:
 
 
 @dataclass(frozen=True, slots=True)
-class WriteRequest:
+class WriteRequest(Event):
     """WRITE ``data`` (``length`` units of ``org``) at ``start``."""
 
     org: int
@@ -155,7 +155,7 @@ class WriteRequest:
 
 
 @dataclass(frozen=True, slots=True)
-class FetchResponse:
+class FetchResponse(Event):
     """The FETCH acknowledgement: ``error`` (0 = ok) and, only when 0, the data."""
 
     error: int
@@ -163,14 +163,14 @@ class FetchResponse:
 
 
 @dataclass(frozen=True, slots=True)
-class WriteResponse:
+class WriteResponse(Event):
     """The WRITE acknowledgement: ``error`` (0 = written)."""
 
     error: int
 
 
 @dataclass(frozen=True, slots=True)
-class BadRequest:
+class BadRequest(Event):
     """Server side: a well-formed header the module must refuse with ``error`` (C.6.4/C.6.5).
 
     ``close`` is set when the stream cannot be resynchronised (raw framing, WRITE with an unknown
@@ -282,8 +282,8 @@ def parse_ack_header(header: bytes) -> tuple[int, int]:
 # -- connections ---------------------------------------------------------------------------
 
 
-class _Framed:
-    """What both roles share: raw byte buffer or MK message framing."""
+class _Framed(ErrorState):
+    """What both roles share: raw byte buffer or MK message framing, and the ERROR state."""
 
     def __init__(self, framing: Framing, mk: MkConnection | None) -> None:
         if framing not in ("raw", "mk"):
@@ -293,6 +293,8 @@ class _Framed:
         self._buf = ReceiveBuffer()
 
     def receive_data(self, data: bytes) -> None:
+        if self.error is not None:
+            self._check_usable()
         if self.mk is not None:
             self.mk.receive_data(data)
         else:
@@ -332,6 +334,8 @@ class ClientConnection(_Framed):
         return self._pending
 
     def send(self, request: Request) -> bytes:
+        if self.error is not None:
+            self._check_usable()
         if self._pending is not None:  # [R] C.6.5: at most one job outstanding, no pipelining
             raise LocalProtocolError("a FETCH/WRITE job is already outstanding (no pipelining)")
         if not isinstance(request, FetchRequest | WriteRequest):
@@ -343,6 +347,16 @@ class ClientConnection(_Framed):
         return self._frame(payload)
 
     def next_event(self) -> Response | NeedData:
+        """The answer to the outstanding job, or ``NEED_DATA``; bytes that cannot be one raise
+        :class:`RemoteProtocolError` and leave the connection in the ERROR state."""
+        if self.error is not None:
+            self._check_usable()
+        try:
+            return self._next_response()
+        except RemoteProtocolError as exc:
+            raise self._broken(exc) from None
+
+    def _next_response(self) -> Response | NeedData:
         if self.mk is not None:
             message = self._next_message()
             if message is NEED_DATA:
@@ -410,6 +424,17 @@ class ServerConnection(_Framed):
         self._fetch_bytes = 0  # data bytes a successful FETCH acknowledgement must carry
 
     def next_event(self) -> FetchRequest | WriteRequest | BadRequest | NeedData:
+        """The next request, or ``NEED_DATA``; a malformed header raises
+        :class:`RemoteProtocolError` (C.6.5: close without an answer) and leaves the connection in
+        the ERROR state."""
+        if self.error is not None:
+            self._check_usable()
+        try:
+            return self._next_request()
+        except RemoteProtocolError as exc:
+            raise self._broken(exc) from None
+
+    def _next_request(self) -> FetchRequest | WriteRequest | BadRequest | NeedData:
         if self._awaiting is not None:
             return NEED_DATA  # one job at a time: answer the current one first
         if self.mk is not None:
@@ -467,6 +492,8 @@ class ServerConnection(_Framed):
 
     def send(self, response: Response) -> bytes:
         """Encode the acknowledgement of the request just returned by :meth:`next_event`."""
+        if self.error is not None:
+            self._check_usable()
         opcode = (
             OpCode.FETCH_RESPONSE if isinstance(response, FetchResponse) else OpCode.WRITE_RESPONSE
         )

@@ -15,7 +15,7 @@ import struct
 from dataclasses import dataclass
 from typing import Final
 
-from plcstack.codecs._common import NEED_DATA, NeedData, ReceiveBuffer
+from plcstack.codecs._common import NEED_DATA, ErrorState, Event, NeedData, ReceiveBuffer
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
 __all__ = [
@@ -45,7 +45,7 @@ _FLAG_MORE: Final = 0x0001
 
 
 @dataclass(frozen=True, slots=True)
-class Message:
+class Message(Event):
     """One reassembled application message (the data of 1..n telegrams)."""
 
     data: bytes
@@ -55,7 +55,7 @@ class Message:
 
 
 @dataclass(frozen=True, slots=True)
-class LifeAck:
+class LifeAck(Event):
     """A received life data ack (DataLen 0). Never answered (C.3)."""
 
     seq: int
@@ -68,7 +68,7 @@ def encode_telegram(data: bytes, seq: int, more: bool = False) -> bytes:
     return _HEADER.pack(MAGIC, len(data), _FLAG_MORE if more else 0, seq & 0xFFFF) + data
 
 
-class MkConnection:
+class MkConnection(ErrorState):
     """MK framing for one TCP connection (one direction's counter each way).
 
     Sending: :meth:`send_message` splits a message into telegrams of at most ``max_send_data``
@@ -108,8 +108,19 @@ class MkConnection:
         self._first_seq = 0
 
     # -- sending ------------------------------------------------------------------------------
+    def send(self, event: Message | LifeAck) -> bytes:
+        """``send(Message(data))``: :meth:`send_message`; ``send(LifeAck(...))``: :meth:`life_ack`
+        (a life ack always carries the current counter, whatever ``seq`` the event holds)."""
+        if isinstance(event, Message):
+            return self.send_message(event.data)
+        if isinstance(event, LifeAck):
+            return self.life_ack()
+        raise LocalProtocolError(f"cannot send {type(event).__name__} over MK")
+
     def send_message(self, data: bytes) -> bytes:
         """The telegrams carrying ``data``, concatenated, ready for one ``transport.write``."""
+        if self.error is not None:
+            self._check_usable()
         if not data:
             raise LocalProtocolError("an MK message cannot be empty (DataLen 0 is a life ack)")
         seq = self.tx_seq
@@ -130,6 +141,8 @@ class MkConnection:
 
     # -- receiving ----------------------------------------------------------------------------
     def receive_data(self, data: bytes) -> None:
+        if self.error is not None:
+            self._check_usable()
         self._buf.feed(data)
 
     @property
@@ -138,6 +151,16 @@ class MkConnection:
         return len(self._buf) + self._parts_len
 
     def next_event(self) -> Message | LifeAck | NeedData:
+        """The next message or life ack, or ``NEED_DATA``; a framing error raises
+        :class:`RemoteProtocolError` and leaves the connection in the ERROR state."""
+        if self.error is not None:
+            self._check_usable()
+        try:
+            return self._next_event()
+        except RemoteProtocolError as exc:
+            raise self._broken(exc) from None
+
+    def _next_event(self) -> Message | LifeAck | NeedData:
         buf = self._buf
         while True:
             if len(buf) < HEADER_LEN:

@@ -19,7 +19,7 @@ import struct
 from dataclasses import dataclass, field
 from typing import Final, Literal
 
-from plcstack.codecs._common import NEED_DATA, NeedData, ReceiveBuffer
+from plcstack.codecs._common import NEED_DATA, Event, NeedData, ReceiveBuffer
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
 __all__ = [
@@ -235,7 +235,7 @@ class Header:
 
 # -- events ----------------------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
-class Request:
+class Request(Event):
     """A request block with its write data (client sends it; the server emits it when valid)."""
 
     header: Header
@@ -272,7 +272,7 @@ class Request:
 
 
 @dataclass(frozen=True, slots=True)
-class Response:
+class Response(Event):
     """The module's answer (client role): ``header.err`` and, for a successful read, the data."""
 
     header: Header
@@ -290,7 +290,7 @@ class Response:
 
 
 @dataclass(frozen=True, slots=True)
-class BadRequest:
+class BadRequest(Event):
     """Server role: answer ``header`` with ``err`` (no data); close afterwards if ``close``."""
 
     header: Header
@@ -486,11 +486,11 @@ class _ServerState(enum.Enum):
 class ServerConnection:
     """Module role: parses request blocks and validates them in the order of spec A.7.
 
-    :meth:`next_event` yields a valid :class:`Request` (the caller then checks the area, Err 2/3,
-    and answers with :meth:`send_response`) or a :class:`BadRequest` carrying the Err code to
-    answer. While write data are outstanding (:attr:`awaiting_data`), the caller runs the data
-    timer and calls :meth:`data_timeout` when it expires (Err 10). After a ``BadRequest`` with
-    ``close`` the connection must be closed; further input is ignored.
+    :meth:`next_event` yields a valid :class:`Request` (the caller then checks the area, Err
+    2/3, and answers with ``send(answer(request, err, data))``) or a :class:`BadRequest` carrying
+    the Err code to answer. While write data are outstanding (:attr:`awaiting_data`), the caller
+    runs the data timer and calls :meth:`data_timeout` when it expires (Err 10). After a
+    ``BadRequest`` with ``close`` the connection must be closed; further input is ignored.
     """
 
     def __init__(
@@ -593,8 +593,9 @@ class ServerConnection:
             return pending
         return BadRequest(header, ERR_TOO_LITTLE, "write data incomplete at the data timeout")
 
-    def send_response(self, request: Header, err: int = ERR_OK, data: bytes = b"") -> bytes:
-        """The answer block for ``request`` (+ ``data`` for a successful read)."""
+    def answer(self, request: Header, err: int = ERR_OK, data: bytes = b"") -> Response:
+        """The :class:`Response` event answering ``request`` (+ ``data`` for a successful read),
+        checked; :meth:`send` encodes it."""
         if err == ERR_OK and request.is_read:
             if len(data) != (request.data_len or 0):
                 raise LocalProtocolError(
@@ -602,4 +603,13 @@ class ServerConnection:
                 )
         elif data:
             raise LocalProtocolError("only a successful read answer carries data")
-        return request.response(err, self.version).encode(self.byte_order) + data
+        return Response(request.response(err, self.version), data)
+
+    def send(self, response: Response) -> bytes:
+        """The answer block of ``response`` (built by :meth:`answer`), as every codec's
+        ``send(event) -> bytes``."""
+        return response.header.encode(self.byte_order) + response.data
+
+    def send_response(self, request: Header, err: int = ERR_OK, data: bytes = b"") -> bytes:
+        """``send(answer(request, err, data))`` in one call."""
+        return self.send(self.answer(request, err, data))
