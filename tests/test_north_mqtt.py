@@ -141,17 +141,19 @@ async def test_disk_backlog_survives_a_poller_restart(mosquitto: Mosquitto, tmp_
 async def test_byte_budget_keeps_the_newest_and_counts_the_rest(
     mosquitto: Mosquitto, tmp_path: Path
 ) -> None:
-    mosquitto.stop()
-    buffer = StoreAndForward(tmp_path / "q.sqlite", memory_bytes=2000, max_bytes=6000)
-    sink = MqttSink(settings(mosquitto), buffer=buffer)
-    await sink.start()
-    for n in range(200):
-        sink.submit([sample("p", "n", n)])
-        assert buffer.backlog_bytes <= 6000
-    kept = len(buffer)
-    assert buffer.dropped == sink.stats.submitted - kept > 0  # 200 data + 1 status submitted
-    mosquitto.start()
+    # the subscriber's persistent session exists before the outage, so the broker keeps what
+    # arrives for it while it reconnects
     async with subscriber(mosquitto.host, mosquitto.port, "plcstack/+/data/#") as sub:
+        mosquitto.stop()
+        buffer = StoreAndForward(tmp_path / "q.sqlite", memory_bytes=2000, max_bytes=6000)
+        sink = MqttSink(settings(mosquitto), buffer=buffer)
+        await sink.start()
+        for n in range(200):
+            sink.submit([sample("p", "n", n)])
+            assert buffer.backlog_bytes <= 6000
+        kept = len(buffer)
+        assert buffer.dropped == sink.stats.submitted - kept > 0  # 200 data + 1 status
+        mosquitto.start()
         await sub.wait_for(lambda s: len(counts(s)) >= kept)
         await sink.aclose()
     assert counts(sub) == list(range(200 - kept, 200))

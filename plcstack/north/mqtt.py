@@ -28,9 +28,11 @@ the reason; see :mod:`plcstack.north.layout`.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import os
+import socket
 import ssl
 import time
 from collections.abc import Sequence
@@ -276,6 +278,13 @@ class MqttSink:
         async with asyncio.timeout(timeout):
             await self._connected_event.wait()
 
+    async def wait_drained(self, timeout: float) -> None:
+        """Wait until everything queued so far was sent (``TimeoutError`` after ``timeout``)."""
+        async with asyncio.timeout(timeout):
+            while len(self.buffer):
+                self._idle.clear()
+                await self._idle.wait()
+
     async def aclose(self, *, drain: float = 2.0) -> None:
         """Send what can be sent within ``drain`` s, say ``offline``, keep the rest on disk."""
         if self._task is not None and self.connected and drain > 0:
@@ -341,7 +350,12 @@ class MqttSink:
             timeout=10,
             tls_context=self._tls_context(),
             max_inflight_messages=s.inflight,
+            # small messages and PUBACKs both ways: Nagle plus delayed ACK would hold each
+            # window for tens of milliseconds
+            socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],
         )
+        # a full window of publishes in flight is normal here, not a reason for aiomqtt's warning
+        client.pending_calls_threshold = s.inflight + 16
         async with client:
             self._client = client
             self.connected = True
@@ -359,21 +373,53 @@ class MqttSink:
                 tg.create_task(self._publisher(client))
 
     async def _publisher(self, client: Any) -> None:
+        """A sliding window: up to ``inflight`` publishes outstanding, removed in order.
+
+        A new message goes out as soon as the oldest is acknowledged (not in rounds that wait
+        for a whole window): the stream of PUBLISH packets keeps carrying our TCP ACKs, so a
+        broker without TCP_NODELAY does not stall each window on delayed ACKs.
+        """
         buffer, stats = self.buffer, self.stats
         window = self.settings.inflight
         prepare = getattr(self.layout, "prepare", None)
-        while True:
-            batch = buffer.peek(window)
-            if not batch:
-                self._wake.clear()
-                self._idle.set()
-                await self._wake.wait()
-                continue
-            await asyncio.gather(*(self._publish(client, m, prepare) for m in batch))
-            buffer.ack(batch[-1].seq)
-            stats.sent += len(batch)
-            replayed = sum(1 for m in batch if m.seq <= self._replay_until)
-            stats.replayed += replayed
+        inflight: collections.deque[tuple[Message, asyncio.Task[None]]] = collections.deque()
+        last_started = -1
+        try:
+            while True:
+                room = window - len(inflight)
+                if room > 0:
+                    # in-flight messages are the oldest in the queue (unless the byte budget
+                    # dropped them meanwhile): skip them by seq
+                    for m in buffer.peek(len(inflight) + room):
+                        if m.seq > last_started:
+                            task = asyncio.ensure_future(self._publish(client, m, prepare))
+                            inflight.append((m, task))
+                            last_started = m.seq
+                if not inflight:
+                    self._wake.clear()
+                    self._idle.set()
+                    await self._wake.wait()
+                    continue
+                m, task = inflight[0]
+                if not task.done():
+                    self._wake.clear()
+                    # the oldest acknowledgement, or new messages to fill the window with
+                    waker = asyncio.ensure_future(self._wake.wait())
+                    try:
+                        await asyncio.wait((task, waker), return_when=asyncio.FIRST_COMPLETED)
+                    finally:
+                        waker.cancel()
+                    if not task.done():
+                        continue
+                inflight.popleft()
+                task.result()  # a failed publish ends this connection
+                buffer.ack(m.seq)
+                stats.sent += 1
+                if m.seq <= self._replay_until:
+                    stats.replayed += 1
+        finally:
+            for _, task in inflight:
+                task.cancel()
 
     async def _publish(self, client: Any, m: Message, prepare: Any) -> None:
         payload = m.payload if prepare is None else prepare(m, m.seq <= self._replay_until)

@@ -117,7 +117,12 @@ class North:
     async def run(self, emit: Callable[[list[Sample]], None] | None = None) -> None:
         """Consume the poller until cancelled."""
         poller = self.poller
-        async for first in poller:
+        batches = getattr(poller, "batches", None)
+        if batches is not None:  # the Poller: one list per wake-up
+            async for batch in batches():
+                self.deliver(batch, emit)
+            return
+        async for first in poller:  # anything else that iterates samples (a scale-out Worker)
             batch = [first]
             batch.extend(poller.drain())
             self.deliver(batch, emit)
