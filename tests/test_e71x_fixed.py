@@ -328,7 +328,8 @@ async def test_without_procedure(transport: str) -> None:
 
 
 async def test_udp_broadcast_receive() -> None:
-    async with E71BroadcastReceiver(0) as rx:
+    # real broadcasts need every interface bound, which is an explicit choice (default: loopback)
+    async with E71BroadcastReceiver(0, host="0.0.0.0") as rx:
         sim = await start_fixed_buffer(
             transport="udp", procedure=False, broadcast=("127.255.255.255", rx.port)
         )

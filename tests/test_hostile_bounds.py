@@ -11,7 +11,7 @@ import socket
 
 import pytest
 
-from plcstack.clients.e71_fixed import INBOX_MAX, E71FixedBufferClient
+from plcstack.clients.e71_fixed import INBOX_MAX, E71BroadcastReceiver, E71FixedBufferClient
 from plcstack.codecs.e71_buffers import FixedBufferConnection
 from plcstack.codecs.e71_commands import FixedBufferData
 from plcstack.errors import PlcError, RemoteProtocolError
@@ -163,3 +163,22 @@ async def test_fixed_buffer_client_without_procedure_stops_reading_for_a_slow_co
             assert peak <= MAX_QUEUED + RECEIVE_BUFFER
         finally:
             await client.aclose()
+
+
+async def test_broadcast_receiver_binds_loopback_and_bounds_its_queue() -> None:
+    """Before: bound every interface by default, with an unbounded queue."""
+    async with E71BroadcastReceiver(0, max_queued=8) as rx:
+        assert rx.host == "127.0.0.1"
+        assert rx._transport is not None
+        assert rx._transport.get_extra_info("sockname")[0] == "127.0.0.1"
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            for i in range(50):
+                tx.sendto(bytes([i]), ("127.0.0.1", rx.port))
+            for _ in range(20):
+                await asyncio.sleep(0.01)
+        finally:
+            tx.close()
+        assert rx.dropped == 50 - 8
+        first, _ = await rx.receive(timeout=1)
+        assert first == b"\x00"  # the oldest are kept, the surplus is dropped and counted

@@ -121,12 +121,21 @@ def test_strict_learns_the_base_from_the_first_telegram(first: int) -> None:
     assert [e.data for e in events(rx) if isinstance(e, Message)] == [b"x", b"y"]
 
 
-def test_sequence_gap_counted_by_default_and_fatal_in_strict_mode() -> None:
+def test_sequence_gap_fatal_by_default_and_only_counted_when_turned_off() -> None:
+    """Issue 11 item 4: checked by default (a delayed copy repeats an earlier SeqNo);
+    ``check_seq=False`` is the way off for CPs that do not count."""
     wire = encode_telegram(b"x", 0) + encode_telegram(b"", 9) + encode_telegram(b"y", 2)
-    lenient = MkConnection()
+    lenient = MkConnection(check_seq=False)
     lenient.receive_data(wire)
     assert len(events(lenient)) == 3
     assert lenient.sequence_mismatches == 1
+    default = MkConnection()
+    default.receive_data(wire)
+    assert default.next_event() == Message(b"x", 0)
+    assert default.next_event() == LifeAck(9)
+    with pytest.raises(RemoteProtocolError, match="sequence number 2 where 1") as info:
+        default.next_event()
+    assert "mk_seq=0" in info.value.message
     strict = MkConnection(strict=True)
     strict.receive_data(wire)
     assert strict.next_event() == Message(b"x", 0)
@@ -168,7 +177,7 @@ def test_strict_limits() -> None:
 
 def test_max_message_guard() -> None:
     rx = MkConnection(max_message=1000)
-    rx.receive_data(encode_telegram(bytes(600), 0, more=True) * 2)
+    rx.receive_data(encode_telegram(bytes(600), 0, more=True) + encode_telegram(bytes(600), 1))
     with pytest.raises(RemoteProtocolError, match="exceeds 1000"):
         events(rx)
 

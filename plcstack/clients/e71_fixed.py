@@ -288,13 +288,23 @@ class E71BroadcastReceiver(AsyncResource):
     """Receives UDP broadcasts an E71 sends without procedure (partner IP FFFFFFFFH, §8.3).
 
     ``async with E71BroadcastReceiver(port) as rx: async for data, (ip, port) in rx: ...``.
-    Datagrams are not filtered: receivers must check the contents themselves (§8.3)."""
+    Datagrams are not filtered: receivers must check the contents themselves (§8.3).
 
-    def __init__(self, port: int, host: str = "") -> None:
+    ``host`` defaults to ``127.0.0.1``: binding every interface makes a process answerable to
+    the whole network, so receiving real broadcasts is an explicit ``host="0.0.0.0"``. At most
+    ``max_queued`` datagrams wait for :meth:`receive`; further ones are dropped and counted in
+    :attr:`dropped` (anyone on the segment can send broadcasts, faster than we take them).
+    """
+
+    def __init__(self, port: int, host: str = "127.0.0.1", *, max_queued: int = 1024) -> None:
+        if max_queued < 1:
+            raise AddressError("max_queued must be at least 1")
         self.host = host
         self.port = port
-        self._queue: asyncio.Queue[tuple[bytes, tuple[str, int]]] = asyncio.Queue()
+        self._queue: asyncio.Queue[tuple[bytes, tuple[str, int]]] = asyncio.Queue(max_queued)
         self._transport: asyncio.DatagramTransport | None = None
+        #: datagrams dropped because ``max_queued`` were waiting
+        self.dropped = 0
 
     async def aopen(self) -> None:
         """Bind the port (``port=0``: a free one, then in :attr:`port`)."""
@@ -305,9 +315,13 @@ class E71BroadcastReceiver(AsyncResource):
         sock.bind((self.host, self.port))
         self.port = sock.getsockname()[1]
         queue = self._queue
+        receiver = self
 
         class _Rx(asyncio.DatagramProtocol):
             def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+                if queue.full():
+                    receiver.dropped += 1
+                    return
                 queue.put_nowait((data, (str(addr[0]), int(addr[1]))))
 
         transport, _ = await loop.create_datagram_endpoint(_Rx, sock=sock)

@@ -11,7 +11,10 @@ URL options (keyword arguments of :func:`plcstack.connect` override them):
                       declared dead, its connection closed, and the next request fails with
                       :class:`~plcstack.errors.ConnectionLost` saying so (then reconnects)
 ``life_timeout=S``    see above
-``strict=1``          strict MK receive checks (sequence numbers, reserved flags, 1460 bytes)
+``mk_seq=0``          do not check the MK sequence numbers of answers (for CPs that do not
+                      count them); checked by default, as they are the only way to tell a
+                      delayed copy of an earlier answer from the current one
+``strict=1``          strict MK receive checks (reserved flags, 1460 bytes)
 ``timeout``, ``connect_timeout``  as for every client
 
 Data are big-endian S5 words. Word reads return 0..65535, byte reads 0..255. Writes accept
@@ -69,7 +72,7 @@ _WritePlan = tuple[S5Unit, int, int, int, int]
 _PLAN_CACHE: Final = 1024
 
 _URL_OPTIONS: Final = frozenset(
-    {"mk", "db_start", "write_port", "life_ack", "life_timeout", "strict"}
+    {"mk", "db_start", "write_port", "life_ack", "life_timeout", "strict", "mk_seq"}
 )
 
 
@@ -116,6 +119,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         life_ack: float | None = None,
         life_timeout: float | None = None,
         strict: bool = False,
+        mk_seq: bool = True,
         timeout: float = 2.0,
         connect_timeout: float = 3.0,
         backoff: Backoff | None = None,
@@ -139,6 +143,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         self.life_ack = life_ack
         self.life_timeout = life_timeout
         self.strict = strict
+        self.mk_seq = mk_seq
         #: times a silent peer was declared dead (life ack timeout)
         self.dead_peers = 0
         self._keeper: asyncio.Task[None] | None = None
@@ -156,6 +161,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
                 life_ack=life_ack,
                 life_timeout=life_timeout,
                 strict=strict,
+                mk_seq=mk_seq,
                 timeout=timeout,
                 connect_timeout=connect_timeout,
                 backoff=copy.copy(backoff),  # each connection backs off on its own
@@ -169,6 +175,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         opts.setdefault("mk", url.get_bool("mk", False))
         opts.setdefault("db_start", url.get_str("db_start", "word", ("word", "byte")))
         opts.setdefault("strict", url.get_bool("strict", False))
+        opts.setdefault("mk_seq", url.get_bool("mk_seq", True))
         if "write_port" in url.options:
             opts.setdefault("write_port", url.get_int("write_port", 0, 1, 65535))
         for name in ("life_ack", "life_timeout"):
@@ -183,7 +190,9 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
     # -- connection life cycle ----------------------------------------------------------------
     def new_codec(self) -> ClientConnection:
         if self.mk:
-            return ClientConnection("mk", mk=MkConnection(strict=self.strict))
+            return ClientConnection(
+                "mk", mk=MkConnection(strict=self.strict, check_seq=self.mk_seq)
+            )
         return ClientConnection("raw")
 
     def connection_made(self) -> None:

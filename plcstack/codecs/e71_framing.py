@@ -122,6 +122,10 @@ REQUEST_RULES: Final[dict[int, _Rule]] = {
 }
 
 
+#: most words one 60H/62H message carries, by wire unit (1: binary, 2: ASCII; §1.5, §9)
+_U16_MAX_WORDS: Final = {1: 1017, 2: 508}
+
+
 class _Sized(NamedTuple):
     length: int  # in wire units (bytes; ASCII characters are bytes too)
     n: int
@@ -166,6 +170,10 @@ def size_request(head: bytes, code: Code, *, lower_ok: bool = True) -> _Sized | 
     n = _count_field(head, rule, unit, lower_ok)
     if n is None:
         return None
+    if rule.kind == "u16" and n > _U16_MAX_WORDS[unit]:
+        # 60H/62H count their words in 16 bits, but no message carries more than 1017 words
+        # (508 in ASCII; §1.5, §9): refused here, before up to 128 KiB are waited for.
+        raise Malformed(0x52, f"{n} words for one message (at most {_U16_MAX_WORDS[unit]}, §1.5)")
     variable = (n + 1) // 2 if rule.packed else n
     return _Sized((rule.base + rule.per * variable) * unit, n)
 

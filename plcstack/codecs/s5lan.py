@@ -513,6 +513,11 @@ class ServerConnection:
         """A write header arrived and its data are not complete yet (run the data timer)."""
         return self.state in (_ServerState.WAIT_WRITE_DATA, _ServerState.DISCARD_WRITE_DATA)
 
+    @property
+    def buffered(self) -> int:
+        """Bytes received and not yet decoded (an incomplete header or data part)."""
+        return len(self._buf)
+
     def receive_data(self, data: bytes) -> None:
         if self.state is not _ServerState.CLOSED:
             self._buf.feed(data)

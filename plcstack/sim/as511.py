@@ -35,7 +35,15 @@ from plcstack.codecs.as511 import (
     Idled,
     Request,
 )
-from plcstack.sim.base import Simulator, TcpSimulator
+from plcstack.sim.base import (
+    DEFAULT_IDLE_TIMEOUT,
+    DEFAULT_MAX_CONNECTIONS,
+    Simulator,
+    TcpSimulator,
+    add_idle_timeout_argument,
+    check_idle_timeout,
+    idle_timeout_of,
+)
 from plcstack.sim.s5memory import BLOCK_HEADER_BYTES, BlockType, S5AccessError, S5Memory
 
 __all__ = [
@@ -266,18 +274,45 @@ async def start(
     port: int = 0,
     baud: int | None = None,
     char_timeout: float = DEFAULT_CHAR_TIMEOUT,
+    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
+    max_connections: int = DEFAULT_MAX_CONNECTIONS,
 ) -> AS511TcpSimulator:
-    """Serve AS511 over TCP (a serial device server's view); returns once it accepts clients."""
+    """Serve AS511 over TCP (a serial device server's view); returns once it accepts clients.
+
+    ``idle_timeout``: seconds after which a connection that sent nothing is closed (default
+    600, ``None``: never); ``max_connections``: connections at once, further ones are closed
+    at once and counted in ``refused_connections``.
+    """
+    idle = check_idle_timeout(idle_timeout)
+    if max_connections < 1:
+        raise ValueError("max_connections must be at least 1")
     machine = AS511Machine(memory, baud=baud, char_timeout=char_timeout)
     sim: AS511TcpSimulator | None = None
 
     async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if sim is not None and sim.connection_count.current >= max_connections:
+            sim.refused_connections += 1
+            writer.transport.abort()
+            return
         task = asyncio.current_task()
         if sim is not None and task is not None:
             sim.track(task)
+
+        async def read() -> bytes:
+            # A peer that does not read our answers: wait until it does before reading more
+            # (drain blocks above the write high-water mark), so nothing piles up here.
+            await writer.drain()
+            try:
+                async with asyncio.timeout(idle):
+                    return await reader.read(4096)
+            except TimeoutError:
+                if sim is not None:
+                    sim.idle_closed += 1
+                return b""  # idle for idle_timeout: end the line like an EOF
+
         try:
-            await machine.serve_line(lambda: reader.read(4096), writer.write)
-        except (ConnectionError, asyncio.IncompleteReadError):
+            await machine.serve_line(read, writer.write)
+        except (ConnectionError, asyncio.IncompleteReadError, OSError):
             pass
         except asyncio.CancelledError:
             # aclose() ended this connection. Finishing normally keeps asyncio's start_server
@@ -381,6 +416,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--pty", action="store_true", help="serve on a new pseudo-terminal instead of TCP"
     )
+    add_idle_timeout_argument(parser)
     parser.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5020, help="TCP port (default 5020; 0 = any)")
     parser.add_argument(
@@ -395,7 +431,9 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         announce(f"serial port {pty_sim.path}")
         sim = pty_sim
     else:
-        tcp_sim = await start(host=args.host, port=args.port, baud=args.baud)
+        tcp_sim = await start(
+            host=args.host, port=args.port, baud=args.baud, idle_timeout=idle_timeout_of(args)
+        )
         announce(f"listening on {tcp_sim.host}:{tcp_sim.port} (TCP)")
         sim = tcp_sim
     await sim.serve_forever()

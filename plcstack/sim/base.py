@@ -7,12 +7,96 @@ client should use, so callers never assemble URLs by hand.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 from abc import abstractmethod
+from collections.abc import Callable
 
 from plcstack.resource import AsyncResource
 
-__all__ = ["ConnectionCount", "Simulator", "TcpSimulator", "UdpSimulator"]
+__all__ = [
+    "DEFAULT_IDLE_TIMEOUT",
+    "DEFAULT_MAX_CONNECTIONS",
+    "ConnectionCount",
+    "IdleWatch",
+    "Simulator",
+    "TcpSimulator",
+    "UdpSimulator",
+    "add_idle_timeout_argument",
+    "check_idle_timeout",
+    "idle_timeout_of",
+]
+
+#: seconds a simulator keeps a connection on which the client sent nothing. Real modules drop
+#: dead partners too (the E71 by its "existence check", a CP by its keep-alive); without it 8
+#: idle sockets locked an E71 simulator out, 1 an S5-LAN one, for ever. Ten minutes is longer
+#: than any sane poll interval, so a slow poller is never cut off; ``None`` turns it off.
+DEFAULT_IDLE_TIMEOUT: float | None = 600.0
+#: connections at once of the simulators whose modules have no documented limit (FETCH/WRITE,
+#: AS511 over a serial device server); beyond it a connection is closed at once and counted
+DEFAULT_MAX_CONNECTIONS = 16
+
+
+def check_idle_timeout(idle_timeout: float | None) -> float | None:
+    """``None`` (off) or a finite number of seconds greater than 0."""
+    if idle_timeout is None:
+        return None
+    from plcstack.durations import check_seconds
+
+    return check_seconds("idle_timeout", idle_timeout)
+
+
+def add_idle_timeout_argument(parser: argparse.ArgumentParser) -> None:
+    """``--idle-timeout SECONDS`` of every ``plcstack sim`` (0 = never close idle connections)."""
+    parser.add_argument(
+        "--idle-timeout",
+        type=float,
+        default=DEFAULT_IDLE_TIMEOUT,
+        metavar="SECONDS",
+        help="close a connection that sent nothing for this long (default 600; 0 = never)",
+    )
+
+
+def idle_timeout_of(args: argparse.Namespace) -> float | None:
+    """The ``--idle-timeout`` of parsed CLI arguments as ``start()`` takes it (0 -> None)."""
+    value: float | None = getattr(args, "idle_timeout", DEFAULT_IDLE_TIMEOUT)
+    return None if value == 0 else value
+
+
+class IdleWatch:
+    """Calls ``on_idle`` once ``timeout`` seconds passed without :meth:`touch`.
+
+    One timer per connection, re-armed only when it fires (``touch`` just stores the time), so
+    a busy connection costs one attribute write per chunk received.
+    """
+
+    __slots__ = ("_handle", "_last", "_loop", "on_idle", "timeout")
+
+    def __init__(self, timeout: float | None, on_idle: Callable[[], None]) -> None:
+        self.timeout = timeout
+        self.on_idle = on_idle
+        self._loop = asyncio.get_running_loop()
+        self._last = self._loop.time()
+        self._handle: asyncio.TimerHandle | None = None
+        if timeout is not None:
+            self._handle = self._loop.call_later(timeout, self._fire)
+
+    def touch(self) -> None:
+        self._last = self._loop.time()
+
+    def cancel(self) -> None:
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+
+    def _fire(self) -> None:
+        assert self.timeout is not None
+        due = self._last + self.timeout
+        if self._loop.time() >= due:
+            self._handle = None
+            self.on_idle()
+        else:
+            self._handle = self._loop.call_at(due, self._fire)
 
 
 class ConnectionCount:
@@ -56,6 +140,13 @@ class Simulator(AsyncResource):
 
 class TcpSimulator(Simulator):
     """A simulator behind one ``asyncio.Server``; ``host``/``port`` are the bound address."""
+
+    #: seconds without a byte from the client before its connection is closed (None: never)
+    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT
+    #: connections closed because the client sent nothing for ``idle_timeout`` seconds
+    idle_closed = 0
+    #: connections closed at once because the simulator was at its connection cap
+    refused_connections = 0
 
     def __init__(self, server: asyncio.Server, scheme: str, query: str = "") -> None:
         self.server = server

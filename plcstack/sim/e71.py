@@ -51,7 +51,16 @@ from plcstack.codecs.e71 import (
     unit_error,
 )
 from plcstack.codecs.e71_commands import DECODERS
-from plcstack.sim.base import Simulator, TcpSimulator, UdpSimulator
+from plcstack.sim.base import (
+    DEFAULT_IDLE_TIMEOUT,
+    IdleWatch,
+    Simulator,
+    TcpSimulator,
+    UdpSimulator,
+    add_idle_timeout_argument,
+    check_idle_timeout,
+    idle_timeout_of,
+)
 from plcstack.sim.e71_module import execute_extension, module_of
 from plcstack.sim.melsec_memory import CpuState, MelsecAccessError, MelsecMemory
 
@@ -188,21 +197,42 @@ class _TcpConnection(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
         self._partial_timer: asyncio.TimerHandle | None = None
         self._busy_until = 0.0  # loop time when the last queued (delayed) answer goes out
+        self._idle: IdleWatch | None = None
 
     def connection_made(self, transport_: asyncio.BaseTransport) -> None:
         # cast, not isinstance: uvloop's transports are not subclasses of asyncio.Transport
         transport = cast(asyncio.Transport, transport_)
         if len(self.sim.connections) >= MAX_CONNECTIONS:
+            self.sim.refused_connections += 1
             transport.abort()  # all 8 connections in use
             return
         self.transport = transport
         self.sim.connections.add(self)
         self.sim.connection_count.opened()
+        self._idle = IdleWatch(self.sim.idle_timeout, self._idle_out)
+
+    def _idle_out(self) -> None:
+        if self.transport is not None:
+            self.sim.idle_closed += 1
+            self.transport.abort()
+
+    def pause_writing(self) -> None:
+        # The peer does not read its answers: stop reading its requests until it does, so
+        # neither our write buffer nor a backlog of answered requests grows (asyncio calls
+        # this above the transport's write high-water mark).
+        if self.transport is not None:
+            self.transport.pause_reading()
+
+    def resume_writing(self) -> None:
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.resume_reading()
 
     def data_received(self, data: bytes) -> None:
         transport = self.transport
         if transport is None:
             return
+        if self._idle is not None:
+            self._idle.touch()
         codec = self.codec
         codec.receive_data(data)
         sim = self.sim
@@ -243,6 +273,8 @@ class _TcpConnection(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         if self._partial_timer is not None:
             self._partial_timer.cancel()
+        if self._idle is not None:
+            self._idle.cancel()
         if self.transport is not None:
             self.sim.connection_count.closed()
         self.sim.connections.discard(self)
@@ -353,12 +385,16 @@ async def start(
     lower_ok: bool = True,
     abnormal_trailer: bool = True,
     incomplete_timeout: float = INCOMPLETE_TIMEOUT,
+    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
 ) -> E71TcpSimulator | E71UdpSimulator:
     """Start an E71 simulator; returns once it accepts clients (``port=0``: a free port).
 
     ``lower_ok=False``: lower-case ASCII hex is answered with 54H (§13 A7 strict mode).
     ``abnormal_trailer=False``: 5BH answers without the trailing 00H (Q-series form, §13 A3).
+    ``idle_timeout``: seconds (TCP) after which a connection that sent nothing is closed
+    (default 600; ``None``: never), so idle sockets cannot hold all 8 connections for ever.
     """
+    idle = check_idle_timeout(idle_timeout)
     mem = memory if memory is not None else MelsecMemory()
     code_ = code if isinstance(code, Code) else Code(code)
     loop = asyncio.get_running_loop()
@@ -382,6 +418,7 @@ async def start(
         abnormal_trailer=abnormal_trailer,
         incomplete_timeout=incomplete_timeout,
     )
+    tsim.idle_timeout = idle
     sims.append(tsim)
 
     sim_ref = weakref.ref(tsim)  # the module outlives no simulator through this listener
@@ -410,6 +447,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5000, help="port (default 5000; 0 = any)")
     parser.add_argument("--code", choices=("binary", "ascii"), default="binary")
+    add_idle_timeout_argument(parser)
     parser.add_argument("--transport", choices=("tcp", "udp"), default="tcp")
     parser.add_argument(
         "--cpu-group",
@@ -432,7 +470,12 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         args.cpu_group, state=CpuState(args.state), write_in_run=not args.no_write_in_run
     )
     sim: Simulator = await start(
-        memory, host=args.host, port=args.port, code=args.code, transport=args.transport
+        memory,
+        host=args.host,
+        port=args.port,
+        code=args.code,
+        transport=args.transport,
+        idle_timeout=idle_timeout_of(args),
     )
     assert isinstance(sim, (E71TcpSimulator, E71UdpSimulator))
     announce(f"listening on {sim.host}:{sim.port} ({args.transport.upper()})")

@@ -29,7 +29,14 @@ from plcstack.codecs.fetchwrite import (
 )
 from plcstack.codecs.mk import LifeAckTimer, MkConnection
 from plcstack.errors import RemoteProtocolError
-from plcstack.sim.base import TcpSimulator
+from plcstack.sim.base import (
+    DEFAULT_IDLE_TIMEOUT,
+    DEFAULT_MAX_CONNECTIONS,
+    TcpSimulator,
+    add_idle_timeout_argument,
+    check_idle_timeout,
+    idle_timeout_of,
+)
 from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
 
 __all__ = ["FetchWriteSimulator", "add_cli_arguments", "default_memory", "serve_cli", "start"]
@@ -104,6 +111,7 @@ class FetchWriteSimulator(TcpSimulator):
         self.life_acks_received = 0
         self.life_acks_sent = 0
         self.dropped_dead = 0
+        self.max_connections = DEFAULT_MAX_CONNECTIONS
 
     async def aclose(self) -> None:
         if self.write_server is not None:
@@ -116,18 +124,24 @@ class FetchWriteSimulator(TcpSimulator):
     async def handle(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, role: _Role
     ) -> None:
+        if self.connection_count.current >= self.max_connections:
+            self.refused_connections += 1
+            writer.transport.abort()
+            return
         task = asyncio.current_task()
         if task is not None:
             self.track(task)
         self.connections += 1
         loop = asyncio.get_running_loop()
-        mk = MkConnection(strict=self.strict) if self.mk else None
+        # a module is lenient with partners that do not count (only strict checks them)
+        mk = MkConnection(strict=self.strict, check_seq=self.strict) if self.mk else None
         codec = ServerConnection("mk" if self.mk else "raw", mk=mk)
         timer = LifeAckTimer(
             self.life_ack if self.mk else None,
             self.life_timeout if self.mk else None,
             loop.time(),
         )
+        idle_at = loop.time() + (self.idle_timeout or 0.0)
         try:
             while True:
                 while (event := codec.next_event()) is not NEED_DATA:
@@ -138,16 +152,27 @@ class FetchWriteSimulator(TcpSimulator):
                     timer.sent(loop.time())
                     if close:
                         return
+                    # A peer that does not read its answers is not read either until it does
+                    # (drain waits above the write high-water mark): before, answers piled up
+                    # (+1.5 GB in 17 s) and a backlog was worked off long after it was gone.
+                    await writer.drain()
                 if mk is not None:
                     self.life_acks_received += mk.life_acks_received
                     mk.life_acks_received = 0
                 if self.silent:
                     codec = ServerConnection("mk" if self.mk else "raw", mk=mk)
+                wakeup = timer.next_wakeup()
+                if self.idle_timeout is not None and (wakeup is None or idle_at < wakeup):
+                    wakeup = idle_at
                 try:
-                    async with asyncio.timeout_at(timer.next_wakeup()):
+                    async with asyncio.timeout_at(wakeup):
                         data = await reader.read(65536)
                 except TimeoutError:
                     now = loop.time()
+                    if self.idle_timeout is not None and now >= idle_at:
+                        self.idle_closed += 1
+                        log.info("fetchwrite sim: nothing for %s s, closing", self.idle_timeout)
+                        return
                     if timer.dead(now):
                         self.dropped_dead += 1
                         log.info("fetchwrite sim: no life ack for %s s, closing", timer.timeout)
@@ -160,6 +185,8 @@ class FetchWriteSimulator(TcpSimulator):
                     continue
                 if not data:
                     return
+                if self.idle_timeout is not None:
+                    idle_at = loop.time() + self.idle_timeout
                 timer.received(loop.time())
                 codec.receive_data(data)
         except RemoteProtocolError as exc:
@@ -259,13 +286,21 @@ async def start(
     life_ack: float | None = None,
     life_timeout: float | None = None,
     strict: bool = False,
+    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
+    max_connections: int = DEFAULT_MAX_CONNECTIONS,
 ) -> FetchWriteSimulator:
     """Start a FETCH/WRITE simulator; returns once it accepts connections.
 
     ``write_port``: ``None`` serves FETCH and WRITE on ``port``; a number (``0`` = any free
     port) serves FETCH on ``port`` and WRITE on ``write_port``. ``life_ack``: MK keep-alive
     interval in seconds (default off); ``life_timeout`` defaults to 3 x ``life_ack`` (D.C4).
+    ``idle_timeout``: seconds after which a connection that sent nothing is closed (default
+    600, ``None``: never); ``max_connections``: connections at once (per port), further ones
+    are closed at once and counted in ``refused_connections``.
     """
+    idle = check_idle_timeout(idle_timeout)
+    if max_connections < 1:
+        raise ValueError("max_connections must be at least 1")
     if db_start_unit not in ("word", "byte"):
         raise ValueError("db_start_unit must be 'word' or 'byte'")
     if life_ack is not None and not mk:
@@ -305,6 +340,8 @@ async def start(
         strict=strict,
         write_server=write_server,
     )
+    sim.idle_timeout = idle
+    sim.max_connections = max_connections
     holder.append(sim)
     return sim
 
@@ -315,6 +352,7 @@ async def start(
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5030, help="TCP port (default 5030)")
+    add_idle_timeout_argument(parser)
     parser.add_argument(
         "--mk",
         action="store_true",
@@ -348,6 +386,7 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         db_start_unit=args.db_start,
         write_port=args.write_port,
         life_ack=args.life_ack,
+        idle_timeout=idle_timeout_of(args),
     )
     line = f"listening on {sim.host}:{sim.port} (TCP)"
     if sim.write_port is not None:

@@ -34,7 +34,13 @@ from plcstack.codecs.s5lan import (
     estimate_seconds,
     swap_words,
 )
-from plcstack.sim.base import TcpSimulator
+from plcstack.sim.base import (
+    DEFAULT_IDLE_TIMEOUT,
+    TcpSimulator,
+    add_idle_timeout_argument,
+    check_idle_timeout,
+    idle_timeout_of,
+)
 from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
 
 __all__ = ["DEFAULT_DATA_WORDS", "S5LanSimulator", "add_cli_arguments", "default_memory", "start"]
@@ -81,7 +87,12 @@ class S5LanSimulator(TcpSimulator):
         return self._state.active
 
     @property
-    def refused_connections(self) -> int:
+    def idle_closed(self) -> int:  # type: ignore[override]
+        """Connections closed because the client sent nothing for ``idle_timeout`` seconds."""
+        return self._state.idle_closed
+
+    @property
+    def refused_connections(self) -> int:  # type: ignore[override]
         """Connections closed at once because ``max_connections`` were already in use."""
         return self._state.refused
 
@@ -116,6 +127,8 @@ class _State:
         self.version = version
         self.active = 0
         self.refused = 0
+        self.idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT
+        self.idle_closed = 0
         self.injected: collections.deque[int] = collections.deque()
         self.writers: set[asyncio.StreamWriter] = set()
 
@@ -163,14 +176,25 @@ async def _handle(
     )
     try:
         while True:
-            timeout = state.data_timeout if codec.awaiting_data else None
+            # Write data are due within data_timeout (A.7, Err 10); an incomplete header is
+            # given as long and then the connection is closed (the module has no error code
+            # for it); an idle connection is closed after idle_timeout, or the one connection
+            # the module accepts would be held by a silent socket for ever.
+            if codec.awaiting_data or codec.buffered:
+                timeout: float | None = state.data_timeout
+            else:
+                timeout = state.idle_timeout
             try:
                 async with asyncio.timeout(timeout):
                     data = await reader.read(65536)
             except TimeoutError:
-                if not await _answer(state, codec, writer, codec.data_timeout()):
-                    return
-                continue
+                if codec.awaiting_data:
+                    if not await _answer(state, codec, writer, codec.data_timeout()):
+                        return
+                    continue
+                if not codec.buffered:
+                    state.idle_closed += 1
+                return
             if not data:
                 return
             codec.receive_data(data)
@@ -214,12 +238,14 @@ async def start(
     header_byte_order: ByteOrder = "little",
     strict: bool = False,
     version: int = DEFAULT_VERSION,
+    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
 ) -> S5LanSimulator:
     """Start a module simulator; returns once it accepts clients (``sim.url`` says where).
 
     ``realistic_timing`` delays each answer by 50 ms + 1.5 ms per data byte (A.8);
     ``data_timeout`` is how long write data may take before Err 10 ([R] 1 s);
-    ``strict`` accepts only PLCType 35h (D.A2).
+    ``strict`` accepts only PLCType 35h (D.A2); ``idle_timeout``: seconds after which a
+    connection that sent nothing is closed (default 600, ``None``: never).
     """
     mem = memory if memory is not None else default_memory()
     state = _State(
@@ -231,6 +257,7 @@ async def start(
         strict=strict,
         version=version,
     )
+    state.idle_timeout = check_idle_timeout(idle_timeout)
     sim: S5LanSimulator | None = None
     early: list[asyncio.Task[None]] = []  # accepted before start_server() returned
 
@@ -259,9 +286,15 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="delay answers like the module: 50 ms + 1.5 ms per data byte",
     )
+    add_idle_timeout_argument(parser)
 
 
 async def serve_cli(args: argparse.Namespace, announce: Callable[[str], Any]) -> None:
-    sim = await start(host=args.host, port=args.port, realistic_timing=args.realistic_timing)
+    sim = await start(
+        host=args.host,
+        port=args.port,
+        realistic_timing=args.realistic_timing,
+        idle_timeout=idle_timeout_of(args),
+    )
     announce(f"listening on {sim.host}:{sim.port} (TCP)")
     await sim.serve_forever()
