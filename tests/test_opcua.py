@@ -565,7 +565,7 @@ async def make_certificate(directory: Path, name: str, uri: str, server: bool) -
 
 
 @pytest.mark.slow  # a second server, RSA keys: several seconds
-async def test_an_encrypting_policy_with_a_certificate_and_no_anonymous_logins(
+async def test_an_encrypting_policy_a_trust_list_and_no_anonymous_logins(
     tmp_path: Path,
 ) -> None:
     from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
@@ -574,6 +574,10 @@ async def test_an_encrypting_policy_with_a_certificate_and_no_anonymous_logins(
         tmp_path, "server", "urn:plcstack:server", True
     )
     client_cert, client_key = await make_certificate(tmp_path, "client", "urn:test:client", False)
+    other_cert, other_key = await make_certificate(tmp_path, "other", "urn:test:other", False)
+    trusted = tmp_path / "trusted"
+    trusted.mkdir()
+    (trusted / "client.der").write_bytes(client_cert.read_bytes())
     memory = press_memory()
     sim = await e71.start(memory)
     poller = Poller(
@@ -587,6 +591,7 @@ async def test_an_encrypting_policy_with_a_certificate_and_no_anonymous_logins(
         certificate=server_cert,
         private_key=server_key,
         security_policies=("Basic256Sha256_SignAndEncrypt",),
+        trusted_client_certificates=trusted,
         anonymous="none",
         users=(UserConfig("operator", hash_password(PASSWORDS["operator"], iterations=1000)),),
     )
@@ -599,6 +604,7 @@ async def test_an_encrypting_policy_with_a_certificate_and_no_anonymous_logins(
                     async with Client(with_login(server.url, "operator")) as plain:
                         await plain.nodes.objects.get_children()
                 secure = Client(with_login(server.url, "operator"))
+                secure.application_uri = "urn:test:client"  # as in its certificate
                 await secure.set_security(
                     SecurityPolicyBasic256Sha256,
                     str(client_cert),
@@ -609,8 +615,22 @@ async def test_an_encrypting_policy_with_a_certificate_and_no_anonymous_logins(
                     idx = await secure.get_namespace_index("urn:plcstack")
                     node = secure.get_node(ua.NodeId("press1.strokes", idx))
                     assert (await wait_for(node, good)).Value.Value == 7
+                # a certificate outside the trust list is refused, login or not
+                stranger = Client(with_login(server.url, "operator"))
+                stranger.application_uri = "urn:test:other"
+                await stranger.set_security(
+                    SecurityPolicyBasic256Sha256,
+                    str(other_cert),
+                    str(other_key),
+                    mode=ua.MessageSecurityMode.SignAndEncrypt,
+                )
+                with pytest.raises(UaStatusCodeError) as err:
+                    async with stranger:
+                        pass
+                assert err.value.code == S.BadCertificateUntrusted
                 # without a login (anonymous = "none") even an encrypted session is refused
                 anonymous = Client(server.url)
+                anonymous.application_uri = "urn:test:client"
                 await anonymous.set_security(
                     SecurityPolicyBasic256Sha256,
                     str(client_cert),

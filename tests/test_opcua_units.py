@@ -167,6 +167,16 @@ def test_a_certificate_turns_on_the_encrypting_policies_only(tmp_path: Path) -> 
         ({"users": {"bob": {"password_hash": "plain"}}}, "pbkdf2_sha256$ITERATIONS$SALT$HASH"),
         ({"users": {"bob": {"password_hash": HASH, "write": "yes"}}}, "true or false"),
         ({"colour": "blue"}, "unknown key(s) in [opcua]: colour"),
+        ({"trusted_client_certificates": "t/"}, "needs a security policy but None"),
+        (
+            {
+                "trusted_client_certificates": "t/",
+                "certificate": "c.der",
+                "private_key": "k.pem",
+                "security_policies": ["None", "Basic256Sha256_SignAndEncrypt"],
+            },
+            "the trust list would not apply",
+        ),
     ],
 )
 def test_bad_settings_are_refused_with_the_reason(section: dict[str, object], message: str) -> None:

@@ -53,12 +53,15 @@ import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from pathlib import Path
 from types import TracebackType
 from typing import Any, Self, cast
 from urllib.parse import urlsplit, urlunsplit
 
 from asyncua import ua
 from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 from asyncua.server.address_space import AddressSpace, AttributeService
 from asyncua.server.internal_server import InternalServer
 from asyncua.server.server import Server
@@ -548,6 +551,26 @@ def _check_write(binding: _Binding, item: ua.WriteValue, user: User) -> ua.Statu
 # -- the server -----------------------------------------------------------------------------------
 
 
+def _check_directory(directory: Path) -> None:
+    if not directory.is_dir():
+        raise ConfigError(f"opcua.trusted_client_certificates: {directory} is not a directory")
+
+
+async def _trust_list(directory: Path) -> CertificateValidator:
+    """asyncua's validator accepting only client certificates found in (or issued by a CA in)
+    ``directory``, also checking validity time, application URI and key usage."""
+    _check_directory(directory)  # before asyncua's loader, which would just find nothing
+    store = TrustStore([directory], [])
+    try:
+        await store.load()
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"opcua.trusted_client_certificates: {exc}") from None
+    options = (
+        CertificateValidatorOptions.TRUSTED_VALIDATION | CertificateValidatorOptions.PEER_CLIENT
+    )
+    return CertificateValidator(options, store)
+
+
 class OpcUaServer:
     """An asyncua server whose address space mirrors the poller's PLCs and tags.
 
@@ -630,6 +653,8 @@ class OpcUaServer:
                 await server.load_private_key(str(config.private_key))
             except (OSError, ValueError) as exc:
                 raise ConfigError(f"opcua: cannot load certificate or private key: {exc}") from None
+        if config.trusted_client_certificates is not None:
+            server.set_certificate_validator(await _trust_list(config.trusted_client_certificates))
         self.namespace_index = idx = await server.register_namespace(config.namespace)
         await self._build(server, idx)
         iserver = server.iserver
