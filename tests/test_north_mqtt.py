@@ -243,3 +243,87 @@ def test_mqtt_table_parsing() -> None:
     ]:
         with pytest.raises(ConfigError, match=text):
             parse_mqtt(bad, env={})
+
+
+def make_certificates(directory: Path) -> tuple[Path, Path, Path]:
+    """A CA and a server certificate for 127.0.0.1 (cryptography comes with asyncua)."""
+    import datetime
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    now = datetime.datetime.now(datetime.UTC)
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "plcstack test CA")])
+    ca = (
+        x509.CertificateBuilder()
+        .subject_name(ca_name)
+        .issuer_name(ca_name)
+        .public_key(ca_key.public_key())
+        .serial_number(1)
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+        .sign(ca_key, hashes.SHA256())
+    )
+    key = ec.generate_private_key(ec.SECP256R1())
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1")]))
+        .issuer_name(ca_name)
+        .public_key(key.public_key())
+        .serial_number(2)
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(
+            x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
+            critical=False,
+        )
+        .sign(ca_key, hashes.SHA256())
+    )
+    paths = directory / "ca.pem", directory / "server.pem", directory / "server.key"
+    paths[0].write_bytes(ca.public_bytes(serialization.Encoding.PEM))
+    paths[1].write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    paths[2].write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM,
+            serialization.PrivateFormat.PKCS8,
+            serialization.NoEncryption(),
+        )
+    )
+    return paths
+
+
+async def test_tls_broker_with_the_configured_ca(tmp_path: Path) -> None:
+    from tests.servers import ServerUnavailable, free_port
+
+    ca, cert, key = make_certificates(tmp_path)
+    tls_port = free_port()
+    broker = Mosquitto(
+        extra_config=f"listener {tls_port} 127.0.0.1\ncafile {ca}\ncertfile {cert}\nkeyfile {key}"
+    )
+    try:
+        broker.start()
+    except ServerUnavailable as exc:
+        broker.close()
+        pytest.fail(str(exc), pytrace=False)
+    try:
+        async with subscriber(broker.host, broker.port, "plcstack/#") as sub:
+            s = parse_mqtt({"url": f"mqtts://127.0.0.1:{tls_port}", "ca_file": str(ca)}, env={})
+            sink = MqttSink(s)
+            await sink.start()
+            await sink.wait_connected(5)
+            sink.submit([sample("p", "n", 1)])
+            await sub.wait_for(lambda x: any("/data/" in t for t, _ in x.messages))
+            await sink.aclose()
+        # without the CA the broker's certificate is not trusted: no connection
+        untrusted = MqttSink(parse_mqtt({"url": f"mqtts://127.0.0.1:{tls_port}"}, env={}))
+        await untrusted.start()
+        with pytest.raises(TimeoutError):
+            await untrusted.wait_connected(1)
+        await untrusted.aclose(drain=0)
+    finally:
+        broker.close()
