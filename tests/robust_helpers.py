@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from plcstack.clients.base import Client
+from tests.aio_helpers import ends_quietly
 
 __all__ = [
     "LoopErrors",
@@ -138,7 +139,7 @@ class MisbehavingProxy:
         self._writers: set[asyncio.StreamWriter] = set()
 
     async def start(self) -> MisbehavingProxy:
-        self.server = await asyncio.start_server(self._handle, "127.0.0.1", 0)
+        self.server = await asyncio.start_server(ends_quietly(self._handle), "127.0.0.1", 0)
         self.port = self.server.sockets[0].getsockname()[1]
         return self
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from plcstack.sim import e71
+from tests.aio_helpers import ends_quietly
 
 __all__ = ["CutProxy", "Fleet", "WorkerProcess"]
 
@@ -151,7 +152,7 @@ class CutProxy:
         self._tasks: set[asyncio.Task[None]] = set()
 
     async def start(self) -> None:
-        self._server = await asyncio.start_server(self._accept, self.host, 0)
+        self._server = await asyncio.start_server(ends_quietly(self._accept), self.host, 0)
         self.port = self._server.sockets[0].getsockname()[1]
 
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:

@@ -27,6 +27,7 @@ from plcstack.sim.base import Simulator
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.transports.serial import SerialTransport, is_pty
 from plcstack.url import connect, parse_url
+from tests.aio_helpers import ends_quietly
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -219,7 +220,7 @@ async def test_garbage_from_the_peer_is_a_remote_protocol_error() -> None:
         await writer.drain()
         writer.close()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     try:
         async with client_for(f"as511+tcp://127.0.0.1:{port}") as plc:

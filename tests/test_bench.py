@@ -33,6 +33,7 @@ from plcstack.bench.runner import (
     percentile,
     read_rss_kib,
 )
+from tests.aio_helpers import ends_quietly
 
 
 def h(text: str) -> bytes:
@@ -217,7 +218,7 @@ async def _chunked_server(reply: bytes, chunks: list[int]) -> asyncio.Server:
         finally:
             writer.close()
 
-    return await asyncio.start_server(handle, "127.0.0.1", 0)
+    return await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
 
 
 @given(st.lists(st.integers(min_value=1, max_value=20), max_size=6))
@@ -260,7 +261,7 @@ async def test_floor_script_replays_a_dialogue() -> None:
             pos += n
         writer.close()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
     floor = await open_floor("127.0.0.1", server.sockets[0].getsockname()[1])
     try:
         assert await floor.run(job) == expect
@@ -276,7 +277,7 @@ async def test_floor_reports_a_closed_peer() -> None:
         await reader.read(100)
         writer.close()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
     floor = await open_floor("127.0.0.1", server.sockets[0].getsockname()[1])
     try:
         with pytest.raises(FloorError):

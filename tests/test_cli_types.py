@@ -8,6 +8,9 @@ import struct
 import sys
 from pathlib import Path
 
+import pytest
+
+from plcstack.cli import build_parser
 from plcstack.sim import e71, fetchwrite
 from plcstack.sim.s5memory import Area
 
@@ -68,3 +71,36 @@ async def test_s5_int16_over_bytes_is_big_endian_and_bit_areas_refuse_words() ->
             f"plcstack: error: {sim.url}: write D0 as int16 x1: "
             "70000 cannot be written as int16: outside -32768..32767"
         )
+
+
+def test_8_bit_types_on_word_devices_are_refused() -> None:
+    """int8/uint8 on a 16-bit word: which byte is meant is not said, so it is refused (exit 2)
+    before anything is sent; on a byte area (S5 MB) they are fine."""
+    from plcstack.cli import main
+
+    for argv in (
+        ["read", "e71+tcp://127.0.0.1:1", "D100", "--type", "int8"],
+        ["write", "s5lan://127.0.0.1:1", "DB10.DW0", "5", "--type", "uint8"],
+    ):
+        assert main(argv) == 2
+
+
+async def test_negative_values_are_values_not_options(capsys: pytest.CaptureFixture[str]) -> None:
+    from plcstack.cli.io import run_read, run_write
+    from plcstack.sim import e71 as e71_sim
+
+    parser = build_parser()
+    async with await e71_sim.start() as sim:
+        args = parser.parse_args(
+            ["write", sim.url, "D0", "3.14", "-2.5e3", "-inf", "--type", "float32"]
+        )
+        assert args.values == ["3.14", "-2.5e3", "-inf"]
+        assert await run_write(args) == 0
+        assert (
+            await run_read(
+                parser.parse_args(["read", sim.url, "D0", "3", "--type", "float32", "--json"])
+            )
+            == 0
+        )
+    out = capsys.readouterr().out.splitlines()[-1]
+    assert out == '{"address": "D0", "values": [3.14, -2500.0, "-Infinity"]}'

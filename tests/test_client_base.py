@@ -14,6 +14,7 @@ from plcstack.codecs._common import NEED_DATA, NeedData, ReceiveBuffer
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout, RemoteProtocolError
 from plcstack.transports import Backoff, TcpTransport
 from plcstack.url import PlcUrl
+from tests.aio_helpers import ends_quietly
 
 
 class LineCodec:
@@ -81,7 +82,7 @@ class LineServer:
 @pytest.fixture
 async def line_server() -> Any:
     srv = LineServer()
-    server = await asyncio.start_server(srv.handle, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(srv.handle), "127.0.0.1", 0)
     srv.port = server.sockets[0].getsockname()[1]  # type: ignore[attr-defined]
     srv.server = server  # type: ignore[attr-defined]
     yield srv
@@ -150,7 +151,7 @@ async def test_dead_plc_backs_off_and_comes_back(line_server: Any) -> None:
     with pytest.raises(ConnectFailed, match="next reconnect attempt in 0\\.[12] s"):
         await plc.read("ASK 5")  # fails fast inside the backoff window, no connect attempt
     assert plc.stats.connect_failures == 1
-    server = await asyncio.start_server(line_server.handle, "127.0.0.1", port)
+    server = await asyncio.start_server(ends_quietly(line_server.handle), "127.0.0.1", port)
     await asyncio.sleep(0.25)
     assert await plc.read("ASK 6") == [6]
     await plc.aclose()

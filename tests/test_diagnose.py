@@ -36,6 +36,7 @@ from plcstack.sim import e71 as e71sim
 from plcstack.sim import fetchwrite as fwsim
 from plcstack.sim import s5lan as s5lansim
 from plcstack.sim.base import Simulator
+from tests.aio_helpers import ends_quietly
 
 H = bytes.fromhex
 FAST = "timeout=0.5"
@@ -193,7 +194,7 @@ async def fake_peer(answer: bytes, *, close: bool = False) -> AsyncIterator[str]
         finally:
             writer.close()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
     try:
         yield f"127.0.0.1:{server.sockets[0].getsockname()[1]}"
     finally:

@@ -13,6 +13,7 @@ import pytest
 import plcstack
 from plcstack.clients.e71 import E71Client
 from plcstack.errors import PlcErrorResponse, RemoteProtocolError
+from tests.aio_helpers import ends_quietly
 
 Script = list[tuple[bytes, list[bytes]]]  # expected request -> answer chunks
 
@@ -54,7 +55,7 @@ async def tcp_peer() -> AsyncIterator[Callable[[Script, float], Awaitable[tuple[
 
     async def make(script: Script, pause: float = 0.0) -> tuple[str, ScriptedPeer]:
         peer = ScriptedPeer(script, pause)
-        server = await asyncio.start_server(peer.handle, "127.0.0.1", 0)
+        server = await asyncio.start_server(ends_quietly(peer.handle), "127.0.0.1", 0)
         servers.append(server)
         port = server.sockets[0].getsockname()[1]
         return f"e71+tcp://127.0.0.1:{port}?monitoring_timer=10", peer

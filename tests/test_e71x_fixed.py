@@ -31,6 +31,7 @@ from plcstack.errors import (
 )
 from plcstack.sim.e71_fixed import FixedBufferSimulator, start_fixed_buffer
 from plcstack.url import parse_url
+from tests.aio_helpers import ends_quietly
 
 B, A = Code.BINARY, Code.ASCII
 
@@ -271,7 +272,7 @@ async def test_client_reports_error_end_codes() -> None:
         writer.write(hx("E0 00"))
         await reader.read()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     try:
         async with fixed_client(f"e71+tcp://127.0.0.1:{port}", timeout=5) as fb:

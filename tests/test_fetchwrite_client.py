@@ -23,6 +23,7 @@ from plcstack.errors import (
 )
 from plcstack.sim import fetchwrite as fwsim
 from plcstack.sim.s5memory import Area, BlockType
+from tests.aio_helpers import ends_quietly
 
 H = bytes.fromhex
 
@@ -59,7 +60,7 @@ class Proxy:
         self._writers: list[asyncio.StreamWriter] = []
 
     async def start(self) -> int:
-        self.server = await asyncio.start_server(self._handle, "127.0.0.1", 0)
+        self.server = await asyncio.start_server(ends_quietly(self._handle), "127.0.0.1", 0)
         self.port = self.server.sockets[0].getsockname()[1]
         return self.port
 
@@ -550,7 +551,7 @@ async def test_client_against_scripted_cp(mk: bool) -> None:
         await r.read()
         w.close()
 
-    server = await asyncio.start_server(cp, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(cp), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     try:
         async with connect(f"fetchwrite://127.0.0.1:{port}" + ("?mk=1" if mk else "")) as plc:

@@ -36,6 +36,7 @@ from plcstack.codecs.e71 import (
 from plcstack.errors import AddressError, PlcError, PlcTimeout
 from plcstack.sim import e71 as sim_e71
 from plcstack.transports.tcp import TcpTransport
+from tests.aio_helpers import ends_quietly
 from tests.test_client_base import LineClient
 
 
@@ -300,7 +301,7 @@ async def test_as511_chattering_line_still_ends_at_the_transaction_bound() -> No
                 await writer.drain()
                 await asyncio.sleep(0.01)
 
-    server = await asyncio.start_server(chatter, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(chatter), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     try:
         async with connect(f"as511+tcp://127.0.0.1:{port}?timeout=0.3") as plc:

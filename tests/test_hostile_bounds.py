@@ -19,6 +19,7 @@ from plcstack.transports.base import MAX_QUEUED
 from plcstack.transports.tcp import RECEIVE_BUFFER, TcpTransport
 from plcstack.transports.udp import UdpTransport
 from plcstack.url import connect, parse_url
+from tests.aio_helpers import ends_quietly
 
 FLOOD = 100 * 1024 * 1024  # what the peer tries to push: 100 MB
 
@@ -34,7 +35,7 @@ class _Streamer:
         self.stalled = asyncio.Event()
 
     async def __aenter__(self) -> _Streamer:
-        self.server = await asyncio.start_server(self._handle, "127.0.0.1", 0)
+        self.server = await asyncio.start_server(ends_quietly(self._handle), "127.0.0.1", 0)
         self.port = self.server.sockets[0].getsockname()[1]
         return self
 

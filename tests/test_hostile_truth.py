@@ -37,6 +37,7 @@ from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.s5memory import Area
 from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
+from tests.aio_helpers import ends_quietly
 from tests.robust_helpers import MisbehavingProxy
 
 
@@ -66,7 +67,7 @@ class _Garbler:
         self.server: asyncio.Server | None = None
 
     async def __aenter__(self) -> _Garbler:
-        self.server = await asyncio.start_server(self._handle, "127.0.0.1", 0)
+        self.server = await asyncio.start_server(ends_quietly(self._handle), "127.0.0.1", 0)
         self.port = self.server.sockets[0].getsockname()[1]
         return self
 

@@ -1,6 +1,6 @@
 """Influx line protocol: golden lines, escaping, and acceptance by a real InfluxDB 1.x (influxd).
 
-The acceptance test polls the shipped example (examples/plant.toml, its URLs pointed at
+The acceptance test polls the shipped example (plcstack/examples/plant.toml, its URLs pointed at
 simulators holding a NaN float among ints, floats and bools), writes the whole batch to influxd in
 one request and queries every point back: the old layout (one ``value`` field whose type followed
 the tag) got "field type conflict" here.
@@ -55,9 +55,9 @@ async def poll_example(scans: int = 7) -> list[Sample]:
     sim1 = await e71.start(melsec)
     sim2 = await s5lan.start(s5)
     try:
-        text = (ROOT / "examples" / "plant.toml").read_text()
-        text = text.replace("e71+tcp://192.0.2.10:5000", sim1.url)
-        text = text.replace("s5lan://192.0.2.20:5010", sim2.url)
+        text = (ROOT / "plcstack" / "examples" / "plant.toml").read_text()
+        text = text.replace("e71+tcp://127.0.0.1:5000", sim1.url)
+        text = text.replace("s5lan://127.0.0.1:5010", sim2.url)
         text = text.replace("fast = 0.2", "fast = 0.05").replace(
             "interval = 1.0", "interval = 0.05"
         )

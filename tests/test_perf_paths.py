@@ -25,6 +25,7 @@ from plcstack.errors import AddressError, LocalProtocolError, RemoteProtocolErro
 from plcstack.s5address import S5Unit, parse_s5_address
 from plcstack.transports.tcp import TcpTransport
 from plcstack.values import pack_ints, plain_words
+from tests.aio_helpers import ends_quietly
 
 values_st = st.lists(
     st.one_of(
@@ -237,7 +238,7 @@ async def test_deadline_timer_rearms_earlier_and_later_over_loopback() -> None:
             await asyncio.sleep(delay)
             writer.write(data)
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     async with server:
         t = TcpTransport("127.0.0.1", port)

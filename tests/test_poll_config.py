@@ -138,7 +138,7 @@ def test_load_config_file(tmp_path: object) -> None:
 def test_the_shipped_example_config_is_valid() -> None:
     from pathlib import Path
 
-    config = load_config(Path(__file__).resolve().parent.parent / "examples" / "plant.toml")
+    config = load_config(Path(__file__).resolve().parent.parent / "plcstack/examples/plant.toml")
     assert [p.name for p in config.plcs] == ["press1", "oven2"]
     assert dict(config.groups) == {"default": 1.0, "fast": 0.2}
 

@@ -337,3 +337,18 @@ def test_tags_gives_each_tag_with_the_width_of_its_points() -> None:
     assert tags["bits"][0].count == 4
     with pytest.raises(AddressError, match="no PLC named"):
         poller.tags("nope")
+
+
+def test_stats_table_fits_80_columns() -> None:
+    from plcstack.poll.stats import PlcStats
+
+    big = PlcStats()
+    big.requests, big.errors, big.samples = 12_345_678, 1_234, 98_765_432
+    table = format_stats(
+        {"a-plc-with-a-very-long-name-from-the-config-file": big, "p2": PlcStats()},
+        dropped_total=0,
+    )
+    lines = table.splitlines()
+    assert all(len(line) < 80 for line in lines), table
+    assert lines[1].split()[0].endswith("~") and lines[1].split()[1] == "12345678"
+    assert lines[2].startswith("p2 ")

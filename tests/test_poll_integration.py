@@ -29,6 +29,7 @@ from plcstack import values as vt
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.demo import available_protocols
 from plcstack.poll.engine import Poller, Quality, Sample
+from tests.aio_helpers import ends_quietly
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -43,7 +44,7 @@ class DelayProxy:
         self.tasks: set[asyncio.Task[None]] = set()
 
     async def start(self) -> int:
-        self.server = await asyncio.start_server(self._handle, "127.0.0.1", 0)
+        self.server = await asyncio.start_server(ends_quietly(self._handle), "127.0.0.1", 0)
         port: int = self.server.sockets[0].getsockname()[1]
         return port
 
@@ -416,7 +417,14 @@ async def test_demo_live_table_on_a_terminal() -> None:
     master, slave = os.openpty()
     chunks: list[bytes] = []
     loop = asyncio.get_running_loop()
-    loop.add_reader(master, lambda: chunks.append(os.read(master, 65536)))
+
+    def drain() -> None:
+        try:
+            chunks.append(os.read(master, 65536))
+        except OSError:  # EIO once the terminal side is closed: nothing more will come
+            loop.remove_reader(master)
+
+    loop.add_reader(master, drain)
     try:
         with os.fdopen(slave, "w", closefd=True) as term:
             args = Namespace(plcs=None, duration=1.5, interval=0.1)

@@ -6,7 +6,7 @@ import math
 import struct
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from plcstack import values as vt
@@ -280,6 +280,7 @@ def test_split_fast_paths_agree_with_value_by_value_decoding(
     dtype: vt.ValueType, area: str, order: WordOrder, data: st.DataObject
 ) -> None:
     bits = 16 if area == "D" else 8
+    assume(not (bits == 16 and dtype.bits == 8))  # 8-bit types on words are refused
     count = data.draw(st.integers(1, 20))
     n = dtype.points_per_value(bits)
     points = data.draw(

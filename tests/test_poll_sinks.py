@@ -59,7 +59,7 @@ def test_jsonl_good_and_bad() -> None:
     assert good == {
         "plc": "press 1",
         "tag": "temp,a=b",
-        "value": [1.5, None],
+        "value": [1.5, "Infinity"],  # the documented rule (plcstack.output)
         "quality": "good",
         "source_time": "2026-11-22T00:31:30.123456Z",
         "receive_time": "2026-11-22T00:31:30.125000Z",

@@ -18,6 +18,7 @@ from plcstack.sim import as511 as as511_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim.s5memory import Area
 from plcstack.url import connect, parse_url
+from tests.aio_helpers import ends_quietly
 from tests.robust_helpers import MisbehavingProxy, record_loop_errors
 
 TIMEOUT = 0.1
@@ -36,7 +37,7 @@ class StubE71:
         self._writers: list[asyncio.StreamWriter] = []
 
     async def start(self) -> StubE71:
-        self.server = await asyncio.start_server(self._handle, "127.0.0.1", 0)
+        self.server = await asyncio.start_server(ends_quietly(self._handle), "127.0.0.1", 0)
         self.port = self.server.sockets[0].getsockname()[1]
         return self
 

@@ -29,6 +29,7 @@ from plcstack.s5address import S5Area, S5Unit
 from plcstack.sim import s5lan
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.transports.backoff import Backoff
+from tests.aio_helpers import ends_quietly
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -337,7 +338,7 @@ async def _fake_module(
         finally:
             writer.close()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     return server, f"s5lan://127.0.0.1:{port}"
 

@@ -8,6 +8,7 @@ import pytest
 
 from plcstack.errors import ConnectFailed, ConnectionLost
 from plcstack.transports import Backoff, TcpTransport, UdpTransport
+from tests.aio_helpers import ends_quietly
 
 
 def free_port() -> int:
@@ -25,7 +26,7 @@ async def test_tcp_roundtrip_eof_and_reopen() -> None:
         await writer.drain()
         writer.close()
 
-    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    server = await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
     async with server:
         t = TcpTransport("127.0.0.1", port)

@@ -15,9 +15,11 @@ import re
 import shutil
 import sys
 import time
+from importlib import resources
+from pathlib import Path
 from typing import Any, TextIO
 
-from plcstack.cli import plain_text
+from plcstack.cli import UsageError, plain_text
 from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
 from plcstack.poll.demo import DemoPlant, start_plant
 from plcstack.poll.engine import Poller, Quality, Sample, format_stats
@@ -45,7 +47,43 @@ def register(subparsers: Any) -> None:
     demo.add_argument(
         "--interval", type=float, default=0.25, help="scan interval in seconds (default 0.25)"
     )
+    demo.add_argument(
+        "--write-config",
+        metavar="FILE",
+        default=None,
+        help="write the example poll config (PLCs at the simulators' default ports) to FILE "
+        "('-' for stdout) and exit; then: plcstack sim e71 & plcstack sim s5lan & "
+        "plcstack poll FILE",
+    )
     demo.set_defaults(func=run_demo)
+
+
+#: the example configuration shipped in the package (package data)
+EXAMPLE_CONFIG = "plant.toml"
+
+
+def example_config() -> str:
+    """The text of the shipped example poll configuration."""
+    return (resources.files("plcstack.examples") / EXAMPLE_CONFIG).read_text(encoding="utf-8")
+
+
+def write_config(target: str, out: TextIO) -> int:
+    text = example_config()
+    if target == "-":
+        out.write(text)
+        return 0
+    path = Path(target)
+    if path.exists():
+        raise UsageError(f"--write-config {target}: the file exists; not overwritten")
+    try:
+        path.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise UsageError(f"--write-config {target}: {exc.strerror or exc}") from None
+    print(
+        f"wrote {target}; run: plcstack sim e71 & plcstack sim s5lan & plcstack poll {target}",
+        file=sys.stderr,
+    )
+    return 0
 
 
 def _format_value(value: Any) -> str:
@@ -75,6 +113,8 @@ def plain_line(sample: Sample) -> str:
 
 async def run_demo(args: argparse.Namespace, out: TextIO | None = None) -> int:
     out = out if out is not None else sys.stdout
+    if getattr(args, "write_config", None) is not None:
+        return write_config(args.write_config, out)
     if args.plcs is not None and args.plcs < 1:
         print("plcstack demo: error: --plcs must be at least 1", file=sys.stderr)
         return 2

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
+import re
 from typing import Any
 
 from plcstack.errors import AddressError
+from plcstack.output import float32_short, json_safe
 from plcstack.url import connect
 from plcstack.values import TYPES, Scalar, WordOrder, value_type
 
@@ -16,6 +17,10 @@ _TYPE_HELP = (
     "Types wider than a point (int32, float32, kg, bcd32, strings) span several; COUNT then "
     "counts values, not points. A bit of a word: ADDRESS D100.3 / DB10.DW5.3 with --type bool"
 )
+
+
+#: what a negative value looks like on the command line: -5, -0x1F, -2.5e3, -.5, -inf, -nan
+_NEGATIVE_VALUE = re.compile(r"^-(\d|\.\d|inf(inity)?$|nan$)", re.IGNORECASE)
 
 
 def register(subparsers: Any) -> None:
@@ -36,6 +41,9 @@ def register(subparsers: Any) -> None:
         help="values: integers (123, -5, 0x1F), true/false for bits, decimals with --type float32",
     )
     _add_common_options(write)
+    # argparse takes "-2.5e3" or "-inf" for an option (its own rule knows only -5 and -.5);
+    # no option of ``write`` starts with a digit, a dot or these words, so values they are
+    write._negative_number_matcher = _NEGATIVE_VALUE
     write.set_defaults(func=run_write)
 
 
@@ -100,13 +108,6 @@ def _parse_float(text: str) -> float:
         raise AddressError(f"value {text!r} is not a number") from None
 
 
-def _json_value(value: Scalar) -> Scalar | list[int] | None:
-    # NaN and infinities are not JSON; say "no number" rather than emit invalid output
-    if isinstance(value, tuple):
-        return list(value)
-    return None if isinstance(value, float) and not math.isfinite(value) else value
-
-
 async def run_read(args: argparse.Namespace) -> int:
     # No eager open (``async with`` would connect first): the client checks the address before
     # it connects, so a typo is exit 2 even when the PLC is unreachable, and nothing is sent.
@@ -117,10 +118,12 @@ async def run_read(args: argparse.Namespace) -> int:
         else:
             vtype = value_type(args.type)
             values = await plc.read_as(args.address, vtype, args.count, word_order=_order(args))
+            if vtype.kind == "float" and vtype.bits == 32:
+                values = [float32_short(v) if isinstance(v, float) else v for v in values]
     finally:
         await plc.aclose()
     if args.json:
-        print(json.dumps({"address": args.address, "values": [_json_value(v) for v in values]}))
+        print(json.dumps({"address": args.address, "values": json_safe(values)}))
     else:
         print(f"{args.address}: " + " ".join(str(v) for v in values))
     return 0

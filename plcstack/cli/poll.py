@@ -38,7 +38,10 @@ def register(subparsers: Any) -> None:
         description=plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    poll.add_argument("config", help="TOML file with [[plc]] tables (example: examples/plant.toml)")
+    poll.add_argument(
+        "config",
+        help="TOML file with [[plc]] tables (an example: plcstack demo --write-config FILE)",
+    )
     poll.add_argument(
         "--format",
         choices=[*sorted(FORMATS), "none"],

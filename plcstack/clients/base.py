@@ -192,7 +192,9 @@ class Client(AsyncResource):
             self.stats.connect_failures += 1
             exc.bind(plc=self.name, request="connect")
             self._back_off(exc.message, "PLC unreachable")
+            _log.info("%s: connect failed: %s", self.name, exc.message)
             raise
+        _log.info("%s: connected to %s", self.name, self.transport.peer)
         self.stats.connects += 1
         self._requests_at_connect = self.stats.requests
         self._unproven = True
@@ -256,6 +258,8 @@ class Client(AsyncResource):
         return f". Hint: {hint}" if hint else ""
 
     def _drop(self) -> None:
+        # failure and reconnect paths only (deadline, bad or stale bytes, cancel, peer gone)
+        _log.info("%s: connection closed; the next request reconnects", self.name)
         self.transport.abort()
         self.connection_dropped()
 

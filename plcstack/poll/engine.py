@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import logging
 import time
 from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
@@ -60,6 +61,8 @@ from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
 from plcstack.values import ByteOrder, Endian, WordOrder
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "LATENCY_WINDOW",
@@ -462,6 +465,7 @@ class Poller(AsyncResource):
                 plc=plc.config.name,
                 request=describe(request),
             )
+        _log.debug("scan request failed: %s", error)  # the tags carry it too, as bad samples
         if isinstance(error, PlcErrorResponse | AddressError):
             names = {t.name for t in plan.tags_of(index)}
             if len(names) > 1 and not names <= group.isolate:

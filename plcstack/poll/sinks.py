@@ -18,12 +18,12 @@ loads a config that mixes ints, floats and bools; a non-finite float is a bad-qu
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
 from plcstack.north.influx import influx_line
+from plcstack.output import json_safe
 from plcstack.poll.engine import Sample
 
 __all__ = ["FORMATS", "influx_line", "iso_time", "jsonl_line"]
@@ -34,19 +34,11 @@ def iso_time(t: float) -> str:
     return datetime.fromtimestamp(t, UTC).isoformat(timespec="microseconds").replace("+00:00", "Z")
 
 
-def _json_value(value: Any) -> Any:
-    if isinstance(value, list):
-        return [_json_value(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def jsonl_line(sample: Sample) -> str:
     record: dict[str, Any] = {
         "plc": sample.plc,
         "tag": sample.tag,
-        "value": _json_value(sample.value),
+        "value": json_safe(sample.value),  # NaN/inf as strings: plcstack.output
         "quality": sample.quality.value,
         "source_time": iso_time(sample.source_time),
         "receive_time": iso_time(sample.receive_time),

@@ -95,13 +95,17 @@ class PlcStats:
         return data[rank]
 
 
+#: widest line of the statistics table (a terminal's 80 columns, less one)
+STATS_COLUMNS = 79
+
+
 def format_stats(stats: dict[str, PlcStats], *, dropped_total: int | None = None) -> str:
     """A plain-text table of per-PLC statistics (what ``plcstack poll`` prints on stderr)."""
 
     def ms(value: float | None) -> str:
         return "-" if value is None else f"{value * 1000:.2f}"
 
-    header: tuple[str, ...] = ("plc", "requests", "errors", "reconnects", "overruns", "drops")
+    header: tuple[str, ...] = ("plc", "requests", "errors", "reconn", "overrun", "drops")
     header += ("samples", "p50 ms", "p99 ms")
     rows: list[tuple[str, ...]] = [header]
     totals = PlcStats()
@@ -145,12 +149,17 @@ def format_stats(stats: dict[str, PlcStats], *, dropped_total: int | None = None
             )
         )
     widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
+    # Within STATS_COLUMNS: one space between columns, and a PLC name too long for what the
+    # numbers leave is cut, its last kept character replaced by "~".
+    room = STATS_COLUMNS - sum(widths[1:]) - len(widths) + 1
+    widths[0] = max(8, min(widths[0], room))
     lines = []
     for r in rows:
-        cells = [r[0].ljust(widths[0])] + [
+        name = r[0] if len(r[0]) <= widths[0] else r[0][: widths[0] - 1] + "~"
+        cells = [name.ljust(widths[0])] + [
             c.rjust(w) for c, w in zip(r[1:], widths[1:], strict=True)
         ]
-        lines.append("  ".join(cells).rstrip())
+        lines.append(" ".join(cells).rstrip())
     if dropped_total is not None:
         lines.append(f"samples dropped for a slow consumer: {dropped_total}")
     return "\n".join(lines)

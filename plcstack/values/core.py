@@ -98,6 +98,12 @@ class ValueType(ABC, Generic[T]):
         """Refuse combinations that cannot be decoded (e.g. ``float32`` over bit points)."""
         if point_bits == 1 and self.kind not in ("raw", "bool"):
             raise AddressError(f"{where}: type {self.name} cannot be read from a bit area")
+        if point_bits > 8 and 0 < self.bits < point_bits and self.kind in ("int", "float"):
+            # int8/uint8 on a word: which byte is meant? Taking one silently hid the other.
+            raise AddressError(
+                f"{where}: type {self.name} is {self.bits} bits but the area holds "
+                f"{point_bits}-bit words; use a {point_bits}-bit type, or a byte address"
+            )
         if point_bits > 1 and self.bits > point_bits and self.bits % point_bits:
             raise AddressError(
                 f"{where}: type {self.name} is not a whole number of {point_bits}-bit points"
