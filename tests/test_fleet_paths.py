@@ -314,3 +314,61 @@ async def test_as511_chattering_line_still_ends_at_the_transaction_bound() -> No
             assert time.monotonic() - started < 10
     finally:
         server.close()
+
+
+# -- the poller's shared scan timer against asyncio.sleep ----------------------------------------
+@settings(max_examples=30, deadline=None)
+@given(
+    offsets=st.lists(st.integers(0, 40), min_size=1, max_size=25),
+    cancel=st.sets(st.integers(0, 24), max_size=5),
+)
+def test_ticker_wakes_in_due_order_never_early(offsets: list[int], cancel: set[int]) -> None:
+    from plcstack.poll.ticker import Ticker
+
+    async def run() -> None:
+        clock = time.perf_counter
+        ticker = Ticker(asyncio.get_running_loop(), clock, 0.0)
+        start = clock()
+        dues = [start + ms / 1000 for ms in offsets]
+        woke: list[tuple[int, float]] = []
+
+        async def waiter(i: int) -> None:
+            await ticker.wait_until(dues[i])
+            woke.append((i, clock()))
+
+        tasks = [asyncio.create_task(waiter(i)) for i in range(len(dues))]
+        await asyncio.sleep(0)
+        for i in cancel:
+            if i < len(tasks):
+                tasks[i].cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        alive = [i for i in range(len(dues)) if i not in cancel]
+        assert sorted(i for i, _ in woke) == alive
+        for i, at in woke:
+            # asyncio's timers may fire up to the loop's clock resolution early
+            assert at >= dues[i] - 0.002, (i, at - dues[i])
+        # woken in due order (ties in any order)
+        assert [dues[i] for i, _ in woke] == sorted(dues[i] for i, _ in woke)
+        await asyncio.sleep(0.06)  # a cancelled waiter's entry leaves at its time
+        assert len(ticker) == 0
+        ticker.close()
+
+    asyncio.run(run())
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["ticker", "asyncio.sleep"])
+async def test_poller_schedule_is_the_same_with_the_shared_timer(shared: bool) -> None:
+    from tests.test_poll_engine import make, tag
+
+    poller, _ = make({f"p{i}": [tag("w", "D0", count=4)] for i in range(20)}, interval=0.02)
+    poller.shared_timer = shared
+    await poller.start()
+    await asyncio.sleep(0.5)
+    await poller.aclose()
+    stats = poller.stats
+    scans = [s.scans for s in stats.values()]
+    # 0.5 s at 50 Hz: about 25 scans each; on a loaded machine a few may be late (overruns)
+    assert all(18 <= n <= 27 for n in scans), scans
+    # the scan in flight at aclose() counts as a scan, not a request
+    assert all(s.scans - 1 <= s.requests <= s.scans and s.errors == 0 for s in stats.values())
+    assert sum(s.overruns for s in stats.values()) <= 20

@@ -319,6 +319,7 @@ async def test_no_timer_for_a_delay_below_the_timer_resolution(
 
     monkeypatch.setattr(engine, "timer_resolution", lambda loop: resolution)
     real_sleep = asyncio.sleep
+    real_wait_until = engine.Ticker.wait_until
     timers: list[float] = []
 
     async def sleep(delay: float) -> None:
@@ -326,7 +327,12 @@ async def test_no_timer_for_a_delay_below_the_timer_resolution(
             timers.append(delay)
         await real_sleep(delay)
 
+    def wait_until(self: engine.Ticker, due: float) -> asyncio.Future[None]:  # poll/ticker.py
+        timers.append(due)
+        return real_wait_until(self, due)
+
     monkeypatch.setattr(engine.asyncio, "sleep", sleep)
+    monkeypatch.setattr(engine.Ticker, "wait_until", wait_until)
     poller, _ = make({"p": [tag("a", "D0")]}, interval=0.02)
     async with poller:
         samples = await take(poller, 5)

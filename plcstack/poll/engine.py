@@ -57,6 +57,7 @@ from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, describe, encode_tag
 from plcstack.poll.samples import Quality, Sample, make_sample
 from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
+from plcstack.poll.ticker import Ticker
 from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
 from plcstack.url import connect
@@ -129,6 +130,9 @@ class Poller(AsyncResource):
     #: a scan of one request runs inline in ``_run`` (see there); tests turn this off to run the
     #: same scans through ``_scan`` and prove both give the same samples and counters
     inline_single_request = True
+    #: the PLC tasks wait for their next scan on one shared :class:`Ticker` instead of one
+    #: ``asyncio.sleep`` timer each; tests turn it off to compare both
+    shared_timer = True
 
     def __init__(self, config: PollConfig, *, client_factory: ClientFactory | None = None) -> None:
         self.config = config
@@ -140,6 +144,7 @@ class Poller(AsyncResource):
             asyncio.Semaphore(config.concurrency) if config.concurrency is not None else None
         )
         self._resolution = 0.0  # the running loop's timer resolution, set by start()
+        self._ticker: Ticker | None = None  # set by start()
         self._running = False
         self._closed = False
         self._plcs: dict[str, _Plc] = {}
@@ -199,7 +204,9 @@ class Poller(AsyncResource):
         if self._running or self._closed:
             return
         self._running = True
-        self._resolution = timer_resolution(asyncio.get_running_loop())
+        loop = asyncio.get_running_loop()
+        self._resolution = timer_resolution(loop)
+        self._ticker = Ticker(loop, time.perf_counter, self._resolution)
         # Schedules run on time.perf_counter (monotonic, sub-microsecond), not loop.time()
         # (millisecond resolution under uvloop); asyncio.sleep only ever gets relative delays.
         now = time.perf_counter()
@@ -221,6 +228,8 @@ class Poller(AsyncResource):
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        if self._ticker is not None:
+            self._ticker.close()
         await asyncio.gather(
             *(p.client.aclose() for p in self._plcs.values()), return_exceptions=True
         )
@@ -383,12 +392,18 @@ class Poller(AsyncResource):
         stats = plc.stats
         only = groups[0] if len(groups) == 1 else None
         inline = self.inline_single_request
+        # one loop timer for every PLC's next scan (see ticker.py); tests may switch it off to
+        # compare with asyncio.sleep
+        ticker = self._ticker if self.shared_timer else None
         unyielded = 0  # scans since this task last slept
         while True:
             due = only.next_due if only is not None else min(g.next_due for g in groups)
             now = clock()
             if due - now > resolution:
-                await asyncio.sleep(due - now)
+                if ticker is not None:
+                    await ticker.wait_until(due)
+                else:
+                    await asyncio.sleep(due - now)
                 unyielded = 0
                 now = clock()
             elif unyielded >= MAX_SCANS_WITHOUT_YIELD:
