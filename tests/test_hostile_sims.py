@@ -14,6 +14,7 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.e71 import E71TcpSimulator
+from plcstack.sim.e71_fixed import INBOX_BYTES, start_fixed_buffer
 from plcstack.url import connect
 
 IDLE = 0.3
@@ -181,3 +182,29 @@ def _server_transports(sim: object) -> list[asyncio.WriteTransport]:
         if writer is not None:
             out.append(writer.transport)
     return out
+
+
+@pytest.mark.slow
+async def test_fixed_buffer_simulator_without_procedure_holds_a_bounded_inbox() -> None:
+    """Without procedure a partner sends at will; a PLC program that does not receive makes
+    the simulated E71 stop reading (TCP) above INBOX_BYTES, instead of queueing everything."""
+    sim = await start_fixed_buffer(procedure=False)
+    async with sim:
+        _reader, writer = await asyncio.open_connection("127.0.0.1", sim.port)
+        block = b"\x5a" * 2046
+        sent = 0
+        try:
+            while sent < 16 * 1024 * 1024:
+                writer.write(block)
+                sent += len(block)
+                try:
+                    await asyncio.wait_for(writer.drain(), 0.3)
+                except TimeoutError:
+                    break
+            await asyncio.sleep(0.1)
+            assert sim.inbox_bytes <= INBOX_BYTES + 256 * 1024  # the bound plus one chunk
+            assert sent < 16 * 1024 * 1024
+            taken = await sim.receive(timeout=1)  # the program takes one: still works
+            assert taken
+        finally:
+            writer.transport.abort()

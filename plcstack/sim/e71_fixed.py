@@ -44,6 +44,15 @@ __all__ = ["FixedBufferSimulator", "start_fixed_buffer"]
 Message = tuple[int, ...] | bytes
 
 
+#: bytes of received messages the simulated E71 holds for its PLC program before it stops
+#: reading the partner (the real module has a fixed receive buffer area)
+INBOX_BYTES = 64 * 1024
+
+
+def _size(message: Message) -> int:
+    return len(message) if isinstance(message, bytes) else 2 * len(message)
+
+
 class FixedBufferSimulator(Simulator):
     """One E71 fixed-buffer connection; the methods are the PLC program's side."""
 
@@ -60,6 +69,12 @@ class FixedBufferSimulator(Simulator):
         #: end code of the last answer received from the partner (buffer 95, 105, ...)
         self.partner_end_code: int | None = None
         self._inbox: asyncio.Queue[Message] = asyncio.Queue()
+        #: bytes of the messages in the inbox; above INBOX_BYTES the partner is not read (TCP)
+        #: or its datagrams are dropped (UDP) until the PLC program takes messages
+        self.inbox_bytes = 0
+        #: partner datagrams dropped because the inbox was full (UDP, without procedure)
+        self.dropped = 0
+        self._paused: _TcpConn | None = None
         self._ack_waiter: asyncio.Future[int] | None = None
         self._send_lock = asyncio.Lock()
         self._server: asyncio.Server | None = None
@@ -80,6 +95,12 @@ class FixedBufferSimulator(Simulator):
         taken": the E71 answers the partner ``E0 00`` now."""
         async with asyncio.timeout(timeout):
             message = await self._inbox.get()
+        self.inbox_bytes -= _size(message)
+        paused = self._paused
+        if paused is not None and self.inbox_bytes <= INBOX_BYTES:
+            self._paused = None
+            if paused.transport is not None and not paused.transport.is_closing():
+                paused.transport.resume_reading()
         self._acknowledge(0)
         return message
 
@@ -166,14 +187,32 @@ class FixedBufferSimulator(Simulator):
     ) -> None:
         if isinstance(event, FixedBufferData):
             self._owed = owner
-            self._inbox.put_nowait(event.values)
+            self._hold(event.values, owner)
         elif isinstance(event, bytes):
-            self._inbox.put_nowait(event)
+            self._hold(event, owner)
         elif isinstance(event, FixedBufferAck):
             if self._ack_waiter is not None and not self._ack_waiter.done():
                 self._ack_waiter.set_result(event.end_code)
         else:
             reply(FixedBufferConnection(self.code, role="e71").refuse(event))
+
+    def _hold(self, message: Message, owner: _TcpConn | Literal["udp"]) -> None:
+        """Queue a partner's message for the PLC program, within INBOX_BYTES: without procedure
+        the partner sends at will, and a program that does not receive must not cost memory."""
+        if self.inbox_bytes > INBOX_BYTES and owner == "udp":
+            self.dropped += 1
+            return
+        # a TCP partner is paused below, so beyond the bound only the rest of one chunk arrives
+        self._inbox.put_nowait(message)
+        self.inbox_bytes += _size(message)
+        if (
+            self.inbox_bytes > INBOX_BYTES
+            and isinstance(owner, _TcpConn)
+            and owner.transport is not None
+            and self._paused is None
+        ):
+            self._paused = owner
+            owner.transport.pause_reading()
 
     def _pump(self, codec: FixedBufferConnection | RawBufferConnection) -> None:
         while True:
@@ -233,6 +272,8 @@ class _TcpConn(asyncio.Protocol):
             self.sim._event(event, self.transport.write, self)
 
     def connection_lost(self, exc: Exception | None) -> None:
+        if self.sim._paused is self:
+            self.sim._paused = None
         if self.sim._tcp is self:
             self.sim._tcp = None
             if self.sim._owed is self:
