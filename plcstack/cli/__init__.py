@@ -38,6 +38,7 @@ COMMAND_MODULES = [
     "plcstack.cli.io",
     "plcstack.cli.e71",
     "plcstack.cli.sim",
+    "plcstack.cli.gateway",
     "plcstack.cli.bench",
 ]
 

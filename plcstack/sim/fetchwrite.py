@@ -14,7 +14,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Awaitable, Callable
-from typing import Literal
+from typing import Final, Literal
 
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.fetchwrite import (
@@ -37,7 +37,8 @@ from plcstack.sim.base import (
     check_idle_timeout,
     idle_timeout_of,
 )
-from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
+from plcstack.sim.s5memory import Area, BlockType, S5Memory
+from plcstack.sim.s5store import ABSOLUTE, FaultKind, MemoryStore, S5Fault, S5Store, Target
 
 __all__ = ["FetchWriteSimulator", "add_cli_arguments", "default_memory", "serve_cli", "start"]
 
@@ -75,7 +76,7 @@ class FetchWriteSimulator(TcpSimulator):
     def __init__(
         self,
         server: asyncio.Server,
-        memory: S5Memory,
+        store: S5Store,
         *,
         mk: bool,
         db_start_unit: DbStartUnit,
@@ -97,7 +98,8 @@ class FetchWriteSimulator(TcpSimulator):
         if life_ack is not None:
             query.append(f"life_ack={life_ack:g}")
         super().__init__(server, "fetchwrite", "&".join(query))
-        self.memory = memory
+        #: where jobs are executed: the simulated CPU, or the AS511 gateway's real one
+        self.store = store
         self.mk = mk
         self.db_start_unit: DbStartUnit = db_start_unit
         self.life_ack = life_ack
@@ -112,6 +114,13 @@ class FetchWriteSimulator(TcpSimulator):
         self.life_acks_sent = 0
         self.dropped_dead = 0
         self.max_connections = DEFAULT_MAX_CONNECTIONS
+
+    @property
+    def memory(self) -> S5Memory:
+        """The simulated CPU image (only for a simulator started on one, not for a gateway)."""
+        if not isinstance(self.store, MemoryStore):
+            raise TypeError("this FETCH/WRITE server executes on a gateway store, not a memory")
+        return self.store.memory
 
     async def aclose(self) -> None:
         if self.write_server is not None:
@@ -145,7 +154,7 @@ class FetchWriteSimulator(TcpSimulator):
         try:
             while True:
                 while (event := codec.next_event()) is not NEED_DATA:
-                    response, close = self.answer(event, role)
+                    response, close = await self.answer(event, role)
                     if self.silent:
                         continue
                     writer.write(codec.send(response))
@@ -197,10 +206,14 @@ class FetchWriteSimulator(TcpSimulator):
         finally:
             writer.transport.abort()
 
-    def answer(
+    async def answer(
         self, event: FetchRequest | WriteRequest | BadRequest, role: _Role
     ) -> tuple[FetchResponse | WriteResponse, bool]:
-        """The acknowledgement of one job and whether to close the connection afterwards."""
+        """The acknowledgement of one job and whether to close the connection afterwards.
+
+        Executed on ``self.store``: the simulated CPU, or the real one behind the AS511 gateway
+        (one server implementation for both).
+        """
         self.jobs += 1
         is_fetch = isinstance(event, FetchRequest) or (
             isinstance(event, BadRequest) and event.opcode == OpCode.FETCH_REQUEST
@@ -218,19 +231,27 @@ class FetchWriteSimulator(TcpSimulator):
             return ack(0x01), False
         try:
             if isinstance(event, FetchRequest):
-                return ack(0, self.fetch(event.org, event.db, event.start, event.length)), False
-            self.store(event.org, event.db, event.start, event.data)
+                target, offset, size = self._span(event.org, event.db, event.start, event.length)
+                if target == _PB:  # [R] peripheral bytes: reads see the input image
+                    target = Area.INPUTS
+                return ack(0, await self.store.read(target, offset, size)), False
+            target, offset, _ = self._span(event.org, event.db, event.start, 0)
+            if target == _PB:  # ... and writes go to the output image
+                target = Area.OUTPUTS
+            await self.store.write(target, offset, event.data)
             return ack(0), False
-        except S5AccessError as exc:
-            return ack(exc.code), False
+        except S5Fault as exc:
+            return ack(exc.fetchwrite_error), False
         except _Unsupported:
             return ack(0x01), False
 
-    def _span(self, org: int, db: int, start: int, length: int) -> tuple[object, int, int]:
+    def _span(
+        self, org: int, db: int, start: int, length: int
+    ) -> tuple[Target | Literal["PB"], int, int]:
         """Where a job goes: (target, byte offset, byte length)."""
         if org in (Org.DB, Org.DX):
             if db == 0:
-                raise S5AccessError(2, "DB 0 is not a data block")
+                raise S5Fault(FaultKind.NO_AREA, "DB 0 is not a data block")
             btype = BlockType.DB if org == Org.DB else BlockType.DX
             # [R] C.6.3 / D.C6: DB start is a DW number (Siemens) or, optionally, a byte number.
             offset = start if self.db_start_unit == "byte" else 2 * start
@@ -240,35 +261,14 @@ class FetchWriteSimulator(TcpSimulator):
         if org in _WORD_AREAS:
             return _WORD_AREAS[org], 2 * start, 2 * length
         if org == Org.PB:
-            # [R] peripheral bytes: reads see the input image, writes go to the output image.
-            return "PB", start, length
+            return _PB, start, length
         if org == Org.AS:
             # [R] absolute addressing: start is a byte address in the 64 KiB space, length words.
-            return "AS", start, 2 * length
+            return ABSOLUTE, start, 2 * length
         raise _Unsupported(org)  # DE, QB: not modelled (D.C5 allows error 01)
 
-    def fetch(self, org: int, db: int, start: int, length: int) -> bytes:
-        target, offset, size = self._span(org, db, start, length)
-        mem = self.memory
-        if isinstance(target, tuple):
-            return mem.read_block(target[0], target[1], offset, size)
-        if isinstance(target, Area):
-            return mem.read_area(target, offset, size)
-        if target == "PB":
-            return mem.read_area(Area.INPUTS, offset, size)
-        return mem.read_absolute(offset, size)
 
-    def store(self, org: int, db: int, start: int, data: bytes) -> None:
-        target, offset, _ = self._span(org, db, start, 0)
-        mem = self.memory
-        if isinstance(target, tuple):
-            mem.write_block(target[0], target[1], offset, data)
-        elif isinstance(target, Area):
-            mem.write_area(target, offset, data)
-        elif target == "PB":
-            mem.write_area(Area.OUTPUTS, offset, data)
-        else:
-            mem.write_absolute(offset, data)
+_PB: Final = "PB"
 
 
 class _Unsupported(Exception):
@@ -288,6 +288,7 @@ async def start(
     strict: bool = False,
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
     max_connections: int = DEFAULT_MAX_CONNECTIONS,
+    store: S5Store | None = None,
 ) -> FetchWriteSimulator:
     """Start a FETCH/WRITE simulator; returns once it accepts connections.
 
@@ -296,7 +297,9 @@ async def start(
     interval in seconds (default off); ``life_timeout`` defaults to 3 x ``life_ack`` (D.C4).
     ``idle_timeout``: seconds after which a connection that sent nothing is closed (default
     600, ``None``: never); ``max_connections``: connections at once (per port), further ones
-    are closed at once and counted in ``refused_connections``.
+    are closed at once and counted in ``refused_connections``. ``store`` executes the jobs
+    somewhere else than in a memory image (the AS511 gateway passes the real CPU); it excludes
+    ``memory``.
     """
     idle = check_idle_timeout(idle_timeout)
     if max_connections < 1:
@@ -307,7 +310,10 @@ async def start(
         raise ValueError("life acks need the MK header (mk=True)")
     if life_ack is not None and life_timeout is None:
         life_timeout = 3 * life_ack
-    memory = memory if memory is not None else default_memory()
+    if store is not None and memory is not None:
+        raise ValueError("give a memory image or a store, not both")
+    if store is None:
+        store = MemoryStore(memory if memory is not None else default_memory())
     holder: list[FetchWriteSimulator] = []
 
     def handler(
@@ -332,7 +338,7 @@ async def start(
             raise
     sim = FetchWriteSimulator(
         server,
-        memory,
+        store,
         mk=mk,
         db_start_unit=db_start_unit,
         life_ack=life_ack,

@@ -41,7 +41,8 @@ from plcstack.sim.base import (
     check_idle_timeout,
     idle_timeout_of,
 )
-from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
+from plcstack.sim.s5memory import Area, BlockType, S5Memory
+from plcstack.sim.s5store import MemoryStore, S5Fault, S5Store, Target
 
 __all__ = ["DEFAULT_DATA_WORDS", "S5LanSimulator", "add_cli_arguments", "default_memory", "start"]
 
@@ -72,15 +73,18 @@ def default_memory() -> S5Memory:
 class S5LanSimulator(TcpSimulator):
     """A running module. ``memory`` is live: tests may read and change it while clients work."""
 
-    def __init__(
-        self,
-        server: asyncio.Server,
-        memory: S5Memory,
-        state: _State,
-    ) -> None:
+    def __init__(self, server: asyncio.Server, state: _State) -> None:
         super().__init__(server, "s5lan")
-        self.memory = memory
+        #: where requests are executed: the simulated CPU, or the AS511 gateway's real one
+        self.store: S5Store = state.store
         self._state = state
+
+    @property
+    def memory(self) -> S5Memory:
+        """The simulated CPU image (only for a module started on one, not for a gateway)."""
+        if not isinstance(self.store, MemoryStore):
+            raise TypeError("this S5-LAN server executes on a gateway store, not a memory image")
+        return self.store.memory
 
     @property
     def active_connections(self) -> int:
@@ -109,7 +113,7 @@ class S5LanSimulator(TcpSimulator):
 class _State:
     def __init__(
         self,
-        memory: S5Memory,
+        store: S5Store,
         *,
         max_connections: int,
         realistic_timing: bool,
@@ -118,7 +122,7 @@ class _State:
         strict: bool,
         version: int,
     ) -> None:
-        self.memory = memory
+        self.store = store
         self.max_connections = max_connections
         self.realistic_timing = realistic_timing
         self.data_timeout = data_timeout
@@ -132,32 +136,36 @@ class _State:
         self.injected: collections.deque[int] = collections.deque()
         self.writers: set[asyncio.StreamWriter] = set()
 
-    # -- executing a valid request on the memory (A.7 steps 5..8) ------------------------------
-    def execute(self, req: Request) -> tuple[int, bytes]:
+    # -- executing a valid request on the store (A.7 steps 5..8) ---------------------------
+    async def execute(self, req: Request) -> tuple[int, bytes]:
+        """Answer one well-formed request from the store: ``(Err, data)``.
+
+        The same code serves the simulator (a :class:`MemoryStore`) and the AS511 gateway (the
+        real CPU behind its programming port): one server implementation for both.
+        """
         h = req.header
         if self.injected:
             return self.injected.popleft(), b""
         n = h.data_len or 0
+        target: Target
         try:
             if h.area in ("D", "X"):
-                btype = BlockType.DB if h.area == "D" else BlockType.DX
                 if not 1 <= h.db <= 255:
                     return ERR_NO_AREA, b""  # DB 0 holds the block address list (A.5)
+                target = (BlockType.DB if h.area == "D" else BlockType.DX, h.db)
                 offset = 2 * h.start
-                if h.is_read:
-                    return ERR_OK, swap_words(self.memory.read_block(btype, h.db, offset, n))
-                self.memory.write_block(btype, h.db, offset, swap_words(req.data))
-                return ERR_OK, b""
-            area = _AREAS[h.area]
-            offset = 2 * h.start if area in (Area.TIMERS, Area.COUNTERS) else h.start
-            swap = h.data_type == "W"
+                swap = True
+            else:
+                target = _AREAS[h.area]
+                offset = 2 * h.start if target in (Area.TIMERS, Area.COUNTERS) else h.start
+                swap = h.data_type == "W"
             if h.is_read:
-                raw = self.memory.read_area(area, offset, n)
+                raw = await self.store.read(target, offset, n)
                 return ERR_OK, swap_words(raw) if swap else raw
-            self.memory.write_area(area, offset, swap_words(req.data) if swap else req.data)
+            await self.store.write(target, offset, swap_words(req.data) if swap else req.data)
             return ERR_OK, b""
-        except S5AccessError as exc:
-            return exc.code, b""
+        except S5Fault as exc:
+            return exc.s5lan_err, b""
 
 
 async def _handle(
@@ -218,7 +226,7 @@ async def _answer(
         await writer.drain()
         return not event.close
     assert isinstance(event, Request)
-    err, data = state.execute(event)
+    err, data = await state.execute(event)
     if state.realistic_timing:
         await asyncio.sleep(estimate_seconds(event.header.data_len or 0))
     header: Header = event.header
@@ -239,17 +247,24 @@ async def start(
     strict: bool = False,
     version: int = DEFAULT_VERSION,
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
+    store: S5Store | None = None,
 ) -> S5LanSimulator:
     """Start a module simulator; returns once it accepts clients (``sim.url`` says where).
+
+    ``store`` executes the requests somewhere else than in a memory image (the AS511 gateway
+    passes the real CPU); it excludes ``memory``.
 
     ``realistic_timing`` delays each answer by 50 ms + 1.5 ms per data byte (A.8);
     ``data_timeout`` is how long write data may take before Err 10 ([R] 1 s);
     ``strict`` accepts only PLCType 35h (D.A2); ``idle_timeout``: seconds after which a
     connection that sent nothing is closed (default 600, ``None``: never).
     """
-    mem = memory if memory is not None else default_memory()
+    if store is not None and memory is not None:
+        raise ValueError("give a memory image or a store, not both")
+    if store is None:
+        store = MemoryStore(memory if memory is not None else default_memory())
     state = _State(
-        mem,
+        store,
         max_connections=max_connections,
         realistic_timing=realistic_timing,
         data_timeout=data_timeout,
@@ -269,7 +284,7 @@ async def start(
             early.append(task)
 
     server = await asyncio.start_server(on_connect, host, port)
-    sim = S5LanSimulator(server, mem, state)
+    sim = S5LanSimulator(server, state)
     for task in early:
         sim.track(task)
     return sim

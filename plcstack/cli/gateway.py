@@ -1,0 +1,137 @@
+"""plcstack gateway AS511-URL --s5lan HOST:PORT --fetchwrite HOST:PORT: a software S5-LAN module.
+
+Serves S5-LAN-LINK and/or FETCH/WRITE clients on the network from an S5 CPU reached through its
+programming port (as511:///dev/ttyUSB0, or as511+tcp://HOST:PORT for a serial device server).
+One AS511 transaction at a time; network requests wait in one bounded, fair queue, and a request
+that waits longer than --max-wait is answered with the protocol's timeout error, not executed.
+
+Safe by default: a bare port binds 127.0.0.1 only (give 0.0.0.0:PORT to serve the network), and
+nothing is writable until --writable names it, e.g. --writable "DB10-20, M" (see docs/gateway.md).
+Prints one "... listening on HOST:PORT (TCP)" line per server once it accepts clients.
+Ctrl-C exits 130, SIGTERM 0; a start-up failure is one line on stderr with exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import sys
+from typing import Any
+
+from plcstack import gateway
+from plcstack.cli import UsageError, plain_text
+from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
+from plcstack.errors import AddressError
+
+
+def register(subparsers: Any) -> None:
+    parser = subparsers.add_parser(
+        "gateway",
+        help="serve S5-LAN and FETCH/WRITE from an S5 on its programming port (AS511)",
+        description=plain_text(__doc__),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("plc", help="as511:///dev/ttyUSB0 or as511+tcp://HOST:PORT")
+    parser.add_argument(
+        "--s5lan", metavar="[HOST:]PORT", help="serve S5-LAN-LINK here (host default 127.0.0.1)"
+    )
+    parser.add_argument(
+        "--fetchwrite", metavar="[HOST:]PORT", help="serve FETCH/WRITE here (default 127.0.0.1)"
+    )
+    parser.add_argument("--mk", action="store_true", help="FETCH/WRITE inside the Tani MK header")
+    parser.add_argument(
+        "--writable",
+        default="",
+        metavar="LIST",
+        help='what network clients may write, e.g. "DB10-20, DX3, M, Q" (default: nothing)',
+    )
+    parser.add_argument(
+        "--cache-max-age",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="serve repeated reads from a cache at most this old (default: off)",
+    )
+    parser.add_argument(
+        "--queue-size", type=int, default=32, help="requests that may wait for the PLC (32)"
+    )
+    parser.add_argument(
+        "--max-wait",
+        type=float,
+        default=2.0,
+        metavar="SECONDS",
+        help="answer a request that waited longer with a timeout error, unexecuted (2)",
+    )
+    parser.add_argument(
+        "--s5lan-connections",
+        type=int,
+        default=gateway.DEFAULT_S5LAN_CONNECTIONS,
+        help=f"S5-LAN clients at once (default {gateway.DEFAULT_S5LAN_CONNECTIONS})",
+    )
+    parser.add_argument(
+        "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
+    )
+    parser.set_defaults(func=run)
+
+
+def parse_endpoint(text: str | None, option: str) -> tuple[str, int] | None:
+    """``PORT`` or ``HOST:PORT`` (``[v6]:PORT``) -> (host, port); a bare port binds loopback."""
+    if text is None:
+        return None
+    host, sep, port_text = text.rpartition(":")
+    host = host.strip("[]") if sep else "127.0.0.1"
+    try:
+        port = int(port_text)
+    except ValueError:
+        raise UsageError(f"{option} {text!r}: expected PORT or HOST:PORT") from None
+    if not 0 <= port <= 65535:
+        raise UsageError(f"{option} {text!r}: a port is 0..65535")
+    return host or "127.0.0.1", port
+
+
+async def run(args: argparse.Namespace) -> int:
+    s5lan = parse_endpoint(args.s5lan, "--s5lan")
+    fetchwrite = parse_endpoint(args.fetchwrite, "--fetchwrite")
+    if s5lan is None and fetchwrite is None:
+        raise UsageError("gateway: give --s5lan and/or --fetchwrite")
+    if args.duration is not None and not args.duration > 0:
+        raise UsageError("--duration must be greater than 0")
+    try:
+        gw = await gateway.start(
+            args.plc,
+            s5lan=s5lan,
+            fetchwrite=fetchwrite,
+            mk=args.mk,
+            writable=args.writable,
+            queue_size=args.queue_size,
+            max_wait=args.max_wait,
+            cache_max_age=args.cache_max_age,
+            s5lan_connections=args.s5lan_connections,
+        )
+    except AddressError as exc:
+        raise UsageError(f"gateway: {exc}") from None
+    except OSError as exc:
+        raise UsageError(f"gateway cannot start: {exc.strerror or exc}") from None
+    stop = StopEvent()
+    installed = install_stop_signals(stop)
+    try:
+        if gw.s5lan is not None:
+            print(f"s5lan listening on {gw.s5lan.host}:{gw.s5lan.port} (TCP)", flush=True)
+        if gw.fetchwrite is not None:
+            fw = gw.fetchwrite
+            print(f"fetchwrite listening on {fw.host}:{fw.port} (TCP)", flush=True)
+        print(f"writable: {gw.store.writable}", flush=True)
+        with contextlib.suppress(TimeoutError):  # --duration ran out
+            await asyncio.wait_for(stop.wait(), args.duration)
+    finally:
+        remove_stop_signals(installed)
+        await gw.aclose()
+        s = gw.stats
+        print(
+            f"gateway: {s.reads} reads, {s.writes} writes; AS511 {s.line_reads} reads, "
+            f"{s.line_writes} writes; cache hits {s.cache_hits}; busy {s.busy}, "
+            f"expired {s.expired}, denied {s.denied}, failed {s.failed}",
+            file=sys.stderr,
+        )
+    return stop.exit_code()
