@@ -62,6 +62,9 @@ class WorkerOptions:
     keepalive: int = 5
     #: fnmatch patterns of the PLC names that need a lease (default: all)
     exclusive: tuple[str, ...] = ("*",)
+    #: seconds between closing a moved PLC's connection and releasing its lease, so the PLC
+    #: (a real module, or a busy simulator) has handled the close before the next owner connects
+    handover: float = 0.2
 
     def __post_init__(self) -> None:
         if not self.worker or "/" in self.worker or "+" in self.worker or "#" in self.worker:
@@ -356,6 +359,8 @@ class Worker:
             await run.stop()
             self._stats[plc] = run.poller.stats[plc]
             self.stops += 1
+            if lease is not None and self.options.handover > 0:
+                await asyncio.sleep(self.options.handover)
         if lease is not None and self.leases is not None:
             await self.leases.release(lease)
 
