@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from plcstack.codecs.as511 import ACCEPT_FRAME, DLE_ACK, DLE_NAK, TERMINATE_FRAME
+from plcstack.codecs.as511_frames import ACCEPT_FRAME, DLE_ACK, DLE_NAK, TERMINATE_FRAME
 from plcstack.codecs.e71_end_codes import END_CODES
 from plcstack.codecs.e71_wire import HEX
 

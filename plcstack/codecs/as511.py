@@ -18,25 +18,74 @@ both roles are machines that take received bytes *and the current time*, queue b
   :meth:`ServerConnection.refuse` (DLE NAK). On a gap or a wrong byte it silently returns to
   idle, as a CPU does.
 
-Helpers build the parameter frames of the functions this library uses (18h, 1Ah, 04h, 03h, 1Bh,
-1Eh, stop/start through 03h; B.7) and parse their answers.
+Split along its seams: :mod:`~plcstack.codecs.as511_frames` holds the control characters and
+DLE transparency (B.3), :mod:`~plcstack.codecs.as511_jobs` the jobs of the functions this library
+uses (18h, 1Ah, 04h, 03h, 1Bh, 1Eh, stop/start through 03h; B.7) and the parsing of their
+answers. This module holds the two machines and re-exports those names.
 """
 
 from __future__ import annotations
 
 import enum
-import struct
 from collections import deque
 from dataclasses import dataclass
 
 from plcstack.codecs._common import NEED_DATA, Event, NeedData
+from plcstack.codecs.as511_frames import (
+    ACCEPT_FRAME,
+    ACK,
+    DC2,
+    DLE,
+    DLE_ACK,
+    DLE_NAK,
+    EOT,
+    ETX,
+    NAK,
+    STX,
+    SYN,
+    TERMINATE_BYTES,
+    TERMINATE_FRAME,
+    Unstuffer,
+    stuff,
+    unstuff,
+)
+from plcstack.codecs.as511_jobs import (
+    FN_B_INFO,
+    FN_BLOCK_LIST,
+    FN_OPERATING_MODE,
+    FN_READ,
+    FN_SYSTEM_PARAMETERS,
+    FN_WRITE,
+    MAX_READ_BYTES,
+    MAX_WRITE_BYTES,
+    READ_PREFIX,
+    BlockInfo,
+    Job,
+    SystemAddresses,
+    b_info_job,
+    block_list_job,
+    header_matches,
+    operating_mode_job,
+    parse_b_info,
+    parse_read,
+    parse_system_parameters,
+    read_job,
+    run_job,
+    stop_job,
+    system_parameters_job,
+    write_job,
+)
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
 __all__ = [
+    "ACCEPT_FRAME",
     "ACK",
+    "DC2",
     "DEFAULT_BACKOFF",
     "DEFAULT_CHAR_TIMEOUT",
     "DLE",
+    "DLE_ACK",
+    "DLE_NAK",
     "EOT",
     "ETX",
     "FN_BLOCK_LIST",
@@ -48,7 +97,11 @@ __all__ = [
     "MAX_READ_BYTES",
     "MAX_WRITE_BYTES",
     "NAK",
+    "READ_PREFIX",
     "STX",
+    "SYN",
+    "TERMINATE_BYTES",
+    "TERMINATE_FRAME",
     "AGConnection",
     "AGEvent",
     "BlockInfo",
@@ -68,6 +121,7 @@ __all__ = [
     "Unstuffer",
     "b_info_job",
     "block_list_job",
+    "header_matches",
     "operating_mode_job",
     "parse_b_info",
     "parse_read",
@@ -81,289 +135,12 @@ __all__ = [
     "write_job",
 ]
 
-STX = 0x02
-ETX = 0x03
-EOT = 0x04
-ACK = 0x06
-DLE = 0x10
-NAK = 0x15
-SYN = 0x16
-DC2 = 0x12
-#: [R] D.B4: the PG accepts 11h/12h/14h (or no byte) as terminate byte; the AG sends DC2
-TERMINATE_BYTES = frozenset({0x11, 0x12, 0x14})
-
-DLE_ACK = bytes([DLE, ACK])
-_DLE_BYTE = bytes([DLE])
-DLE_NAK = bytes([DLE, NAK])
-ACCEPT_FRAME = bytes([SYN, DLE, ETX])
-TERMINATE_FRAME = bytes([DC2, DLE, ETX])
-
-FN_WRITE = 0x03
-FN_READ = 0x04
-FN_SYSTEM_PARAMETERS = 0x18
-FN_B_INFO = 0x1A
-FN_BLOCK_LIST = 0x1B
-FN_OPERATING_MODE = 0x1E
-
 DEFAULT_CHAR_TIMEOUT = 0.5  # [R] B5.7: 500 ms for every wait, first answer byte included
 DEFAULT_BACKOFF = 0.5  # B5.1 / B5.5
-#: [R] B.7.3/B.7.4: the client splits reads and writes into transactions of <= 512 bytes
-MAX_READ_BYTES = 512
-MAX_WRITE_BYTES = 512
-#: leading bytes of a 04h answer (B.7.3, D.B2)
-READ_PREFIX = 5
 #: bytes an answer may exceed the expected length by before the PG gives up on it
 _SLACK = 16
 #: cap for answers of unknown length (18h, 1Bh)
 _UNKNOWN_LENGTH_CAP = 4096
-
-
-# -- DLE transparency (B.3) ------------------------------------------------------------------
-def stuff(data: bytes) -> bytes:
-    """Double every 10h data byte (B.3)."""
-    return bytes(data).replace(b"\x10", b"\x10\x10")
-
-
-def unstuff(frame: bytes, end: int = ETX) -> bytes:
-    """Decode one complete stuffed frame ending in ``DLE end``; raises RemoteProtocolError."""
-    decoder = Unstuffer(end)
-    for i, byte in enumerate(frame):
-        if decoder.feed(byte):
-            if i != len(frame) - 1:
-                raise RemoteProtocolError("bytes after the end of an AS511 frame")
-            return decoder.payload()
-    raise RemoteProtocolError("AS511 frame without DLE ETX/EOT end")
-
-
-class Unstuffer:
-    """Incremental de-stuffer of one frame: ``feed(byte)`` returns True at ``DLE end``."""
-
-    __slots__ = ("_buf", "_dle", "end", "limit")
-
-    def __init__(self, end: int, limit: int | None = None) -> None:
-        self.end = end
-        self.limit = limit
-        self._buf = bytearray()
-        self._dle = False
-
-    def feed(self, byte: int) -> bool:
-        if self._dle:
-            self._dle = False
-            if byte == DLE:
-                self._buf.append(DLE)
-            elif byte == self.end:
-                return True
-            else:
-                raise RemoteProtocolError(
-                    f"DLE followed by {byte:02X}h inside a frame (expected 10h or {self.end:02X}h)"
-                )
-        elif byte == DLE:
-            self._dle = True
-        else:
-            self._buf.append(byte)
-        if self.limit is not None and len(self._buf) > self.limit:
-            raise RemoteProtocolError(f"AS511 frame longer than {self.limit} bytes")
-        return False
-
-    def feed_from(self, data: bytes, start: int) -> int:
-        """:meth:`feed` every byte of ``data[start:]`` until the frame ends, a run between two
-        DLEs at a time; returns the index just after ``DLE end``, or ``-1`` when all of
-        ``data`` was consumed without it. Raises exactly where :meth:`feed` would."""
-        buf, limit, end, n = self._buf, self.limit, self.end, len(data)
-        i = start
-        while i < n:
-            if self._dle:
-                self._dle = False
-                byte = data[i]
-                i += 1
-                if byte == DLE:
-                    buf.append(DLE)
-                elif byte == end:
-                    return i
-                else:
-                    raise RemoteProtocolError(
-                        f"DLE followed by {byte:02X}h inside a frame (expected 10h or {end:02X}h)"
-                    )
-            else:
-                j = data.find(_DLE_BYTE, i)
-                if j < 0:
-                    j = n
-                buf += data[i:j]
-                if j < n:
-                    self._dle = True
-                    j += 1
-                i = j
-            if limit is not None and len(buf) > limit:
-                raise RemoteProtocolError(f"AS511 frame longer than {limit} bytes")
-        return -1
-
-    def payload(self) -> bytes:
-        return bytes(self._buf)
-
-    def __len__(self) -> int:
-        return len(self._buf)
-
-
-# -- jobs and their answers (B.7) --------------------------------------------------------------
-@dataclass(frozen=True, slots=True)
-class Job:
-    """One AS511 transaction: function code, unstuffed parameters, whether a data frame follows.
-
-    ``response_length`` is the exact unstuffed length of the data frame when known (04h, 1Ah);
-    the PG aborts an answer that grows beyond it (plus a little slack) and the client checks it.
-    """
-
-    fn: int
-    params: bytes = b""
-    has_response: bool = True
-    response_length: int | None = None
-
-
-def system_parameters_job() -> Job:
-    return Job(FN_SYSTEM_PARAMETERS, b"", True, None)
-
-
-def b_info_job(block_type: int, number: int) -> Job:
-    if not (0 <= block_type <= 0xFF and 0 <= number <= 0xFF):
-        raise LocalProtocolError(f"block type {block_type} / number {number} out of range")
-    return Job(FN_B_INFO, bytes([block_type, number]), True, 13)
-
-
-def read_job(start: int, length: int) -> Job:
-    """04h: ``length`` bytes from absolute ``start`` (inclusive end address on the wire)."""
-    if length < 1 or start < 0 or start + length > 0x10000:
-        raise LocalProtocolError(f"read of {length} bytes at {start:#06x} is outside 64 KiB")
-    return Job(FN_READ, struct.pack(">HH", start, start + length - 1), True, READ_PREFIX + length)
-
-
-def write_job(start: int, data: bytes) -> Job:
-    """03h: write ``data`` at absolute ``start``; no data frame in the answer."""
-    if not data or start < 0 or start + len(data) > 0x10000:
-        raise LocalProtocolError(f"write of {len(data)} bytes at {start:#06x} is outside 64 KiB")
-    return Job(FN_WRITE, struct.pack(">H", start) + bytes(data), False, None)
-
-
-def block_list_job(block_type: int) -> Job:
-    return Job(FN_BLOCK_LIST, bytes([block_type]), True, None)
-
-
-def operating_mode_job(mode: int) -> Job:
-    """1Eh (135U/155U): 00 stop, 01 restart, 02 warm restart; 01/02 answer one byte (B.7.5)."""
-    if mode not in (0, 1, 2):
-        raise LocalProtocolError(f"operating mode {mode} is not 0 (stop), 1 or 2 (restart)")
-    return Job(FN_OPERATING_MODE, bytes([mode]), mode != 0, 1 if mode else None)
-
-
-def stop_job(system_data: int) -> Job:
-    """Stop a small CPU: libnodave's ``88 04`` at system data + 0Ch (B.7.5, B.11.4)."""
-    return write_job(system_data + 0x0C, b"\x88\x04")
-
-
-def run_job(system_data: int) -> Job:
-    """Start (restart) a small CPU: ``68 00`` at system data + 0Ch (B.7.5, B.11.4)."""
-    return write_job(system_data + 0x0C, b"\x68\x00")
-
-
-@dataclass(frozen=True, slots=True)
-class SystemAddresses:
-    """The part of the 18h answer the client uses (offsets 0-21 of B.7.1) and the raw block."""
-
-    esf: int
-    asf: int
-    inputs: int  # PAE
-    outputs: int  # PAA
-    flags: int
-    timers: int
-    counters: int
-    system_data: int
-    software_version: int
-    status: int
-    end_of_ram: int
-    raw: bytes
-
-
-def parse_system_parameters(payload: bytes) -> SystemAddresses:
-    """Decode an 18h data frame (``00`` + parameters); at least 00 + 44 bytes as libnodave."""
-    if len(payload) < 45:
-        raise RemoteProtocolError(
-            f"system parameter answer has {len(payload)} bytes, expected at least 45"
-        )
-    if payload[0] != 0:
-        raise RemoteProtocolError(f"system parameter answer starts with {payload[0]:02X}h, not 00")
-    esf, asf, pae, paa, flags, timers, counters, system, version, status, end_of_ram = (
-        struct.unpack_from(">8HBBH", payload, 1)
-    )
-    return SystemAddresses(
-        esf,
-        asf,
-        pae,
-        paa,
-        flags,
-        timers,
-        counters,
-        system,
-        version,
-        status,
-        end_of_ram,
-        raw=bytes(payload[1:]),
-    )
-
-
-@dataclass(frozen=True, slots=True)
-class BlockInfo:
-    """B_INFO (1Ah) of one block: where DW0 is and how long the block is (B.7.2)."""
-
-    block_type: int
-    number: int
-    dw0: int
-    length_words: int  # including the 5-word header
-    header: bytes
-
-    @property
-    def data_bytes(self) -> int:
-        return max(0, (self.length_words - 5) * 2)
-
-    @property
-    def header_address(self) -> int:
-        return self.dw0 - 10
-
-
-def header_matches(header: bytes, block_type: int, number: int) -> bool:
-    """The signature check of B.7.2: ``70 70``, ``40h + type``, number."""
-    return (
-        len(header) >= 10
-        and header[0] == 0x70
-        and header[1] == 0x70
-        and header[2] == 0x40 + block_type
-        and header[3] == number
-    )
-
-
-def parse_b_info(payload: bytes, block_type: int, number: int) -> BlockInfo | None:
-    """Decode a 1Ah answer; ``None`` when the signature check fails (block unusable, D.B3)."""
-    if len(payload) < 13 or payload[0] != 0:
-        return None
-    header = bytes(payload[3:13])
-    if not header_matches(header, block_type, number):
-        return None
-    dw0 = (payload[1] << 8) | payload[2]
-    length = (header[8] << 8) | header[9]
-    if length < 5:
-        return None
-    return BlockInfo(block_type, number, dw0, length, header)
-
-
-def parse_read(payload: bytes, length: int, *, strict: bool = False) -> bytes:
-    """The data of a 04h answer: skip the 5 leading bytes (zero in strict mode; D.B2)."""
-    if len(payload) != READ_PREFIX + length:
-        raise RemoteProtocolError(
-            f"read answer has {len(payload)} bytes, expected {READ_PREFIX + length} "
-            f"(5 leading bytes + {length} data bytes)"
-        )
-    # [R] D.B2: skip the 5 leading bytes; only strict mode insists that they are zero
-    if strict and any(payload[:READ_PREFIX]):
-        raise RemoteProtocolError(f"read answer starts with {payload[:5].hex(' ')}, not 5 x 00")
-    return bytes(payload[READ_PREFIX:])
 
 
 # -- PG (client) machine (B.9.1) --------------------------------------------------------------
