@@ -15,10 +15,10 @@ import asyncio
 import statistics
 import time
 
+from plcstack.clients import connect
 from plcstack.clients.as511 import AS511Client
 from plcstack.sim import as511 as sim_as511
 from plcstack.sim.base import Simulator
-from plcstack.url import connect
 
 BITS_PER_BYTE = 11  # 8E1: start, 8 data, parity, stop
 

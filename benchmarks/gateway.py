@@ -20,10 +20,10 @@ import time
 
 from benchmarks.as511_line_rate import BITS_PER_BYTE, Counter
 from plcstack import gateway
+from plcstack.clients import connect
 from plcstack.clients.as511 import AS511Client
 from plcstack.sim import as511 as sim_as511
 from plcstack.sim.base import Simulator
-from plcstack.url import connect
 
 WORDS = 64
 EXPECTED = [0x0500 | k for k in range(WORDS)]

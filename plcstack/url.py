@@ -6,36 +6,29 @@ and the same string works in the CLI, the poller's TOML and the Python API.
 
 from __future__ import annotations
 
-import importlib
-import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qsl, urlsplit
 
 from plcstack.errors import AddressError
 
-if TYPE_CHECKING:
-    from plcstack.clients.base import Client
+__all__ = ["URL_FORMS", "PlcUrl", "parse_url"]
 
-__all__ = ["SCHEMES", "PlcUrl", "connect", "parse_url"]
-
-#: scheme -> (client class as "module:Class", needs host:port, needs a device path)
-SCHEMES: dict[str, tuple[str, bool, bool]] = {
-    "e71+tcp": ("plcstack.clients.e71:E71Client", True, False),
-    "e71+udp": ("plcstack.clients.e71:E71Client", True, False),
-    "s5lan": ("plcstack.clients.s5lan:S5LanClient", True, False),
-    "fetchwrite": ("plcstack.clients.fetchwrite:FetchWriteClient", True, False),
-    "as511": ("plcstack.clients.as511:AS511Client", False, True),
-    "as511+tcp": ("plcstack.clients.as511:AS511Client", True, False),
+#: scheme -> (needs host:port, needs a device path): the URL's syntax only. Which client serves
+#: a scheme is the table in :mod:`plcstack.clients.connect` (this module imports no client).
+URL_FORMS: dict[str, tuple[bool, bool]] = {
+    "e71+tcp": (True, False),
+    "e71+udp": (True, False),
+    "s5lan": (True, False),
+    "fetchwrite": (True, False),
+    "as511": (False, True),
+    "as511+tcp": (True, False),
 }
-
-_TRUE = {"1", "true", "yes", "on"}
-_FALSE = {"0", "false", "no", "off"}
 
 
 @dataclass(frozen=True)
 class PlcUrl:
-    """A parsed PLC URL. ``options`` holds the query string; typed getters validate it."""
+    """A parsed PLC URL. ``options`` holds the query string as text; each client's option
+    schema (:mod:`plcstack.clients.options`) checks and converts it."""
 
     raw: str
     scheme: str
@@ -51,82 +44,23 @@ class PlcUrl:
             return self.scheme.split("+", 1)[1]
         return "serial" if self.scheme == "as511" else "tcp"
 
-    def check_options(self, allowed: set[str] | frozenset[str]) -> None:
-        """Reject unknown query options: a typo like ``?db_strat=byte`` must not pass silently."""
-        unknown = sorted(set(self.options) - set(allowed))
-        if unknown:
-            raise AddressError(
-                f"unknown option(s) {', '.join(unknown)}; this scheme takes: "
-                f"{', '.join(sorted(allowed)) or 'none'}",
-                plc=self.raw,
-            )
-
-    def get_str(self, name: str, default: str, choices: tuple[str, ...] | None = None) -> str:
-        value = self.options.get(name, default)
-        if choices is not None and value not in choices:
-            raise AddressError(
-                f"option {name}={value!r} is not one of {', '.join(choices)}", plc=self.raw
-            )
-        return value
-
-    def get_bool(self, name: str, default: bool) -> bool:
-        if name not in self.options:
-            return default
-        value = self.options[name].lower()
-        if value in _TRUE:
-            return True
-        if value in _FALSE:
-            return False
-        raise AddressError(
-            f"option {name}={value!r} is not a boolean (1/0, true/false)", plc=self.raw
-        )
-
-    def get_int(self, name: str, default: int, lo: int | None = None, hi: int | None = None) -> int:
-        if name not in self.options:
-            return default
-        try:
-            value = int(self.options[name], 0)
-        except ValueError:
-            raise AddressError(
-                f"option {name}={self.options[name]!r} is not an integer", plc=self.raw
-            ) from None
-        if (lo is not None and value < lo) or (hi is not None and value > hi):
-            raise AddressError(f"option {name}={value} is outside {lo}..{hi}", plc=self.raw)
-        return value
-
-    def get_float(self, name: str, default: float, lo: float = 0.0) -> float:
-        if name not in self.options:
-            return default
-        try:
-            value = float(self.options[name])
-        except ValueError:
-            raise AddressError(
-                f"option {name}={self.options[name]!r} is not a number", plc=self.raw
-            ) from None
-        if not math.isfinite(value):
-            # "inf" and "nan" parse as floats; no option of ours means anything infinite
-            raise AddressError(f"option {name}={value} must be a finite number", plc=self.raw)
-        if not value > lo:
-            raise AddressError(f"option {name}={value} must be greater than {lo}", plc=self.raw)
-        return value
-
 
 def parse_url(url: str) -> PlcUrl:
     """Parse and check a PLC URL; every problem is an :class:`AddressError` naming the URL."""
     if not isinstance(url, str) or "://" not in url:
         raise AddressError(
-            f"not a PLC URL (expected SCHEME://..., schemes: {', '.join(SCHEMES)})", plc=str(url)
+            f"not a PLC URL (expected SCHEME://..., schemes: {', '.join(URL_FORMS)})", plc=str(url)
         )
     try:
         parts = urlsplit(url)
     except ValueError as exc:  # e.g. "Invalid IPv6 URL" for an unbalanced '[' in the host
         raise AddressError(f"malformed URL: {exc}", plc=url) from None
     scheme = parts.scheme.lower()
-    if scheme not in SCHEMES:
+    if scheme not in URL_FORMS:
         raise AddressError(
-            f"unknown scheme {scheme!r}; known schemes: {', '.join(SCHEMES)}", plc=url
+            f"unknown scheme {scheme!r}; known schemes: {', '.join(URL_FORMS)}", plc=url
         )
-    _, needs_host, needs_path = SCHEMES[scheme]
+    needs_host, needs_path = URL_FORMS[scheme]
     options: dict[str, str] = {}
     try:
         pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
@@ -161,27 +95,12 @@ def parse_url(url: str) -> PlcUrl:
     raise AssertionError("scheme table entry needs host or path")  # pragma: no cover
 
 
-def client_class(scheme: str) -> type[Client]:
-    """Import the client class for ``scheme``; a protocol not built yet is a clear error."""
-    target = SCHEMES[scheme][0]
-    module_name, _, class_name = target.partition(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        if exc.name == module_name:
-            raise AddressError(
-                f"scheme {scheme!r} is not built in this version of plcstack"
-            ) from None
-        raise
-    cls: type[Client] = getattr(module, class_name)
-    return cls
+def __getattr__(name: str) -> object:
+    """``plcstack.url.connect`` is the old home of :func:`plcstack.clients.connect`; kept as a
+    lazy alias (resolved on first use, so this module still imports no client at load time)
+    for code written before the move. Import it from ``plcstack`` or ``plcstack.clients``."""
+    if name == "connect":
+        from plcstack.clients.connect import connect
 
-
-def connect(url: str, **options: Any) -> Client:
-    """Create the client for ``url``. Use it as ``async with connect(url) as plc:``.
-
-    Keyword options override the URL's query options (``timeout=2.0`` etc.); the connection is
-    opened by ``async with`` or ``await plc.open()``, not here, so creating a client never blocks.
-    """
-    parsed = parse_url(url)
-    return client_class(parsed.scheme).from_url(parsed, **options)
+        return connect
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

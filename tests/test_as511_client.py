@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.clients.as511 import AS511Client
 from plcstack.codecs.as511 import Job, PGState
 from plcstack.errors import (
@@ -26,7 +27,7 @@ from plcstack.sim import as511 as sim_as511
 from plcstack.sim.base import Simulator
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.transports.serial import SerialTransport, is_pty
-from plcstack.url import connect, parse_url
+from plcstack.url import parse_url
 from tests.aio_helpers import ends_quietly
 
 ROOT = Path(__file__).resolve().parents[1]

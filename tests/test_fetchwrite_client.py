@@ -11,7 +11,7 @@ from collections.abc import AsyncIterator, Callable
 
 import pytest
 
-from plcstack import url as plcurl
+from plcstack import clients as plcurl
 from plcstack.clients.fetchwrite import FetchWriteClient
 from plcstack.codecs import NEED_DATA
 from plcstack.codecs.mk import LifeAck, MkConnection

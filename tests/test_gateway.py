@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from plcstack import gateway
+from plcstack.clients import connect
 from plcstack.clients.as511 import AS511Client
 from plcstack.errors import AddressError, PlcErrorResponse
 from plcstack.gateway.allow import WriteAllowList
@@ -23,7 +24,6 @@ from plcstack.sim import as511 as sim_as511
 from plcstack.sim.base import Simulator
 from plcstack.sim.s5memory import Area, BlockType
 from plcstack.sim.s5store import ABSOLUTE, FAULT_CODES, FaultKind
-from plcstack.url import connect
 
 ROOT = Path(__file__).resolve().parents[1]
 LOOP = ("127.0.0.1", 0)

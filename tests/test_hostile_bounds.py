@@ -11,6 +11,7 @@ import socket
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.clients.e71_fixed import INBOX_MAX, E71BroadcastReceiver, E71FixedBufferClient
 from plcstack.codecs.e71_buffers import FixedBufferConnection
 from plcstack.codecs.e71_commands import FixedBufferData
@@ -18,7 +19,7 @@ from plcstack.errors import PlcError, RemoteProtocolError
 from plcstack.transports.base import MAX_QUEUED
 from plcstack.transports.tcp import RECEIVE_BUFFER, TcpTransport
 from plcstack.transports.udp import UdpTransport
-from plcstack.url import connect, parse_url
+from plcstack.url import parse_url
 from tests.aio_helpers import ends_quietly
 
 FLOOD = 100 * 1024 * 1024  # what the peer tries to push: 100 MB

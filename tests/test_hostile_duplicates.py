@@ -15,13 +15,13 @@ from collections.abc import Awaitable, Callable
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.clients.base import Client
 from plcstack.errors import PlcError
 from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.s5memory import Area
-from plcstack.url import connect
 
 
 class DupProxy:

@@ -7,6 +7,7 @@ import asyncio
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.codecs.e71 import E71ServerConnection
 from plcstack.codecs.e71_events import BadRequest
 from plcstack.sim import as511 as as511_sim
@@ -15,7 +16,6 @@ from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.e71 import E71TcpSimulator
 from plcstack.sim.e71_fixed import INBOX_BYTES, start_fixed_buffer
-from plcstack.url import connect
 
 IDLE = 0.3
 

@@ -13,6 +13,7 @@ import pathlib
 import pytest
 
 from plcstack.cli import main as cli_main
+from plcstack.clients import connect
 from plcstack.clients.base import MAY_OR_MAY_NOT
 from plcstack.codecs.as511 import (
     ACK,
@@ -36,7 +37,6 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.s5memory import Area
 from plcstack.transports.backoff import Backoff
-from plcstack.url import connect
 from tests.aio_helpers import ends_quietly
 from tests.robust_helpers import MisbehavingProxy
 

@@ -11,10 +11,11 @@ import importlib.util
 import pytest
 
 from plcstack import values as vt
+from plcstack.clients import connect
 from plcstack.clients.base import Client
 from plcstack.poll.config import TagConfig
 from plcstack.poll.plan import build_plan
-from plcstack.url import connect, parse_url
+from plcstack.url import parse_url
 from plcstack.values import default_word_order
 
 URLS = {

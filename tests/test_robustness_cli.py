@@ -17,13 +17,13 @@ from typing import Any
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.errors import PlcErrorResponse
 from plcstack.sim import as511 as as511_sim
 from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.melsec_memory import MelsecMemory
-from plcstack.url import connect
 from tests.robust_helpers import MisbehavingProxy, record_loop_errors
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -20,6 +20,7 @@ from typing import Any
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.clients.base import Client
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcError, PlcTimeout, RemoteProtocolError
 from plcstack.sim import as511 as as511_sim
@@ -27,7 +28,6 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.s5memory import Area
-from plcstack.url import connect
 from tests.robust_helpers import MisbehavingProxy, mutations, record_loop_errors
 
 TIMEOUT = 0.1

@@ -12,12 +12,13 @@ from collections.abc import Callable
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.clients.e71_fixed import E71FixedBufferClient
 from plcstack.errors import ConnectionLost, PlcError, PlcTimeout, RemoteProtocolError
 from plcstack.sim import as511 as as511_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim.s5memory import Area
-from plcstack.url import connect, parse_url
+from plcstack.url import parse_url
 from tests.aio_helpers import ends_quietly
 from tests.robust_helpers import MisbehavingProxy, record_loop_errors
 

@@ -9,13 +9,14 @@ from typing import Any
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.clients.e71_fixed import E71FixedBufferClient
 from plcstack.sim import as511 as as511_sim
 from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.e71_fixed import start_fixed_buffer
-from plcstack.url import connect, parse_url
+from plcstack.url import parse_url
 from tests.robust_helpers import fd_count, record_loop_errors
 
 CLIENTS = 200

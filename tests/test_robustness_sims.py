@@ -21,6 +21,7 @@ from typing import Any
 
 import pytest
 
+from plcstack.clients import connect
 from plcstack.clients.base import Client
 from plcstack.clients.e71_fixed import E71FixedBufferClient
 from plcstack.sim import as511 as as511_sim
@@ -28,7 +29,7 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.e71_fixed import FixedBufferSimulator, start_fixed_buffer
-from plcstack.url import connect, parse_url
+from plcstack.url import parse_url
 from tests.robust_helpers import capture_request, mutations, record_loop_errors
 
 # PLCSTACK_FUZZ_SCALE=10 for a longer exploratory run (the default keeps the file fast)

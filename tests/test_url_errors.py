@@ -3,16 +3,17 @@
 import pytest
 
 import plcstack
-from plcstack import url as url_mod
+from plcstack.clients import SCHEMES, E71Client, FetchWriteClient
 from plcstack.errors import (
     AddressError,
     ConnectFailed,
     ConnectionLost,
+    OptionError,
     PlcError,
     PlcErrorResponse,
     PlcTimeout,
 )
-from plcstack.url import parse_url
+from plcstack.url import URL_FORMS, parse_url
 
 
 @pytest.mark.parametrize(
@@ -57,31 +58,57 @@ def test_bad_urls_are_named(text: str, fragment: str) -> None:
     assert str(info.value).startswith(text)
 
 
-def test_typed_options() -> None:
-    parsed = parse_url("e71+tcp://h:1?timeout=1.5&mk=yes&n=0x10&code=ascii")
-    assert parsed.get_float("timeout", 2.0) == 1.5
-    assert parsed.get_bool("mk", False) is True
-    assert parsed.get_int("n", 0, 0, 255) == 16
-    assert parsed.get_str("code", "binary", ("binary", "ascii")) == "ascii"
-    assert parsed.get_int("absent", 7) == 7
-    with pytest.raises(AddressError, match="outside 0..10"):
-        parsed.get_int("n", 0, 0, 10)
-    with pytest.raises(AddressError, match="not one of"):
-        parsed.get_str("code", "binary", ("binary",))
-    with pytest.raises(AddressError, match="not a boolean"):
-        parse_url("e71+tcp://h:1?mk=maybe").get_bool("mk", False)
-    with pytest.raises(AddressError, match="greater than 0"):
-        parse_url("e71+tcp://h:1?timeout=0").get_float("timeout", 2.0)
-    with pytest.raises(AddressError, match="unknown option"):
-        parsed.check_options({"timeout", "code"})
+@pytest.mark.parametrize(
+    ("url", "keywords", "option", "fragment"),
+    [
+        (
+            "e71+tcp://h:1",
+            {"tiemout": 3},
+            "tiemout",
+            "unknown option tiemout (keyword): did you mean timeout?",
+        ),
+        ("e71+tcp://h:1?tiemout=3", {}, "tiemout", "unknown option tiemout (URL query)"),
+        ("s5lan://h:1?code=ascii", {}, "code", "does not apply to s5lan://"),
+        ("e71+tcp://h:1", {"timeout": 0}, "timeout", "greater than 0"),
+        ("e71+tcp://h:1?timeout=inf", {}, "timeout", "finite"),
+        ("e71+tcp://h:1?timeout=x", {}, "timeout", "option timeout='x'"),
+        ("e71+tcp://h:1?code=ebcdic", {}, "code", "not one of binary, ascii"),
+        ("e71+tcp://h:1?pc=GG", {}, "pc", "option pc='GG'"),
+        ("fetchwrite://h:1?mk=maybe", {}, "mk", "not a boolean"),
+        ("fetchwrite://h:1", {"write_port": 70000}, "write_port", "outside 1..65535"),
+        ("as511+tcp://h:1?parity=E", {}, "parity", "does not apply to as511+tcp://"),
+        ("as511:///dev/ttyS9?stopbits=3", {}, "stopbits", "not 1, 1.5 or 2"),
+        ("e71+tcp://h:1?backoff=1", {}, "backoff", "Python only"),
+        ("e71+tcp://h:1", {"pc": None}, "pc", "not an integer"),
+        ("fetchwrite://h:1", {"mk": None}, "mk", "not a boolean"),
+    ],
+)
+def test_bad_options_are_option_errors_naming_the_option(
+    url: str, keywords: dict[str, object], option: str, fragment: str
+) -> None:
+    with pytest.raises(OptionError) as info:
+        plcstack.connect(url, **keywords)  # type: ignore[arg-type]
+    assert info.value.option == option
+    assert fragment in str(info.value)
+    assert str(info.value).startswith(url)
+    assert isinstance(info.value, AddressError | PlcError)
 
 
-def test_scheme_whose_module_is_missing_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(
-        url_mod.SCHEMES, "e71+tcp", ("plcstack.clients.not_built_yet:Nope", True, False)
-    )
-    with pytest.raises(AddressError, match="'e71\\+tcp' is not built"):
-        plcstack.connect("e71+tcp://h:1")
+def test_url_and_keywords_share_one_schema() -> None:
+    a = plcstack.connect("e71+tcp://h:1?code=ascii&pc=1F&timeout=1.5&monitoring_timer=3")
+    b = plcstack.connect("e71+tcp://h:1", code="ascii", pc=0x1F, timeout=1.5, monitoring_timer=3)
+    for plc in (a, b):
+        assert isinstance(plc, E71Client)
+        assert (plc.code.value, plc.pc, plc.timeout, plc.monitoring_timer) == ("ascii", 31, 1.5, 3)
+    # a keyword wins over the query
+    c = plcstack.connect("fetchwrite://h:1?mk=0&timeout=5", mk=True, timeout=1)
+    assert isinstance(c, FetchWriteClient) and c.mk is True and c.timeout == 1.0
+    assert plcstack.connect("s5lan://h:1?strict=off").strict is False  # type: ignore[attr-defined]
+
+
+def test_scheme_table_holds_classes() -> None:
+    assert SCHEMES["e71+udp"] is E71Client
+    assert set(SCHEMES) == set(URL_FORMS)
 
 
 def test_error_messages_name_plc_request_and_meaning() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from plcstack.errors import AddressError, PlcError, ValueDecodeError, ValueEncodeError
@@ -91,15 +91,21 @@ def test_kg_refuses_what_it_cannot_hold(bad: object) -> None:
 
 
 @given(st.integers(0, 0xFFFFFFFF))
+@example(0x00800000)  # m = -2^23: -1.0, but not normalised (|m / 2^23| = 1); re-encodes 01 C0 00 00
+@example(0x00C00000)  # m = -2^22: -0.5, normalised (spec F golden 00 C0 00 00)
+@example(0x80000001)  # exponent -128, mantissa 1: below the normalised range
 def test_kg_any_bits_decode_to_a_finite_number(raw: int) -> None:
     value = KG.decode([raw >> 16, raw & 0xFFFF], 16, BIG)
     assert math.isfinite(value)
     m = raw & 0xFFFFFF
-    if m >= 0x400000 and m < 0xC00000 and (m < 0x800000 or m >= 0x800000):
-        pass
-    # a normalised pattern survives decode -> encode unchanged
-    if 0x400000 <= m <= 0x7FFFFF or 0x800000 <= m <= 0xBFFFFF:
+    # spec F: normalised means 0.5 <= |m / 2^23| < 1, i.e. m in 400000h..7FFFFFh (positive) or
+    # -2^23 < m <= -2^22, i.e. 800001h..C00000h (negative); such a pattern re-encodes unchanged
+    if 0x400000 <= m <= 0x7FFFFF or 0x800001 <= m <= 0xC00000:
         assert KG.encode(value, 16, BIG) == [raw >> 16, raw & 0xFFFF]
+    elif value == 0 or abs(value) >= math.ldexp(0.5, -128):
+        # any other pattern re-encodes to the same value, unless it lies below the smallest
+        # normalised KG (exponent -128, small mantissa), which rounds to 0 or that smallest
+        assert KG.decode(KG.encode(value, 16, BIG), 16, BIG) == value
 
 
 @given(

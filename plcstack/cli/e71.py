@@ -11,9 +11,9 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
+from plcstack.clients import connect
 from plcstack.clients.e71 import E71Client
 from plcstack.errors import AddressError
-from plcstack.url import connect
 
 #: area name -> (read command, write command, unit)
 AREAS: dict[str, tuple[int, int, str]] = {

@@ -7,9 +7,9 @@ import json
 import re
 from typing import Any
 
+from plcstack.clients import connect
 from plcstack.errors import AddressError
 from plcstack.output import float32_short, json_safe
-from plcstack.url import connect
 from plcstack.values import TYPES, Scalar, WordOrder, value_type
 
 _TYPE_HELP = (

@@ -34,7 +34,14 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Self
 
-from plcstack.clients.base import Client, Points, as_points
+from plcstack.clients.base import (
+    DEFAULT_CONNECT_TIMEOUT,
+    DEFAULT_TIMEOUT,
+    Client,
+    Points,
+    as_points,
+)
+from plcstack.clients.options import COMMON, Option, choice, flag, integer, seconds
 from plcstack.clients.s5access import S5Access
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.as511 import (
@@ -73,6 +80,7 @@ from plcstack.errors import (
     RemoteProtocolError,
 )
 from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
+from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.transports.serial import SerialTransport
 from plcstack.transports.tcp import TcpTransport
@@ -131,6 +139,12 @@ _MAX_SIGNATURE_GAP = 64
 _BITS_PER_BYTE = 11  # 8E1
 
 
+def _stopbits(value: object) -> object:
+    if isinstance(value, bool) or not isinstance(value, int | float) or value not in (1, 1.5, 2):
+        raise ValueError("not 1, 1.5 or 2")
+    return float(value)
+
+
 class _BlockMoved(Exception):
     """The header read with a cached address does not match: the block moved."""
 
@@ -163,14 +177,21 @@ def _as_user_request(exc: PlcError, what: str) -> PlcError:
 class AS511Client(S5Access, Client):
     """Read and write an S5 CPU through its programming port (spec part B)."""
 
-    URL_OPTIONS = Client.COMMON_URL_OPTIONS | {
-        "baud",
-        "char_timeout",
-        "response_timeout",
-        "cache",
-        "strict",
-    }
-    SERIAL_URL_OPTIONS = URL_OPTIONS | {"parity", "stopbits"}
+    OPTIONS = (
+        *COMMON,
+        integer("baud", 9600, 50, 4_000_000, "line rate (behind a device server: for deadlines)"),
+        seconds("char_timeout", DEFAULT_CHAR_TIMEOUT, "silence that ends a frame (B5.7)"),
+        seconds("response_timeout", None, "wait for an answer; default char_timeout (D.B6)"),
+        seconds("nak_backoff", 0.5, "pause after a DLE NAK before the next STX (B5.1)"),
+        flag("cache", True, "cache block addresses from B_INFO"),
+        flag("strict", False, "check the 5 leading zero bytes of read answers (D.B2)"),
+    )
+    #: a serial line adds its character format
+    SERIAL_OPTIONS = (
+        *OPTIONS,
+        choice("parity", "E", ("N", "E", "O"), "parity (8E1 by default)"),
+        Option("stopbits", 1.0, float, _stopbits, "stop bits: 1, 1.5 or 2"),
+    )
 
     def __init__(
         self,
@@ -183,9 +204,13 @@ class AS511Client(S5Access, Client):
         line_byte_time: float | None = None,
         cache: bool = True,
         strict: bool = False,
-        **base: Any,
+        timeout: float = DEFAULT_TIMEOUT,
+        connect_timeout: float = DEFAULT_CONNECT_TIMEOUT,
+        backoff: Backoff | None = None,
     ) -> None:
-        super().__init__(name, transport, **base)
+        super().__init__(
+            name, transport, timeout=timeout, connect_timeout=connect_timeout, backoff=backoff
+        )
         char_timeout = check_seconds("char_timeout", char_timeout, plc=name)
         if response_timeout is not None:
             response_timeout = check_seconds("response_timeout", response_timeout, plc=name)
@@ -211,28 +236,23 @@ class AS511Client(S5Access, Client):
 
     # -- construction -----------------------------------------------------------------------
     @classmethod
-    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
-        serial = url.transport == "serial"
-        url.check_options(cls.SERIAL_URL_OPTIONS if serial else cls.URL_OPTIONS)
-        opts = cls.common_options(url, options)
-        baud = url.get_int("baud", 9600, 50, 4_000_000)
+    def options_for(cls, url: PlcUrl) -> tuple[Option, ...]:
+        return cls.SERIAL_OPTIONS if url.transport == "serial" else cls.OPTIONS
+
+    @classmethod
+    def create(cls, url: PlcUrl, options: dict[str, Any]) -> Self:
+        opts = dict(options)
+        baud = opts.pop("baud")
         transport: Transport
-        if serial:
+        if url.transport == "serial":
             assert url.path is not None
-            parity = url.get_str("parity", "E", ("N", "E", "O"))
-            stopbits = url.get_float("stopbits", 1.0)
-            if stopbits not in (1.0, 1.5, 2.0):
-                raise AddressError(f"option stopbits={stopbits:g} is not 1, 1.5 or 2", plc=url.raw)
-            transport = SerialTransport(url.path, baudrate=baud, parity=parity, stopbits=stopbits)
+            transport = SerialTransport(
+                url.path, baudrate=baud, parity=opts.pop("parity"), stopbits=opts.pop("stopbits")
+            )
         else:
             assert url.host is not None and url.port is not None
             transport = TcpTransport(url.host, url.port)
-            opts.setdefault("line_byte_time", _BITS_PER_BYTE / baud)
-        opts.setdefault("char_timeout", url.get_float("char_timeout", DEFAULT_CHAR_TIMEOUT))
-        if "response_timeout" in url.options:
-            opts.setdefault("response_timeout", url.get_float("response_timeout", 0.5))
-        opts.setdefault("cache", url.get_bool("cache", True))
-        opts.setdefault("strict", url.get_bool("strict", False))
+            opts["line_byte_time"] = _BITS_PER_BYTE / baud
         return cls(url.raw, transport, **opts)
 
     def connection_made(self) -> None:

@@ -14,6 +14,7 @@ from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Generic, Protocol, Self, TypeVar, overload
 
+from plcstack.clients.options import COMMON, Option, resolve
 from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
 from plcstack.durations import check_seconds
@@ -148,20 +149,24 @@ class Client(AsyncResource):
         self._backoff_reason = "PLC unreachable"
 
     # -- construction -----------------------------------------------------------------------
+    #: this client's options, shared by the URL query and keywords (:mod:`.options`)
+    OPTIONS: ClassVar[tuple[Option, ...]] = COMMON
+
     @classmethod
-    @abstractmethod
-    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
-        """Build from a parsed URL; keyword options override query options."""
+    def options_for(cls, url: PlcUrl) -> tuple[Option, ...]:
+        """The options a URL of this client takes (AS511: serial line settings on serial)."""
+        return cls.OPTIONS
 
-    @staticmethod
-    def common_options(url: PlcUrl, options: dict[str, Any]) -> dict[str, Any]:
-        """``timeout`` and ``connect_timeout`` from the URL unless given as keywords."""
-        out = dict(options)
-        out.setdefault("timeout", url.get_float("timeout", DEFAULT_TIMEOUT))
-        out.setdefault("connect_timeout", url.get_float("connect_timeout", DEFAULT_CONNECT_TIMEOUT))
-        return out
+    @classmethod
+    def from_url(cls, url: PlcUrl, **options: object) -> Self:
+        """Build from a parsed URL; keyword options override query options. Every option is
+        checked by the one schema (:attr:`OPTIONS`): a bad one is an :class:`OptionError`."""
+        return cls.create(url, resolve(cls.options_for(url), url, options))
 
-    COMMON_URL_OPTIONS = frozenset({"timeout", "connect_timeout"})
+    @classmethod
+    def create(cls, url: PlcUrl, options: dict[str, Any]) -> Self:
+        """Build from a URL and its resolved options (every name of :attr:`OPTIONS` present)."""
+        raise NotImplementedError(f"{cls.__name__} cannot be built from a URL")
 
     #: fresh connections in a row that may close or garble before one valid answer before
     #: reconnects back off (see :meth:`request_failed`)

@@ -21,8 +21,14 @@ from __future__ import annotations
 from collections.abc import Callable, Coroutine, Hashable, Sequence
 from typing import Any, Self, TypeVar
 
-from plcstack.clients.base import Points, RequestClient, as_points
+from plcstack.clients.base import (
+    DEFAULT_CONNECT_TIMEOUT,
+    DEFAULT_TIMEOUT,
+    Points,
+    as_points,
+)
 from plcstack.clients.e71_commands import E71CommandsMixin
+from plcstack.clients.options import COMMON, choice, integer
 from plcstack.codecs.e71 import (
     DEFAULT_PC,
     END_CODES,
@@ -60,6 +66,7 @@ from plcstack.errors import (
     RemoteProtocolError,
 )
 from plcstack.transports import ip_transport
+from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.transports.udp import UdpTransport
 from plcstack.url import PlcUrl
@@ -86,12 +93,13 @@ class E71Client(E71CommandsMixin):
     word_order = Endian.LITTLE  # D100 low word, D101 high word (spec §3 rule 10)
     byte_order = Endian.LITTLE  # "12" in D0 reads 3231H
 
-    URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {
-        "code",
-        "pc",
-        "monitoring_timer",
-        "rab_ascii_sub_chars",  # issue 3: §13 A2, see clients/e71_commands.py
-    }
+    OPTIONS = (
+        *COMMON,
+        choice("code", "binary", ("binary", "ascii"), "must match DIP switch SW2 (§11.4)"),
+        integer("pc", DEFAULT_PC, 0, 0xFF, "PC number, hex in a URL (FF = this CPU)", base=16),
+        integer("monitoring_timer", None, 0, 0xFFFF, "ACPU monitoring timer, 250 ms units"),
+        choice("rab_ascii_sub_chars", 2, (2, 4), "random access buffer ASCII width (§13 A2)"),
+    )
 
     def __init__(
         self,
@@ -101,9 +109,14 @@ class E71Client(E71CommandsMixin):
         code: Code | str = Code.BINARY,
         pc: int = DEFAULT_PC,
         monitoring_timer: int | None = None,
-        **common: Any,
+        rab_ascii_sub_chars: int = 2,
+        timeout: float = DEFAULT_TIMEOUT,
+        connect_timeout: float = DEFAULT_CONNECT_TIMEOUT,
+        backoff: Backoff | None = None,
     ) -> None:
-        super().__init__(name, transport, **common)
+        super().__init__(
+            name, transport, timeout=timeout, connect_timeout=connect_timeout, backoff=backoff
+        )
         try:
             self.code = code if isinstance(code, Code) else Code(code)
         except ValueError:
@@ -115,6 +128,9 @@ class E71Client(E71CommandsMixin):
         if not 0 <= timer <= 0xFFFF:
             raise AddressError(f"monitoring_timer {timer} outside 0..65535", plc=name)
         self.monitoring_timer = timer
+        if rab_ascii_sub_chars not in (2, 4):  # issue 3: §13 A2, see clients/e71_commands.py
+            raise AddressError("rab_ascii_sub_chars must be 2 or 4", plc=name)
+        self.rab_ascii_sub_chars = rab_ascii_sub_chars
         self._udp = isinstance(transport, UdpTransport)
         # The monitor registration lives in the PLC, not in the connection: keep what we
         # registered across reconnects so 88H/89H can still be sized.
@@ -127,30 +143,9 @@ class E71Client(E71CommandsMixin):
         self.codec: E71ClientConnection = self.new_codec()
 
     @classmethod
-    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
-        url.check_options(cls.URL_OPTIONS)
-        kw = dict(options)
-        code = kw.pop("code", None) or url.get_str("code", "binary", ("binary", "ascii"))
-        pc = kw.pop("pc", None)
-        if pc is None:
-            text = url.options.get("pc", "FF")
-            try:
-                pc = int(text, 16)
-            except ValueError:
-                raise AddressError(f"option pc={text!r} is not a hex number", plc=url.raw) from None
-        timer = kw.pop("monitoring_timer", None)
-        if timer is None and "monitoring_timer" in url.options:
-            timer = url.get_int("monitoring_timer", 0, 0, 0xFFFF)
-        width = kw.pop("rab_ascii_sub_chars", None)  # issue 3: §13 A2
-        if width is None:
-            width = url.get_int("rab_ascii_sub_chars", 2, 2, 4)
-        if width not in (2, 4):
-            raise AddressError("rab_ascii_sub_chars must be 2 or 4", plc=url.raw)
-        common = cls.common_options(url, kw)
+    def create(cls, url: PlcUrl, options: dict[str, Any]) -> Self:
         transport = ip_transport(url.host, url.port, url.transport)
-        plc = cls(url.raw, transport, code=code, pc=pc, monitoring_timer=timer, **common)
-        plc.rab_ascii_sub_chars = width
-        return plc
+        return cls(url.raw, transport, **options)
 
     def diagnose(self, failure: Failure, reply: bytes) -> str:
         if self._udp and not reply:

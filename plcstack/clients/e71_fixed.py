@@ -25,7 +25,14 @@ import socket
 from collections.abc import AsyncIterator, Sequence
 from typing import Any, Self
 
-from plcstack.clients.base import Client, Points, as_points
+from plcstack.clients.base import (
+    DEFAULT_CONNECT_TIMEOUT,
+    DEFAULT_TIMEOUT,
+    Client,
+    Points,
+    as_points,
+)
+from plcstack.clients.options import COMMON, choice, flag
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.e71 import Code
 from plcstack.codecs.e71_buffers import (
@@ -47,6 +54,7 @@ from plcstack.errors import (
 )
 from plcstack.resource import AsyncResource
 from plcstack.transports import ip_transport
+from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.transports.udp import UdpTransport
 from plcstack.url import PlcUrl
@@ -65,7 +73,11 @@ INBOX_MAX = 64
 class E71FixedBufferClient(Client):
     """One fixed-buffer connection to an E71 (with or without procedure, TCP or UDP)."""
 
-    URL_OPTIONS = Client.COMMON_URL_OPTIONS | {"code", "procedure"}
+    OPTIONS = (
+        *COMMON,
+        choice("code", "binary", ("binary", "ascii"), "must match DIP switch SW2 (§11.4)"),
+        flag("procedure", True, "fixed buffer with procedure (handshake) or without"),
+    )
 
     def __init__(
         self,
@@ -74,9 +86,13 @@ class E71FixedBufferClient(Client):
         *,
         code: Code | str = Code.BINARY,
         procedure: bool = True,
-        **common: Any,
+        timeout: float = DEFAULT_TIMEOUT,
+        connect_timeout: float = DEFAULT_CONNECT_TIMEOUT,
+        backoff: Backoff | None = None,
     ) -> None:
-        super().__init__(name, transport, **common)
+        super().__init__(
+            name, transport, timeout=timeout, connect_timeout=connect_timeout, backoff=backoff
+        )
         try:
             self.code = code if isinstance(code, Code) else Code(code)
         except ValueError:
@@ -93,16 +109,9 @@ class E71FixedBufferClient(Client):
         self._reader: asyncio.Task[None] | None = None
 
     @classmethod
-    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
-        url.check_options(cls.URL_OPTIONS)
-        kw = dict(options)
-        code = kw.pop("code", None) or url.get_str("code", "binary", ("binary", "ascii"))
-        procedure = kw.pop("procedure", None)
-        if procedure is None:
-            procedure = url.get_bool("procedure", True)
-        common = cls.common_options(url, kw)
+    def create(cls, url: PlcUrl, options: dict[str, Any]) -> Self:
         transport = ip_transport(url.host, url.port, url.transport)
-        return cls(url.raw, transport, code=code, procedure=procedure, **common)
+        return cls(url.raw, transport, **options)
 
     def _new_codec(self) -> FixedBufferConnection | RawBufferConnection:
         if self.procedure:

@@ -31,6 +31,7 @@ from collections.abc import Hashable, Sequence
 from typing import Any, Final, Literal, Self
 
 from plcstack.clients.base import Points, RequestClient, as_points
+from plcstack.clients.options import COMMON, choice, flag, integer, seconds
 from plcstack.clients.s5access import S5Access
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.fetchwrite import (
@@ -71,10 +72,6 @@ _WritePlan = tuple[S5Unit, int, int, int, int]
 #: most (address, count) read plans a client keeps (a poller reads a fixed set of tags)
 _PLAN_CACHE: Final = 1024
 
-_URL_OPTIONS: Final = frozenset(
-    {"mk", "db_start", "write_port", "life_ack", "life_timeout", "strict", "mk_seq"}
-)
-
 
 class _MkTcpTransport(TcpTransport):
     """TCP that tells a life-ack timer about every byte of traffic, including the life acks
@@ -104,6 +101,17 @@ class _MkTcpTransport(TcpTransport):
 
 class FetchWriteClient(S5Access, RequestClient[Response]):
     """Read and write S5 memory through a CP's FETCH/WRITE service (raw TCP or MK header)."""
+
+    OPTIONS = (
+        *COMMON,
+        flag("mk", False, "wrap every job in the Tani MK header (C.1-C.5)"),
+        choice("db_start", "word", ("word", "byte"), "unit of a DB start address (C.6.3)"),
+        integer("write_port", None, 1, 65535, "WRITE jobs over a second connection to this port"),
+        seconds("life_ack", None, "MK keep-alive interval (needs mk=1)"),
+        seconds("life_timeout", None, "peer silence that declares it dead (default 3 x life_ack)"),
+        flag("strict", False, "strict MK receive checks"),
+        flag("mk_seq", True, "check the MK sequence numbers of answers (C.2)"),
+    )
 
     codec: ClientConnection
 
@@ -169,20 +177,9 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
             self._writer.stats = self.stats
 
     @classmethod
-    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
-        url.check_options(cls.COMMON_URL_OPTIONS | _URL_OPTIONS)
-        opts = cls.common_options(url, options)
-        opts.setdefault("mk", url.get_bool("mk", False))
-        opts.setdefault("db_start", url.get_str("db_start", "word", ("word", "byte")))
-        opts.setdefault("strict", url.get_bool("strict", False))
-        opts.setdefault("mk_seq", url.get_bool("mk_seq", True))
-        if "write_port" in url.options:
-            opts.setdefault("write_port", url.get_int("write_port", 0, 1, 65535))
-        for name in ("life_ack", "life_timeout"):
-            if name in url.options:
-                opts.setdefault(name, url.get_float(name, 0.0))
+    def create(cls, url: PlcUrl, options: dict[str, Any]) -> Self:
         assert url.host is not None and url.port is not None
-        return cls(url.raw, url.host, url.port, **opts)
+        return cls(url.raw, url.host, url.port, **options)
 
     def diagnose(self, failure: Failure, reply: bytes) -> str:
         return fetchwrite_hint(failure, reply, mk=self.mk, first=self.first_on_connection())

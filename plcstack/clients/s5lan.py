@@ -37,7 +37,14 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, NamedTuple, Self
 
-from plcstack.clients.base import Points, RequestClient, as_points
+from plcstack.clients.base import (
+    DEFAULT_CONNECT_TIMEOUT,
+    DEFAULT_TIMEOUT,
+    Points,
+    RequestClient,
+    as_points,
+)
+from plcstack.clients.options import COMMON, choice, flag
 from plcstack.clients.s5access import S5Access
 from plcstack.codecs.s5lan import (
     HEADER_BYTE_ORDER,
@@ -58,6 +65,7 @@ from plcstack.errors import (
     PlcErrorResponse,
 )
 from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
+from plcstack.transports.backoff import Backoff
 from plcstack.transports.tcp import TcpTransport
 from plcstack.url import PlcUrl
 from plcstack.values import pack_ints
@@ -118,7 +126,11 @@ def _area_key(area: Hashable) -> AreaKey:
 class S5LanClient(S5Access, RequestClient[Response]):
     """One S5-LAN module (and so one PLC). See the module docstring for values and limits."""
 
-    URL_OPTIONS = RequestClient.COMMON_URL_OPTIONS | {"header_byte_order", "strict"}
+    OPTIONS = (
+        *COMMON,
+        choice("header_byte_order", "little", ("little", "big"), "byte order of the header (A.3)"),
+        flag("strict", True, "check every echoed header field of an answer"),
+    )
     #: a module closes every connection beyond its one at once (A.2): back off at the first
     UNPROVEN_FAILURES_BEFORE_BACKOFF = 1
 
@@ -130,9 +142,17 @@ class S5LanClient(S5Access, RequestClient[Response]):
         *,
         header_byte_order: ByteOrder = HEADER_BYTE_ORDER,
         strict: bool = True,
-        **options: Any,
+        timeout: float = DEFAULT_TIMEOUT,
+        connect_timeout: float = DEFAULT_CONNECT_TIMEOUT,
+        backoff: Backoff | None = None,
     ) -> None:
-        super().__init__(name, TcpTransport(host, port), **options)
+        super().__init__(
+            name,
+            TcpTransport(host, port),
+            timeout=timeout,
+            connect_timeout=connect_timeout,
+            backoff=backoff,
+        )
         if header_byte_order not in ("little", "big"):
             raise AddressError(
                 f"header_byte_order must be little or big, not {header_byte_order!r}"
@@ -145,16 +165,10 @@ class S5LanClient(S5Access, RequestClient[Response]):
         self.codec: ClientConnection = self.new_codec()
 
     @classmethod
-    def from_url(cls, url: PlcUrl, **options: Any) -> Self:
+    def create(cls, url: PlcUrl, options: dict[str, Any]) -> Self:
         """``s5lan://HOST:PORT[?timeout=S&connect_timeout=S&header_byte_order=little|big&strict=1]``."""
-        url.check_options(cls.URL_OPTIONS)
-        opts = cls.common_options(url, options)
-        opts.setdefault(
-            "header_byte_order", url.get_str("header_byte_order", "little", ("little", "big"))
-        )
-        opts.setdefault("strict", url.get_bool("strict", True))
         assert url.host is not None and url.port is not None
-        return cls(url.raw, url.host, url.port, **opts)
+        return cls(url.raw, url.host, url.port, **options)
 
     def diagnose(self, failure: Failure, reply: bytes) -> str:
         return s5lan_hint(failure, reply, first=self.first_on_connection())

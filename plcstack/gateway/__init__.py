@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+from plcstack.clients import connect
 from plcstack.clients.as511 import AS511Client
 from plcstack.errors import AddressError
 from plcstack.gateway.allow import WriteAllowList
@@ -27,7 +28,6 @@ from plcstack.resource import AsyncResource
 from plcstack.sim import fetchwrite as fetchwrite_server
 from plcstack.sim import s5lan as s5lan_server
 from plcstack.sim.base import TcpSimulator
-from plcstack.url import connect
 
 __all__ = ["As511Store", "Gateway", "GatewayStats", "WriteAllowList", "start"]
 

@@ -45,6 +45,7 @@ from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Self
 
+from plcstack.clients import connect
 from plcstack.clients.base import Client
 from plcstack.errors import (
     AddressError,
@@ -60,7 +61,6 @@ from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_
 from plcstack.poll.ticker import Ticker
 from plcstack.resource import AsyncResource
 from plcstack.transports.backoff import Backoff
-from plcstack.url import connect
 from plcstack.values import ByteOrder, Endian, WordOrder
 
 _log = logging.getLogger(__name__)
