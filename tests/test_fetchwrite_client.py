@@ -584,7 +584,8 @@ async def test_life_ack_wire_format_both_sides() -> None:
     for wire in (bytes(proxy.c2s_bytes), bytes(proxy.s2c_bytes)):
         rx = MkConnection(strict=True)
         rx.receive_data(wire)
-        data_seqs, ack_seqs = [], []
+        data_seqs: list[int] = []
+        ack_seqs: list[int] = []
         while (event := rx.next_event()) is not NEED_DATA:
             if isinstance(event, LifeAck):
                 # the counter: the number of data telegrams this side sent before the ack

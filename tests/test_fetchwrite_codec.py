@@ -189,7 +189,7 @@ def test_free_bytes_of_the_ack_are_ignored() -> None:
 )
 def test_client_rejects_malformed_acks(ack: bytes) -> None:
     for framing in ("raw", "mk"):
-        client = ClientConnection(framing)  # type: ignore[arg-type]
+        client = ClientConnection(framing)
         client.send(FetchRequest(Org.DB, 10, 5, 1))
         client.receive_data(ack if framing == "raw" else MkConnection().send_message(ack + b"ab"))
         with pytest.raises(RemoteProtocolError):

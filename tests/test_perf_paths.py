@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 from plcstack.clients.fetchwrite import FetchWriteClient, _encode_values
 from plcstack.clients.s5lan import S5LanClient
 from plcstack.codecs import as511
+from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.e71 import Code, DeviceRef, WriteWords, encode_request, parse_address
 from plcstack.codecs.s5lan import ClientConnection, Header, Request
 from plcstack.errors import AddressError, LocalProtocolError, RemoteProtocolError
@@ -133,7 +134,7 @@ def _events(pg: as511.PGConnection) -> list[Any]:
         except RemoteProtocolError as exc:
             out.append(("error", exc.message))
             continue
-        if event is as511.NEED_DATA:
+        if event is NEED_DATA:
             return out
         out.append(event)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import struct
+from typing import Any
 
 import pytest
 from hypothesis import assume, given, settings
@@ -200,7 +201,7 @@ def test_plan_reads_exactly_what_per_tag_reads_would(
     data=st.data(),
 )
 def test_encode_decode_round_trip(
-    dtype: vt.ValueType, bits: int, order: WordOrder, data: st.DataObject
+    dtype: vt.ValueType[Any], bits: int, order: WordOrder, data: st.DataObject
 ) -> None:
     if dtype is vt.BOOL:
         value: object = data.draw(st.booleans())
@@ -234,7 +235,7 @@ VALUE_CASES = [
 
 @pytest.mark.parametrize(("dtype", "bits", "order", "points", "value"), VALUE_CASES)
 def test_value_golden(
-    dtype: vt.ValueType, bits: int, order: WordOrder, points: list[int], value: object
+    dtype: vt.ValueType[Any], bits: int, order: WordOrder, points: list[int], value: object
 ) -> None:
     assert dtype.decode(points, bits, order) == value
     assert dtype.encode(value, bits, order) == points
@@ -252,13 +253,13 @@ def test_value_golden(
         (vt.INT32, True),
     ],
 )
-def test_encode_refuses_values_that_do_not_fit(dtype: vt.ValueType, value: object) -> None:
+def test_encode_refuses_values_that_do_not_fit(dtype: vt.ValueType[Any], value: object) -> None:
     with pytest.raises(AddressError):
         dtype.encode(value, 16, BIG)
 
 
 def test_float_nan_decodes() -> None:
-    assert math.isnan(vt.FLOAT32.decode([0x7FC0, 0], 16, BIG))  # type: ignore[arg-type]
+    assert math.isnan(vt.FLOAT32.decode([0x7FC0, 0], 16, BIG))
 
 
 def test_multi_bit_type_over_bool_points_is_a_bad_value_not_garbage() -> None:
@@ -277,7 +278,7 @@ def test_multi_bit_type_over_bool_points_is_a_bad_value_not_garbage() -> None:
     data=st.data(),
 )
 def test_split_fast_paths_agree_with_value_by_value_decoding(
-    dtype: vt.ValueType, area: str, order: WordOrder, data: st.DataObject
+    dtype: vt.ValueType[Any], area: str, order: WordOrder, data: st.DataObject
 ) -> None:
     bits = 16 if area == "D" else 8
     assume(not (bits == 16 and dtype.bits == 8))  # 8-bit types on words are refused

@@ -31,6 +31,7 @@ from plcstack.values import (
     KZ,
     UINT16,
     Scale,
+    ValueType,
     string,
 )
 
@@ -94,7 +95,13 @@ def memory_db() -> Any:
 async def test_refused_values_send_nothing(kind: str) -> None:
     async with s5_plc(kind) as (_memory, plc):
         before = plc.stats.requests
-        for vtype, bad in [(KG, math.nan), (BCD16, 10000), (KT, 10000.0), (UINT16, -1)]:
+        cases: list[tuple[ValueType[Any], object]] = [
+            (KG, math.nan),
+            (BCD16, 10000),
+            (KT, 10000.0),
+            (UINT16, -1),
+        ]
+        for vtype, bad in cases:
             with pytest.raises(ValueEncodeError) as info:
                 await plc.write_as("DB10.DW0", vtype, bad)
             assert vtype.name in str(info.value) and "DB10.DW0" in str(info.value)
@@ -131,7 +138,7 @@ async def test_e71_typed_values_and_aliases() -> None:
         e71 = plc
         assert hasattr(e71, "read_int32")
         await e71.write_int32("D60", [-2, 0x12345678])  # type: ignore[attr-defined]
-        assert await e71.read_int32("D60", 2) == [-2, 0x12345678]  # type: ignore[attr-defined]
+        assert await e71.read_int32("D60", 2) == [-2, 0x12345678]
         assert sim.memory.read_words("D", 60, 2) == [0xFFFE, 0xFFFF]  # low word first
 
 
