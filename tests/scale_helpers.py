@@ -26,8 +26,11 @@ REPO = Path(__file__).resolve().parent.parent
 class _Watch:
     sim: e71.E71TcpSimulator
     last_requests: int = 0
+    last_connects: int = 0
     #: loop times at which new requests were seen (sampled every ``Fleet.every`` seconds)
     seen: list[float] = field(default_factory=list)
+    #: loop times at which new connections were seen
+    connects: list[float] = field(default_factory=list)
 
 
 class Fleet:
@@ -65,6 +68,10 @@ class Fleet:
                 if w.sim.requests != w.last_requests:
                     w.last_requests = w.sim.requests
                     w.seen.append(now)
+                total = w.sim.connection_count.total
+                if total != w.last_connects:
+                    w.last_connects = total
+                    w.connects.append(now)
             await asyncio.sleep(self.every)
 
     def toml(self, path: Path, *, timeout: float = 0.5) -> Path:
@@ -84,11 +91,33 @@ class Fleet:
     def peaks(self) -> dict[str, int]:
         return {name: w.sim.connection_count.peak for name, w in self.watch.items()}
 
+    def reset_peaks(self) -> None:
+        """Start counting peaks anew (from the connections open now)."""
+        for w in self.watch.values():
+            count = w.sim.connection_count
+            count.peak = count.current
+
     def polled_after(self, t: float) -> dict[str, float | None]:
         """For each PLC, the first time after ``t`` its simulator saw a request (or None)."""
         out: dict[str, float | None] = {}
         for name, w in self.watch.items():
             out[name] = next((s for s in w.seen if s > t), None)
+        return out
+
+    def requests(self) -> int:
+        """Requests all simulators answered so far."""
+        return sum(w.sim.requests for w in self.watch.values())
+
+    def reconnected_after(self, t: float) -> dict[str, float | None]:
+        """For each PLC, the first request seen on a connection opened after ``t`` (or None):
+        the new owner's first poll, not a late request of the old one."""
+        out: dict[str, float | None] = {}
+        for name, w in self.watch.items():
+            connect = next((c for c in w.connects if c > t), None)
+            if connect is None:
+                out[name] = None
+            else:
+                out[name] = next((s for s in w.seen if s >= connect), None)
         return out
 
     def longest_gap(self, start: float, end: float) -> dict[str, float]:

@@ -6,9 +6,9 @@ they matter:
 
 1. An exclusive PLC is polled only between a successful acquire and its ``fence_at``; every
    successful renew moves ``fence_at`` on. A timer stops polling at ``fence_at`` (the connection
-   is aborted at once, in that event-loop pass), so a worker that cannot renew stops ``guard``
-   seconds before anyone else could take the lease; a renew that finds the lease taken stops it
-   at once.
+   is aborted at once: the socket closes in the next loop pass), so a worker that cannot renew
+   stops ``guard`` seconds before anyone else could take the lease; a renew that finds the lease
+   taken stops it at once.
 2. A PLC that moves away (a worker joined or came back) is stopped first and released after, so
    the new owner's ``create`` succeeds only once the old connection is closed.
 3. A PLC is started only after its lease was acquired, so after a crash the new owner waits for
@@ -62,6 +62,9 @@ class WorkerOptions:
     keepalive: int = 5
     #: fnmatch patterns of the PLC names that need a lease (default: all)
     exclusive: tuple[str, ...] = ("*",)
+    #: seconds between closing a moved PLC's connection and releasing its lease, so the PLC
+    #: (a real module, or a busy simulator) has handled the close before the next owner connects
+    handover: float = 0.2
 
     def __post_init__(self) -> None:
         if not self.worker or "/" in self.worker or "+" in self.worker or "#" in self.worker:
@@ -356,6 +359,8 @@ class Worker:
             await run.stop()
             self._stats[plc] = run.poller.stats[plc]
             self.stops += 1
+            if lease is not None and self.options.handover > 0:
+                await asyncio.sleep(self.options.handover)
         if lease is not None and self.leases is not None:
             await self.leases.release(lease)
 
@@ -370,8 +375,9 @@ class Worker:
         )
 
     def _fence(self, lease: Lease, why: str) -> None:
-        """Stop polling a PLC whose lease may be gone, now (rule 1). Synchronous: the abort of
-        the connection happens in this event-loop pass."""
+        """Stop polling a PLC whose lease may be gone, now (rule 1). Synchronous: the connection
+        is aborted before any other task runs, and the Poller's close, scheduled first, cancels
+        the polling task before it could reconnect."""
         if self._held.get(lease.plc) is not lease:
             return
         del self._held[lease.plc]
