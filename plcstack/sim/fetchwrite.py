@@ -38,7 +38,15 @@ from plcstack.sim.base import (
     idle_timeout_of,
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
-from plcstack.sim.s5store import ABSOLUTE, FaultKind, MemoryStore, S5Fault, S5Store, Target
+from plcstack.sim.s5store import (
+    ABSOLUTE,
+    FaultKind,
+    S5Fault,
+    S5Store,
+    Target,
+    memory_of,
+    resolve_store,
+)
 
 __all__ = ["FetchWriteSimulator", "add_cli_arguments", "default_memory", "serve_cli", "start"]
 
@@ -118,9 +126,7 @@ class FetchWriteSimulator(TcpSimulator):
     @property
     def memory(self) -> S5Memory:
         """The simulated CPU image (only for a simulator started on one, not for a gateway)."""
-        if not isinstance(self.store, MemoryStore):
-            raise TypeError("this FETCH/WRITE server executes on a gateway store, not a memory")
-        return self.store.memory
+        return memory_of(self.store, "FETCH/WRITE")
 
     async def aclose(self) -> None:
         if self.write_server is not None:
@@ -310,10 +316,7 @@ async def start(
         raise ValueError("life acks need the MK header (mk=True)")
     if life_ack is not None and life_timeout is None:
         life_timeout = 3 * life_ack
-    if store is not None and memory is not None:
-        raise ValueError("give a memory image or a store, not both")
-    if store is None:
-        store = MemoryStore(memory if memory is not None else default_memory())
+    store = resolve_store(memory, store, default_memory)
     holder: list[FetchWriteSimulator] = []
 
     def handler(

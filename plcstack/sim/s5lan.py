@@ -42,7 +42,7 @@ from plcstack.sim.base import (
     idle_timeout_of,
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
-from plcstack.sim.s5store import MemoryStore, S5Fault, S5Store, Target
+from plcstack.sim.s5store import S5Fault, S5Store, Target, memory_of, resolve_store
 
 __all__ = ["DEFAULT_DATA_WORDS", "S5LanSimulator", "add_cli_arguments", "default_memory", "start"]
 
@@ -82,9 +82,7 @@ class S5LanSimulator(TcpSimulator):
     @property
     def memory(self) -> S5Memory:
         """The simulated CPU image (only for a module started on one, not for a gateway)."""
-        if not isinstance(self.store, MemoryStore):
-            raise TypeError("this S5-LAN server executes on a gateway store, not a memory image")
-        return self.store.memory
+        return memory_of(self.store, "S5-LAN")
 
     @property
     def active_connections(self) -> int:
@@ -259,10 +257,7 @@ async def start(
     ``strict`` accepts only PLCType 35h (D.A2); ``idle_timeout``: seconds after which a
     connection that sent nothing is closed (default 600, ``None``: never).
     """
-    if store is not None and memory is not None:
-        raise ValueError("give a memory image or a store, not both")
-    if store is None:
-        store = MemoryStore(memory if memory is not None else default_memory())
+    store = resolve_store(memory, store, default_memory)
     state = _State(
         store,
         max_connections=max_connections,

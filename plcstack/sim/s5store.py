@@ -19,6 +19,7 @@ documented in ``docs/gateway.md``).
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from typing import Final, Literal, Protocol
 
 from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
@@ -33,6 +34,8 @@ __all__ = [
     "S5Store",
     "Target",
     "describe_target",
+    "memory_of",
+    "resolve_store",
 ]
 
 #: a data block: (DB or DX, number)
@@ -144,3 +147,22 @@ class MemoryStore:
                 self.memory.write_absolute(offset, data)
         except S5AccessError as exc:
             raise S5Fault(_ACCESS_KINDS.get(exc.code, FaultKind.NO_AREA), str(exc)) from None
+
+
+def resolve_store(
+    memory: S5Memory | None, store: S5Store | None, default: Callable[[], S5Memory]
+) -> S5Store:
+    """What a server's ``start(memory=, store=)`` executes on: the given store (the gateway's
+    real CPU), else the given or the default memory image."""
+    if store is not None and memory is not None:
+        raise ValueError("give a memory image or a store, not both")
+    if store is not None:
+        return store
+    return MemoryStore(memory if memory is not None else default())
+
+
+def memory_of(store: S5Store, server: str) -> S5Memory:
+    """The simulated CPU image behind ``store``; a gateway's store has none."""
+    if not isinstance(store, MemoryStore):
+        raise TypeError(f"this {server} server executes on a gateway store, not a memory image")
+    return store.memory
