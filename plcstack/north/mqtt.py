@@ -89,6 +89,8 @@ class MqttSettings:
     key_file: str | None = None
     keepalive: int = 30
     buffer_path: str | None = None
+    #: Sparkplug: where bdSeq survives a restart (default: next to buffer_path)
+    state_path: str | None = None
     buffer_memory: int = 4 << 20
     buffer_max: int = 256 << 20
     inflight: int = 64
@@ -113,6 +115,8 @@ def parse_mqtt(table: Any, env: dict[str, str] | None = None) -> MqttSettings:
     buffer_path = "/var/lib/plcstack/mqtt.sqlite"   # store-and-forward on disk
     buffer_memory = 4194304         # bytes in memory before spilling to disk
     buffer_max = 268435456          # total backlog budget; the oldest beyond it are dropped
+    state_path = "/var/lib/plcstack/sparkplug.json"  # Sparkplug bdSeq across restarts
+                                    # (default: next to buffer_path, e.g. mqtt.sparkplug.json)
     """
     env = dict(os.environ) if env is None else env
     if not isinstance(table, dict):
@@ -120,7 +124,7 @@ def parse_mqtt(table: Any, env: dict[str, str] | None = None) -> MqttSettings:
     allowed = {
         "url", "client_id", "prefix", "qos", "mode", "group_id", "username_env", "password_env",
         "ca_file", "cert_file", "key_file", "keepalive", "buffer_path", "buffer_memory",
-        "buffer_max", "inflight", "reconnect_max",
+        "buffer_max", "inflight", "reconnect_max", "state_path",
     }  # fmt: skip
     unknown = sorted(set(table) - allowed)
     if unknown:
@@ -183,6 +187,7 @@ def parse_mqtt(table: Any, env: dict[str, str] | None = None) -> MqttSettings:
         key_file=text("key_file", None),
         keepalive=integer("keepalive", 30, 5, 3600),
         buffer_path=text("buffer_path", None),
+        state_path=text("state_path", None),
         buffer_memory=integer("buffer_memory", 4 << 20, 0, 1 << 40),
         buffer_max=integer("buffer_max", 256 << 20, 1024, 1 << 44),
         inflight=integer("inflight", 64, 1, 65535),
@@ -344,7 +349,9 @@ class MqttSink:
             identifier=s.client_id,
             username=s.username,
             password=s.password,
-            will=aiomqtt.Will(will_topic, will_payload, qos=1, retain=True),
+            will=aiomqtt.Will(
+                will_topic, will_payload, qos=1, retain=getattr(self.layout, "will_retain", True)
+            ),
             clean_session=True,
             keepalive=s.keepalive,
             timeout=10,
