@@ -122,10 +122,10 @@ def test_the_state_path_setting_and_its_default_next_to_the_buffer(tmp_path: Pat
     config = PollConfig(
         (PlcConfig("p", "e71+tcp://127.0.0.1:1", (TagConfig("t", "D1"),)),), {"default": 1}
     )
-    buffered = parse_mqtt({"mode": "sparkplug", "buffer_path": str(tmp_path / "q.sqlite")}, {})
+    buffered = parse_mqtt({"mode": "sparkplug", "buffer_path": str(tmp_path / "q.sqlite")})
     state = SparkplugLayout.for_config(buffered, config).state
     assert state is not None and state.path == tmp_path / "q.sparkplug.json"
-    explicit = parse_mqtt({"mode": "sparkplug", "state_path": str(tmp_path / "s.json")}, {})
+    explicit = parse_mqtt({"mode": "sparkplug", "state_path": str(tmp_path / "s.json")})
     state = SparkplugLayout.for_config(explicit, config).state
     assert state is not None and state.path == tmp_path / "s.json"
     assert SparkplugLayout.for_config(MqttSettings(mode="sparkplug"), config).state is None
