@@ -14,6 +14,7 @@ from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Generic, Protocol, Self, TypeVar, overload
 
+from plcstack.clients.flight import SingleFlight
 from plcstack.clients.options import COMMON, Option, resolve
 from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
@@ -131,7 +132,8 @@ class Client(AsyncResource):
         self.connect_timeout = check_seconds("connect_timeout", connect_timeout, plc=name)
         self.backoff = backoff if backoff is not None else Backoff()
         self.stats = ClientStats()
-        self._lock = asyncio.Lock()
+        #: one request in flight per connection (see :mod:`.flight`)
+        self._lock = SingleFlight()
         self._next_attempt = 0.0
         #: what the last failed connect (or unproven connection) said; "" after a connect
         self._backoff_detail = ""
@@ -521,7 +523,10 @@ class RequestClient(Client, Generic[E]):
         must not await): a client's ``read`` can then hand out this coroutine itself instead
         of awaiting it in one of its own, one coroutine fewer per request on the polling path.
         """
-        async with self._lock:
+        flight = self._lock
+        if not flight.try_acquire():
+            await flight.acquire()
+        try:
             transport = self.transport
             if not transport.is_open:
                 await self._ensure_open(what)
@@ -601,6 +606,9 @@ class RequestClient(Client, Generic[E]):
             except PlcError as exc:
                 self.stats.errors += 1
                 raise exc.bind(plc=self.name, request=what) from None
+        finally:
+            flight.release()
+
         # every failure above raised: ``event`` is the answer
         return event if finish is None else finish(event, what)
 
