@@ -382,6 +382,10 @@ class StreamResponses:
         """A 5BH answer was taken: a 00H trailer may follow it (§13 A3)."""
         self._skip_trailer = True
 
+    def is_empty(self) -> bool:
+        """Nothing buffered and no trailer to skip: the next byte starts an answer."""
+        return not self._skip_trailer and not self._buf
+
     def take_normal(self, head: bytes, size: int) -> bytes | None:
         """Binary only: the ``size`` bytes of a normal answer starting with ``head``
         (subheader, end code 00H) if they are all buffered and no trailer is to be skipped,
