@@ -334,7 +334,8 @@ class ClientConnection(ErrorState):
         ):
             return None
         pending.popleft()
-        return WordsResponse(1, _words_struct(req.count).unpack_from(data, 2))
+        unpack = _WORDS_STRUCTS.get(req.count) or _words_struct(req.count)
+        return WordsResponse(1, unpack.unpack_from(data, 2))
 
     # -- sizing and decoding ------------------------------------------------------------------
     def _response_size(self, req: E71Request, head: bytes) -> int | None:

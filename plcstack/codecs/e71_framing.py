@@ -384,7 +384,8 @@ class StreamResponses:
 
     def is_empty(self) -> bool:
         """Nothing buffered and no trailer to skip: the next byte starts an answer."""
-        return not self._skip_trailer and not self._buf
+        buf = self._buf  # ReceiveBuffer's own test (len == pos) inlined: on every poll's path
+        return not self._skip_trailer and len(buf._buf) == buf._pos
 
     def take_normal(self, head: bytes, size: int) -> bytes | None:
         """Binary only: the ``size`` bytes of a normal answer starting with ``head``
