@@ -292,9 +292,16 @@ class MetricsServer:
         self.port = self.settings.port
 
     async def start(self) -> None:
-        self._server = await asyncio.start_server(
-            self._handle, self.settings.host, self.settings.port, limit=MAX_REQUEST
-        )
+        """Listen; :class:`ConfigError` naming the address if that is not possible (a port
+        taken, e.g. by a second process started from the same file)."""
+        host, port = self.settings.host, self.settings.port
+        try:
+            self._server = await asyncio.start_server(self._handle, host, port, limit=MAX_REQUEST)
+        except OSError as exc:
+            raise ConfigError(
+                f"[metrics] cannot serve /metrics on {host}:{port}: {exc.strerror or exc}"
+                " (another process on that port? set [metrics] port, or --metrics-port)"
+            ) from None
         self.port = self._server.sockets[0].getsockname()[1]
         self._refresher = asyncio.create_task(self._refresh_loop())
 
