@@ -20,7 +20,8 @@ Exported (``plc`` label per PLC)::
     plcstack_buffer_backlog_messages     store-and-forward backlog, per sink
     plcstack_buffer_backlog_bytes
     plcstack_buffer_dropped_messages_total  dropped by the byte budget
-    plcstack_mqtt_connected, plcstack_mqtt_sent_total, plcstack_mqtt_replayed_total
+    plcstack_mqtt_connected, plcstack_mqtt_sent_total, plcstack_mqtt_replayed_total,
+    plcstack_mqtt_connection_failures_total
     plcstack_rbe_suppressed_total        samples held back by report-by-exception
 
 ``/healthz`` answers 200 ``ok`` while the poller runs, 503 with the reason otherwise. The server
@@ -200,6 +201,10 @@ class PlcstackCollector:
                 "plcstack_mqtt_replayed": (
                     "messages sent after a reconnect",
                     lambda k: k.stats.replayed,
+                ),
+                "plcstack_mqtt_connection_failures": (
+                    "failed connection attempts and dropped sessions (the log says why)",
+                    lambda k: getattr(k.stats, "failures", 0),
                 ),
             }
             for metric, (doc, get) in totals.items():
