@@ -12,11 +12,13 @@ import aiomqtt
 import pytest
 
 from plcstack.clients.base import Client
+from plcstack.errors import ConnectFailed
 from plcstack.north.buffer import StoreAndForward
 from plcstack.north.mqtt import MqttSettings, MqttSink, parse_mqtt
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.values import BOOL, UINT16
+from tests.north_certs import Authority
 from tests.north_helpers import sample, subscriber
 from tests.poll_fakes import FakeClient
 from tests.servers import Mosquitto
@@ -226,81 +228,33 @@ async def test_writes_are_confirmed_or_refused_with_the_reason(mosquitto: Mosqui
 
 def test_mqtt_table_parsing() -> None:
     s = parse_mqtt(
-        {"url": "mqtts://broker.example", "username_env": "U", "password_env": "P", "qos": 0},
-        env={"U": "me", "P": "secret"},
+        {"url": "mqtts://broker.example", "username_env": "U", "password_env": "P", "qos": 0}
     )
-    assert (s.host, s.port, s.tls, s.username, s.password, s.qos) == (
-        "broker.example", 8883, True, "me", "secret", 0,
+    assert (s.host, s.port, s.tls, s.username_env, s.password_env, s.qos) == (
+        "broker.example", 8883, True, "U", "P", 0,
     )  # fmt: skip
+    # the variables are read when the sink connects, not when the table is parsed
+    assert s.credentials({"U": "me", "P": "secret"}) == ("me", "secret")
     assert "secret" not in repr(s)
     for bad, text in [
         ({"url": "http://x"}, "url must be"),
         ({"qos": 3}, "qos must be"),
-        ({"username_env": "NOPE"}, "not set"),
+        ({"username_env": ""}, "non-empty string"),
         ({"mode": "xml"}, "mode must be"),
         ({"prefix": "a/#"}, "prefix"),
         ({"colour": 1}, "unknown key"),
+        ({"key_file": "k.pem"}, "key_file needs cert_file"),
     ]:
         with pytest.raises(ConfigError, match=text):
-            parse_mqtt(bad, env={})
-
-
-def make_certificates(directory: Path) -> tuple[Path, Path, Path]:
-    """A CA and a server certificate for 127.0.0.1 (cryptography comes with asyncua)."""
-    import datetime
-    import ipaddress
-
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import NameOID
-
-    now = datetime.datetime.now(datetime.UTC)
-    ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "plcstack test CA")])
-    ca = (
-        x509.CertificateBuilder()
-        .subject_name(ca_name)
-        .issuer_name(ca_name)
-        .public_key(ca_key.public_key())
-        .serial_number(1)
-        .not_valid_before(now - datetime.timedelta(minutes=5))
-        .not_valid_after(now + datetime.timedelta(days=1))
-        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
-        .sign(ca_key, hashes.SHA256())
-    )
-    key = ec.generate_private_key(ec.SECP256R1())
-    cert = (
-        x509.CertificateBuilder()
-        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1")]))
-        .issuer_name(ca_name)
-        .public_key(key.public_key())
-        .serial_number(2)
-        .not_valid_before(now - datetime.timedelta(minutes=5))
-        .not_valid_after(now + datetime.timedelta(days=1))
-        .add_extension(
-            x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
-            critical=False,
-        )
-        .sign(ca_key, hashes.SHA256())
-    )
-    paths = directory / "ca.pem", directory / "server.pem", directory / "server.key"
-    paths[0].write_bytes(ca.public_bytes(serialization.Encoding.PEM))
-    paths[1].write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-    paths[2].write_bytes(
-        key.private_bytes(
-            serialization.Encoding.PEM,
-            serialization.PrivateFormat.PKCS8,
-            serialization.NoEncryption(),
-        )
-    )
-    return paths
+            parse_mqtt(bad)
 
 
 async def test_tls_broker_with_the_configured_ca(tmp_path: Path) -> None:
     from tests.servers import ServerUnavailable, free_port
 
-    ca, cert, key = make_certificates(tmp_path)
+    authority = Authority.create(tmp_path)
+    ca = authority.ca
+    cert, key = authority.issue(tmp_path, "127.0.0.1", server=True)
     tls_port = free_port()
     broker = Mosquitto(
         extra_config=f"listener {tls_port} 127.0.0.1\ncafile {ca}\ncertfile {cert}\nkeyfile {key}"
@@ -312,7 +266,7 @@ async def test_tls_broker_with_the_configured_ca(tmp_path: Path) -> None:
         pytest.fail(str(exc), pytrace=False)
     try:
         async with subscriber(broker.host, broker.port, "plcstack/#") as sub:
-            s = parse_mqtt({"url": f"mqtts://127.0.0.1:{tls_port}", "ca_file": str(ca)}, env={})
+            s = parse_mqtt({"url": f"mqtts://127.0.0.1:{tls_port}", "ca_file": str(ca)})
             sink = MqttSink(s)
             await sink.start()
             await sink.wait_connected(5)
@@ -320,9 +274,9 @@ async def test_tls_broker_with_the_configured_ca(tmp_path: Path) -> None:
             await sub.wait_for(lambda x: any("/data/" in t for t, _ in x.messages))
             await sink.aclose()
         # without the CA the broker's certificate is not trusted: no connection
-        untrusted = MqttSink(parse_mqtt({"url": f"mqtts://127.0.0.1:{tls_port}"}, env={}))
+        untrusted = MqttSink(parse_mqtt({"url": f"mqtts://127.0.0.1:{tls_port}"}))
         await untrusted.start()
-        with pytest.raises(TimeoutError):
+        with pytest.raises(ConnectFailed, match="the broker's certificate is not trusted"):
             await untrusted.wait_connected(1)
         await untrusted.aclose(drain=0)
     finally:

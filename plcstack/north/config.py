@@ -46,7 +46,7 @@ class NorthConfig:
         return self.report is not PASS_ALL
 
 
-def parse_north(tables: Mapping[str, Any], env: dict[str, str] | None = None) -> NorthConfig:
+def parse_north(tables: Mapping[str, Any]) -> NorthConfig:
     influx = tables.get("influx", {})
     if not isinstance(influx, dict):
         raise ConfigError("[influx] must be a table")
@@ -57,7 +57,7 @@ def parse_north(tables: Mapping[str, Any], env: dict[str, str] | None = None) ->
     if not isinstance(measurement, str) or not measurement.strip():
         raise ConfigError("[influx] measurement must be a non-empty string")
     return NorthConfig(
-        mqtt=parse_mqtt(tables["mqtt"], env) if "mqtt" in tables else None,
+        mqtt=parse_mqtt(tables["mqtt"]) if "mqtt" in tables else None,
         metrics=parse_metrics(tables["metrics"]) if "metrics" in tables else None,
         report=parse_report(tables.get("report")),
         influx_measurement=measurement,

@@ -35,7 +35,7 @@ import os
 import socket
 import ssl
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 from urllib.parse import urlsplit
@@ -49,6 +49,7 @@ from plcstack.north.layout import (
     write_response_payload,
     write_response_topic,
 )
+from plcstack.north.mqtt_errors import PahoLog, connect_error
 from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Sample
 from plcstack.transports.backoff import Backoff
@@ -82,20 +83,61 @@ class MqttSettings:
     qos: int = 1
     mode: str = "json"
     group_id: str = "plcstack"
+    #: literal credentials (Python API); a TOML file names environment variables instead
     username: str | None = field(default=None, repr=False)
     password: str | None = field(default=None, repr=False)
+    #: environment variables read when the sink starts connecting, not when the file is loaded:
+    #: a tool that only loads or checks the configuration needs no secrets
+    username_env: str | None = None
+    password_env: str | None = None
     ca_file: str | None = None
     cert_file: str | None = None
     key_file: str | None = None
     keepalive: int = 30
+    #: seconds to wait for the broker's CONNACK (and for each acknowledgement)
+    timeout: float = 10.0
     buffer_path: str | None = None
+    #: Sparkplug: where bdSeq survives a restart (default: next to buffer_path)
+    state_path: str | None = None
     buffer_memory: int = 4 << 20
     buffer_max: int = 256 << 20
     inflight: int = 64
     reconnect_max: float = 30.0
 
+    @property
+    def url(self) -> str:
+        """The broker as a URL, for messages (``mqtts://broker:8883``)."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{'mqtts' if self.tls else 'mqtt'}://{host}:{self.port}"
 
-def parse_mqtt(table: Any, env: dict[str, str] | None = None) -> MqttSettings:
+    def credentials(self, env: Mapping[str, str] | None = None) -> tuple[str | None, str | None]:
+        """(username, password) for the CONNECT: literal values, else the named environment
+        variables (``env``, default ``os.environ``), read now.
+
+        :class:`ConfigError` naming the broker and the variable if one is not set: nothing is
+        sent to the broker without the credentials the configuration asks for.
+        """
+        env = os.environ if env is None else env
+        out: list[str | None] = []
+        for key, literal, var in (
+            ("username", self.username, self.username_env),
+            ("password", self.password, self.password_env),
+        ):
+            if literal is not None or var is None:
+                out.append(literal)
+            elif var in env:
+                out.append(env[var])
+            else:
+                raise ConfigError(
+                    f"[mqtt] {key}_env names the environment variable {var!r}, which is not set;"
+                    " not connecting",
+                    plc=f"MQTT broker {self.url}",
+                    request="connect",
+                )
+        return out[0], out[1]
+
+
+def parse_mqtt(table: Any) -> MqttSettings:
     """The ``[mqtt]`` table of the poll TOML::
 
     [mqtt]
@@ -105,22 +147,23 @@ def parse_mqtt(table: Any, env: dict[str, str] | None = None) -> MqttSettings:
     qos = 1                         # data messages; status and responses always 1
     mode = "json"                   # or "sparkplug" (Sparkplug B, spBv1.0 topics)
     group_id = "plant1"             # Sparkplug group id; the edge node id is client_id
-    username_env = "MQTT_USER"      # credentials come from the environment, never the file
-    password_env = "MQTT_PASSWORD"
+    username_env = "MQTT_USER"      # credentials come from the environment, never the file;
+    password_env = "MQTT_PASSWORD"  # read when the sink connects (MqttSettings.credentials)
     ca_file = "/etc/ssl/broker-ca.pem"   # TLS: CA, and a client certificate if needed
     cert_file = "..."
     key_file = "..."
     buffer_path = "/var/lib/plcstack/mqtt.sqlite"   # store-and-forward on disk
     buffer_memory = 4194304         # bytes in memory before spilling to disk
     buffer_max = 268435456          # total backlog budget; the oldest beyond it are dropped
+    state_path = "/var/lib/plcstack/sparkplug.json"  # Sparkplug bdSeq across restarts
+                                    # (default: next to buffer_path, e.g. mqtt.sparkplug.json)
     """
-    env = dict(os.environ) if env is None else env
     if not isinstance(table, dict):
         raise ConfigError("[mqtt] must be a table")
     allowed = {
         "url", "client_id", "prefix", "qos", "mode", "group_id", "username_env", "password_env",
         "ca_file", "cert_file", "key_file", "keepalive", "buffer_path", "buffer_memory",
-        "buffer_max", "inflight", "reconnect_max",
+        "buffer_max", "inflight", "reconnect_max", "state_path", "timeout",
     }  # fmt: skip
     unknown = sorted(set(table) - allowed)
     if unknown:
@@ -147,26 +190,23 @@ def parse_mqtt(table: Any, env: dict[str, str] | None = None) -> MqttSettings:
         port = parts.port or (8883 if tls else 1883)
     except ValueError:
         raise ConfigError(f"[mqtt] url has a bad port: {url!r}") from None
-    credentials: dict[str, str | None] = {}
-    for key in ("username", "password"):
-        var = text(f"{key}_env", None)
-        if var is not None:
-            if var not in env:
-                raise ConfigError(f"[mqtt] {key}_env names {var!r}, which is not set")
-            credentials[key] = env[var]
     mode = text("mode", "json")
     if mode not in ("json", "sparkplug"):
         raise ConfigError(f"[mqtt] mode must be json or sparkplug, got {mode!r}")
     prefix = text("prefix", "plcstack") or "plcstack"
     if any(c in prefix for c in "+#\x00"):
         raise ConfigError("[mqtt] prefix must not contain + # or NUL")
-    reconnect_max = table.get("reconnect_max", 30.0)
-    if (
-        isinstance(reconnect_max, bool)
-        or not isinstance(reconnect_max, int | float)
-        or not (0.1 <= reconnect_max <= 3600)
-    ):
-        raise ConfigError("[mqtt] reconnect_max must be 0.1..3600 seconds")
+    if table.get("key_file") is not None and table.get("cert_file") is None:
+        raise ConfigError("[mqtt] key_file needs cert_file (the client certificate it belongs to)")
+
+    def seconds(key: str, default: float, lo: float, hi: float) -> float:
+        value = table.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
+            raise ConfigError(f"[mqtt] {key} must be {lo}..{hi} seconds, got {value!r}")
+        return float(value)
+
+    reconnect_max = seconds("reconnect_max", 30.0, 0.1, 3600)
+    timeout = seconds("timeout", 10.0, 0.5, 300)
     return MqttSettings(
         host=parts.hostname,
         port=port,
@@ -176,17 +216,19 @@ def parse_mqtt(table: Any, env: dict[str, str] | None = None) -> MqttSettings:
         qos=integer("qos", 1, 0, 2),
         mode=mode or "json",
         group_id=text("group_id", "plcstack") or "plcstack",
-        username=credentials.get("username"),
-        password=credentials.get("password"),
+        username_env=text("username_env", None),
+        password_env=text("password_env", None),
         ca_file=text("ca_file", None),
         cert_file=text("cert_file", None),
         key_file=text("key_file", None),
         keepalive=integer("keepalive", 30, 5, 3600),
+        timeout=timeout,
         buffer_path=text("buffer_path", None),
+        state_path=text("state_path", None),
         buffer_memory=integer("buffer_memory", 4 << 20, 0, 1 << 40),
         buffer_max=integer("buffer_max", 256 << 20, 1024, 1 << 44),
         inflight=integer("inflight", 64, 1, 65535),
-        reconnect_max=float(reconnect_max),
+        reconnect_max=reconnect_max,
     )
 
 
@@ -200,6 +242,7 @@ class SinkStats:
     replayed: int = 0  # messages sent after a reconnect that had waited for it
     connects: int = 0
     disconnects: int = 0
+    failures: int = 0  # connection attempts that failed and sessions that dropped
     writes_ok: int = 0
     writes_refused: int = 0
 
@@ -217,10 +260,20 @@ class MqttSink:
         buffer: StoreAndForward | None = None,
         writable: dict[tuple[str, str], bool] | None = None,
         plcs: Sequence[str] | None = None,
+        env: Mapping[str, str] | None = None,
     ) -> None:
         """``writable``: (plc, tag) -> may MQTT clients write it (the tag's ``writable = true``);
-        a tag marked false is refused with ``not_writable``. None: every tag is writable."""
+        a tag marked false is refused with ``not_writable``. None: every tag is writable.
+        ``env``: where ``username_env``/``password_env`` are looked up (default ``os.environ``),
+        when the sink starts."""
         self.settings = settings
+        self.env = env
+        #: credentials and TLS context, resolved by :meth:`prepare` (at start, not at load)
+        self._prepared: tuple[str | None, str | None, ssl.SSLContext | None] | None = None
+        #: why the latest connection attempt failed or the session dropped (a ConnectFailed or
+        #: ConnectionLost naming the broker); None before the first failure
+        self.last_error: PlcError | None = None
+        self._paho_log = PahoLog()
         self.writer = writer
         self.writable = writable
         self.group_of = group_of or {}
@@ -271,12 +324,32 @@ class MqttSink:
         self._wake.set()
 
     # -- lifecycle ------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        """Read the credentials from the environment and load the TLS files, once.
+
+        Raises :class:`ConfigError` naming the broker and what is missing (an environment
+        variable, a certificate file, a key that does not match): problems no retry can fix, so
+        ``start`` fails instead of retrying them forever.
+        """
+        if self._prepared is None:
+            username, password = self.settings.credentials(self.env)
+            self._prepared = (username, password, self._tls_context())
+
     async def start(self) -> None:
+        self.prepare()
         self._task = asyncio.create_task(self.run(), name="mqtt-sink")
 
     async def wait_connected(self, timeout: float) -> None:
-        async with asyncio.timeout(timeout):
-            await self._connected_event.wait()
+        """Wait for a connection; after ``timeout`` raise why the last attempt failed (a
+        :class:`ConnectFailed` naming the broker), or ``TimeoutError`` if none failed yet."""
+        try:
+            async with asyncio.timeout(timeout):
+                await self._connected_event.wait()
+        except TimeoutError:
+            error = self.last_error
+            if error is None:
+                raise
+            raise type(error)(error.message, plc=error.plc, request=error.request) from None
 
     async def wait_drained(self, timeout: float) -> None:
         """Wait until everything queued so far was sent (``TimeoutError`` after ``timeout``)."""
@@ -310,14 +383,14 @@ class MqttSink:
         """Connect, serve, reconnect with backoff; until cancelled."""
         import aiomqtt
 
+        self.prepare()
         backoff = Backoff(initial=0.1, maximum=self.settings.reconnect_max)
         while not self._closing:
+            self._paho_log.lines.clear()
             try:
                 await self._session(aiomqtt, backoff)
             except* (aiomqtt.MqttError, OSError) as group:
-                log.warning(
-                    "mqtt %s:%s: %s", self.settings.host, self.settings.port, group.exceptions[0]
-                )
+                self._failed(group.exceptions[0])
             was = self.connected
             self.connected = False
             self._client = None
@@ -326,29 +399,67 @@ class MqttSink:
                 self.stats.disconnects += 1
             await asyncio.sleep(backoff.next_delay())
 
+    def _failed(self, exc: BaseException) -> None:
+        """Note why the attempt or session ended; log it once per distinct reason (a broker
+        that stays away is one WARNING, not one every backoff)."""
+        error = connect_error(
+            exc,
+            self._paho_log.lines,
+            broker=f"MQTT broker {self.settings.url}",
+            connected=self.connected,
+            settings=self.settings,
+        )
+        self.stats.failures += 1
+        previous, self.last_error = self.last_error, error
+        if previous is not None and str(previous) == str(error):
+            log.debug("%s (again)", error)
+        else:
+            log.warning("%s; retrying with backoff", error)
+
     def _tls_context(self) -> ssl.SSLContext | None:
         s = self.settings
         if not s.tls:
             return None
-        context = ssl.create_default_context(cafile=s.ca_file)
+        try:
+            context = ssl.create_default_context(cafile=s.ca_file)
+        except (OSError, ValueError) as exc:  # ssl.SSLError is an OSError
+            raise ConfigError(
+                f"TLS: cannot load ca_file {s.ca_file!r}: {exc}; not connecting",
+                plc=f"MQTT broker {s.url}",
+                request="connect",
+            ) from None
         if s.cert_file:
-            context.load_cert_chain(s.cert_file, s.key_file)
+            try:
+                context.load_cert_chain(s.cert_file, s.key_file)
+            except (OSError, ValueError) as exc:
+                key = f" with key_file {s.key_file!r}" if s.key_file else " (key in the same file)"
+                raise ConfigError(
+                    f"TLS: cannot load the client certificate cert_file {s.cert_file!r}{key}: "
+                    f"{exc}; not connecting",
+                    plc=f"MQTT broker {s.url}",
+                    request="connect",
+                ) from None
         return context
 
     async def _session(self, aiomqtt: Any, backoff: Backoff) -> None:
         s = self.settings
+        assert self._prepared is not None
+        username, password, tls_context = self._prepared
         will_topic, will_payload = self.layout.will()
         client = aiomqtt.Client(
             s.host,
             s.port,
             identifier=s.client_id,
-            username=s.username,
-            password=s.password,
-            will=aiomqtt.Will(will_topic, will_payload, qos=1, retain=True),
+            username=username,
+            password=password,
+            will=aiomqtt.Will(
+                will_topic, will_payload, qos=1, retain=getattr(self.layout, "will_retain", True)
+            ),
             clean_session=True,
             keepalive=s.keepalive,
-            timeout=10,
-            tls_context=self._tls_context(),
+            timeout=s.timeout,
+            logger=self._paho_log,
+            tls_context=tls_context,
             max_inflight_messages=s.inflight,
             # small messages and PUBACKs both ways: Nagle plus delayed ACK would hold each
             # window for tens of milliseconds

@@ -74,12 +74,18 @@ class North:
         return None if self._running else "the poller is not running"
 
     async def __aenter__(self) -> Self:
-        for sink in self.sinks:
-            start = getattr(sink, "start", None)
-            if start is not None:
-                await start()
-        if self.metrics is not None:
-            await self.metrics.start()
+        try:
+            for sink in self.sinks:
+                start = getattr(sink, "start", None)
+                if start is not None:
+                    await start()
+            if self.metrics is not None:
+                await self.metrics.start()
+        except BaseException:
+            # a sink that cannot start (credentials missing, TLS files unusable, port taken):
+            # close what was opened (the queue's file), then report it
+            await self.aclose()
+            raise
         self._running = True
         return self
 

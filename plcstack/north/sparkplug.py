@@ -13,7 +13,11 @@ name; ``/``, ``+``, ``#`` in names become ``_``)::
 
 Sequence numbers: ``seq`` is 0 in NBIRTH and counts 0..255 (wrapping) over every following
 message of the session, assigned when the message is actually published. ``bdSeq`` counts
-sessions (0..255) and is in the Will and the NBIRTH of the same session.
+CONNECTs of the edge node (0..255, then 0 again) and is in the Will and the NBIRTH of the same
+session. It is kept on disk (:mod:`plcstack.north.sparkplug_state`: ``[mqtt] state_path``, by
+default next to ``buffer_path``) and saved before each CONNECT, so a restarted poller continues
+the sequence instead of starting at 0 again. The Will (NDEATH) is not retained, as Sparkplug 3.0
+requires: a retained death would tell every host that subscribes later that a live node is dead.
 
 Metrics: one per tag, named as the tag; a tag with ``count > 1`` becomes ``tag/0``, ``tag/1``,
 ... (a folder in Ignition), which avoids the packed array encodings. Data types follow the tag
@@ -34,6 +38,7 @@ and counted; a confirmed one shows up in the next DDATA.
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import time
 from collections.abc import Sequence
@@ -41,9 +46,12 @@ from typing import Any
 
 from plcstack.north.layout import topic_level
 from plcstack.north.sparkplug_pb import DATATYPES, Payload
+from plcstack.north.sparkplug_state import BdSeqStore, default_state_path
 from plcstack.poll.samples import Quality, Sample
 
 __all__ = ["NAMESPACE", "SparkplugLayout"]
+
+log = logging.getLogger("plcstack.north.sparkplug")
 
 NAMESPACE = "spBv1.0"
 REBIRTH = "Node Control/Rebirth"
@@ -111,6 +119,9 @@ def metric_value(metric: Any) -> Any:
 class SparkplugLayout:
     """Turns samples into Sparkplug B messages and keeps the node's session state."""
 
+    #: Sparkplug 3.0: the Will Message's retained flag MUST be false
+    will_retain = False
+
     def __init__(
         self,
         group_id: str,
@@ -119,14 +130,20 @@ class SparkplugLayout:
         *,
         prefix: str = "plcstack",
         qos: int = 1,
+        state: BdSeqStore | None = None,
     ) -> None:
-        """``tags``: PLC -> [(tag, type name, count)] in configuration order."""
+        """``tags``: PLC -> [(tag, type name, count)] in configuration order; ``state``: where
+        the bdSeq survives a restart (None: every start begins at 0)."""
         self.group = topic_level(group_id)
         self.node = topic_level(edge_node)
         self.prefix = prefix
         self.qos = qos
         self.tags = tags
-        self.bd_seq = -1  # incremented by will() at the start of each session
+        self.state = state
+        last = state.load() if state is not None else None
+        # incremented by will() at the start of each session: the first CONNECT of a node that
+        # never connected is 0, a restarted one continues after its last CONNECT
+        self.bd_seq = -1 if last is None else last
         self.seq = 0
         self._last: dict[str, dict[str, Sample]] = {plc: {} for plc in tags}
         self._online: dict[str, bool] = {}
@@ -142,8 +159,20 @@ class SparkplugLayout:
         tags = {
             plc.name: [(t.name, t.type.name, t.count) for t in plc.tags] for plc in poll_config.plcs
         }
+        path = getattr(settings, "state_path", None) or default_state_path(settings.buffer_path)
+        if path is None:
+            log.warning(
+                "sparkplug: neither [mqtt] state_path nor buffer_path is set: bdSeq starts at 0 "
+                "on every start, and a host may pair an old NDEATH with the new session"
+            )
+        state = BdSeqStore(path, settings.group_id, settings.client_id) if path else None
         return cls(
-            settings.group_id, settings.client_id, tags, prefix=settings.prefix, qos=settings.qos
+            settings.group_id,
+            settings.client_id,
+            tags,
+            prefix=settings.prefix,
+            qos=settings.qos,
+            state=state,
         )
 
     # -- topics ---------------------------------------------------------------------------------
@@ -208,8 +237,11 @@ class SparkplugLayout:
 
     # -- what the sink asks of a layout ---------------------------------------------------------
     def will(self) -> tuple[str, bytes]:
-        """NDEATH with the new session's bdSeq (called once per connection attempt)."""
+        """NDEATH with the new session's bdSeq (called once per connection attempt, before the
+        CONNECT: the number is saved first, so even a crash right after it is counted)."""
         self.bd_seq = (self.bd_seq + 1) % 256
+        if self.state is not None:
+            self.state.save(self.bd_seq)
         p = self._bd_seq_payload(time.time(), rebirth_metric=False)
         return self.topic("NDEATH"), bytes(p.SerializeToString())
 

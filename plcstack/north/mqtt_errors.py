@@ -1,0 +1,101 @@
+"""Why an MQTT connection failed, said as a typed error naming the broker and the meaning.
+
+aiomqtt reports a broker that drops us during the TLS handshake or right after CONNECT (a
+missing or untrusted client certificate: with TLS 1.3 the broker's alert arrives only after the
+handshake looked complete) as ``MqttError("Operation timed out")``; the reason is only in a log
+line of paho (``failed to receive on socket: [SSL: TLSV13_ALERT_CERTIFICATE_REQUIRED] ...``).
+:class:`PahoLog` is the logger we give each aiomqtt client: it keeps paho's last error lines for
+:func:`connect_error`, which turns the exception plus those lines into a
+:class:`~plcstack.errors.ConnectFailed` (never got in) or
+:class:`~plcstack.errors.ConnectionLost` (an established session dropped) whose message says
+what to change: ``MQTT broker mqtts://broker:8883: connect: the broker requires a client
+certificate; set [mqtt] cert_file and key_file (...)``.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+from typing import Any
+
+from plcstack.errors import ConnectFailed, ConnectionLost, PlcError
+
+__all__ = ["PahoLog", "connect_error"]
+
+log = logging.getLogger("plcstack.north.mqtt")
+
+
+class PahoLog(logging.Logger):
+    """A private logger for one aiomqtt client: remembers paho's warnings and errors (the last
+    few, for :func:`connect_error`) and passes them to ``plcstack.north.mqtt`` at DEBUG, so a
+    reason that ends up in our own error message is not printed twice."""
+
+    def __init__(self) -> None:
+        super().__init__("plcstack.north.mqtt.paho", logging.WARNING)
+        self.propagate = False
+        self.lines: collections.deque[str] = collections.deque(maxlen=4)
+        self.addHandler(_Keep(self))
+
+
+class _Keep(logging.Handler):
+    def __init__(self, owner: PahoLog) -> None:
+        super().__init__(logging.WARNING)
+        self.owner = owner
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            line = record.getMessage()
+        except Exception:  # a bad format string in a library must not break the sink
+            line = str(record.msg)
+        self.owner.lines.append(line)
+        log.debug("paho: %s", line)
+
+
+#: (substring of the TLS/MQTT reason, upper case) -> what it means for the operator
+_MEANINGS: tuple[tuple[tuple[str, ...], str], ...] = (
+    (
+        ("CERTIFICATE_REQUIRED", "PEER DID NOT RETURN A CERTIFICATE"),
+        "the broker requires a client certificate",
+    ),
+    (
+        ("UNKNOWN_CA", "BAD_CERTIFICATE", "CERTIFICATE_UNKNOWN", "UNSUPPORTED_CERTIFICATE"),
+        "the broker rejected our client certificate (cert_file): not signed by a CA it trusts,"
+        " or not meant for client use",
+    ),
+    (("CERTIFICATE_EXPIRED", "CERTIFICATE HAS EXPIRED"), "a certificate has expired"),
+    (
+        ("CERTIFICATE_VERIFY_FAILED",),
+        "the broker's certificate is not trusted: set [mqtt] ca_file to the CA that signed it",
+    ),
+    (("WRONG_VERSION_NUMBER",), "the port does not speak TLS (mqtt:// instead of mqtts://?)"),
+    (
+        ("NOT AUTHORIZED", "BAD USER NAME OR PASSWORD", "BAD_USERNAME_OR_PASSWORD"),
+        "the broker refused the login (username_env, password_env)",
+    ),
+    (("CONNECTION REFUSED", "ERRNO 111"), "nothing listens there (broker down or wrong port)"),
+    (
+        ("CONNECTION RESET", "ERRNO 104"),
+        "the broker closed the connection at once (mqtt:// to a TLS port, mqtts:// to a plain"
+        " one, or a broker that refuses this client)",
+    ),
+)
+
+
+def connect_error(
+    exc: BaseException, paho_lines: Any, *, broker: str, connected: bool, settings: Any
+) -> PlcError:
+    """The typed error for a failed connection attempt (``connected`` False) or a dropped
+    session (True); ``paho_lines``: what :class:`PahoLog` kept during the attempt."""
+    lines = [str(line) for line in paho_lines]
+    text = str(exc) or type(exc).__name__
+    detail = "; ".join(dict.fromkeys([*lines, text]))
+    probe = detail.upper()
+    meaning = next((m for keys, m in _MEANINGS if any(k in probe for k in keys)), None)
+    if meaning == _MEANINGS[0][1] and getattr(settings, "cert_file", None) is None:
+        meaning += "; set [mqtt] cert_file and key_file"
+    elif meaning == _MEANINGS[0][1]:
+        meaning += f"; it did not accept {settings.cert_file!r}"
+    message = f"{meaning} ({detail})" if meaning else detail
+    if connected:
+        return ConnectionLost(f"connection lost: {message}", plc=broker, request="session")
+    return ConnectFailed(message, plc=broker, request="connect")

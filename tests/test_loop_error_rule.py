@@ -1,0 +1,72 @@
+"""The rule of tests/conftest.py holds: a test whose event loop logged an unhandled exception
+fails, also when the failed task is only freed by the garbage collector (a reference cycle), in
+the first test of a module and in a later one (the conftest freezes the heap between them)."""
+
+from __future__ import annotations
+
+import pytest
+
+INNER_CONFTEST = "from tests.conftest import _no_unhandled_loop_errors  # noqa: F401\n"
+
+INNER_TESTS = """
+import asyncio
+
+import pytest
+
+
+async def _fail() -> None:
+    raise ValueError("nobody looks at me")
+
+
+async def _leave_a_failed_task_in_a_cycle() -> None:
+    task = asyncio.get_running_loop().create_task(_fail())
+    await asyncio.sleep(0)
+    await asyncio.sleep(0)
+    holder = {"task": task}
+    holder["self"] = holder  # only the cycle collector frees the task now
+    del task, holder
+
+
+def test_first_of_module() -> None:
+    asyncio.run(_leave_a_failed_task_in_a_cycle())
+
+
+def test_later_in_module() -> None:
+    asyncio.run(_leave_a_failed_task_in_a_cycle())
+
+
+def test_clean() -> None:
+    asyncio.run(asyncio.sleep(0))
+
+
+@pytest.mark.loop_errors_expected
+def test_declared() -> None:
+    asyncio.run(_leave_a_failed_task_in_a_cycle())
+"""
+
+
+# the inner session's asyncio records reach this test's handler too: they are the point here
+@pytest.mark.loop_errors_expected
+def test_a_failed_task_in_a_cycle_fails_its_own_test(pytester: pytest.Pytester) -> None:
+    pytester.makeconftest(INNER_CONFTEST)
+    pytester.makeini(
+        "[pytest]\nasyncio_default_fixture_loop_scope = function\n"
+        "markers =\n    loop_errors_expected: on purpose\n"
+    )
+    pytester.makepyfile(test_one=INNER_TESTS, test_two=INNER_TESTS)
+    result = pytester.runpytest_inprocess("-p", "no:xdist", "-p", "no:cacheprovider")
+    # the rule fails a test at teardown, so pytest counts its call as passed and adds an error
+    result.assert_outcomes(passed=8, errors=4)
+    reports = result.reprec.getreports("pytest_runtest_logreport")  # type: ignore[attr-defined]
+    failed = sorted(r.nodeid for r in reports if r.failed and r.when == "teardown")
+    assert failed == [
+        f"{m}::{t}"
+        for m in ("test_one.py", "test_two.py")
+        for t in ("test_first_of_module", "test_later_in_module")
+    ]
+    result.stdout.fnmatch_lines(
+        [
+            "the event loop logged 1 unhandled exception(s):",
+            "  Task exception was never retrieved (ValueError: nobody looks at me)",
+        ]
+    )

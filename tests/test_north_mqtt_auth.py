@@ -1,0 +1,233 @@
+"""MQTT client certificates and logins against a real mosquitto: accepted, and refused with a
+typed error that names the broker and says what to change; credentials read at connect time."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from plcstack.cli import main
+from plcstack.errors import ConnectFailed
+from plcstack.north.mqtt import MqttSink, parse_mqtt
+from plcstack.poll.config import ConfigError, load_config
+from tests.north_certs import Authority
+from tests.north_helpers import sample, subscriber
+from tests.servers import Mosquitto, ServerUnavailable, free_port
+
+
+def started(broker: Mosquitto) -> Mosquitto:
+    try:
+        broker.start()
+    except ServerUnavailable as exc:
+        broker.close()
+        pytest.fail(str(exc), pytrace=False)
+    return broker
+
+
+class TlsBroker:
+    """mosquitto with its plain listener (for the test's subscriber) and a TLS listener that
+    requires a client certificate signed by ``authority``."""
+
+    def __init__(self, directory: Path) -> None:
+        self.authority = Authority.create(directory)
+        server_cert, server_key = self.authority.issue(directory, "127.0.0.1", server=True)
+        self.client_cert, self.client_key = self.authority.issue(directory, "line1", server=False)
+        self.tls_port = free_port()
+        self.broker = started(
+            Mosquitto(
+                extra_config=f"listener {self.tls_port} 127.0.0.1\n"
+                f"cafile {self.authority.ca}\ncertfile {server_cert}\nkeyfile {server_key}\n"
+                "require_certificate true\n"
+            )
+        )
+        self.url = f"mqtts://127.0.0.1:{self.tls_port}"
+
+    def settings(self, **table: Any) -> Any:
+        return parse_mqtt(
+            {"url": self.url, "ca_file": str(self.authority.ca), "reconnect_max": 0.2, **table}
+        )
+
+
+@pytest.fixture
+def tls_broker(tmp_path: Path) -> Iterator[TlsBroker]:
+    broker = TlsBroker(tmp_path)
+    try:
+        yield broker
+    finally:
+        broker.broker.close()
+
+
+async def first_failure(sink: MqttSink, timeout: float = 10) -> None:
+    async with asyncio.timeout(timeout):
+        while sink.last_error is None:  # noqa: ASYNC110 - polls the sink's state
+            await asyncio.sleep(0.02)
+
+
+async def test_a_client_certificate_signed_by_the_brokers_ca_gets_in(tls_broker: TlsBroker) -> None:
+    host, port = tls_broker.broker.host, tls_broker.broker.port
+    async with subscriber(host, port, "plcstack/#") as sub:
+        sink = MqttSink(
+            tls_broker.settings(
+                cert_file=str(tls_broker.client_cert), key_file=str(tls_broker.client_key)
+            )
+        )
+        await sink.start()
+        await sink.wait_connected(10)
+        sink.submit([sample("p", "n", 1)])
+        await sub.wait_for(lambda s: any("/data/" in t for t, _ in s.messages))
+        await sink.aclose()
+    assert sink.last_error is None
+
+
+async def test_no_client_certificate_is_a_typed_error_naming_the_broker(
+    tls_broker: TlsBroker, caplog: pytest.LogCaptureFixture
+) -> None:
+    sink = MqttSink(tls_broker.settings(timeout=0.5))
+    with caplog.at_level(logging.WARNING, logger="plcstack.north.mqtt"):
+        await sink.start()
+        try:
+            await first_failure(sink)
+            with pytest.raises(ConnectFailed) as raised:
+                await sink.wait_connected(0.01)
+            # the sink keeps trying (a broker's CA can be fixed without restarting us)...
+            connects_before = sink.stats.connects
+            await asyncio.sleep(1.2)  # at least one more attempt: 0.5 s timeout + backoff
+        finally:
+            await sink.aclose(drain=0)
+    text = str(raised.value)
+    assert text.startswith(f"MQTT broker {tls_broker.url}: connect: ")
+    assert "the broker requires a client certificate; set [mqtt] cert_file and key_file" in text
+    assert "CERTIFICATE_REQUIRED" in text.upper() or "DID NOT RETURN A CERTIFICATE" in text.upper()
+    assert sink.stats.connects == connects_before == 0
+    assert sink.stats.failures >= 2
+    # ...and says so once, not once per attempt
+    warnings = [r for r in caplog.records if "client certificate" in r.getMessage()]
+    assert len(warnings) == 1, [r.getMessage() for r in caplog.records]
+
+
+async def test_a_client_certificate_of_another_ca_is_refused_with_the_reason(
+    tls_broker: TlsBroker, tmp_path: Path
+) -> None:
+    impostor = Authority.create(tmp_path, "impostor CA")
+    cert, key = impostor.issue(tmp_path, "line1-forged", server=False)
+    sink = MqttSink(tls_broker.settings(timeout=0.5, cert_file=str(cert), key_file=str(key)))
+    await sink.start()
+    try:
+        await first_failure(sink)
+        with pytest.raises(ConnectFailed, match="rejected our client certificate") as raised:
+            await sink.wait_connected(0.01)
+    finally:
+        await sink.aclose(drain=0)
+    assert str(raised.value).startswith(f"MQTT broker {tls_broker.url}: connect: ")
+    assert "UNKNOWN_CA" in str(raised.value).upper()
+
+
+async def test_unusable_certificate_files_fail_at_start(tls_broker: TlsBroker) -> None:
+    missing = tls_broker.settings(cert_file="/nonexistent/line1.crt", key_file="/nonexistent/k")
+    with pytest.raises(ConfigError) as raised:
+        await MqttSink(missing).start()
+    assert str(raised.value).startswith(f"MQTT broker {tls_broker.url}: connect: TLS: ")
+    assert "/nonexistent/line1.crt" in str(raised.value)
+    # a key that does not belong to the certificate
+    other_cert, _ = tls_broker.authority.issue(tls_broker.client_cert.parent, "x", server=False)
+    mismatched = tls_broker.settings(cert_file=str(other_cert), key_file=str(tls_broker.client_key))
+    with pytest.raises(ConfigError, match="cannot load the client certificate"):
+        await MqttSink(mismatched).start()
+    with pytest.raises(ConfigError, match="cannot load ca_file"):
+        await MqttSink(parse_mqtt({"url": tls_broker.url, "ca_file": "/nonexistent"})).start()
+
+
+@pytest.fixture
+def login_broker(tmp_path: Path) -> Iterator[Mosquitto]:
+    """mosquitto that takes user ``line1`` with password ``s3cret`` and nobody else."""
+    passwords = tmp_path / "passwords"
+    subprocess.run(
+        ["mosquitto_passwd", "-b", "-c", str(passwords), "line1", "s3cret"],
+        check=True,
+        capture_output=True,
+    )
+    passwords.chmod(0o600)
+    broker = started(Mosquitto(extra_config=f"allow_anonymous false\npassword_file {passwords}\n"))
+    try:
+        yield broker
+    finally:
+        broker.close()
+
+
+def login_settings(broker: Mosquitto) -> Any:
+    return parse_mqtt(
+        {
+            "url": broker.url,
+            "username_env": "PLCSTACK_TEST_MQTT_USER",
+            "password_env": "PLCSTACK_TEST_MQTT_PASSWORD",
+            "reconnect_max": 0.2,
+            "timeout": 1,
+        }
+    )
+
+
+async def test_credentials_come_from_the_environment_when_the_sink_connects(
+    login_broker: Mosquitto,
+) -> None:
+    settings = login_settings(login_broker)  # parsed without the variables: fine
+    env = {"PLCSTACK_TEST_MQTT_USER": "line1", "PLCSTACK_TEST_MQTT_PASSWORD": "s3cret"}
+    sink = MqttSink(settings, env=env)
+    await sink.start()
+    try:
+        await sink.wait_connected(10)
+    finally:
+        await sink.aclose()
+    wrong = MqttSink(settings, env={**env, "PLCSTACK_TEST_MQTT_PASSWORD": "guess"})
+    await wrong.start()
+    try:
+        await first_failure(wrong)
+        with pytest.raises(ConnectFailed, match="the broker refused the login") as raised:
+            await wrong.wait_connected(0.01)
+    finally:
+        await wrong.aclose(drain=0)
+    assert str(raised.value).startswith(f"MQTT broker {login_broker.url}: connect: ")
+    unset = MqttSink(settings, env={"PLCSTACK_TEST_MQTT_USER": "line1"})
+    with pytest.raises(ConfigError) as missing:
+        await unset.start()
+    assert str(missing.value) == (
+        f"MQTT broker {login_broker.url}: connect: [mqtt] password_env names the environment "
+        "variable 'PLCSTACK_TEST_MQTT_PASSWORD', which is not set; not connecting"
+    )
+
+
+CONFIG = """
+[[plc]]
+name = "press1"
+url = "e71+tcp://127.0.0.1:1"
+[plc.tags]
+strokes = "D100"
+[mqtt]
+url = "{url}"
+username_env = "PLCSTACK_TEST_MQTT_USER"
+password_env = "PLCSTACK_TEST_MQTT_PASSWORD"
+"""
+
+
+def test_loading_a_config_needs_no_credentials_but_polling_does(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.delenv("PLCSTACK_TEST_MQTT_USER", raising=False)
+    monkeypatch.delenv("PLCSTACK_TEST_MQTT_PASSWORD", raising=False)
+    path = tmp_path / "plant.toml"
+    port = free_port()
+    path.write_text(CONFIG.format(url=f"mqtt://127.0.0.1:{port}"))
+    config = load_config(path)  # a tool that only reads the file needs no secrets
+    assert config.north["mqtt"]["username_env"] == "PLCSTACK_TEST_MQTT_USER"
+    code = main(["poll", str(path), "--format", "none", "--duration", "5"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err == (
+        f"plcstack: error: MQTT broker mqtt://127.0.0.1:{port}: connect: [mqtt] username_env names"
+        " the environment variable 'PLCSTACK_TEST_MQTT_USER', which is not set; not connecting\n"
+    )
