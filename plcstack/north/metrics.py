@@ -300,7 +300,7 @@ class MetricsServer:
         except OSError as exc:
             raise ConfigError(
                 f"[metrics] cannot serve /metrics on {host}:{port}: {exc.strerror or exc}"
-                " (another process on that port? set [metrics] port, or --metrics-port)"
+                " (another process on that port? set [metrics] port)"
             ) from None
         self.port = self._server.sockets[0].getsockname()[1]
         self._refresher = asyncio.create_task(self._refresh_loop())
