@@ -32,9 +32,10 @@ from __future__ import annotations
 
 import struct
 from collections import deque
-from typing import cast
+from collections.abc import Callable
+from typing import Final, cast
 
-from plcstack.codecs._common import NEED_DATA, ErrorState, NeedData
+from plcstack.codecs._common import NEED_DATA, ErrorState, NeedData, ReceiveBuffer
 from plcstack.codecs.e71_devices import (
     DEVICE_BY_CODE,
     SPECIAL_FIRST,
@@ -85,7 +86,7 @@ from plcstack.codecs.e71_framing import (
     response_framer,
     size_request,
 )
-from plcstack.codecs.e71_limits import command_limit, limit_error, unit_error
+from plcstack.codecs.e71_limits import command_limit, head_ok, limit_error, unit_error
 from plcstack.codecs.e71_wire import (
     DEFAULT_PC,
     DEFAULT_TIMER,
@@ -229,9 +230,10 @@ class ClientConnection(ErrorState):
     registration acknowledged on this connection, to size 88H/89H responses.
     """
 
-    #: the polling fast paths (binary code, 01H read in words): the last request's bytes reused
-    #: when the same request object is sent again, and a normal answer over TCP decoded in one
-    #: step. Tests switch them off to prove both paths give the same bytes, events and errors.
+    #: the polling fast paths (binary code, 01H read in words): a checked read encoded in one
+    #: ``struct`` call (the last request's bytes reused when the same object is sent again),
+    #: and a normal answer over TCP decoded in one step. Tests switch them off (before the
+    #: first ``send``) to prove both paths give the same bytes, events and errors.
     fast_paths = True
 
     def __init__(self, code: Code | str = Code.BINARY, *, transport: Transport = "tcp") -> None:
@@ -247,6 +249,15 @@ class ClientConnection(ErrorState):
             if self.fast_paths and self._unit == 1 and isinstance(framer, StreamResponses)
             else None
         )
+        #: the stream framer's buffer, from which the fast path takes a normal 01H answer
+        #: (an unused empty one for datagrams: ``_fast_stream`` is None then)
+        if isinstance(framer, StreamResponses):
+            self._fast_buffer = framer.buffer
+            #: where received bytes go, bound once (the stream framer's feed is its buffer's)
+            self._feed: Callable[[bytes], None] = framer.buffer.feed
+        else:
+            self._fast_buffer = ReceiveBuffer()
+            self._feed = framer.feed
         #: the last ReadWords sent and its encoding (frozen: the same object encodes the same)
         self._last_read: ReadWords | None = None
         self._last_bytes = b""
@@ -261,9 +272,36 @@ class ClientConnection(ErrorState):
     def send(self, request: Request | ExtensionRequest) -> bytes:
         if self.error is not None:
             self._check_usable()
-        if request is self._last_read:
-            self._pending.append(request)
-            return self._last_bytes
+        if type(request) is ReadWords and self._unit == 1 and self.fast_paths:
+            # The polling hot path: the checks of the general path (``_Header.encode``), inlined
+            # over the fields a binary 01H frame holds, and one struct call. Anything it does
+            # not accept takes the general path, which decides and words the refusal.
+            last = self._last_read
+            ref, count, pc, timer = request.ref, request.count, request.pc, request.timer
+            if request is last or (
+                # a new request with the very same field objects encodes the same bytes
+                last is not None
+                and ref is last.ref
+                and count is last.count
+                and pc is last.pc
+                and timer is last.timer
+            ):
+                self._pending.append(request)
+                return self._last_bytes
+            if type(ref) is DeviceRef and type(count) is type(pc) is type(timer) is int:
+                dev, number = ref.device, ref.number
+                if (
+                    1 <= count <= (_READ_WORDS_BIT_LIMIT if dev.is_bit else _READ_WORDS_LIMIT)
+                    and 0 <= pc <= 0xFF
+                    and 0 <= timer <= 0xFFFF
+                    and type(number) is int
+                    and 0 <= number <= 0xFFFFFFFF
+                    and (not dev.is_bit or head_ok(ref))
+                ):
+                    data = _READ_FRAME.pack(0x01, pc, timer, number, dev.code, count & 0xFF, 0)
+                    self._last_read, self._last_bytes = request, data
+                    self._pending.append(request)
+                    return data
         if isinstance(request, MonitorBits) and self.monitor_bits is None:
             raise LocalProtocolError("monitor 08H before a bit registration (06H) was acknowledged")
         if isinstance(request, MonitorWords) and self.monitor_words is None:
@@ -271,15 +309,13 @@ class ClientConnection(ErrorState):
                 "monitor 09H before a word registration (07H) was acknowledged"
             )
         data = encode_request(request, self.code)
-        if type(request) is ReadWords and self.fast_paths:
-            self._last_read, self._last_bytes = request, data
         self._pending.append(request)
         return data
 
     def receive_data(self, data: bytes) -> None:
         if self.error is not None:
             self._check_usable()
-        self._framer.feed(data)
+        self._feed(data)
 
     def next_event(self) -> Response | ExtensionResponse | NeedData:
         """The response to the oldest pending request, or ``NEED_DATA``. A malformed response
@@ -287,15 +323,22 @@ class ClientConnection(ErrorState):
         if self.error is not None:
             self._check_usable()
         pending = self._pending
-        stream = self._fast_stream
-        if stream is not None and pending and type(req := pending[0]) is ReadWords:
+        if (
+            pending
+            and (stream := self._fast_stream) is not None
+            and type(req := pending[0]) is ReadWords
+            and not stream.skip_trailer
+        ):
             # 01H in binary over TCP: a normal answer (81H 00H + the words) is cut and decoded
             # at once; anything else (short, an error code, a trailer to skip) takes the
             # general path below, which decides exactly as before.
-            normal = stream.take_normal(b"\x81\x00", 2 + 2 * req.count)
-            if normal is not None:
+            n = req.count
+            values = self._fast_buffer.take_unpacked(
+                _NORMAL_01H, _WORDS_STRUCTS.get(n) or _words_struct(n)
+            )
+            if values is not None:
                 pending.popleft()
-                return WordsResponse(1, _words_struct(req.count).unpack_from(normal, 2))
+                return WordsResponse(1, values)
         try:
             frame = self._framer.next_frame(pending[0] if pending else None, self._response_size)
             if frame is NEED_DATA:
@@ -310,6 +353,32 @@ class ClientConnection(ErrorState):
         if isinstance(event, ErrorResponse) and event.end_code == 0x5B:
             self._framer.after_abnormal()
         return event
+
+    def take_answer(self, data: bytes) -> WordsResponse | None:
+        """The normal answer to the one pending 01H read, when ``data`` is exactly that answer
+        and nothing is buffered before it (binary over TCP); else ``None`` and nothing taken.
+
+        One step for what a poll does on every request: ``receive_data(data)``, then
+        ``next_event()`` giving the words, then ``next_event()`` finding nothing after them.
+        Where that would decide anything else (an error code, a short or long or split
+        answer, a trailer to skip, several pending requests), the caller takes the general
+        path with the same bytes (tests/test_fleet_paths.py compares both).
+        """
+        stream = self._fast_stream
+        pending = self._pending
+        if (
+            stream is None
+            or self.error is not None
+            or len(pending) != 1
+            or type(req := pending[0]) is not ReadWords
+            or len(data) != 2 + 2 * req.count
+            or not data.startswith(_NORMAL_01H)
+            or not stream.is_empty()
+        ):
+            return None
+        pending.popleft()
+        unpack = _WORDS_STRUCTS.get(req.count) or _words_struct(req.count)
+        return WordsResponse(1, unpack.unpack_from(data, 2))
 
     # -- sizing and decoding ------------------------------------------------------------------
     def _response_size(self, req: E71Request, head: bytes) -> int | None:
@@ -401,6 +470,13 @@ class ClientConnection(ErrorState):
 
 
 _WORDS_STRUCTS: dict[int, struct.Struct] = {}
+#: subheader 81H and end code 00H: the head of a normal answer to 01H (binary)
+_NORMAL_01H: Final = b"\x81\x00"
+#: most words one 01H reads (§7.1), of word devices and of bit devices (16 points a word)
+_READ_WORDS_LIMIT: Final = command_limit(0x01, Device.D)
+_READ_WORDS_BIT_LIMIT: Final = command_limit(0x01, Device.M)
+#: subheader, PC number, timer, device number, device code, count, 00H of 00H-03H (binary)
+_READ_FRAME: Final = struct.Struct("<BBHIHBB")
 
 
 def _words_struct(count: int) -> struct.Struct:

@@ -194,7 +194,11 @@ def dev_value(ref: DeviceRef) -> int:
 
 def check_ref(ref: DeviceRef) -> None:
     """Our caller's device reference fits the field; :class:`LocalProtocolError` if not."""
-    if not isinstance(ref, DeviceRef) or not 0 <= ref.number <= 0xFFFFFFFF:
+    if (
+        not isinstance(ref, DeviceRef)
+        or not isinstance(ref.number, int)
+        or not 0 <= ref.number <= 0xFFFFFFFF
+    ):
         raise LocalProtocolError(f"not a device reference: {ref!r}")
 
 

@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import ClassVar, Final
 
-from plcstack.codecs._common import Event
+from plcstack.codecs._common import Event, slot_init
 from plcstack.codecs.e71_devices import DeviceRef, check_ref, dev_value
 from plcstack.codecs.e71_end_codes import ABNORMAL_CODES, END_CODES
 from plcstack.codecs.e71_limits import command_limit, head_ok, limit_error, unit_error
@@ -93,7 +93,13 @@ class _Header(E71Request):
     def encode(self, code: Code) -> bytes:
         """Check the request against §7.1/§7.3 (:class:`LocalProtocolError` on misuse), then
         write the header and the request's own fields."""
-        if not (0 <= self.pc <= 0xFF and 0 <= self.timer <= 0xFFFF):
+        pc, timer = self.pc, self.timer
+        if not (
+            isinstance(pc, int)
+            and isinstance(timer, int)
+            and 0 <= pc <= 0xFF
+            and 0 <= timer <= 0xFFFF
+        ):
             raise LocalProtocolError(
                 f"PC number {self.pc!r} or monitoring timer {self.timer!r} invalid"
             )
@@ -131,21 +137,24 @@ class _Batch(_Header):
 def _fast_read(req: ReadBits | ReadWords, bit_unit: bool) -> bytes | None:
     """The polling hot path of 00H/01H in binary: the checks of :meth:`_Header.encode`,
     inlined, and one struct call; ``None`` sends the request down the general path."""
-    ref, count = req.ref, req.count
-    dev = ref.device
+    ref, count, pc, timer = req.ref, req.count, req.pc, req.timer
+    # exact types: a bool, float or stranger goes the general path, which decides about it
+    if type(ref) is not DeviceRef or not type(count) is type(pc) is type(timer) is int:
+        return None
+    dev, number = ref.device, ref.number
     if (
         1 <= count <= command_limit(req.COMMAND, dev)
         and (dev.is_bit if bit_unit else head_ok(ref))
-        and 0 <= req.pc <= 0xFF
-        and 0 <= req.timer <= 0xFFFF
-        and 0 <= ref.number <= 0xFFFFFFFF
+        and 0 <= pc <= 0xFF
+        and 0 <= timer <= 0xFFFF
+        and type(number) is int
+        and 0 <= number <= 0xFFFFFFFF
     ):
-        return _READ_FRAME.pack(
-            req.COMMAND, req.pc, req.timer, ref.number, dev.code, count & 0xFF, 0
-        )
+        return _READ_FRAME.pack(req.COMMAND, pc, timer, number, dev.code, count & 0xFF, 0)
     return None
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class ReadBits(_Batch):
     """00H: batch read in bit units (bit devices), 1-256 points."""
@@ -162,6 +171,7 @@ class ReadBits(_Batch):
         return _Header.encode(self, code)
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class ReadWords(_Batch):
     """01H: batch read in word units; for bit devices ``count`` is in words of 16 points."""
@@ -178,6 +188,7 @@ class ReadWords(_Batch):
         return _Header.encode(self, code)
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class WriteBits(_Batch):
     """02H: batch write in bit units."""
@@ -193,6 +204,7 @@ class WriteBits(_Batch):
         w.raw(pack_bits(self.values))
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class WriteWords(_Batch):
     """03H: batch write in word units (bit devices: 16 points per word, bit 0 = head)."""
@@ -379,6 +391,7 @@ REQUEST_TYPES: Final = (
 )
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class Ack(Event):
     """Normal completion without data (82H-87H)."""
@@ -386,6 +399,7 @@ class Ack(Event):
     command: int
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class BitsResponse(Event):
     """Normal completion with bit data in bit units (80H, 88H)."""
@@ -394,6 +408,7 @@ class BitsResponse(Event):
     values: tuple[bool, ...]
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class WordsResponse(Event):
     """Normal completion with words (81H, 89H)."""
@@ -402,6 +417,7 @@ class WordsResponse(Event):
     values: tuple[int, ...]
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class ErrorResponse(Event):
     """Abnormal completion: ``end_code`` and, after 5BH, the ``abnormal_code`` (§4.3, §10)."""

@@ -365,12 +365,21 @@ class ResponseFramer(Protocol):
 class StreamResponses:
     """TCP: responses cut from the stream by the size their request implies (§11.2)."""
 
-    __slots__ = ("_buf", "_skip_trailer", "_unit")
+    __slots__ = ("_buf", "_unit", "skip_trailer")
 
     def __init__(self, code: Code) -> None:
         self._unit = 2 if code is Code.ASCII else 1
         self._buf = ReceiveBuffer()
-        self._skip_trailer = False
+        #: a 5BH answer was taken and its optional 00H trailer not yet seen (§13 A3); the
+        #: client codec's fast path reads it: while set, only :meth:`next_frame` may cut
+        self.skip_trailer = False
+
+    @property
+    def buffer(self) -> ReceiveBuffer:
+        """The stream's bytes. :meth:`feed` is exactly ``buffer.feed`` (the client codec binds
+        that once), and a normal answer may be taken straight from it while
+        :attr:`skip_trailer` is false (the fast path of :meth:`next_frame`)."""
+        return self._buf
 
     def feed(self, data: bytes) -> None:
         self._buf.feed(data)
@@ -380,16 +389,12 @@ class StreamResponses:
 
     def after_abnormal(self) -> None:
         """A 5BH answer was taken: a 00H trailer may follow it (§13 A3)."""
-        self._skip_trailer = True
+        self.skip_trailer = True
 
-    def take_normal(self, head: bytes, size: int) -> bytes | None:
-        """Binary only: the ``size`` bytes of a normal answer starting with ``head``
-        (subheader, end code 00H) if they are all buffered and no trailer is to be skipped,
-        else ``None`` (and nothing taken): the fast path of :meth:`next_frame` for an answer
-        whose size is known."""
-        if self._skip_trailer:
-            return None
-        return self._buf.take_prefixed(head, size)
+    def is_empty(self) -> bool:
+        """Nothing buffered and no trailer to skip: the next byte starts an answer."""
+        buf = self._buf  # ReceiveBuffer's own test (len == pos) inlined: on every poll's path
+        return not self.skip_trailer and len(buf._buf) == buf._pos
 
     def next_frame(self, request: E71Request | None, size_of: SizeOf) -> bytes | NeedData:
         buf = self._buf
@@ -397,15 +402,15 @@ class StreamResponses:
         if not have:
             return NEED_DATA
         u = self._unit
-        if self._skip_trailer and have < u:
+        if self.skip_trailer and have < u:
             return NEED_DATA  # half of an ASCII "00" trailer: wait for its second character
-        if self._skip_trailer:
+        if self.skip_trailer:
             # §13 A3: 5BH may be followed by 00H (A series) or not (Q series). No response
             # starts with 00H, so a leading 00H here is the trailer of the previous answer.
             if buf.peek(u) == (b"00" if u == 2 else b"\x00"):
                 buf.take(u)
                 have -= u
-            self._skip_trailer = False
+            self.skip_trailer = False
             if not have:
                 return NEED_DATA
         if request is None:

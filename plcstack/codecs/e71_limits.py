@@ -85,7 +85,7 @@ def limit_error(req: Counted) -> str | None:
     refs = req.device_refs()
     device = refs[0].device if len(refs) == 1 or req.COMMAND < 0x04 else None
     limit = command_limit(req.COMMAND, device)
-    if not 1 <= n <= limit:
+    if not isinstance(n, int) or not 1 <= n <= limit:
         unit = (
             "words" if device is not None and device.is_bit and req.COMMAND in (1, 3) else "points"
         )

@@ -1,0 +1,257 @@
+"""Issue 16, codec part: every codec fast path decides exactly as the general path it shortcuts.
+
+* E71 ``send`` of a 01H word read in binary: the inlined checks + one ``struct`` call, and the
+  reuse of the last bytes for the same request object or a new one made of the very same field
+  objects, against the general encoder (``_Header.encode``: checks, then the field writer) and
+  against the codec with its fast paths off: same bytes, or the same typed error and message,
+  and the same pending requests afterwards. Odd values (bools, floats, out-of-range numbers,
+  bit-device heads off a multiple of 16, non-references) included.
+* E71 decoding of a normal 01H answer over TCP in one step, against the general framer, on
+  random answer streams cut at random places (see also ``tests/test_fleet_paths.py``).
+* :func:`plcstack.codecs._common.slot_init`: the replacement ``__init__`` builds the objects the
+  generated one builds, with the same signature.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import itertools
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from plcstack.codecs._common import GENERATED_INITS, NEED_DATA
+from plcstack.codecs.e71 import (
+    Code,
+    Device,
+    DeviceRef,
+    E71ClientConnection,
+    ReadBits,
+    ReadWords,
+    WriteWords,
+)
+from plcstack.codecs.e71_events import _Header
+from plcstack.codecs.e71_framing import StreamResponses
+from plcstack.errors import PlcError
+
+_REFS: list[Any] = [
+    DeviceRef(Device.D, 0),
+    DeviceRef(Device.D, 9000),
+    DeviceRef(Device.W, 0x1FF),
+    DeviceRef(Device.M, 16),
+    DeviceRef(Device.M, 3),  # a bit device head off a multiple of 16: 58H case
+    DeviceRef(Device.M, 9008),  # special relays count from 9000
+    DeviceRef(Device.X, 0x10),
+    DeviceRef(Device.D, 0xFFFFFFFF),
+    DeviceRef(Device.D, 1 << 32),  # beyond the field
+    DeviceRef(Device.D, -1),
+    DeviceRef(Device.D, 1.5),  # type: ignore[arg-type]
+    "D0",  # not a reference at all
+]
+_COUNTS: list[Any] = [0, 1, 2, 64, 128, 129, 255, 256, 257, -1, True, 64.0, 10**20]
+_PCS: list[Any] = [0, 0xFF, 0x100, -1, True, 1.0]
+_TIMERS: list[Any] = [0, 10, 1000, 0xFFFF, 0x10000, -1, 2.5]
+
+
+def _outcome(fn: Any) -> Any:
+    try:
+        return ("bytes", fn())
+    except PlcError as exc:
+        return ("error", type(exc).__name__, str(exc))
+
+
+def _general_encoding(request: ReadWords, code: Code) -> Any:
+    """The reference: the checks and field writer every 00H-09H request goes through."""
+    return _outcome(lambda: _Header.encode(request, code))
+
+
+_picks = st.tuples(
+    st.integers(0, len(_REFS) - 1),
+    st.integers(0, len(_COUNTS) - 1),
+    st.integers(0, len(_PCS) - 1),
+    st.integers(0, len(_TIMERS) - 1),
+    st.sampled_from(["new", "same object", "copy", "twin count", "twin pc", "twin timer"]),
+)
+
+
+def _twin(value: Any) -> Any:
+    """A value equal to ``value`` but not the same object (a float, or a big int built anew):
+    a reuse that compared values instead of identities would take it for the last one."""
+    if type(value) is int:
+        return float(value) if value < 2**53 else value + 0
+    return value
+
+
+@settings(max_examples=500, deadline=None)
+@given(picks=st.lists(_picks, min_size=1, max_size=8), code=st.sampled_from(list(Code)))
+def test_e71_read_words_send_fast_path_is_the_general_encoder(
+    picks: list[tuple[int, int, int, int, str]], code: Code
+) -> None:
+    fast = E71ClientConnection(code)
+    general = E71ClientConnection(code)
+    general.fast_paths = False
+    last: ReadWords | None = None
+    for ref_i, count_i, pc_i, timer_i, how in picks:
+        if how == "same object" and last is not None:
+            request = last
+        elif how == "copy" and last is not None:
+            # a new object made of the very same field objects (the reuse-by-identity path)
+            request = ReadWords(last.ref, last.count, pc=last.pc, timer=last.timer)
+        elif how.startswith("twin") and last is not None:
+            fields = {"count": last.count, "pc": last.pc, "timer": last.timer}
+            name = how.split()[1]
+            fields[name] = _twin(fields[name])
+            request = ReadWords(last.ref, **fields)
+        else:
+            request = ReadWords(
+                _REFS[ref_i], _COUNTS[count_i], pc=_PCS[pc_i], timer=_TIMERS[timer_i]
+            )
+        expected = _general_encoding(request, code)
+        assert _outcome(lambda r=request: fast.send(r)) == expected
+        assert _outcome(lambda r=request: general.send(r)) == expected
+        assert fast.pending == general.pending
+        assert list(fast._pending) == list(general._pending)
+        last = request
+
+
+@pytest.mark.parametrize("field", ["count", "pc", "timer"])
+@pytest.mark.parametrize("value", [True, 1, 10, 64, 255, 1000])
+def test_e71_reuse_needs_the_very_same_field_objects(field: str, value: Any) -> None:
+    """After a checked read, a new one whose field only *equals* the last one's (a float, a
+    bool, a separately built big int) is decided afresh, as the general path decides it."""
+    fields: dict[str, Any] = {"count": 1, "pc": 0, "timer": 0}
+    fields[field] = value
+    for twin in (float(value), bool(value), int(str(int(value)))):
+        fast = E71ClientConnection("binary")
+        first = ReadWords(_REFS[0], **fields)
+        assert _outcome(lambda r=first, c=fast: c.send(r)) == _general_encoding(first, Code.BINARY)
+        second = ReadWords(_REFS[0], **{**fields, field: twin})
+        assert _outcome(lambda r=second, c=fast: c.send(r)) == _general_encoding(
+            second, Code.BINARY
+        )
+
+
+@pytest.mark.parametrize("cls", [ReadBits, ReadWords])
+@pytest.mark.parametrize("ref", _REFS, ids=str)
+def test_e71_read_encoders_fast_path_is_the_general_encoder(cls: Any, ref: Any) -> None:
+    """``ReadBits.encode`` / ``ReadWords.encode`` in binary have their own fast path (used by
+    ``encode_request``): the same outcome as the general encoder for every odd value."""
+    for count, pc, timer in itertools.product(_COUNTS, _PCS[:4], _TIMERS[:3]):
+        request = cls(ref, count, pc=pc, timer=timer)
+        expected = _outcome(lambda r=request: _Header.encode(r, Code.BINARY))
+        assert _outcome(lambda r=request: r.encode(Code.BINARY)) == expected, request
+
+
+# -- decoding: a normal 01H answer in one step --------------------------------------------------
+_D0 = DeviceRef(Device.D, 0)
+_M16 = DeviceRef(Device.M, 16)
+_DECODE_REQUESTS: list[Any] = [
+    ReadWords(_D0, 64),
+    ReadWords(_D0, 256),  # count field 00H
+    ReadWords(_M16, 2),  # bit device in words
+    ReadBits(_M16, 5),
+    WriteWords(_D0, (1, 2)),
+    ReadWords(_D0, 1),
+]
+
+
+def _answers_for(request: Any) -> st.SearchStrategy[bytes]:
+    sub = bytes([request.COMMAND | 0x80])
+    words = 2 * request.count if type(request) is ReadWords else 0
+    if type(request) is ReadBits:
+        words = (request.count + 1) // 2
+    return st.one_of(
+        st.binary(min_size=words, max_size=words).map(lambda d: sub + b"\x00" + d),  # normal
+        st.binary(max_size=words + 3).map(lambda d: sub + b"\x00" + d),  # normal, odd length
+        st.sampled_from([sub + b"\x51", sub + b"\x5b\x10\x00", sub + b"\x5b\x10", b"\x82\x00"]),
+        st.binary(max_size=6),
+    )
+
+
+@st.composite
+def _streams(draw: st.DrawFn) -> tuple[list[Any], bytes]:
+    indices = draw(st.lists(st.integers(0, len(_DECODE_REQUESTS) - 1), min_size=1, max_size=5))
+    requests = [_DECODE_REQUESTS[i] for i in indices]
+    stream = b"".join(draw(_answers_for(r)) for r in requests)
+    return requests, stream
+
+
+def _decode_all(fast: bool, requests: list[Any], stream: bytes, cuts: list[int]) -> list[Any]:
+    codec = E71ClientConnection("binary", transport="tcp")
+    if not fast:
+        codec.fast_paths = False
+        codec._fast_stream = None
+    for request in requests:
+        codec.send(request)
+    out: list[Any] = []
+    pieces = [stream[a:b] for a, b in itertools.pairwise([0, *sorted(cuts), len(stream)])]
+    for piece in pieces:
+        codec.receive_data(piece)
+        while True:
+            try:
+                event = codec.next_event()
+            except PlcError as exc:
+                out.append(("error", type(exc).__name__, str(exc)))
+                out.append(("errored", codec.errored, codec.pending))
+                return out
+            if event is NEED_DATA:
+                break
+            out.append(("event", event))
+    out.append(("left", codec.pending, len(codec._fast_buffer)))
+    return out
+
+
+@settings(max_examples=500, deadline=None)
+@given(case=_streams(), cuts=st.lists(st.integers(0, 600), max_size=6))
+def test_e71_one_step_decoding_is_the_general_decoder(
+    case: tuple[list[Any], bytes], cuts: list[int]
+) -> None:
+    requests, stream = case
+    cuts = [c for c in cuts if c <= len(stream)]
+    assert _decode_all(True, requests, stream, cuts) == _decode_all(False, requests, stream, cuts)
+
+
+def test_e71_fast_paths_are_taken(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The differential tests above prove nothing if the fast paths never run: a 64-word read
+    and its normal answer go through them (no general encoder or framer call)."""
+    calls: list[str] = []
+
+    def spy(name: str) -> Any:
+        return lambda *args: calls.append(name)
+
+    monkeypatch.setattr(StreamResponses, "next_frame", spy("framer"))
+    monkeypatch.setattr(_Header, "encode", spy("encoder"))
+    codec = E71ClientConnection("binary")
+    data = codec.send(ReadWords(_D0, 64))
+    assert codec.send(ReadWords(_D0, 64)) is data  # the same field objects: reused
+    answer = b"\x81\x00" + bytes(range(128))
+    codec.receive_data(answer + answer)
+    first, second = codec.next_event(), codec.next_event()
+    assert calls == []
+    assert first == second and first.values[0] == 0x0100  # type: ignore[union-attr]
+
+
+# -- slot_init -------------------------------------------------------------------------------
+@pytest.mark.parametrize("cls", sorted(GENERATED_INITS, key=str), ids=lambda c: c.__name__)
+def test_slot_init_builds_what_the_generated_init_builds(cls: type) -> None:
+    generated = GENERATED_INITS[cls]
+    assert inspect.signature(cls.__init__) == inspect.signature(generated)  # type: ignore[misc]
+    fields = dataclasses.fields(cls)
+    args = {f.name: object() for f in fields}
+    built = cls(**args)
+    reference: Any = object.__new__(cls)
+    generated(reference, **args)
+    assert all(getattr(built, f.name) is args[f.name] for f in fields)
+    assert all(getattr(reference, f.name) is args[f.name] for f in fields)
+    assert built == reference
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        setattr(built, fields[0].name, 1)
+    # defaults: build with only the fields that have none
+    required = {f.name: args[f.name] for f in fields if f.default is dataclasses.MISSING}
+    partial = cls(**required)
+    for f in fields:
+        if f.default is not dataclasses.MISSING:
+            assert getattr(partial, f.name) == f.default
