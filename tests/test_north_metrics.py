@@ -129,3 +129,110 @@ def test_metrics_table() -> None:
     for bad in ({"port": 70000}, {"host": ""}, {"path": "/m"}):
         with pytest.raises(ConfigError):
             parse_metrics(bad)
+
+
+async def test_failed_requests_have_their_own_latency_histogram_per_error_type() -> None:
+    fakes: dict[str, FakeClient] = {}
+
+    def factory(plc: PlcConfig) -> Client:
+        fakes[plc.name] = FakeClient(f"fake://{plc.name}", timeout=0.2)
+        return fakes[plc.name]
+
+    two_tags = (TagConfig("t", "D1"), TagConfig("u", "D2"))  # one merged request
+    config = PollConfig(
+        (
+            PlcConfig("ok", "e71+tcp://127.0.0.1:1", two_tags),
+            PlcConfig("slow", "e71+tcp://127.0.0.1:1", two_tags),
+            PlcConfig("off", "e71+tcp://127.0.0.1:1", two_tags),
+        ),
+        {"default": 0.02},
+    )
+    async with Poller(config, client_factory=factory) as poller:
+        fakes["slow"].delay = 1.0  # never answers within its 0.2 s deadline
+        fakes["off"].kill()  # connections refused
+        collector = PlcstackCollector(poller)
+        n = 0
+        async for s in poller:
+            collector.observe([s])
+            n += 1
+            if n >= 60 and poller.stats["slow"].errors >= 2:
+                break
+        await poller.aclose()
+        collector.observe(poller.drain())  # every failed request's samples seen
+        stats = poller.stats
+
+    text = generate_latest_text(collector)
+    families = {f.name: f for f in text_string_to_metric_families(text)}
+    failed = families["plcstack_failed_request_latency_seconds"].samples
+
+    def series(plc: str, error: str, suffix: str, le: str | None = None) -> float:
+        return sum(
+            s.value
+            for s in failed
+            if s.name.endswith(suffix)
+            and s.labels["plc"] == plc
+            and s.labels["error"] == error
+            and (le is None or s.labels.get("le") == le)
+        )
+
+    def count(plc: str) -> float:
+        return sum(s.value for s in failed if s.name.endswith("_count") and s.labels["plc"] == plc)
+
+    # one observation per failed request (not per tag), and every failed request observed
+    assert count("slow") == stats["slow"].errors >= 2
+    assert count("off") == stats["off"].errors >= 1
+    assert count("ok") == 0 and stats["ok"].errors == 0
+    # timeouts took the deadline; refused connections next to nothing
+    timeouts = series("slow", "PlcTimeout", "_count")
+    assert timeouts >= 2
+    assert series("slow", "PlcTimeout", "_bucket", le="0.1") == 0
+    assert series("slow", "PlcTimeout", "_bucket", le="0.25") == timeouts
+    assert series("slow", "PlcTimeout", "_sum") >= 0.2 * timeouts
+    refused = series("off", "ConnectFailed", "_count")
+    assert refused >= 1 and series("off", "ConnectFailed", "_bucket", le="0.1") == refused
+    # the successful-request histogram is unchanged: only what answered
+    ok_latency = families["plcstack_request_latency_seconds"].samples
+    slow_ok = [s for s in ok_latency if s.name.endswith("_count") and s.labels["plc"] == "slow"]
+    assert [s.value for s in slow_ok] == [0.0]
+
+
+def generate_latest_text(collector: PlcstackCollector) -> str:
+    from prometheus_client import CollectorRegistry, generate_latest
+
+    registry = CollectorRegistry(auto_describe=False)
+    registry.register(collector)
+    return generate_latest(registry).decode()
+
+
+def test_failures_that_are_no_failed_request_are_not_observed() -> None:
+    from plcstack.errors import ConnectionLost, PlcTimeout, ValueDecodeError
+    from plcstack.poll.samples import Quality, Sample
+
+    class P:
+        stats: dict[str, Any] = {}
+        dropped = 0
+
+    collector = PlcstackCollector(P())
+    t = 1_800_000_000.0
+    bad = Quality.BAD
+    collector.observe(
+        [
+            # the request answered; the value does not decode
+            Sample("p", "bcd", None, bad, t, t + 0.01, "p: read D1 x1: not BCD", ValueDecodeError),
+            # never sent: the rest of a scan after the connection was lost
+            Sample("p", "x", None, bad, t + 1, t + 1, "p: read D9 x1: lost", ConnectionLost),
+            # no type: cannot tell
+            Sample("p", "y", None, bad, t, t + 0.5, "remote", None),
+            # a timeout, carried by two tags of one request: one observation
+            Sample("p", "a", None, bad, t + 2, t + 2.5, "p: read D5 x2: no answer", PlcTimeout),
+            Sample("p", "b", None, bad, t + 2, t + 2.5, "p: read D5 x2: no answer", PlcTimeout),
+        ]
+    )
+    text = generate_latest_text(collector)
+    families = {f.name: f for f in text_string_to_metric_families(text)}
+    counts = {
+        (s.labels["plc"], s.labels["error"]): s.value
+        for s in families["plcstack_failed_request_latency_seconds"].samples
+        if s.name.endswith("_count")
+    }
+    assert counts == {("p", "PlcTimeout"): 1.0}

@@ -4,6 +4,11 @@ The ``[opcua]`` table of the same file sets the endpoint (default ``opc.tcp://12
 plcstack``: loopback only), security policies and logins; see docs/opcua.md. Runs until Ctrl-C or
 SIGTERM (or ``--duration``), then prints the poller's statistics on stderr.
 
+With ``[metrics]`` in the file (or ``--metrics-port``) it also serves ``/metrics`` and ``/healthz``
+as ``plcstack poll`` does (the same collector; docs/north.md). ``--metrics-port`` overrides the
+port, so ``plcstack poll`` and this command can run from one file side by side. ``[mqtt]`` and
+``[report]`` are for ``plcstack poll`` and are not used here.
+
 ``plcstack serve opcua --hash-password`` reads a password from stdin and prints the
 ``password_hash`` to put under ``[opcua.users.NAME]``.
 
@@ -20,7 +25,10 @@ from typing import Any
 
 from plcstack.cli import plain_text
 from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
+from plcstack.north.config import NorthConfig, parse_north
+from plcstack.north.metrics import MetricsSettings
 from plcstack.north.opcua_config import hash_password, load_opcua_config
+from plcstack.north.pipeline import North
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 
@@ -41,6 +49,14 @@ def register(subparsers: Any) -> None:
     opcua.add_argument("config", nargs="?", help="TOML file with [[plc]] tables and [opcua]")
     opcua.add_argument(
         "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
+    )
+    opcua.add_argument(
+        "--metrics-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="serve /metrics and /healthz on this port (overrides [metrics] port; 0 = any free"
+        " port; host from [metrics], default 127.0.0.1)",
     )
     opcua.add_argument(
         "--hash-password",
@@ -66,6 +82,10 @@ async def run_opcua(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
         print("plcstack serve opcua: error: --duration must be greater than 0", file=sys.stderr)
         return 2
+    metrics_port = getattr(args, "metrics_port", None)
+    if metrics_port is not None and not 0 <= metrics_port <= 65535:
+        print("plcstack serve opcua: error: --metrics-port must be 0..65535", file=sys.stderr)
+        return 2
     if importlib.util.find_spec("asyncua") is None:
         print(
             "plcstack serve opcua: error: asyncua is not installed; pip install 'plcstack[opcua]'",
@@ -77,14 +97,22 @@ async def run_opcua(args: argparse.Namespace) -> int:
     opcua_config = load_opcua_config(args.config)
     from plcstack.north.opcua import OpcUaServer, run_until  # asyncua: only when serving
 
+    metrics = parse_north(config.north).metrics
+    if metrics_port is not None:
+        metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", metrics_port)
     poller = Poller(config)  # every URL and address checked before anything is sent
     server = OpcUaServer(poller, opcua_config)
+    # the north side of `plcstack poll`, metrics only: the same collector and HTTP server
+    north = North(poller, NorthConfig(metrics=metrics))
     stop = StopEvent()
     installed = install_stop_signals(stop)
     try:
-        async with poller, server:
+        async with poller, north, server:  # a metrics port that is taken fails first
             print(f"OPC UA server listening on {server.url}", file=sys.stderr, flush=True)
-            await run_until(server, stop, args.duration)
+            if north.metrics is not None:
+                host, port = north.metrics.settings.host, north.metrics.port
+                print(f"metrics on http://{host}:{port}/metrics", file=sys.stderr, flush=True)
+            await run_until(server, stop, args.duration, observe=north.collector.observe)
     finally:
         remove_stop_signals(installed)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)

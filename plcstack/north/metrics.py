@@ -5,6 +5,18 @@ own counters at scrape time (a custom collector, so nothing is counted twice and
 pays nothing per request), plus the latency histogram, which is fed once a second from each
 PLC's latency window (only the latencies added since the last look, via ``LatencyWindow.tail``).
 
+Failed requests get their own histogram, not a label on the successful one: a timeout lasts the
+whole deadline and a refused connection microseconds, so mixing them into one distribution would
+move the percentiles an operator alarms on for reasons that are not latency (the error counters
+say how often requests fail; this says how long a failure keeps a scan waiting, per kind). The
+poller keeps no latency for a failed request, so it is taken from the bad samples: each failed
+request gives its tags bad samples with the request's send time (``source_time``) and the time
+the failure was known (``receive_time``), and the error text naming the request; one observation
+per distinct (PLC, send time, error). Samples that are bad although their request succeeded (a
+value that does not decode: ``ValueDecodeError``) and the rest of a scan given up after a lost
+connection (never sent: ``receive_time == source_time``) are not failed requests. Samples the
+poller dropped for a slow consumer are not seen.
+
 Exported (``plc`` label per PLC)::
 
     plcstack_plc_up                      1 if the PLC's latest sample was good, else 0
@@ -15,7 +27,9 @@ Exported (``plc`` label per PLC)::
     plcstack_overruns_total              scans that ran past their next due time
     plcstack_samples_total / plcstack_bad_samples_total
     plcstack_writes_total
-    plcstack_request_latency_seconds     histogram
+    plcstack_request_latency_seconds     histogram of successful requests (as the poll table)
+    plcstack_failed_request_latency_seconds  histogram of failed requests, labels plc and error
+                                         (the PlcError type): time until the failure was known
     plcstack_dropped_samples_total       (no label) samples dropped for a slow consumer
     plcstack_buffer_backlog_messages     store-and-forward backlog, per sink
     plcstack_buffer_backlog_bytes
@@ -39,6 +53,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from plcstack.errors import ValueDecodeError
 from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Quality, Sample
 
@@ -54,6 +69,8 @@ __all__ = [
 LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 #: a request head larger than this is refused
 MAX_REQUEST = 8192
+#: failed requests remembered to count each once although all its tags carry it
+SEEN_FAILURES = 4096
 
 
 @dataclass(frozen=True)
@@ -114,13 +131,39 @@ class PlcstackCollector:
         self.rbe = rbe
         self._up: dict[str, bool] = {}
         self._histograms: dict[str, _Histogram] = {}
+        #: (plc, error type name) -> latencies of failed requests
+        self._failures: dict[tuple[str, str], _Histogram] = {}
+        self._seen: dict[tuple[str, float, str | None], None] = {}
 
     def observe(self, samples: Iterable[Sample]) -> None:
-        """Note which PLCs delivered good data (called with every batch, before RBE)."""
+        """Note which PLCs delivered good data and how long failed requests took (called with
+        every batch, before RBE)."""
         up = self._up
         good = Quality.GOOD
         for s in samples:
-            up[s.plc] = s.quality is good
+            ok = s.quality is good
+            up[s.plc] = ok
+            if not ok:
+                self._observe_failure(s)
+
+    def _observe_failure(self, s: Sample) -> None:
+        kind = s.error_type
+        if kind is None or issubclass(kind, ValueDecodeError):
+            return  # not a failed request: the value is bad, or the sample came without a type
+        duration = s.receive_time - s.source_time
+        if not duration > 0:
+            return  # never sent: the rest of a scan after its connection was lost
+        key = (s.plc, s.source_time, s.error)
+        seen = self._seen
+        if key in seen:
+            return  # another tag of the same request
+        seen[key] = None
+        if len(seen) > SEEN_FAILURES:
+            del seen[next(iter(seen))]
+        h = self._failures.get((s.plc, kind.__name__))
+        if h is None:
+            h = self._failures[(s.plc, kind.__name__)] = _Histogram()
+        h.add((duration,))
 
     def refresh(self) -> None:
         """Move the latencies added since the last call into the histograms."""
@@ -170,6 +213,14 @@ class PlcstackCollector:
         for name, h in self._histograms.items():
             hist.add_metric([name], h.buckets(), h.sum)
         yield hist
+        failed = HistogramMetricFamily(
+            "plcstack_failed_request_latency_seconds",
+            "time from sending a request until it was known to have failed, per error type",
+            labels=["plc", "error"],
+        )
+        for (name, kind), h in self._failures.items():
+            failed.add_metric([name, kind], h.buckets(), h.sum)
+        yield failed
         yield CounterMetricFamily(
             "plcstack_dropped_samples",
             "samples dropped because the consumer fell behind",
@@ -241,9 +292,16 @@ class MetricsServer:
         self.port = self.settings.port
 
     async def start(self) -> None:
-        self._server = await asyncio.start_server(
-            self._handle, self.settings.host, self.settings.port, limit=MAX_REQUEST
-        )
+        """Listen; :class:`ConfigError` naming the address if that is not possible (a port
+        taken, e.g. by a second process started from the same file)."""
+        host, port = self.settings.host, self.settings.port
+        try:
+            self._server = await asyncio.start_server(self._handle, host, port, limit=MAX_REQUEST)
+        except OSError as exc:
+            raise ConfigError(
+                f"[metrics] cannot serve /metrics on {host}:{port}: {exc.strerror or exc}"
+                " (another process on that port? set [metrics] port)"
+            ) from None
         self.port = self._server.sockets[0].getsockname()[1]
         self._refresher = asyncio.create_task(self._refresh_loop())
 

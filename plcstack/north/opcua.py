@@ -50,7 +50,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -777,12 +777,18 @@ class OpcUaServer:
             except Exception:  # one bad batch must not end the feed of every later one
                 log.exception("OPC UA server: applying %d samples failed", len(batch))
 
-    async def run(self) -> None:
-        """Consume the poller's samples until it is closed (or this task is cancelled)."""
+    async def run(self, observe: Callable[[list[Sample]], object] | None = None) -> None:
+        """Consume the poller's samples until it is closed (or this task is cancelled).
+
+        ``observe`` sees every batch first (the metrics collector's ``observe``: ``plcstack
+        serve opcua`` with ``[metrics]``).
+        """
         poller = self.poller
         async for sample in poller:
             batch = [sample]
             batch.extend(poller.drain())
+            if observe is not None:
+                observe(batch)
             await self.send(batch)
 
     # -- writes out -------------------------------------------------------------------------
@@ -826,12 +832,18 @@ class OpcUaServer:
         return _S.Good
 
 
-async def run_until(server: OpcUaServer, stop: asyncio.Event, timeout: float | None = None) -> None:
-    """Feed a started server from its poller until ``stop`` is set or ``timeout`` seconds passed.
+async def run_until(
+    server: OpcUaServer,
+    stop: asyncio.Event,
+    timeout: float | None = None,
+    observe: Callable[[list[Sample]], object] | None = None,
+) -> None:
+    """Feed a started server from its poller until ``stop`` is set or ``timeout`` seconds passed
+    (``observe``: see :meth:`OpcUaServer.run`).
 
     A failure of the feed itself (a bug) is raised, not swallowed with the cancellation.
     """
-    feeder = asyncio.create_task(server.run(), name="opcua feed")
+    feeder = asyncio.create_task(server.run(observe), name="opcua feed")
     stopper = asyncio.create_task(stop.wait())
     try:
         await asyncio.wait({feeder, stopper}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
