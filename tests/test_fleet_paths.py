@@ -372,3 +372,72 @@ async def test_poller_schedule_is_the_same_with_the_shared_timer(shared: bool) -
     # the scan in flight at aclose() counts as a scan, not a request
     assert all(s.scans - 1 <= s.requests <= s.scans and s.errors == 0 for s in stats.values())
     assert sum(s.overruns for s in stats.values()) <= 20
+
+
+# -- E71 codec: take_answer, the whole answer of a poll in one step --------------------------------
+def _general_answer(codec: E71ClientConnection, chunk: bytes) -> list[Any]:
+    """What the exchange's general path makes of ``chunk``: feed, decode, then look for more."""
+    out: list[Any] = []
+    try:
+        codec.receive_data(chunk)
+        event = codec.next_event()
+        out.append(event)
+        if event is not NEED_DATA:
+            out.append(codec.next_event())
+    except PlcError as exc:
+        out.append(("error", type(exc).__name__, str(exc)))
+    return out
+
+
+def _quick_answer(codec: E71ClientConnection, chunk: bytes) -> list[Any]:
+    try:
+        event = codec.take_answer(chunk)
+    except PlcError as exc:  # it must never raise: the general path reports
+        return [("take_answer raised", type(exc).__name__, str(exc))]
+    if event is None:
+        return _general_answer(codec, chunk)
+    return [event, NEED_DATA]
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    before=st.lists(st.tuples(st.sampled_from(_REQUESTS), _answers), max_size=3),
+    leftover=st.binary(max_size=3),
+    request=st.sampled_from(_REQUESTS),
+    chunk=st.one_of(_answers, st.binary(max_size=10)),
+    then=_answers,
+)
+def test_e71_take_answer_decides_as_the_general_path(
+    before: list[tuple[Any, bytes]], leftover: bytes, request: Any, chunk: bytes, then: bytes
+) -> None:
+    """Whatever came before (answers, a 5BH trailer owed, bytes left over), ``take_answer``
+    either gives what feeding, decoding and finding nothing more gives, or takes nothing; and
+    the codec goes on exactly alike."""
+    runs = []
+    for take in (_quick_answer, _general_answer):
+        codec = E71ClientConnection("binary", transport="tcp")
+        out: list[Any] = []
+        try:
+            for req, answer in before:
+                out.append(codec.send(req))
+                out += _general_answer(codec, answer)
+            codec.receive_data(leftover)
+            out.append(codec.send(request))
+            out += take(codec, chunk)
+            out.append(codec.send(_READ))
+            out += _general_answer(codec, then)
+        except PlcError as exc:
+            out.append(("error", type(exc).__name__, str(exc)))
+        runs.append(out)
+    assert runs[0] == runs[1]
+
+
+def test_e71_take_answer_takes_the_normal_answer_to_one_word_read() -> None:
+    codec = E71ClientConnection("binary", transport="tcp")
+    codec.send(_READ)
+    event = codec.take_answer(b"\x81\x00\x01\x00\x02\x00\x03\x00")
+    assert event is not None and event.values == (1, 2, 3)
+    assert codec.pending == 0 and codec.next_event() is NEED_DATA
+    codec.send(_READ)
+    assert codec.take_answer(b"\x81\x00\x01\x00\x02\x00") is None  # short: general path
+    assert codec.pending == 1

@@ -42,9 +42,22 @@ SCRIPT: list[Outcome] = [
 EXPECTED_SAMPLES = 16
 
 
-async def _run(inline: bool) -> tuple[list[tuple[object, ...]], dict[str, int], int]:
+TWO_TAGS = (
+    TagConfig("a", "D0", vt.RAW, 1, "default"),
+    TagConfig("b", "D1", vt.RAW, 1, "default"),
+)
+
+
+async def _run(
+    inline: bool,
+    *,
+    whole: bool = True,
+    tags: tuple[TagConfig, ...] = TWO_TAGS,
+    script_of: list[Outcome] = SCRIPT,
+    expected: int = EXPECTED_SAMPLES,
+) -> tuple[list[tuple[object, ...]], dict[str, int], int]:
     fake = FakeClient("fake://p")
-    script = list(SCRIPT)
+    script = list(script_of)
     block = asyncio.Event()  # never set: after the script every read waits, counters freeze
     waiting = asyncio.Event()  # set once a read is waiting on ``block``
 
@@ -56,7 +69,6 @@ async def _run(inline: bool) -> tuple[list[tuple[object, ...]], dict[str, int], 
         await asyncio.sleep(0)
         if callable(outcome):
             raise outcome()
-        assert len(outcome) == count, (address, count)
         return list(outcome)
 
     fake.read = scripted  # type: ignore[method-assign]
@@ -64,19 +76,16 @@ async def _run(inline: bool) -> tuple[list[tuple[object, ...]], dict[str, int], 
     def factory(plc: PlcConfig) -> Client:
         return fake
 
-    tags = (
-        TagConfig("a", "D0", vt.RAW, 1, "default"),
-        TagConfig("b", "D1", vt.RAW, 1, "default"),
-    )
     config = PollConfig((PlcConfig("p", "e71+tcp://127.0.0.1:1", tags),), {"default": 0.001})
     poller = Poller(config, client_factory=factory)
     poller.inline_single_request = inline
+    poller.whole_reply_samples = whole
     samples: list[Sample] = []
     async with asyncio.timeout(10):
         async with poller:
             async for sample in poller:
                 samples.append(sample)
-                if len(samples) == EXPECTED_SAMPLES:
+                if len(samples) == expected:
                     break
             await waiting.wait()  # the scan after the script has begun, and stays open
             st = poller.stats["p"]
@@ -116,3 +125,54 @@ async def test_script_gives_the_expected_samples(inline: bool) -> None:
 
 async def test_inline_and_scan_paths_agree() -> None:
     assert await _run(inline=True) == await _run(inline=False)
+
+
+#: one tag that is the whole reply of its request: the path that hands the reply out as the
+#: sample's value (``ScanPlan.whole_reply_tag``); a short reply and failures in between
+WHOLE_SCRIPT: list[Outcome] = [
+    [1, 2, 3],
+    lambda: PlcTimeout("no answer within 0.5 s"),
+    [4, 5, 6],
+    [7, 8],
+    lambda: KeyError("client bug"),
+    [9, 10, 11],
+]
+WHOLE_TAG = (TagConfig("w", "D0", vt.RAW, 3, "default"),)
+
+
+async def test_whole_reply_samples_agree_with_the_general_delivery() -> None:
+    runs = {
+        (inline, whole): await _run(
+            inline, whole=whole, tags=WHOLE_TAG, script_of=WHOLE_SCRIPT, expected=6
+        )
+        for inline, whole in [(True, True), (True, False), (False, True)]
+    }
+    assert runs[(True, True)] == runs[(True, False)] == runs[(False, True)]
+    samples, counters, _ = runs[(True, True)]
+    assert [value for _, _, value, _, _ in samples] == [
+        [1, 2, 3],
+        None,
+        [4, 5, 6],
+        None,
+        None,
+        [9, 10, 11],
+    ]
+    assert "reply has 2 points, 3 were requested" in str(samples[3][4])
+    assert counters["samples"] == 6 and counters["bad_samples"] == 3
+
+
+@pytest.mark.parametrize(
+    ("tags", "whole"),
+    [
+        (WHOLE_TAG, "w"),
+        ((TagConfig("w", "D0", vt.RAW, 1, "default"),), None),  # a scalar, not a list
+        ((TagConfig("w", "D0", vt.INT16, 3, "default"),), None),  # decoded, not raw
+        (TWO_TAGS, None),  # two tags share the reply
+    ],
+)
+def test_whole_reply_tag_only_for_one_unscaled_raw_list(
+    tags: tuple[TagConfig, ...], whole: str | None
+) -> None:
+    config = PollConfig((PlcConfig("p", "e71+tcp://127.0.0.1:1", tags),), {"default": 1.0})
+    poller = Poller(config, client_factory=lambda plc: FakeClient("fake://p"))
+    assert poller.plan("p", "default").whole_reply_tag() == whole

@@ -14,6 +14,7 @@ from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Generic, Protocol, Self, TypeVar, overload
 
+from plcstack.clients.flight import SingleFlight
 from plcstack.clients.options import COMMON, Option, resolve
 from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
@@ -131,7 +132,8 @@ class Client(AsyncResource):
         self.connect_timeout = check_seconds("connect_timeout", connect_timeout, plc=name)
         self.backoff = backoff if backoff is not None else Backoff()
         self.stats = ClientStats()
-        self._lock = asyncio.Lock()
+        #: one request in flight per connection (see :mod:`.flight`)
+        self._lock = SingleFlight()
         self._next_attempt = 0.0
         #: what the last failed connect (or unproven connection) said; "" after a connect
         self._backoff_detail = ""
@@ -469,6 +471,10 @@ class RequestClient(Client, Generic[E]):
 
     codec: ClientCodec
 
+    #: the codec has ``take_answer(chunk)``: the whole answer to the one pending request from
+    #: one chunk in one step, or None with nothing taken (see ``exchange``; E71 binary TCP)
+    quick_answers = False
+
     #: True: always let the event loop run once before a request (the general path of the
     #: check for unsolicited bytes), even where the transport could ask the OS instead. Tests
     #: set it to compare both paths; nothing else needs to.
@@ -521,30 +527,35 @@ class RequestClient(Client, Generic[E]):
         must not await): a client's ``read`` can then hand out this coroutine itself instead
         of awaiting it in one of its own, one coroutine fewer per request on the polling path.
         """
-        async with self._lock:
+        flight = self._lock
+        if not flight.try_acquire():
+            await flight.acquire()
+        try:
             transport = self.transport
-            if not transport.is_open:
-                await self._ensure_open(what)
-                transport = self.transport
             # Anything that arrived since the last answer (a duplicated answer, the rest of a
             # too-long one, bytes from a confused peer) would otherwise be decoded as the answer
             # to this request. Without a transaction id the only safe reaction is a fresh
             # connection before sending. Bytes the OS holds but the loop has not delivered yet
             # need two loop passes: in the first, asyncio's selector finds them and queues the
             # reader *behind* this task; in the second, the reader has run. A transport that can
-            # ask the OS (TCP: one ``poll``) and hears "nothing waits" spares the request both
-            # passes (fast path; tests/test_fleet_paths.py compares the two).
-            if self.stale_check_needs_loop_pass or transport.input_waiting():
-                await asyncio.sleep(0)
-                await asyncio.sleep(0)
-            stale = self._unsolicited_input()
-            if stale is not None or not transport.is_open:
-                if stale is not None:
-                    _log.warning("%s: %s; reconnecting before %s", self.name, stale, what)
-                    self.stats.errors += 1
-                self._drop()
-                await self._ensure_open(what)
-                transport = self.transport
+            # ask the OS (TCP: one ``poll``) and hears "open, nothing queued, nothing waits"
+            # (``quiet``), with a codec that holds nothing, spares the request all of it (fast
+            # path; tests/test_fleet_paths.py compares the two).
+            if self.stale_check_needs_loop_pass or not self._settled or not transport.quiet():
+                if not transport.is_open:
+                    await self._ensure_open(what)
+                    transport = self.transport
+                if self.stale_check_needs_loop_pass or transport.input_waiting():
+                    await asyncio.sleep(0)
+                    await asyncio.sleep(0)
+                stale = self._unsolicited_input()
+                if stale is not None or not transport.is_open:
+                    if stale is not None:
+                        _log.warning("%s: %s; reconnecting before %s", self.name, stale, what)
+                        self.stats.errors += 1
+                    self._drop()
+                    await self._ensure_open(what)
+                    transport = self.transport
             self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
             # every chunk of this answer, kept only for the diagnosis on the failure path (a
@@ -561,6 +572,21 @@ class RequestClient(Client, Generic[E]):
                 sent = True
                 expires = asyncio.get_running_loop().time() + deadline
                 event = NEED_DATA if settled else codec.next_event()
+                whole = False  # the answer came whole, alone, and was taken in one step
+                if settled and self.quick_answers:
+                    # The usual case of a poll: the whole answer in one chunk and nothing more.
+                    # ``take_answer`` decides exactly as feeding the chunk, decoding and finding
+                    # nothing after it would, or takes nothing and says None (the general
+                    # decoding below then runs as before).
+                    chunk = await transport.read(expires)
+                    # only codecs with the method set ``quick_answers`` (no cast: a call)
+                    quick = codec.take_answer(chunk)  # type: ignore[attr-defined]
+                    if quick is None:
+                        first = chunk
+                        codec.receive_data(chunk)
+                        event = codec.next_event()
+                    else:
+                        event, whole = quick, True
                 while event is NEED_DATA:
                     chunk = await transport.read(expires)
                     if chunks is not None:
@@ -571,7 +597,8 @@ class RequestClient(Client, Generic[E]):
                         first = chunk
                     codec.receive_data(chunk)
                     event = codec.next_event()
-                self._check_nothing_follows(codec)
+                if not whole:
+                    self._check_nothing_follows(codec)
                 self._settled = True
                 if self._unproven:
                     self._answered()
@@ -601,6 +628,9 @@ class RequestClient(Client, Generic[E]):
             except PlcError as exc:
                 self.stats.errors += 1
                 raise exc.bind(plc=self.name, request=what) from None
+        finally:
+            flight.release()
+
         # every failure above raised: ``event`` is the answer
         return event if finish is None else finish(event, what)
 

@@ -132,6 +132,8 @@ class E71Client(E71CommandsMixin):
             raise AddressError("rab_ascii_sub_chars must be 2 or 4", plc=name)
         self.rab_ascii_sub_chars = rab_ascii_sub_chars
         self._udp = isinstance(transport, UdpTransport)
+        #: binary over TCP: the codec takes a whole normal 01H answer in one step (exchange)
+        self.quick_answers = not self._udp and self.code is Code.BINARY
         # The monitor registration lives in the PLC, not in the connection: keep what we
         # registered across reconnects so 88H/89H can still be sized.
         self._monitor: tuple[int | None, int | None] = (None, None)
@@ -156,9 +158,6 @@ class E71Client(E71CommandsMixin):
         codec = E71ClientConnection(self.code, transport="udp" if self._udp else "tcp")
         codec.monitor_bits, codec.monitor_words = self._monitor
         return codec
-
-    def connection_made(self) -> None:
-        self.codec = self.new_codec()
 
     # -- plumbing -------------------------------------------------------------------------------
     def _hdr(self) -> dict[str, int]:

@@ -354,6 +354,32 @@ class ClientConnection(ErrorState):
             self._framer.after_abnormal()
         return event
 
+    def take_answer(self, data: bytes) -> WordsResponse | None:
+        """The normal answer to the one pending 01H read, when ``data`` is exactly that answer
+        and nothing is buffered before it (binary over TCP); else ``None`` and nothing taken.
+
+        One step for what a poll does on every request: ``receive_data(data)``, then
+        ``next_event()`` giving the words, then ``next_event()`` finding nothing after them.
+        Where that would decide anything else (an error code, a short or long or split
+        answer, a trailer to skip, several pending requests), the caller takes the general
+        path with the same bytes (tests/test_fleet_paths.py compares both).
+        """
+        stream = self._fast_stream
+        pending = self._pending
+        if (
+            stream is None
+            or self.error is not None
+            or len(pending) != 1
+            or type(req := pending[0]) is not ReadWords
+            or len(data) != 2 + 2 * req.count
+            or not data.startswith(_NORMAL_01H)
+            or not stream.is_empty()
+        ):
+            return None
+        pending.popleft()
+        unpack = _WORDS_STRUCTS.get(req.count) or _words_struct(req.count)
+        return WordsResponse(1, unpack.unpack_from(data, 2))
+
     # -- sizing and decoding ------------------------------------------------------------------
     def _response_size(self, req: E71Request, head: bytes) -> int | None:
         """Whole length of the response to ``req`` that starts with ``head`` (§11.2)."""

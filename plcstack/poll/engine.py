@@ -90,6 +90,9 @@ class _Group:
     plan: ScanPlan
     next_due: float = 0.0
     isolate: frozenset[str] = frozenset()
+    #: ``plan.whole_reply_tag()``, and the plan it was computed for (plans are rebuilt)
+    whole: str | None = None
+    whole_of: ScanPlan | None = None
 
 
 @dataclass(slots=True)
@@ -133,6 +136,10 @@ class Poller(AsyncResource):
     #: the PLC tasks wait for their next scan on one shared :class:`Ticker` instead of one
     #: ``asyncio.sleep`` timer each; tests turn it off to compare both
     shared_timer = True
+    #: a scan whose one tag is the whole reply of its one request (``ScanPlan.whole_reply_tag``)
+    #: hands the reply out as the sample's value without ``_deliver``; tests turn this off to
+    #: compare both
+    whole_reply_samples = True
 
     def __init__(self, config: PollConfig, *, client_factory: ClientFactory | None = None) -> None:
         self.config = config
@@ -392,6 +399,12 @@ class Poller(AsyncResource):
         stats = plc.stats
         only = groups[0] if len(groups) == 1 else None
         inline = self.inline_single_request
+        whole_samples = self.whole_reply_samples
+        queue = self._queue
+        limit = self.config.queue
+        wakeup = self._wakeup
+        name = plc.config.name
+        good = Quality.GOOD
         # one loop timer for every PLC's next scan (see ticker.py); tests may switch it off to
         # compare with asyncio.sleep
         ticker = self._ticker if self.shared_timer else None
@@ -436,13 +449,37 @@ class Poller(AsyncResource):
                             semaphore.release()
                     end = clock()
                     offset = wall - start
+                    whole: str | None = None
                     if isinstance(reply, PlcError):
                         unyielded = MAX_SCANS_WITHOUT_YIELD
                     else:
                         stats.latencies.append(end - start)
                         stats.requests += 1
                         unyielded += 1
-                    self._deliver(plc, plan, (reply,), start + offset, end + offset, None, None)
+                        if group.whole_of is not plan:
+                            group.whole_of, group.whole = plan, plan.whole_reply_tag()
+                        if whole_samples and len(reply) == request.count:
+                            whole = group.whole
+                    if whole is not None:
+                        # What _deliver gives for this plan, without its copy of the reply (see
+                        # ScanPlan.whole_reply_tag): one good sample with the reply as value.
+                        sample = make_sample(
+                            name,
+                            whole,
+                            reply,  # type: ignore[arg-type]  # the list client.read returned
+                            good,
+                            start + offset,
+                            end + offset,
+                            None,
+                        )
+                        queue.append(sample)
+                        stats.samples += 1
+                        if len(queue) > limit:
+                            self._trim()
+                        wakeup.set()
+                        del sample
+                    else:
+                        self._deliver(plc, plan, (reply,), start + offset, end + offset, None, None)
                     # this task lives on: drop the reply before the next wait, or each PLC keeps
                     # its last reply (64 words: about 2.5 KiB of int objects) alive until then
                     del reply

@@ -112,6 +112,27 @@ class ScanPlan:
     requests: tuple[ReadRequest, ...]
     tags: tuple[TagPlan, ...]
 
+    def whole_reply_tag(self) -> str | None:
+        """The name of the one tag whose value is the whole reply of the one request, as read
+        (``raw``, more than one point, no scale, no bit), else None.
+
+        For such a plan :meth:`extract` gives a copy of the reply, so the poller may hand the
+        reply itself out as the sample's value (it is a fresh list no one else holds).
+        """
+        if len(self.requests) != 1 or len(self.tags) != 1:
+            return None
+        plan = self.tags[0]
+        tag, count = plan.tag, self.requests[0].count
+        if (
+            tag.type is not RAW
+            or tag.count < 2
+            or tag.scale is not None
+            or plan.bit is not None
+            or plan.pieces != (Piece(0, 0, count),)
+        ):
+            return None
+        return tag.name
+
     def tags_of(self, request: int) -> list[TagConfig]:
         return [t.tag for t in self.tags if request in t.request_ids]
 

@@ -71,6 +71,15 @@ class Transport(ABC):
         The request clients check between requests that nothing unsolicited arrived."""
         return []
 
+    def quiet(self) -> bool:
+        """Open, nothing received and unread, and nothing waiting in the OS: a request may be
+        sent at once, without the stale-input check's loop passes (see ``input_waiting``).
+
+        One call for the polling hot path; ``False`` (the default) sends every request down
+        the general path, which is always correct.
+        """
+        return False
+
     def input_waiting(self) -> bool:
         """Whether bytes may wait in the OS that the event loop has not handed to us yet.
 
@@ -136,9 +145,12 @@ class QueueProtocolMixin:
         #: the one deadline timer and the loop time it is armed for
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at = 0.0
+        #: the loop the connection runs on (set when it is made; read on every wait)
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._flow = transport
+        self._loop = asyncio.get_running_loop()
 
     def _push(self, data: bytes) -> None:
         counters = self.counters
@@ -168,10 +180,11 @@ class QueueProtocolMixin:
             waiter.set_result(None)
 
     async def _next_chunk(self, join: bool, deadline: float | None = None) -> bytes:
-        while not self._chunks:
+        chunks = self._chunks
+        while not chunks:
             if self._closed_exc is not None:
                 raise ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
-            loop = asyncio.get_running_loop()
+            loop = self._loop or asyncio.get_running_loop()
             self._waiter = waiter = loop.create_future()
             if deadline is not None:
                 self._deadline = deadline
@@ -185,12 +198,15 @@ class QueueProtocolMixin:
             finally:
                 self._waiter = None
                 self._deadline = None
-        if join and len(self._chunks) > 1:
-            data = b"".join(self._chunks)
-            self._chunks.clear()
+        if join and len(chunks) > 1:
+            data = b"".join(chunks)
+            chunks.clear()
         else:
-            data = self._chunks.popleft()
-        self._taken(len(data))
+            data = chunks.popleft()
+        counters = self.counters
+        counters.queued -= len(data)
+        if self._paused:
+            self._taken(0)
         return data
 
     def _taken(self, n: int) -> None:

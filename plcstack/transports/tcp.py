@@ -82,6 +82,35 @@ class TcpTransport(ProtocolTransport):
         self._transport, self._protocol = transport, protocol
         self._watch = watch
 
+    def quiet(self) -> bool:
+        """Open, no chunk queued, and the kernel holds nothing for the socket (one ``poll``)."""
+        watch, protocol, transport = self._watch, self._protocol, self._transport
+        if (
+            watch is None
+            or protocol is None
+            or transport is None
+            or protocol._closed_exc is not None
+            or protocol._chunks
+            or transport.is_closing()
+        ):
+            return False
+        try:
+            return not watch.poll(0)
+        except OSError:
+            return False
+
+    def write(self, data: bytes) -> None:
+        # ``ProtocolTransport.write`` with its checks inlined: on every request's path
+        transport, protocol = self._transport, self._protocol
+        if (
+            transport is None
+            or protocol is None
+            or protocol._closed_exc is not None
+            or transport.is_closing()
+        ):
+            raise ConnectionLost(f"not connected to {self.peer}")
+        transport.write(data)  # type: ignore[attr-defined]
+
     def input_waiting(self) -> bool:
         """Ask the kernel (one ``poll`` with timeout 0) whether the socket has anything the loop
         has not handled yet: received bytes, the peer's end of stream, an error.
