@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
+from plcstack.transports.deadlines import deadlines_of
 
 __all__ = [
     "MAX_QUEUED",
@@ -142,8 +143,8 @@ class QueueProtocolMixin:
         self._closed_exc: BaseException | None = None
         #: deadline of the wait in progress (``None``: none, or a wait without deadline)
         self._deadline: float | None = None
-        #: the one deadline timer and the loop time it is armed for
-        self._timer: asyncio.TimerHandle | None = None
+        #: whether the one deadline timer is armed, and the loop time it is armed for
+        self._timer = False
         self._timer_at = 0.0
         #: the loop the connection runs on (set when it is made; read on every wait)
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -191,7 +192,7 @@ class QueueProtocolMixin:
                 # One timer serves consecutive waits: it is re-armed only for an earlier
                 # deadline (here) or, when it fires, for a later one (``_on_timer``). A fresh
                 # timer per read cost a TimerHandle, a heap push and a cancel on every request.
-                if self._timer is None or self._timer_at > deadline:
+                if not self._timer or self._timer_at > deadline:
                     self._arm(loop, deadline)
             try:
                 await waiter
@@ -221,19 +222,23 @@ class QueueProtocolMixin:
                 flow.resume_reading()  # type: ignore[attr-defined]
 
     def _arm(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
-        if self._timer is not None:
-            self._timer.cancel()
-        self._timer = loop.call_at(when, self._on_timer)
+        # on the loop's shared deadline heap (deadlines.py); an entry armed before is left
+        # to come due and be ignored (``_on_timer`` compares its time with ``_timer_at``)
+        self._timer = True
         self._timer_at = when
+        deadlines_of(loop).call_at(when, self._on_timer)
 
-    def _on_timer(self) -> None:
-        """The timer fired at ``_timer_at``: expire the current wait if its deadline is due,
-        re-arm for it if it is later, and lapse if nobody waits with a deadline."""
-        self._timer = None
+    def _on_timer(self, when: float) -> None:
+        """A timer armed for ``when`` fired: if it is the current one, expire the current wait
+        if its deadline is due, re-arm for it if it is later, and lapse if nobody waits with a
+        deadline."""
+        if not self._timer or when != self._timer_at:
+            return  # replaced by an earlier one, or lapsed
+        self._timer = False
         deadline, waiter = self._deadline, self._waiter
         if deadline is None or waiter is None or waiter.done():
             return
-        if deadline <= self._timer_at:
+        if deadline <= when:
             waiter.set_exception(TimeoutError())
         else:
             self._arm(asyncio.get_running_loop(), deadline)
