@@ -7,7 +7,7 @@ import asyncio
 import gc
 import weakref
 
-from plcstack.transports.deadlines import Deadlines, deadlines_of
+from plcstack.transports.deadlines import Deadlines, deadlines_of, future_factory
 
 
 class _Conn:
@@ -70,3 +70,22 @@ def test_a_closed_loop_is_collected_with_entries_pending() -> None:
     del loop, conn  # only the pending entry could still reach them now
     gc.collect()
     assert gone() is None
+
+
+async def test_future_factory_makes_the_loops_futures() -> None:
+    loop = asyncio.get_running_loop()
+    future = future_factory(loop)()
+    assert isinstance(future, asyncio.Future) and future.get_loop() is loop
+    assert type(future) is type(loop.create_future())
+
+
+def test_future_factory_keeps_a_loops_own_create_future() -> None:
+    class OwnFutures(asyncio.SelectorEventLoop):
+        def create_future(self) -> asyncio.Future[object]:
+            return super().create_future()
+
+    loop = OwnFutures()
+    try:
+        assert future_factory(loop) == loop.create_future  # the loop's own method, kept
+    finally:
+        loop.close()

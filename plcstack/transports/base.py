@@ -11,12 +11,12 @@ from __future__ import annotations
 import asyncio
 import collections
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable, Coroutine
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
-from plcstack.transports.deadlines import deadlines_of
+from plcstack.transports.deadlines import deadlines_of, future_factory
 
 __all__ = [
     "MAX_QUEUED",
@@ -146,12 +146,12 @@ class QueueProtocolMixin:
         #: whether the one deadline timer is armed, and the loop time it is armed for
         self._timer = False
         self._timer_at = 0.0
-        #: the loop the connection runs on (set when it is made; read on every wait)
-        self._loop: asyncio.AbstractEventLoop | None = None
+        #: ``loop.create_future`` of the connection's loop (``future_factory``), set when it is made
+        self._new_future: Callable[[], asyncio.Future[Any]] | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._flow = transport
-        self._loop = asyncio.get_running_loop()
+        self._new_future = future_factory(asyncio.get_running_loop())
 
     def _push(self, data: bytes) -> None:
         counters = self.counters
@@ -185,15 +185,17 @@ class QueueProtocolMixin:
         while not chunks:
             if self._closed_exc is not None:
                 raise ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
-            loop = self._loop or asyncio.get_running_loop()
-            self._waiter = waiter = loop.create_future()
+            new_future = self._new_future
+            if new_future is None:  # a protocol whose connection_made did not run ours
+                new_future = self._new_future = future_factory(asyncio.get_running_loop())
+            self._waiter = waiter = new_future()
             if deadline is not None:
                 self._deadline = deadline
                 # One timer serves consecutive waits: it is re-armed only for an earlier
                 # deadline (here) or, when it fires, for a later one (``_on_timer``). A fresh
                 # timer per read cost a TimerHandle, a heap push and a cancel on every request.
                 if not self._timer or self._timer_at > deadline:
-                    self._arm(loop, deadline)
+                    self._arm(asyncio.get_running_loop(), deadline)
             try:
                 await waiter
             finally:

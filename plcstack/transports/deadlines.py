@@ -16,14 +16,16 @@ time, so the heap holds about one entry per connection.
 from __future__ import annotations
 
 import asyncio
+import functools
 import heapq
 import itertools
 import math
 import time
 import weakref
 from collections.abc import Callable
+from typing import Any
 
-__all__ = ["Deadlines", "deadlines_of"]
+__all__ = ["Deadlines", "deadlines_of", "future_factory"]
 
 
 class Deadlines:
@@ -94,3 +96,15 @@ def deadlines_of(loop: asyncio.AbstractEventLoop) -> Deadlines:
     if found is None:
         found = _BY_LOOP[loop] = Deadlines(loop)
     return found
+
+
+def future_factory(loop: asyncio.AbstractEventLoop) -> Callable[[], asyncio.Future[Any]]:
+    """``loop.create_future`` without its Python frame where that is all it is.
+
+    asyncio's own loops implement ``create_future`` as a Python method that only calls the
+    ``Future`` class; on the polling path (two futures a request) calling the class directly
+    saves that call. Any other loop (uvloop, one that makes its own futures) keeps its method.
+    """
+    if type(loop).create_future is asyncio.BaseEventLoop.create_future:
+        return functools.partial(asyncio.Future, loop=loop)
+    return loop.create_future
