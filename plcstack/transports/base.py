@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import select
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass
@@ -260,6 +261,42 @@ class ProtocolTransport(Transport):
         self.peer = peer
         self._transport: asyncio.BaseTransport | None = None
         self._protocol: QueueProtocolMixin | None = None
+        #: a poll object watching the socket while open (:func:`watch_socket`); None when closed
+        #: or not a socket (serial)
+        self._watch: select.poll | None = None
+
+    def quiet(self) -> bool:
+        """Open, no chunk queued, and the kernel holds nothing for the socket (one ``poll``)."""
+        watch, protocol, transport = self._watch, self._protocol, self._transport
+        if (
+            watch is None
+            or protocol is None
+            or transport is None
+            or protocol._closed_exc is not None
+            or protocol._chunks
+            or transport.is_closing()
+        ):
+            return False
+        try:
+            return not watch.poll(0)
+        except OSError:
+            return False
+
+    def input_waiting(self) -> bool:
+        """Ask the kernel (one ``poll`` with timeout 0) whether the socket has anything the loop
+        has not handled yet: received bytes or datagrams (an empty one too), the peer's end of
+        stream, an error.
+
+        The descriptor is ours until ``connection_lost`` has run (which sets ``_closed_exc``);
+        after that, or without a watched socket, the answer is "maybe" (``True``).
+        """
+        watch, protocol = self._watch, self._protocol
+        if watch is None or protocol is None or protocol._closed_exc is not None:
+            return True
+        try:
+            return bool(watch.poll(0))
+        except OSError:
+            return True
 
     @property
     def is_open(self) -> bool:
@@ -303,8 +340,30 @@ class ProtocolTransport(Transport):
         transport = self._transport
         self._transport = None
         self._protocol = None
+        self._watch = None
         if transport is not None:
             transport.abort()  # type: ignore[attr-defined]
+
+
+#: what makes a socket "have something for the loop": data, end of stream, an error
+_READABLE = (
+    getattr(select, "POLLIN", 0)
+    | getattr(select, "POLLPRI", 0)
+    | getattr(select, "POLLRDHUP", 0)
+    | getattr(select, "POLLERR", 0)
+    | getattr(select, "POLLHUP", 0)
+)
+
+
+def watch_socket(transport: asyncio.BaseTransport) -> select.poll | None:
+    """A ``poll`` object on the transport's socket, for ``quiet``/``input_waiting``; None
+    where there is no socket or no ``poll`` (those then always take the general path)."""
+    sock = transport.get_extra_info("socket")
+    if sock is None or not hasattr(select, "poll"):
+        return None
+    watch = select.poll()
+    watch.register(sock.fileno(), _READABLE)
+    return watch
 
 
 async def open_with_timeout(peer: str, coro: Awaitable[T], timeout: float | None) -> T:
