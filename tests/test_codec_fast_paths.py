@@ -8,6 +8,11 @@
   bit-device heads off a multiple of 16, non-references) included.
 * E71 decoding of a normal 01H answer over TCP in one step, against the general framer, on
   random answer streams cut at random places (see also ``tests/test_fleet_paths.py``).
+* AS511 PG machine: a whole expected answer (DLE ACK, STX, accept and terminate frame) taken
+  as one step, and a data frame un-stuffed with ``bytes.replace``, against the byte-by-byte
+  machine (fast paths off, one byte per call) on normal and damaged answer streams with random
+  cuts and late chunks: the same bytes sent, state, deadlines, events and errors after every
+  chunk; the spec's golden sequences on both paths.
 * :func:`plcstack.codecs._common.slot_init`: the replacement ``__init__`` builds the objects the
   generated one builds, with the same signature.
 """
@@ -23,7 +28,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from plcstack.bench import frames
+from plcstack.codecs import as511
 from plcstack.codecs._common import GENERATED_INITS, NEED_DATA
+from plcstack.codecs.as511 import (
+    Job,
+    PGConnection,
+    Unstuffer,
+    read_job,
+    stuff,
+    system_parameters_job,
+    write_job,
+)
 from plcstack.codecs.e71 import (
     Code,
     Device,
@@ -36,6 +52,7 @@ from plcstack.codecs.e71 import (
 from plcstack.codecs.e71_events import _Header
 from plcstack.codecs.e71_framing import StreamResponses
 from plcstack.errors import PlcError
+from tests.test_as511_codec import GOLDENS, run_pg
 
 _REFS: list[Any] = [
     DeviceRef(Device.D, 0),
@@ -255,3 +272,183 @@ def test_slot_init_builds_what_the_generated_init_builds(cls: type) -> None:
     for f in fields:
         if f.default is not dataclasses.MISSING:
             assert getattr(partial, f.name) == f.default
+
+
+# -- AS511: whole answers in one step, a data frame un-stuffed with bytes.replace ----------------
+def _as511_jobs() -> st.SearchStrategy[tuple[Job, bytes | None]]:
+    """A job and the AG's normal (unstuffed) data frame for it; data full of 10h and 03h."""
+    data = st.binary(max_size=40).map(
+        lambda b: b.replace(b"\x01", b"\x10").replace(b"\x02", b"\x03")
+    )
+    reads = st.tuples(st.integers(0, 0x1000), data).map(
+        lambda t: (read_job(t[0], len(t[1]) or 1), bytes(5) + (t[1] or b"\x10"))
+    )
+    writes = st.tuples(st.integers(0x1000, 0x1010), data.filter(bool)).map(
+        lambda t: (write_job(t[0], t[1]), None)
+    )
+    unknown = data.map(lambda d: (system_parameters_job(), b"\x00" + d))  # no length known
+    return st.one_of(reads, writes, unknown)
+
+
+@st.composite
+def _as511_dialogues(draw: st.DrawFn) -> tuple[Job, list[tuple[bytes, float]], list[bool]]:
+    """A job, the AG's answer stream (normal, or with a byte changed, dropped or added, or a
+    different terminate byte), cut into chunks each with its arrival time (sometimes after a
+    deadline), and whether to call ``timer`` after each chunk."""
+    job, payload = draw(_as511_jobs())
+    stream = bytearray(frames._as511_script(job.fn, job.params, payload).expect or b"")
+    for _ in range(draw(st.integers(0, 2))):
+        where = draw(st.integers(0, len(stream)))
+        how = draw(st.sampled_from(["change", "drop", "add", "terminate"]))
+        byte = draw(st.sampled_from([0x00, 0x02, 0x03, 0x04, 0x06, 0x10, 0x11, 0x14, 0x15, 0x16]))
+        if how == "change" and where < len(stream):
+            stream[where] = byte
+        elif how == "drop" and where < len(stream):
+            del stream[where]
+        elif how == "add":
+            stream.insert(where, byte)
+        elif how == "terminate" and len(stream) >= 3:
+            stream[-3:] = draw(st.sampled_from([b"\x11\x10\x03", b"\x14\x10\x03", b"\x10\x03"]))
+    cuts = sorted(draw(st.lists(st.integers(0, len(stream)), max_size=10)))
+    pieces = [bytes(stream[a:b]) for a, b in itertools.pairwise([0, *cuts, len(stream)])]
+    now, chunks = 0.0, []
+    for piece in pieces:
+        now += draw(st.sampled_from([0.0, 0.001, 0.01, 0.3, 0.6]))
+        chunks.append((piece, now))
+    return job, chunks, draw(st.lists(st.booleans(), min_size=len(chunks), max_size=len(chunks)))
+
+
+def _pg_state(pg: PGConnection) -> tuple[Any, ...]:
+    events: list[Any] = []
+    while True:
+        try:
+            event = pg.next_event()
+        except PlcError as exc:
+            events.append(("error", type(exc).__name__, str(exc)))
+            continue
+        if event is NEED_DATA:
+            break
+        events.append(event)
+    return (
+        pg.data_to_send(),
+        pg.state,
+        pg.deadline,
+        pg.ready_at,
+        pg.delivery,
+        pg._dle,
+        pg._got_byte,
+        pg._payload,
+        None if pg._rx is None else (pg._rx.payload(), pg._rx._dle),
+        events,
+    )
+
+
+def _run_pg(fast: bool, job: Job, chunks: list[tuple[bytes, float]], timers: list[bool]) -> Any:
+    """The subject gets the chunks as they came; the reference (fast paths off) gets them one
+    byte per call, so neither a whole answer nor a whole data frame is ever seen at once: it is
+    the byte-by-byte machine of before issue 16."""
+    pg = PGConnection(char_timeout=0.5, response_timeout=0.7, tx_byte_time=0.0001)
+    if not fast:
+        pg.fast_paths = False
+    pg.submit(job, 0.0)
+    trace: list[Any] = [_pg_state(pg)]
+    for (chunk, now), timer in zip(chunks, timers, strict=True):
+        if fast:
+            pg.receive_data(chunk, now)
+        else:
+            for byte in chunk:
+                pg.receive_data(bytes([byte]), now)
+        if timer:
+            pg.timer(now + 0.2)
+        trace.append(_pg_state(pg))
+    return trace
+
+
+@settings(max_examples=600, deadline=None)
+@given(dialogue=_as511_dialogues())
+def test_as511_whole_answer_steps_are_the_byte_machine(
+    dialogue: tuple[Job, list[tuple[bytes, float]], list[bool]],
+) -> None:
+    job, chunks, timers = dialogue
+    assert _run_pg(True, job, chunks, timers) == _run_pg(False, job, chunks, timers)
+
+
+@settings(max_examples=500, deadline=None)
+@given(
+    data=st.binary(max_size=60).map(
+        lambda b: b.replace(b"\x01", b"\x10").replace(b"\x02", b"\x03")
+    ),
+    junk=st.binary(max_size=4),
+    limit=st.sampled_from([None, 0, 5, 30]),
+    draw=st.data(),
+)
+def test_as511_unstuffer_whole_frame_is_the_byte_decoder(
+    data: bytes, junk: bytes, limit: int | None, draw: st.DataObject
+) -> None:
+    """``Unstuffer.feed_from`` (a whole frame un-stuffed with ``bytes.replace``) against
+    ``Unstuffer.feed`` byte by byte: same end, payload and error, on good and broken frames
+    (a byte changed into or from DLE, a DLE added or dropped)."""
+    wire = bytearray(stuff(data) + b"\x10\x03" + junk)
+    for _ in range(draw.draw(st.integers(0, 2))):
+        where = draw.draw(st.integers(0, len(wire)))
+        how = draw.draw(st.sampled_from(["set", "insert", "drop"]))
+        byte = draw.draw(st.sampled_from([0x10, 0x03, 0x00, 0x05]))
+        if how == "insert":
+            wire.insert(where, byte)
+        elif where < len(wire):
+            if how == "set":
+                wire[where] = byte
+            else:
+                del wire[where]
+
+    cut = draw.draw(st.integers(0, len(wire)))  # the frame may arrive in two chunks
+
+    def whole() -> Any:
+        rx = Unstuffer(as511.ETX, limit)
+        try:
+            end = rx.feed_from(bytes(wire[:cut]), 0)
+            if end < 0:
+                end = rx.feed_from(bytes(wire[cut:]), 0)
+                end = end if end < 0 else cut + end
+            return ("end", end, rx.payload())
+        except PlcError as exc:
+            return ("error", str(exc))
+
+    def by_byte() -> Any:
+        rx = Unstuffer(as511.ETX, limit)
+        try:
+            for i, byte in enumerate(wire):
+                if rx.feed(byte):
+                    return ("end", i + 1, rx.payload())
+        except PlcError as exc:
+            return ("error", str(exc))
+        return ("end", -1, rx.payload())
+
+    assert whole() == by_byte()
+
+
+@pytest.mark.parametrize("fast", [True, False], ids=["fast", "byte path"])
+@pytest.mark.parametrize("name", sorted(GOLDENS))
+def test_as511_goldens_on_both_paths(
+    name: str, fast: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The spec's golden sequences (B.11) with and without the whole-answer steps."""
+    monkeypatch.setattr(PGConnection, "fast_paths", fast)
+    job, steps, result = GOLDENS[name]
+    assert run_pg(job, steps) == as511.Response(job.fn, result)
+
+
+def test_as511_fast_paths_are_taken(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A normal 64-word read, one chunk per PG step, never goes through the byte path."""
+    monkeypatch.setattr(PGConnection, "_receive_byte", lambda *a: pytest.fail("byte path"))
+    data = bytes(range(0x08, 0x88))  # holds a 10h
+    script = frames._as511_script(4, read_job(0x10, 128).params, bytes(5) + data)
+    assert script.expect is not None
+    pg = PGConnection()
+    pg.submit(read_job(0x10, 128), 0.0)
+    pos = 0
+    for _send, count in script.steps:
+        if count:
+            pg.receive_data(script.expect[pos : pos + count], 0.0)
+        pos += count
+    assert pg.next_event() == as511.Response(4, bytes(5) + data)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import cProfile
 import importlib
 import os
@@ -57,7 +58,22 @@ def layer_of(filename: str) -> str:
     return "other python"
 
 
+def _cpus() -> list[int]:
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        return []
+
+
+def _pin(cpu: int) -> None:
+    with contextlib.suppress(AttributeError, OSError):
+        os.sched_setaffinity(0, {cpu})
+
+
 async def _serve(key: str, count: int) -> None:
+    cpus = _cpus()
+    if len(cpus) >= 2:
+        _pin(cpus[-1])  # the simulator on its own CPU, the measured process on the first
     case = by_key(key)
     memory = case.make_memory(case.sim())
     sims = [await start_sim(case, memory) for _ in range(count)]
@@ -236,7 +252,13 @@ def main(argv: list[str] | None = None) -> int:
         for url in urls:
             plcstack.parse_url(url)
         if args.cpu:
-            print(f"{args.protocol} {args.kind} x64, one connection, simulator in another process")
+            cpus = _cpus()
+            if len(cpus) >= 2:
+                _pin(cpus[0])
+            print(
+                f"{args.protocol} {args.kind} x64, one connection, simulator in another process"
+                + (f" (pinned: CPU {cpus[0]}, simulator CPU {cpus[-1]})" if len(cpus) >= 2 else "")
+            )
             print(asyncio.run(_cpu(urls[0], args.protocol, args.kind, args.seconds, args.cpu)))
             return 0
         if args.poll:

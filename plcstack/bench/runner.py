@@ -53,10 +53,19 @@ class Sample:
     ops: int
     seconds: float
     latencies_ns: list[int] = field(default_factory=list)
+    #: process CPU seconds (``time.process_time``) over the same window, when measured: what
+    #: other jobs on a shared machine barely move, unlike ``seconds``
+    cpu_seconds: float | None = None
 
     @property
     def ops_per_s(self) -> float:
         return self.ops / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def cpu_us_per_op(self) -> float | None:
+        if self.cpu_seconds is None or not self.ops:
+            return None
+        return self.cpu_seconds / self.ops * 1e6
 
 
 @dataclass
@@ -170,6 +179,8 @@ def measure_sync(
 ) -> Series:
     """Call ``fn`` in batches; each repeat lasts about ``min_time`` seconds (at least one call).
 
+    Times are process CPU seconds (``time.process_time``): a batch preempted by another job on a
+    shared machine is not charged for the wait (the codec rows swung 2x with wall-clock time).
     The batch size is calibrated once (doubling until a batch takes >= min_time / 4) so the timer
     overhead is negligible; garbage collection is disabled while a batch runs, as ``timeit`` does.
     """
@@ -191,10 +202,10 @@ def _time_batch(fn: Callable[[], object], number: int) -> float:
     gc_was_enabled = gc.isenabled()
     gc.disable()
     try:
-        start = time.perf_counter()
+        start = time.process_time()
         for _ in range(number):
             fn()
-        return time.perf_counter() - start
+        return time.process_time() - start
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -226,7 +237,8 @@ async def _worker(op: Op, stop: _Stop, latencies: list[int]) -> int:
 async def measure_workers(
     ops: Sequence[Op], *, duration: float, warmup: float = 0.0, drain_timeout: float = 30.0
 ) -> Sample:
-    """Run one closed loop per op (= per connection) for ``duration`` seconds, return one sample.
+    """Run one closed loop per op (= per connection) for ``duration`` seconds, return one sample
+    (with the process CPU time of the window).
 
     Every loop awaits its op, records the latency, and starts the next op at once, so ``len(ops)``
     requests are in flight all the time. The sample's time runs until the last in-flight op has
@@ -237,8 +249,9 @@ async def measure_workers(
     if warmup > 0:
         await _run(ops, warmup, [], drain_timeout)
     latencies: list[int] = []
+    cpu = time.process_time()
     ops_done, seconds = await _run(ops, duration, latencies, drain_timeout)
-    return Sample(ops_done, seconds, latencies)
+    return Sample(ops_done, seconds, latencies, time.process_time() - cpu)
 
 
 async def _run(

@@ -17,11 +17,13 @@ that fails becomes a row with a note, so one broken protocol does not hide the o
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import importlib
+import os
 import statistics
 import sys
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Iterator
 from dataclasses import dataclass
 from typing import Any, TextIO, TypeVar
 
@@ -62,6 +64,8 @@ class Plan:
     fleet_warmup: float = 1.0
     #: floor and stack children alternate this many times; the ratio is the median of the pairs
     fleet_repeats: int = 1
+    #: one-connection cases: floor and stack windows alternate this many times (0: ``repeats``)
+    conn_repeats: int = 0
 
 
 PLANS: dict[str, Plan] = {
@@ -72,13 +76,13 @@ PLANS: dict[str, Plan] = {
         fleet_ns=(2,), fleet_duration=0.2, fleet_warmup=0.2,
     ),
     "quick": Plan(
-        name="quick", repeats=3, conn_duration=0.1, warmup=0.05, codec_time=0.02,
+        name="quick", repeats=3, conn_duration=0.06, warmup=0.05, codec_time=0.02, conn_repeats=5,
         conn_kinds=("read", "write"), fanout_protocols=("e71+tcp",), fanout_ns=(10, 100, 1000),
         fanout_kinds=("poll",), fanout_duration=0.25, fanout_repeats=3, peer_ns=(10,),
         fleet_ns=(100,), fleet_duration=1.0, fleet_warmup=0.5,
     ),
     "full": Plan(
-        name="full", repeats=5, conn_duration=0.5, warmup=0.2, codec_time=0.2,
+        name="full", repeats=5, conn_duration=0.3, warmup=0.2, codec_time=0.2, conn_repeats=9,
         conn_kinds=("read", "write"), fanout_protocols=("e71+tcp", "fetchwrite", "s5lan"),
         fanout_ns=(10, 100, 1000), fanout_kinds=("poll", "clients"), fanout_duration=1.0,
         fanout_repeats=5, peer_ns=(10, 100, 1000),
@@ -118,13 +122,14 @@ def run_suite(
     if "codec" in groups:
         results += run_codecs(plan, say)
     for loop_name, factory in loops:
-        with asyncio.Runner(loop_factory=factory) as runner:
+        conn_repeats = plan.conn_repeats or plan.repeats
+        with asyncio.Runner(loop_factory=factory) as runner, pinned_to_one_cpu():
             for case in PROTOCOLS if "conn" in groups else ():
                 for kind in plan.conn_kinds:
                     name = f"conn/{case.key}/{kind}{WORDS}"
                     say(f"{name} on {loop_name}")
                     # a hung peer (or a simulator that broke on this loop) must not hang the run
-                    limit = 20.0 + 2 * plan.repeats * (plan.conn_duration + plan.warmup)
+                    limit = 20.0 + 2 * conn_repeats * (plan.conn_duration + plan.warmup)
                     try:
                         results.append(
                             runner.run(
@@ -134,7 +139,7 @@ def run_suite(
                                         case,
                                         kind,  # type: ignore[arg-type]
                                         loop_name=loop_name,
-                                        repeats=plan.repeats,
+                                        repeats=conn_repeats,
                                         duration=plan.conn_duration,
                                         warmup=plan.warmup,
                                     ),
@@ -154,6 +159,25 @@ def run_suite(
     if "peer" in groups:
         results += run_peers(plan, results, say)
     return results
+
+
+@contextlib.contextmanager
+def pinned_to_one_cpu() -> Iterator[None]:
+    """Run the one-connection cases on one CPU (the first this process may use; restored after):
+    simulator, floor and stack share one thread, and a thread that migrates between cores pays
+    cold caches at random moments, on either side. No-op where affinity is not supported."""
+    try:
+        allowed = os.sched_getaffinity(0)
+    except (AttributeError, OSError):
+        yield
+        return
+    with contextlib.suppress(OSError):
+        os.sched_setaffinity(0, {min(allowed)})
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.sched_setaffinity(0, allowed)
 
 
 def _failed(exc: BaseException) -> str:

@@ -30,7 +30,7 @@ import enum
 from collections import deque
 from dataclasses import dataclass
 
-from plcstack.codecs._common import NEED_DATA, Event, NeedData
+from plcstack.codecs._common import NEED_DATA, Event, NeedData, slot_init
 from plcstack.codecs.as511_frames import (
     ACCEPT_FRAME,
     ACK,
@@ -141,9 +141,14 @@ DEFAULT_BACKOFF = 0.5  # B5.1 / B5.5
 _SLACK = 16
 #: cap for answers of unknown length (18h, 1Bh)
 _UNKNOWN_LENGTH_CAP = 4096
+#: every byte value as a one-byte ``bytes`` (the function code the PG sends after DLE ACK)
+_BYTE = tuple(bytes([b]) for b in range(256))
+_DLE_EOT = bytes([DLE, EOT])
+_STX_BYTE = bytes([STX])
 
 
 # -- PG (client) machine (B.9.1) --------------------------------------------------------------
+@slot_init
 @dataclass(frozen=True, slots=True)
 class Response(Event):
     """The transaction completed; ``data`` is the unstuffed data frame (empty for writes)."""
@@ -152,6 +157,7 @@ class Response(Event):
     data: bytes
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class Nak(Event):
     """The AG answered DLE NAK at ``step`` ("ready", "function" or "params"; B5.1/B5.2)."""
@@ -160,6 +166,7 @@ class Nak(Event):
     step: str
 
 
+@slot_init
 @dataclass(frozen=True, slots=True)
 class Timeout(Event):
     """The AG did not answer within the character timeout while the PG was in ``state``."""
@@ -196,6 +203,19 @@ class Delivery(enum.Enum):
     ACKNOWLEDGED = "the PLC had acknowledged the data (DLE ACK), so the write was executed"
 
 
+#: the members as module names: an attribute of an Enum class costs a Python-level
+#: ``EnumType.__getattr__`` hook in 3.11 (~0.1 us each), and the machines test states per byte
+_IDLE = PGState.IDLE
+_W_ACK1 = PGState.W_ACK1
+_W_STX1 = PGState.W_STX1
+_W_ACCEPT = PGState.W_ACCEPT
+_W_ACK2 = PGState.W_ACK2
+_W_STX2 = PGState.W_STX2
+_RX_DATA = PGState.RX_DATA
+_W_STX3 = PGState.W_STX3
+_W_END = PGState.W_END
+_NOT_SENT, _SENT, _ACKNOWLEDGED = Delivery.NOT_SENT, Delivery.SENT, Delivery.ACKNOWLEDGED
+
 #: [R] B5.2/D.B5: DLE NAK is accepted at step 2 (busy), 4 (unsupported function), 9 (refused)
 _NAK_STEPS = {
     PGState.W_ACK1: "ready",
@@ -218,6 +238,10 @@ class ClientConnection:
     request (DLE ACK after the parameters and the STX of the data frame; D.B6).
     """
 
+    #: take a whole expected answer (DLE ACK, STX, accept/terminate frame, a data frame in one
+    #: chunk) as one step instead of byte by byte; tests switch it off to compare both paths
+    fast_paths = True
+
     def __init__(
         self,
         *,
@@ -232,14 +256,14 @@ class ClientConnection:
         self.response_timeout = char_timeout if response_timeout is None else response_timeout
         self.backoff = backoff
         self.tx_byte_time = tx_byte_time
-        self.state = PGState.IDLE
+        self.state = _IDLE
         self.job: Job | None = None
         #: the PG may start the next transaction at this time (after NAK/abort: line silence)
         self.ready_at = 0.0
         #: when the current state times out; ``None`` when idle
         self.deadline: float | None = None
         #: how far the current or last job's parameter frame got (see :class:`Delivery`)
-        self.delivery = Delivery.NOT_SENT
+        self.delivery = _NOT_SENT
         self._out = bytearray()
         self._events: deque[PGEvent | RemoteProtocolError] = deque()
         self._dle = False
@@ -250,28 +274,29 @@ class ClientConnection:
     # -- driver API --------------------------------------------------------------------------
     @property
     def busy(self) -> bool:
-        return self.state is not PGState.IDLE
+        return self.state is not _IDLE
 
     def submit(self, job: Job, now: float) -> None:
         """Start ``job``: queues the STX. Misuse (busy, in back-off) is a LocalProtocolError."""
-        if self.state is not PGState.IDLE or self._events:
+        if self.state is not _IDLE or self._events:
             raise LocalProtocolError("an AS511 transaction is already in progress")
         if now < self.ready_at:
             raise LocalProtocolError(
                 f"the line must be silent until {self.ready_at:.3f} (back-off after an abort)"
             )
         self.job = job
-        self.delivery = Delivery.NOT_SENT
+        self.delivery = _NOT_SENT
         self._dle = False
-        self._send(bytes([STX]))
-        self._enter(PGState.W_ACK1, now, sent=1)
+        self._send(_STX_BYTE)
+        self._enter(_W_ACK1, now, sent=1)
 
     def data_to_send(self) -> bytes:
-        if not self._out:
+        out = self._out
+        if not out:
             return b""
-        out = bytes(self._out)
-        self._out.clear()
-        return out
+        data = bytes(out)
+        out.clear()
+        return data
 
     def next_event(self) -> PGEvent | NeedData:
         """The result of the current job, or NEED_DATA; raises RemoteProtocolError once."""
@@ -286,14 +311,84 @@ class ClientConnection:
         if type(data) is not bytes:
             data = bytes(data)
         i, n = 0, len(data)
+        fast = self.fast_paths
         while i < n:
-            if self.state is PGState.RX_DATA and (self.deadline is None or now <= self.deadline):
+            state = self.state
+            deadline = self.deadline
+            if deadline is not None and now > deadline:
+                self._receive_byte(data[i], now)  # too late: the byte path times out
+                i += 1
+                continue
+            if state is _RX_DATA:
                 # The data frame, up to 512 stuffed bytes: de-stuffed a run at a time instead of
                 # byte by byte (the same checks; every byte of one chunk shares ``now``).
                 i = self._receive_run(data, i, now)
-            else:
-                self._receive_byte(data[i], now)
-                i += 1
+                continue
+            if fast and not self._dle:
+                # The fast path of _receive_byte: ``data[i:]`` starts with the whole answer the
+                # AG normally gives in this state (DLE ACK, STX, the accept frame, the terminate
+                # frame 12 10 03): one step, leaving the machine exactly as feeding its bytes one
+                # by one with the same ``now`` does (``_enter`` inlined; compared with the byte
+                # path in tests/test_codec_fast_paths.py). Anything else (NAK, garbage, another
+                # terminate byte, an answer split across chunks) goes byte by byte below.
+                job = self.job
+                assert job is not None
+                if state is _W_ACK1 or state is _W_ACK2:
+                    if data.startswith(DLE_ACK, i):
+                        i += 2
+                        if state is _W_ACK1:
+                            self._out += _BYTE[job.fn]
+                            self.state = _W_STX1
+                            self.deadline = now + self.char_timeout + self.tx_byte_time
+                        else:
+                            self.delivery = _ACKNOWLEDGED
+                            self.state = _W_STX2 if job.has_response else _W_STX3
+                            self.deadline = now + self.response_timeout + 0 * self.tx_byte_time
+                        continue
+                elif state is _W_STX1 or state is _W_STX2 or state is _W_STX3:
+                    if data[i] == STX:
+                        i += 1
+                        self._out += DLE_ACK
+                        if state is _W_STX2:
+                            limit = job.response_length
+                            self._rx = Unstuffer(
+                                ETX, _UNKNOWN_LENGTH_CAP if limit is None else limit + _SLACK
+                            )
+                            self.state = _RX_DATA
+                        else:
+                            self._got_byte = False
+                            self.state = _W_ACCEPT if state is _W_STX1 else _W_END
+                        self.deadline = now + self.char_timeout + 2 * self.tx_byte_time
+                        continue
+                elif self._got_byte:
+                    pass
+                elif state is _W_ACCEPT:
+                    if data.startswith(ACCEPT_FRAME, i):
+                        i += 3
+                        params = job.params
+                        self._out += DLE_ACK
+                        self._out += stuff(params) + _DLE_EOT
+                        self.delivery = _SENT
+                        sent = 4 + len(params) + params.count(DLE)
+                        self.state = _W_ACK2
+                        self.deadline = now + self.response_timeout + sent * self.tx_byte_time
+                        self._got_byte = True  # as the byte path leaves it (it saw the 16h)
+                        continue
+                elif state is _W_END and data.startswith(TERMINATE_FRAME, i):
+                    i += 3
+                    self._out += DLE_ACK
+                    self.state = _IDLE
+                    self.deadline = None
+                    self._events.append(
+                        Response(job.fn, self._payload if job.has_response else b"")
+                    )
+                    self._payload = b""
+                    # the byte path leaves these set (it saw 12h and the DLE of DLE ETX); IDLE
+                    # ignores them and the next job clears them: the same state either way
+                    self._got_byte = self._dle = True
+                    continue
+            self._receive_byte(data[i], now)
+            i += 1
 
     def _receive_run(self, data: bytes, start: int, now: float) -> int:
         """RX_DATA: feed ``data[start:]`` to the de-stuffer; returns where to go on."""
@@ -312,12 +407,12 @@ class ClientConnection:
         self._payload = rx.payload()
         self._rx = None
         self._send(DLE_ACK)
-        self._enter(PGState.W_STX3, now, sent=2)
+        self._enter(_W_STX3, now, sent=2)
         return end
 
     def timer(self, now: float) -> None:
         """Call when ``deadline`` has passed: aborts the transaction with a Timeout event."""
-        if self.deadline is None or now < self.deadline or self.state is PGState.IDLE:
+        if self.deadline is None or now < self.deadline or self.state is _IDLE:
             return
         job = self.job
         assert job is not None
@@ -327,7 +422,7 @@ class ClientConnection:
 
     def reset(self, now: float) -> None:
         """The line was re-opened: forget any transaction; keep (and restart) the back-off."""
-        if self.state is not PGState.IDLE:
+        if self.state is not _IDLE:
             self._abort(now)
         self._events.clear()
         self._out.clear()
@@ -343,7 +438,7 @@ class ClientConnection:
         self.deadline = now + wait + sent * self.tx_byte_time
 
     def _abort(self, now: float) -> None:
-        self.state = PGState.IDLE
+        self.state = _IDLE
         self.deadline = None
         self._rx = None
         self._dle = False
@@ -365,7 +460,7 @@ class ClientConnection:
 
     def _receive_byte(self, byte: int, now: float) -> None:
         state = self.state
-        if state is PGState.IDLE:
+        if state is _IDLE:
             # B5.5: during back-off every byte extends the silence we wait for; a stray byte
             # outside a transaction means the line is not quiet either [R].
             self.ready_at = max(self.ready_at, now + self.backoff)
@@ -377,7 +472,7 @@ class ClientConnection:
         job = self.job
         assert job is not None
         self.deadline = now + self.char_timeout  # re-armed on every byte (B.9.1)
-        if state in (PGState.W_ACK1, PGState.W_ACK2):
+        if state in (_W_ACK1, _W_ACK2):
             if not self._dle:
                 if byte == DLE:
                     self._dle = True
@@ -388,15 +483,15 @@ class ClientConnection:
                 self._nak(now)
             elif byte != ACK:
                 self._fail(now, f"expected DLE ACK in {state.value}, got DLE {byte:02X}h")
-            elif state is PGState.W_ACK1:
+            elif state is _W_ACK1:
                 self._send(bytes([job.fn]))
-                self._enter(PGState.W_STX1, now, sent=1)
+                self._enter(_W_STX1, now, sent=1)
             else:
-                self.delivery = Delivery.ACKNOWLEDGED
-                next_state = PGState.W_STX2 if job.has_response else PGState.W_STX3
+                self.delivery = _ACKNOWLEDGED
+                next_state = _W_STX2 if job.has_response else _W_STX3
                 self._enter(next_state, now, slow=True)
             return
-        if state is PGState.W_STX1:
+        if state is _W_STX1:
             if self._dle:
                 if byte == NAK:
                     self._nak(now)
@@ -406,37 +501,37 @@ class ClientConnection:
                 self._dle = True
             elif byte == STX:
                 self._send(DLE_ACK)
-                self._enter(PGState.W_ACCEPT, now, sent=2)
+                self._enter(_W_ACCEPT, now, sent=2)
                 self._got_byte = False
             else:
                 self._fail(now, f"expected STX after the function code, got {byte:02X}h")
             return
-        if state in (PGState.W_ACCEPT, PGState.W_END):
+        if state in (_W_ACCEPT, _W_END):
             self._receive_short_frame(byte, now, job)
             return
-        if state in (PGState.W_STX2, PGState.W_STX3):
+        if state in (_W_STX2, _W_STX3):
             if byte != STX:
                 self._fail(now, f"expected STX in {state.value}, got {byte:02X}h")
                 return
             self._send(DLE_ACK)
-            if state is PGState.W_STX2:
+            if state is _W_STX2:
                 limit = (
                     job.response_length + _SLACK
                     if job.response_length is not None
                     else _UNKNOWN_LENGTH_CAP
                 )
                 self._rx = Unstuffer(ETX, limit)
-                self._enter(PGState.RX_DATA, now, sent=2)
+                self._enter(_RX_DATA, now, sent=2)
             else:
                 self._got_byte = False
-                self._enter(PGState.W_END, now, sent=2)
+                self._enter(_W_END, now, sent=2)
             return
         # RX_DATA never gets here: receive_data hands the data frame to _receive_run, and a
         # byte that came too late was dealt with above.
 
     def _receive_short_frame(self, byte: int, now: float, job: Job) -> None:
         """Accept frame (``16 10 03``) or terminate frame (``12 10 03``; lenient per D.B4)."""
-        accept = self.state is PGState.W_ACCEPT
+        accept = self.state is _W_ACCEPT
         what = "accept frame" if accept else "terminate frame"
         if self._dle:
             if byte != ETX:
@@ -448,11 +543,11 @@ class ClientConnection:
             self._send(DLE_ACK)
             if accept:
                 self._send(stuff(job.params) + bytes([DLE, EOT]))
-                self.delivery = Delivery.SENT
+                self.delivery = _SENT
                 sent = 4 + len(job.params) + job.params.count(DLE)
-                self._enter(PGState.W_ACK2, now, sent=sent, slow=True)
+                self._enter(_W_ACK2, now, sent=sent, slow=True)
             else:
-                self.state = PGState.IDLE
+                self.state = _IDLE
                 self.deadline = None
                 self._events.append(Response(job.fn, self._payload if job.has_response else b""))
                 self._payload = b""
@@ -504,6 +599,18 @@ class AGState(enum.Enum):
     W_ACK_F = "W_ACK_F"  # terminate frame sent, expect DLE ACK
 
 
+#: module names for the members (see the PGState ones)
+_AG_IDLE = AGState.IDLE
+_AG_W_FN = AGState.W_FN
+_AG_W_ACK_A = AGState.W_ACK_A
+_AG_W_ACK_B = AGState.W_ACK_B
+_AG_RX_PARAMS = AGState.RX_PARAMS
+_AG_EXECUTE = AGState.EXECUTE
+_AG_W_ACK_C = AGState.W_ACK_C
+_AG_W_ACK_D = AGState.W_ACK_D
+_AG_W_ACK_E = AGState.W_ACK_E
+_AG_W_ACK_F = AGState.W_ACK_F
+
 #: functions the simulator answers (B.7: 18h, 1Ah, 04h, 03h, and the optional 1Bh, 1Eh)
 DEFAULT_FUNCTIONS = frozenset(
     {FN_WRITE, FN_READ, FN_SYSTEM_PARAMETERS, FN_B_INFO, FN_BLOCK_LIST, FN_OPERATING_MODE}
@@ -529,7 +636,7 @@ class ServerConnection:
         self.max_params = max_params
         self.tx_byte_time = tx_byte_time
         self.busy = False
-        self.state = AGState.IDLE
+        self.state = _AG_IDLE
         self.deadline: float | None = None
         self.fn = 0
         self._out = bytearray()
@@ -547,25 +654,25 @@ class ServerConnection:
         return self._events.popleft() if self._events else NEED_DATA
 
     def timer(self, now: float) -> None:
-        if self.deadline is not None and now >= self.deadline and self.state is not AGState.IDLE:
+        if self.deadline is not None and now >= self.deadline and self.state is not _AG_IDLE:
             self._idle(
                 f"no answer from the PG within {self.char_timeout:g} s in {self.state.value}"
             )
 
     def respond(self, data: bytes | None, now: float) -> None:
         """Accept the pending Request: ``data`` is the data frame, ``None`` for "no data frame"."""
-        if self.state is not AGState.EXECUTE:
+        if self.state is not _AG_EXECUTE:
             raise LocalProtocolError("respond() without a pending AS511 request")
         self._response = data
         self._send(DLE_ACK + bytes([STX]))
-        self._enter(AGState.W_ACK_C if data is not None else AGState.W_ACK_E, now, 3)
+        self._enter(_AG_W_ACK_C if data is not None else _AG_W_ACK_E, now, 3)
 
     def refuse(self, now: float) -> None:
         """Refuse the pending Request: DLE NAK instead of DLE ACK (step 9; B5.1)."""
-        if self.state is not AGState.EXECUTE:
+        if self.state is not _AG_EXECUTE:
             raise LocalProtocolError("refuse() without a pending AS511 request")
         self._send(DLE_NAK)
-        self.state = AGState.IDLE
+        self.state = _AG_IDLE
         self.deadline = None
 
     def receive_data(self, data: bytes, now: float) -> None:
@@ -589,7 +696,7 @@ class ServerConnection:
 
     def _idle(self, reason: str) -> None:
         # [R] B5.6: on a gap or a wrong byte the AG silently returns to idle (no NAK)
-        self.state = AGState.IDLE
+        self.state = _AG_IDLE
         self.deadline = None
         self._dle = False
         self._rx = None
@@ -598,19 +705,19 @@ class ServerConnection:
     def _stx(self, now: float) -> None:
         if self.busy:
             self._send(DLE_NAK)
-            self.state = AGState.IDLE
+            self.state = _AG_IDLE
             self.deadline = None
             return
         self._send(DLE_ACK)
-        self._enter(AGState.W_FN, now, 2)
+        self._enter(_AG_W_FN, now, 2)
 
     def _receive_byte(self, byte: int, now: float) -> None:
         state = self.state
-        if state is AGState.IDLE:
+        if state is _AG_IDLE:
             if byte == STX:
                 self._stx(now)
             return  # anything else between transactions is ignored
-        if state is AGState.EXECUTE:
+        if state is _AG_EXECUTE:
             # The PG must wait for our answer; bytes now are a protocol breach (B5.6). A Request
             # the application has not taken yet is withdrawn with it: answering it later would
             # hit a state that belongs to another request (or none) - found by the robustness
@@ -624,7 +731,7 @@ class ServerConnection:
                 self._stx(now)
             return
         self.deadline = now + self.char_timeout
-        if state is AGState.W_FN:
+        if state is _AG_W_FN:
             if self._dle:
                 self._dle = False
                 if byte != DLE:
@@ -636,13 +743,13 @@ class ServerConnection:
             self.fn = byte
             if byte in self.functions:
                 self._send(bytes([STX]))
-                self._enter(AGState.W_ACK_A, now, 1)
+                self._enter(_AG_W_ACK_A, now, 1)
             else:
                 self._send(DLE_NAK)
-                self.state = AGState.IDLE
+                self.state = _AG_IDLE
                 self.deadline = None
             return
-        if state is AGState.RX_PARAMS:
+        if state is _AG_RX_PARAMS:
             rx = self._rx
             assert rx is not None
             try:
@@ -652,7 +759,7 @@ class ServerConnection:
                 return
             if done:
                 self._rx = None
-                self.state = AGState.EXECUTE
+                self.state = _AG_EXECUTE
                 self.deadline = None
                 self._events.append(Request(self.fn, rx.payload()))
             return
@@ -669,24 +776,24 @@ class ServerConnection:
         if byte != ACK:
             self._idle(f"expected DLE ACK in {state.value}, got DLE {byte:02X}h")
             return
-        if state is AGState.W_ACK_A:
+        if state is _AG_W_ACK_A:
             self._send(ACCEPT_FRAME)
-            self._enter(AGState.W_ACK_B, now, 3)
-        elif state is AGState.W_ACK_B:
+            self._enter(_AG_W_ACK_B, now, 3)
+        elif state is _AG_W_ACK_B:
             self._rx = Unstuffer(EOT, self.max_params)
-            self._enter(AGState.RX_PARAMS, now)
-        elif state is AGState.W_ACK_C:
+            self._enter(_AG_RX_PARAMS, now)
+        elif state is _AG_W_ACK_C:
             data = stuff(self._response or b"") + bytes([DLE, ETX])
             self._send(data)
-            self._enter(AGState.W_ACK_D, now, len(data))
-        elif state is AGState.W_ACK_D:
+            self._enter(_AG_W_ACK_D, now, len(data))
+        elif state is _AG_W_ACK_D:
             self._send(bytes([STX]))
-            self._enter(AGState.W_ACK_E, now, 1)
-        elif state is AGState.W_ACK_E:
+            self._enter(_AG_W_ACK_E, now, 1)
+        elif state is _AG_W_ACK_E:
             self._send(TERMINATE_FRAME)
-            self._enter(AGState.W_ACK_F, now, 3)
+            self._enter(_AG_W_ACK_F, now, 3)
         else:
-            self.state = AGState.IDLE
+            self.state = _AG_IDLE
             self.deadline = None
             self._response = None
             self._events.append(Done(self.fn))

@@ -41,6 +41,9 @@ TERMINATE_BYTES = frozenset({0x11, 0x12, 0x14})
 
 DLE_ACK = bytes([DLE, ACK])
 _DLE_BYTE = bytes([DLE])
+_DLE_PAIR = bytes([DLE, DLE])
+#: ``DLE end`` for the frame ends in use (ETX: data frames, EOT: parameter frames)
+_END_SEQ = {end: bytes([DLE, end]) for end in range(256)}
 DLE_NAK = bytes([DLE, NAK])
 ACCEPT_FRAME = bytes([SYN, DLE, ETX])
 TERMINATE_FRAME = bytes([DC2, DLE, ETX])
@@ -98,6 +101,27 @@ class Unstuffer:
         DLEs at a time; returns the index just after ``DLE end``, or ``-1`` when all of
         ``data`` was consumed without it. Raises exactly where :meth:`feed` would."""
         buf, limit, end, n = self._buf, self.limit, self.end, len(data)
+        if not buf and not self._dle:
+            # The usual case: the whole frame in this chunk, from its first byte. Find its end
+            # (the first DLE end whose DLE is not the second of a pair) and un-stuff it with
+            # two ``bytes.replace``; anything unusual (a lone DLE, too long, no end yet) goes
+            # the run-by-run loop below from the same start, which decides and raises.
+            tail = _END_SEQ[end]
+            k = data.find(tail, start)
+            while k >= 0:
+                j = k
+                while j > start and data[j - 1] == DLE:
+                    j -= 1
+                if not (k - j) & 1:
+                    break  # an even number of DLEs before it: this DLE is the frame's end
+                k = data.find(tail, k + 2)
+            if k >= 0:
+                body = data[start:k]
+                if _DLE_BYTE not in body.replace(_DLE_PAIR, b""):
+                    payload = body.replace(_DLE_PAIR, _DLE_BYTE)
+                    if limit is None or len(payload) <= limit:
+                        buf += payload
+                        return k + 2
         i = start
         while i < n:
             if self._dle:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
+from plcstack.codecs._common import slot_init
 from plcstack.errors import LocalProtocolError, RemoteProtocolError
 
 __all__ = [
@@ -52,6 +53,7 @@ READ_PREFIX = 5
 
 
 # -- jobs and their answers (B.7) --------------------------------------------------------------
+@slot_init
 @dataclass(frozen=True, slots=True)
 class Job:
     """One AS511 transaction: function code, unstuffed parameters, whether a data frame follows.

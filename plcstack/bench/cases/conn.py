@@ -2,7 +2,9 @@
 
 Both clients talk to one simulator started in this process on the current event loop; each repeat
 times the floor and then the stack for the same duration, alternating, so drift (CPU frequency,
-other engineers' jobs on the shared machine) hits both sides alike. Before timing, one floor reply
+other engineers' jobs on the shared machine) hits both sides alike. The row's ratio is process
+CPU per operation, floor / stack, the median over the repeats (:func:`cpu_row`); the suite pins
+the process to one CPU for these cases. Before timing, one floor reply
 is compared byte for byte with the spec-built expectation and one stack read with the values the
 simulator was filled with: a benchmark that reads garbage must fail, not report a number.
 """
@@ -10,6 +12,7 @@ simulator was filled with: a benchmark that reads garbage must fail, not report 
 from __future__ import annotations
 
 import asyncio
+import statistics
 from typing import Any, Literal
 
 import plcstack
@@ -17,7 +20,7 @@ from plcstack.bench.cases import WORDS, ProtocolCase, sample_words
 from plcstack.bench.floor import FloorError, FloorTcp, FloorUdp, open_floor
 from plcstack.bench.runner import Result, Series, measure_workers
 
-__all__ = ["CHECK_TIMEOUT", "open_stack", "run_conn_case", "start_sim"]
+__all__ = ["CHECK_TIMEOUT", "cpu_row", "open_stack", "run_conn_case", "start_sim"]
 
 Kind = Literal["read", "write"]
 
@@ -77,6 +80,32 @@ async def check_stack(client: Any, case: ProtocolCase, kind: Kind) -> None:
         await stack_op(client, case, kind)()
 
 
+def cpu_row(row: Result, stack: Series, floor: Series) -> Result:
+    """Give a one-connection row its CPU figures: process CPU per operation of stack and floor
+    (medians) and, as its ratio, the median over the alternating repeats of floor CPU / stack
+    CPU. Simulator, floor and stack share one thread, so the simulator's CPU is on both sides;
+    CPU time is what other jobs on a shared machine barely move, where the ops/s of a window
+    swing with them (the wall-clock ratio stays in the note)."""
+    pairs = [
+        (f.cpu_us_per_op, s.cpu_us_per_op)
+        for f, s in zip(floor.samples, stack.samples, strict=False)
+        if f.cpu_us_per_op and s.cpu_us_per_op
+    ]
+    if not pairs:
+        return row
+    ratios = sorted(f / s for f, s in pairs)
+    wall = row.ratio
+    row.us_per_op = statistics.median(s for _, s in pairs)
+    row.floor_us_per_op = statistics.median(f for f, _ in pairs)
+    row.ratio = statistics.median(ratios)
+    row.note = (
+        f"ratio = CPU floor/stack ({ratios[0]:.2f}..{ratios[-1]:.2f})"
+        + (f", wall-clock {wall:.2f}" if wall is not None else "")
+        + (f"; {row.note}" if row.note else "")
+    )
+    return row
+
+
 async def run_conn_case(
     case: ProtocolCase,
     kind: Kind,
@@ -115,7 +144,11 @@ async def run_conn_case(
             first = warmup if index == 0 else 0.0
             floor_series.add(await measure_workers([floor_op], duration=duration, warmup=first))
             stack_series.add(await measure_workers([op], duration=duration, warmup=first))
-        return Result.from_series(name, loop_name, 1, stack_series, floor_series, group="conn")
+        return cpu_row(
+            Result.from_series(name, loop_name, 1, stack_series, floor_series, group="conn"),
+            stack_series,
+            floor_series,
+        )
     finally:
         if client is not None:
             await client.aclose()
