@@ -4,8 +4,8 @@
   over TCP is cut and decoded in one step. Against the general path on random answer streams.
 * The check for unsolicited bytes before a request: the general path lets the event loop run
   once; the fast path asks the kernel (one poll) and skips that pass when nothing waits. Both must
-  find stale bytes wherever they are (already delivered, or still in the kernel) and never return
-  a stale answer.
+  find stale bytes wherever they are (already delivered, or still in the kernel), over TCP and
+  UDP, and never return a stale answer.
 """
 
 from __future__ import annotations
