@@ -4,8 +4,8 @@
   over TCP is cut and decoded in one step. Against the general path on random answer streams.
 * The check for unsolicited bytes before a request: the general path lets the event loop run
   once; the fast path asks the kernel (one poll) and skips that pass when nothing waits. Both must
-  find stale bytes wherever they are (already delivered, or still in the kernel) and never return
-  a stale answer.
+  find stale bytes wherever they are (already delivered, or still in the kernel), over TCP and
+  UDP, and never return a stale answer.
 """
 
 from __future__ import annotations
@@ -74,58 +74,112 @@ class _StaleServer:
                     time.sleep(self.delay)
                     conn.sendall(self.extra)
 
+    def transport(self) -> TcpTransport:
+        return TcpTransport("127.0.0.1", self.port)
+
+    def close(self) -> None:
+        self.listener.close()
+
+
+class _StaleUdpServer:
+    """Answers datagram "ASK n" with "n"; after answering ``extra_after`` it sends ``extra`` too
+    (a duplicated answer), ``delay`` seconds later. A thread, so it sends while the test's loop
+    is blocked (the datagram waits in the kernel)."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        self.sources: set[tuple[str, int]] = set()
+        self.extra = b""
+        self.extra_after = b""
+        self.delay = 0.0
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                data, source = self.sock.recvfrom(100)
+                self.sources.add(source)
+                answer = data.split()[-1]
+                self.sock.sendto(answer + b"\n", source)
+                if self.extra and answer == self.extra_after:
+                    time.sleep(self.delay)
+                    self.sock.sendto(self.extra, source)
+
+    @property
+    def connections(self) -> int:
+        """Distinct local ports seen: each reconnect of the client opens a fresh socket."""
+        return len(self.sources)
+
+    def transport(self) -> UdpTransport:
+        return UdpTransport("127.0.0.1", self.port)
+
+    def close(self) -> None:
+        self.sock.close()
+
 
 @pytest.fixture
 def stale_server() -> Any:
     srv = _StaleServer()
     yield srv
-    srv.listener.close()
+    srv.close()
 
 
-async def test_input_waiting_sees_bytes_the_loop_has_not_read(stale_server: Any) -> None:
-    transport = TcpTransport("127.0.0.1", stale_server.port)
+@pytest.fixture(params=["tcp", "udp"])
+def stale_peer(request: pytest.FixtureRequest) -> Any:
+    """The stale-answer peer over TCP (a stream) or UDP (datagrams): the same checks hold."""
+    srv = _StaleServer() if request.param == "tcp" else _StaleUdpServer()
+    yield srv
+    srv.close()
+
+
+async def test_quiet_and_input_waiting_see_what_the_loop_has_not_read(stale_peer: Any) -> None:
+    transport = stale_peer.transport()
     await transport.open(1.0)
     try:
         transport.write(b"ASK 1\n")
         assert await transport.read() == b"1\n"
-        assert not transport.input_waiting()  # nothing in the kernel, nothing delivered
+        # nothing in the kernel, nothing delivered
+        assert transport.quiet() and not transport.input_waiting()
         transport.write(b"ASK 2\n")
         time.sleep(0.2)  # noqa: ASYNC251 - blocks the loop: the answer waits in the kernel
-        assert transport.input_waiting()
+        assert not transport.quiet() and transport.input_waiting()
         assert transport.take_received() == []
-        await asyncio.sleep(0.05)  # the loop reads it now
-        assert not transport.input_waiting()
+        await asyncio.sleep(0.05)  # the loop reads it now: queued, so still not quiet
+        assert not transport.quiet() and not transport.input_waiting()
         assert transport.take_received() == [b"2\n"]
+        assert transport.quiet()
     finally:
         transport.abort()
-    assert transport.input_waiting()  # closed: "cannot tell", the general path
+    # closed: "cannot tell", the general path
+    assert not transport.quiet() and transport.input_waiting()
 
 
 @pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
 @pytest.mark.parametrize("where", ["delivered", "in-kernel"])
 async def test_stale_bytes_are_found_on_both_paths(
-    stale_server: Any, general: bool, where: str
+    stale_peer: Any, general: bool, where: str
 ) -> None:
-    client = LineClient(
-        f"line://127.0.0.1:{stale_server.port}", TcpTransport("127.0.0.1", stale_server.port)
-    )
+    client = LineClient(f"line://127.0.0.1:{stale_peer.port}", stale_peer.transport())
     client.stale_check_needs_loop_pass = general
     async with client:
         assert await client.read("ASK 1") == [1]
-        stale_server.extra = b"77\n"  # a second answer to "ASK 2", 20 ms late
-        stale_server.extra_after = b"2"
-        stale_server.delay = 0.02
+        stale_peer.extra = b"77\n"  # a second answer to "ASK 2", 20 ms late
+        stale_peer.extra_after = b"2"
+        stale_peer.delay = 0.02
         assert await client.read("ASK 2") == [2]
         if where == "delivered":
             await asyncio.sleep(0.2)  # the loop has read the stale answer into the protocol
         else:
             time.sleep(0.2)  # noqa: ASYNC251 - the stale answer waits in the kernel
-        # never 77: the stale answer is found, the connection replaced, the request sent anew
+        # never 77: the stale answer is found, the connection (UDP: the socket, a new local
+        # port) replaced, the request sent anew
         assert await client.read("ASK 3") == [3]
         assert client.stats.errors == 1
-        assert stale_server.connections == 2
+        assert stale_peer.connections == 2
         assert await client.read("ASK 4") == [4]
-        assert stale_server.connections == 2
+        assert stale_peer.connections == 2
 
 
 @pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
@@ -448,83 +502,3 @@ def test_e71_take_answer_takes_the_normal_answer_to_one_word_read() -> None:
     codec.send(_READ)
     assert codec.take_answer(b"\x81\x00\x01\x00\x02\x00") is None  # short: general path
     assert codec.pending == 1
-
-
-# -- UDP: the same quiet/input_waiting check on a datagram socket ----------------------------------
-class _StaleUdpServer:
-    """Answers datagram "ASK n" with "n"; after answering ``extra_after`` it sends ``extra`` too
-    (a duplicated answer), ``delay`` seconds later. A thread, so it sends while the test's loop
-    is blocked (the datagram waits in the kernel)."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.port = self.sock.getsockname()[1]
-        self.sources: set[tuple[str, int]] = set()
-        self.extra = b""
-        self.extra_after = b""
-        self.delay = 0.0
-        threading.Thread(target=self._serve, daemon=True).start()
-
-    def _serve(self) -> None:
-        with contextlib.suppress(OSError):
-            while True:
-                data, source = self.sock.recvfrom(100)
-                self.sources.add(source)
-                answer = data.split()[-1]
-                self.sock.sendto(answer + b"\n", source)
-                if self.extra and answer == self.extra_after:
-                    time.sleep(self.delay)
-                    self.sock.sendto(self.extra, source)
-
-
-@pytest.fixture
-def stale_udp_server() -> Any:
-    srv = _StaleUdpServer()
-    yield srv
-    srv.sock.close()
-
-
-async def test_udp_quiet_sees_a_datagram_the_loop_has_not_read(stale_udp_server: Any) -> None:
-    transport = UdpTransport("127.0.0.1", stale_udp_server.port)
-    await transport.open(1.0)
-    try:
-        transport.write(b"ASK 1\n")
-        assert await transport.read() == b"1\n"
-        assert transport.quiet() and not transport.input_waiting()
-        transport.write(b"ASK 2\n")
-        time.sleep(0.2)  # noqa: ASYNC251 - blocks the loop: the datagram waits in the kernel
-        assert not transport.quiet() and transport.input_waiting()
-        await asyncio.sleep(0.05)  # the loop reads it now: queued, so still not quiet
-        assert not transport.quiet() and not transport.input_waiting()
-        assert transport.take_received() == [b"2\n"]
-        assert transport.quiet()
-    finally:
-        transport.abort()
-    assert not transport.quiet() and transport.input_waiting()  # closed: the general path
-
-
-@pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
-@pytest.mark.parametrize("where", ["delivered", "in-kernel"])
-async def test_stale_datagram_is_found_on_both_paths(
-    stale_udp_server: Any, general: bool, where: str
-) -> None:
-    port = stale_udp_server.port
-    client = LineClient(f"line+udp://127.0.0.1:{port}", UdpTransport("127.0.0.1", port))
-    client.stale_check_needs_loop_pass = general
-    async with client:
-        assert await client.read("ASK 1") == [1]
-        stale_udp_server.extra = b"77\n"  # a second answer to "ASK 2", 20 ms late
-        stale_udp_server.extra_after = b"2"
-        stale_udp_server.delay = 0.02
-        assert await client.read("ASK 2") == [2]
-        if where == "delivered":
-            await asyncio.sleep(0.2)
-        else:
-            time.sleep(0.2)  # noqa: ASYNC251 - the stale datagram waits in the kernel
-        # never 77: found, a fresh socket (a new local port), the request sent anew
-        assert await client.read("ASK 3") == [3]
-        assert client.stats.errors == 1
-        assert len(stale_udp_server.sources) == 2
-        assert await client.read("ASK 4") == [4]
-        assert len(stale_udp_server.sources) == 2
