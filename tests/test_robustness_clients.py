@@ -28,6 +28,7 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.s5memory import Area
+from tests.aio_helpers import eventually
 from tests.robust_helpers import (
     GOOD,
     MisbehavingProxy,
@@ -265,6 +266,7 @@ class UdpProxy(asyncio.DatagramProtocol):
         self.mode = "pass"
         self.late = 0.0
         self.requests = 0
+        self.late_sent = 0  # late answers sent so far
         self.transport: asyncio.DatagramTransport | None = None
         self.up: asyncio.DatagramTransport | None = None
         self.sources: deque[tuple[str, int]] = deque()
@@ -286,12 +288,17 @@ class UdpProxy(asyncio.DatagramProtocol):
         if self.mode == "pass":
             self.transport.sendto(data, addr)
         elif self.mode == "late":
-            asyncio.get_running_loop().call_later(self.late, self.transport.sendto, data, addr)
+            asyncio.get_running_loop().call_later(self.late, self._send_late, data, addr)
         elif self.mode == "twice":
             self.transport.sendto(data, addr)
             self.transport.sendto(data, addr)
         elif self.mode == "garbage":
             self.transport.sendto(b"\x10\x02garbage", addr)
+
+    def _send_late(self, data: bytes, addr: tuple[str, int]) -> None:
+        assert self.transport is not None
+        self.transport.sendto(data, addr)
+        self.late_sent += 1
 
 
 class _Up(asyncio.DatagramProtocol):
@@ -315,7 +322,7 @@ async def test_e71_udp_client_faults(fault: str) -> None:
         proxy.up = up
         url = _via(sim.url, front.get_extra_info("sockname")[1])
         try:
-            async with connect(url, timeout=TIMEOUT) as plc:
+            async with connect(url, timeout=GOOD) as plc:
                 sim.memory.write_words("D", 100, [1])
                 assert await plc.read("D100", 1) == [1]
                 proxy.mode, proxy.late = fault, TIMEOUT * 1.5
@@ -324,18 +331,28 @@ async def test_e71_udp_client_faults(fault: str) -> None:
                     assert await plc.read("D100", 1) == [2]
                 else:
                     expected = RemoteProtocolError if fault == "garbage" else PlcTimeout
-                    with pytest.raises(expected) as info:
+                    unanswered = fault in ("mute", "late")
+                    with (
+                        giving_up_soon(plc, TIMEOUT) if unanswered else contextlib.nullcontext(),
+                        pytest.raises(expected) as info,
+                    ):
                         await plc.read("D100", 1)
                     assert url in str(info.value) and "read D100" in str(info.value)
                 proxy.mode = "pass"
                 if fault == "late":
-                    await asyncio.sleep(TIMEOUT)  # the late answer arrives now: ignored
+                    # the late answer arrives while the client is idle (UDP: nothing tells it
+                    # from the next answer once that request is out): it must be ignored
+                    await eventually(lambda: proxy.late_sent == 1, "the late answer is sent")
+                    await asyncio.sleep(0.01)  # a loop pass: the client has received it
                 for value in (3, 4):
                     sim.memory.write_words("D", 100, [value])
                     assert await plc.read("D100", 1) == [value]
                 proxy.mode = "mute"
                 requests = proxy.requests
-                with pytest.raises(PlcTimeout, match="may or may not"):
+                with (
+                    giving_up_soon(plc, TIMEOUT),
+                    pytest.raises(PlcTimeout, match="may or may not"),
+                ):
                     await plc.write("D100", [5])
                 await asyncio.sleep(TIMEOUT)
                 assert proxy.requests == requests + 1  # the write went out once
