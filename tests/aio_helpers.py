@@ -1,10 +1,12 @@
-"""Helpers for the tests' own asyncio servers."""
+"""Helpers for the tests' own asyncio servers, and waiting for a condition."""
 
 from __future__ import annotations
 
 import asyncio
 import functools
 from collections.abc import Awaitable, Callable
+
+__all__ = ["Handler", "ends_quietly", "eventually"]
 
 Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
 
@@ -26,3 +28,19 @@ def ends_quietly(handler: Handler) -> Handler:
             writer.transport.abort()
 
     return run
+
+
+async def eventually(condition: Callable[[], object], what: str, timeout: float = 10.0) -> None:
+    """Wait until ``condition()`` is true, polling every 10 ms; an ``AssertionError`` naming
+    ``what`` after ``timeout`` seconds.
+
+    For the "by now it has happened" of a test (the sink noticed the broker is gone, the client
+    tried again): a fixed sleep guesses how long that takes and fails on a loaded machine, while
+    a condition with a generous bound costs only the time it really takes.
+    """
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not condition():
+        if loop.time() > deadline:
+            raise AssertionError(f"not within {timeout:g} s: {what}")
+        await asyncio.sleep(0.01)

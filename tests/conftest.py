@@ -23,6 +23,9 @@ from __future__ import annotations
 
 import gc
 import logging
+import os
+import sys
+import tempfile
 from collections.abc import Iterator
 
 import pytest
@@ -33,6 +36,22 @@ __all__ = ["influxd", "mosquitto", "nats_server"]
 
 # tests/test_loop_error_rule.py runs a small pytest session to prove the rule below
 pytest_plugins = ["pytester"]
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """With ``PYTHONDONTWRITEBYTECODE`` set (as on our shared development machine), every
+    ``python -m plcstack`` a CLI test starts, and every xdist worker, compiled the whole package
+    from source again: about half of each subprocess's start-up. Keep the wish behind the
+    variable (no ``__pycache__`` in the source tree) but cache the bytecode in a directory under
+    the temporary directory instead, for this process and everything it starts (the workers and
+    the test subprocesses inherit the environment)."""
+    if not os.environ.get("PYTHONDONTWRITEBYTECODE") or os.environ.get("PYTHONPYCACHEPREFIX"):
+        return
+    prefix = os.path.join(tempfile.gettempdir(), f"plcstack-pycache-{os.getuid()}")
+    del os.environ["PYTHONDONTWRITEBYTECODE"]
+    os.environ["PYTHONPYCACHEPREFIX"] = prefix
+    sys.dont_write_bytecode = False
+    sys.pycache_prefix = prefix
 
 
 class _LoopErrors(logging.Handler):

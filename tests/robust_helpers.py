@@ -8,19 +8,22 @@ import gc
 import logging
 import os
 import random
-from collections.abc import AsyncIterator, Callable
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Callable, Iterator
+from contextlib import asynccontextmanager, contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
+from plcstack.clients.as511 import AS511Client
 from plcstack.clients.base import Client
 from tests.aio_helpers import ends_quietly
 
 __all__ = [
+    "GOOD",
     "LoopErrors",
     "MisbehavingProxy",
     "capture_request",
     "fd_count",
+    "giving_up_soon",
     "mutations",
     "record_loop_errors",
 ]
@@ -103,6 +106,31 @@ def mutations(frame: bytes, rng: random.Random, limit: int) -> list[bytes]:
         out.append(frame[:i] + bytes([frame[i] ^ (1 << rng.randrange(8))]) + frame[i + 1 :])
     rng.shuffle(out)
     return out[:limit]
+
+
+#: the deadline of every request a test needs answered: long, because a healthy answer comes at
+#: once and waiting costs nothing, while a stall of a loaded machine (100 ms and more) must not
+#: fail it. Only the request a peer is meant to leave unanswered gets a short deadline.
+GOOD = 5.0
+
+
+@contextmanager
+def giving_up_soon(plc: Client, deadline: float) -> Iterator[None]:
+    """Within the block the client gives up after ``deadline`` (AS511: per character too), for
+    the one request a mute or late peer never answers, so that the test waits ``deadline`` and
+    not ``GOOD``; afterwards the client's own deadlines are back."""
+    saved = plc.timeout
+    plc.timeout = deadline
+    pg = plc.pg if isinstance(plc, AS511Client) else None
+    saved_pg = (pg.char_timeout, pg.response_timeout) if pg is not None else None
+    if pg is not None:
+        pg.char_timeout = pg.response_timeout = deadline / 2
+    try:
+        yield
+    finally:
+        plc.timeout = saved
+        if pg is not None and saved_pg is not None:
+            pg.char_timeout, pg.response_timeout = saved_pg
 
 
 def fd_count() -> int:

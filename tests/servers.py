@@ -212,6 +212,16 @@ class Mosquitto(_Server):
     def url(self) -> str:
         return f"mqtt://{self.host}:{self.port}"
 
+    def _ready(self) -> bool:
+        """Every listener accepts, also those of ``extra_config`` (a TLS listener comes up after
+        the plain one: a test that connects to it at once was refused now and then)."""
+        ports = [self.port] + [
+            int(line.split()[1])
+            for line in self.extra_config.splitlines()
+            if line.startswith("listener ") and len(line.split()) > 1
+        ]
+        return all(_accepts(self.host, port) for port in ports)
+
     def _command(self) -> list[str]:
         conf = self.dir / "mosquitto.conf"
         lines = [

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 import struct
-import sys
 from pathlib import Path
 
 import pytest
@@ -13,23 +11,15 @@ import pytest
 from plcstack.cli import build_parser
 from plcstack.sim import e71, fetchwrite
 from plcstack.sim.s5memory import Area
+from tests.cli_helpers import cli_in_process
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 async def cli(*args: str) -> tuple[int, str, str]:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "plcstack",
-        *args,
-        cwd=ROOT,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-    )
-    out, err = await asyncio.wait_for(proc.communicate(), 30)
-    assert proc.returncode is not None
-    return proc.returncode, out.decode(), err.decode()
+    # plcstack.cli.main in this process (tests/cli_helpers.py): a new interpreter per command
+    # proves nothing more about --type than test_cli_basic's subprocess tests already do
+    return await cli_in_process(*args)
 
 
 async def test_e71_float32_and_int32_low_word_first() -> None:

@@ -1,4 +1,8 @@
-"""The CLI against E71 simulators: `python -m plcstack read/write/sim e71` in subprocesses."""
+"""The CLI against E71 simulators: `python -m plcstack read/write/sim e71`.
+
+``read``/``write`` end to end in subprocesses (``run_cli``); the error cases through the same
+``plcstack.cli.main`` in this process (``cli_in_process``, tests/cli_helpers.py), which saves a
+new interpreter per command."""
 
 from __future__ import annotations
 
@@ -12,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from plcstack.sim import e71 as sim_e71
+from tests.cli_helpers import cli_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,13 +60,13 @@ async def test_plc_error_code_end_to_end() -> None:
     sim = await sim_e71.start()
     try:
         sim.memory.write_in_run = False
-        rc, out, err = await run_cli("write", sim.url, "D0", "5")
+        rc, out, err = await cli_in_process("write", sim.url, "D0", "5")
         assert rc == 1 and out == ""
         lines = err.splitlines()
         assert len(lines) == 1
         assert "55H" in lines[0] and "write during RUN not enabled" in lines[0]
         assert sim.url in lines[0] and "write D0 x1" in lines[0]
-        rc, _, err = await run_cli("read", sim.url + "?pc=05", "D0")
+        rc, _, err = await cli_in_process("read", sim.url + "?pc=05", "D0")
         assert rc == 1
         assert len(err.splitlines()) == 1
         assert "5BH/10H" in err and "wrong PC number" in err
@@ -73,13 +78,13 @@ async def test_dead_plc_and_bad_address() -> None:
     sim = await sim_e71.start()
     url = sim.url
     try:
-        rc, _, err = await run_cli("read", url, "Q0")
+        rc, _, err = await cli_in_process("read", url, "Q0")
         assert rc == 2 and "unknown MELSEC device" in err
-        rc, _, err = await run_cli("read", url + "?code=ebcdic", "D0")
+        rc, _, err = await cli_in_process("read", url + "?code=ebcdic", "D0")
         assert rc == 2 and "code" in err
     finally:
         await sim.aclose()
-    rc, _, err = await run_cli("read", url, "D0", "--timeout", "1")
+    rc, _, err = await cli_in_process("read", url, "D0", "--timeout", "1")
     assert rc == 1 and len(err.splitlines()) == 1 and url in err
 
 
@@ -106,7 +111,7 @@ async def test_sim_subcommand_announces_and_serves() -> None:
         line = (await asyncio.wait_for(proc.stdout.readline(), 30)).decode()
         assert line.startswith("listening on 127.0.0.1:") and line.endswith(" (UDP)\n")
         port = int(line.split()[2].rsplit(":", 1)[1])
-        rc, out, err = await run_cli(
+        rc, out, err = await cli_in_process(
             "read", f"e71+udp://127.0.0.1:{port}?code=ascii", "D9000", "2", "--json"
         )
         assert (rc, out) == (0, '{"address": "D9000", "values": [0, 0]}\n'), err

@@ -1,36 +1,21 @@
-"""E71-only CLI commands (issue 3) in subprocesses against the E71 simulator."""
+"""E71-only CLI commands (issue 3) against the E71 simulator, run through ``plcstack.cli.main``
+as ``python -m plcstack`` runs them (in this process: tests/cli_helpers.py)."""
 
 from __future__ import annotations
 
-import asyncio
 import json
-import os
-import sys
 from array import array
 from pathlib import Path
 
 from plcstack.sim import e71 as sim_e71
 from plcstack.sim.e71_module import module_of
 from plcstack.sim.melsec_memory import CpuState
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.cli_helpers import cli_in_process
 
 
 async def run_cli(*args: str) -> tuple[int, str, str]:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "plcstack",
-        *args,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-        env=env,
-        cwd=str(ROOT),
-    )
-    out, err = await asyncio.wait_for(proc.communicate(), 30)
-    assert proc.returncode is not None
-    return proc.returncode, out.decode(), err.decode()
+    # in this process: these commands only talk to the PLC (see tests/cli_helpers.py)
+    return await cli_in_process(*args)
 
 
 async def test_info_run_stop_loopback() -> None:

@@ -4,8 +4,8 @@
   over TCP is cut and decoded in one step. Against the general path on random answer streams.
 * The check for unsolicited bytes before a request: the general path lets the event loop run
   once; the fast path asks the kernel (one poll) and skips that pass when nothing waits. Both must
-  find stale bytes wherever they are (already delivered, or still in the kernel) and never return
-  a stale answer.
+  find stale bytes wherever they are (already delivered, or still in the kernel), over TCP and
+  UDP, and never return a stale answer.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from plcstack.codecs.e71 import (
 from plcstack.errors import AddressError, PlcError, PlcTimeout
 from plcstack.sim import e71 as sim_e71
 from plcstack.transports.tcp import TcpTransport
+from plcstack.transports.udp import UdpTransport
 from tests.aio_helpers import ends_quietly
 from tests.test_client_base import LineClient
 
@@ -73,58 +74,112 @@ class _StaleServer:
                     time.sleep(self.delay)
                     conn.sendall(self.extra)
 
+    def transport(self) -> TcpTransport:
+        return TcpTransport("127.0.0.1", self.port)
+
+    def close(self) -> None:
+        self.listener.close()
+
+
+class _StaleUdpServer:
+    """Answers datagram "ASK n" with "n"; after answering ``extra_after`` it sends ``extra`` too
+    (a duplicated answer), ``delay`` seconds later. A thread, so it sends while the test's loop
+    is blocked (the datagram waits in the kernel)."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        self.sources: set[tuple[str, int]] = set()
+        self.extra = b""
+        self.extra_after = b""
+        self.delay = 0.0
+        threading.Thread(target=self._serve, daemon=True).start()
+
+    def _serve(self) -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                data, source = self.sock.recvfrom(100)
+                self.sources.add(source)
+                answer = data.split()[-1]
+                self.sock.sendto(answer + b"\n", source)
+                if self.extra and answer == self.extra_after:
+                    time.sleep(self.delay)
+                    self.sock.sendto(self.extra, source)
+
+    @property
+    def connections(self) -> int:
+        """Distinct local ports seen: each reconnect of the client opens a fresh socket."""
+        return len(self.sources)
+
+    def transport(self) -> UdpTransport:
+        return UdpTransport("127.0.0.1", self.port)
+
+    def close(self) -> None:
+        self.sock.close()
+
 
 @pytest.fixture
 def stale_server() -> Any:
     srv = _StaleServer()
     yield srv
-    srv.listener.close()
+    srv.close()
 
 
-async def test_input_waiting_sees_bytes_the_loop_has_not_read(stale_server: Any) -> None:
-    transport = TcpTransport("127.0.0.1", stale_server.port)
+@pytest.fixture(params=["tcp", "udp"])
+def stale_peer(request: pytest.FixtureRequest) -> Any:
+    """The stale-answer peer over TCP (a stream) or UDP (datagrams): the same checks hold."""
+    srv = _StaleServer() if request.param == "tcp" else _StaleUdpServer()
+    yield srv
+    srv.close()
+
+
+async def test_quiet_and_input_waiting_see_what_the_loop_has_not_read(stale_peer: Any) -> None:
+    transport = stale_peer.transport()
     await transport.open(1.0)
     try:
         transport.write(b"ASK 1\n")
         assert await transport.read() == b"1\n"
-        assert not transport.input_waiting()  # nothing in the kernel, nothing delivered
+        # nothing in the kernel, nothing delivered
+        assert transport.quiet() and not transport.input_waiting()
         transport.write(b"ASK 2\n")
         time.sleep(0.2)  # noqa: ASYNC251 - blocks the loop: the answer waits in the kernel
-        assert transport.input_waiting()
+        assert not transport.quiet() and transport.input_waiting()
         assert transport.take_received() == []
-        await asyncio.sleep(0.05)  # the loop reads it now
-        assert not transport.input_waiting()
+        await asyncio.sleep(0.05)  # the loop reads it now: queued, so still not quiet
+        assert not transport.quiet() and not transport.input_waiting()
         assert transport.take_received() == [b"2\n"]
+        assert transport.quiet()
     finally:
         transport.abort()
-    assert transport.input_waiting()  # closed: "cannot tell", the general path
+    # closed: "cannot tell", the general path
+    assert not transport.quiet() and transport.input_waiting()
 
 
 @pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
 @pytest.mark.parametrize("where", ["delivered", "in-kernel"])
 async def test_stale_bytes_are_found_on_both_paths(
-    stale_server: Any, general: bool, where: str
+    stale_peer: Any, general: bool, where: str
 ) -> None:
-    client = LineClient(
-        f"line://127.0.0.1:{stale_server.port}", TcpTransport("127.0.0.1", stale_server.port)
-    )
+    client = LineClient(f"line://127.0.0.1:{stale_peer.port}", stale_peer.transport())
     client.stale_check_needs_loop_pass = general
     async with client:
         assert await client.read("ASK 1") == [1]
-        stale_server.extra = b"77\n"  # a second answer to "ASK 2", 20 ms late
-        stale_server.extra_after = b"2"
-        stale_server.delay = 0.02
+        stale_peer.extra = b"77\n"  # a second answer to "ASK 2", 20 ms late
+        stale_peer.extra_after = b"2"
+        stale_peer.delay = 0.02
         assert await client.read("ASK 2") == [2]
         if where == "delivered":
             await asyncio.sleep(0.2)  # the loop has read the stale answer into the protocol
         else:
             time.sleep(0.2)  # noqa: ASYNC251 - the stale answer waits in the kernel
-        # never 77: the stale answer is found, the connection replaced, the request sent anew
+        # never 77: the stale answer is found, the connection (UDP: the socket, a new local
+        # port) replaced, the request sent anew
         assert await client.read("ASK 3") == [3]
         assert client.stats.errors == 1
-        assert stale_server.connections == 2
+        assert stale_peer.connections == 2
         assert await client.read("ASK 4") == [4]
-        assert stale_server.connections == 2
+        assert stale_peer.connections == 2
 
 
 @pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
@@ -362,16 +417,22 @@ async def test_poller_schedule_is_the_same_with_the_shared_timer(shared: bool) -
 
     poller, _ = make({f"p{i}": [tag("w", "D0", count=4)] for i in range(20)}, interval=0.02)
     poller.shared_timer = shared
+    loop = asyncio.get_running_loop()
+    began = loop.time()
     await poller.start()
     await asyncio.sleep(0.5)
     await poller.aclose()
+    ticks = (loop.time() - began) / 0.02  # about 25 at 50 Hz; more if the machine is loaded
     stats = poller.stats
-    scans = [s.scans for s in stats.values()]
-    # 0.5 s at 50 Hz: about 25 scans each; on a loaded machine a few may be late (overruns)
-    assert all(18 <= n <= 27 for n in scans), scans
+    # every tick of the schedule is a scan or, when a scan was late (a loaded machine), counted
+    # as an overrun, so their sum follows the clock whatever the load: never more than the
+    # ticks (no scan early), and at least half of them (the ticks of scans still in flight when
+    # aclose() came are counted by nobody; a stall there can be several ticks long)
+    kept = [(s.scans, s.overruns) for s in stats.values()]
+    assert all(ticks / 2 <= n + late <= ticks + 1 for n, late in kept), (ticks, kept)
+    assert all(n >= 1 for n, _ in kept), kept
     # the scan in flight at aclose() counts as a scan, not a request
     assert all(s.scans - 1 <= s.requests <= s.scans and s.errors == 0 for s in stats.values())
-    assert sum(s.overruns for s in stats.values()) <= 20
 
 
 # -- E71 codec: take_answer, the whole answer of a poll in one step --------------------------------

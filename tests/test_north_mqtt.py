@@ -18,6 +18,7 @@ from plcstack.north.mqtt import MqttSettings, MqttSink, parse_mqtt
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.values import BOOL, UINT16
+from tests.aio_helpers import eventually
 from tests.north_certs import Authority
 from tests.north_helpers import sample, subscriber
 from tests.poll_fakes import FakeClient
@@ -82,6 +83,7 @@ async def test_last_will_says_offline_when_the_connection_drops(mosquitto: Mosqu
         sink._client._client.socket().shutdown(socket.SHUT_RDWR)
         await sub.wait_for(lambda s: s.json()[-1]["status"] == "offline")
         await sub.wait_for(lambda s: s.json()[-1]["status"] == "online")  # and it came back
+    await sink.wait_connected(10)  # the session fully up before closing (see the Sparkplug test)
     await sink.aclose()
 
 
@@ -99,7 +101,7 @@ async def test_broker_restart_loses_nothing_and_keeps_order(
             if phase == 1:
                 await sub.wait_for(lambda s: len(counts(s)) >= 100)
                 mosquitto.stop()
-                await asyncio.sleep(0.3)  # the sink notices
+                await eventually(lambda: not sink.connected, "the sink notices the broker left")
             if phase == 2:
                 assert not sink.connected
                 assert buffer.on_disk > 0

@@ -16,6 +16,7 @@ from plcstack.cli import main
 from plcstack.errors import ConnectFailed
 from plcstack.north.mqtt import MqttSink, parse_mqtt
 from plcstack.poll.config import ConfigError, load_config
+from tests.aio_helpers import eventually
 from tests.north_certs import Authority
 from tests.north_helpers import sample, subscriber
 from tests.servers import Mosquitto, ServerUnavailable, free_port
@@ -97,7 +98,7 @@ async def test_no_client_certificate_is_a_typed_error_naming_the_broker(
                 await sink.wait_connected(0.01)
             # the sink keeps trying (a broker's CA can be fixed without restarting us)...
             connects_before = sink.stats.connects
-            await asyncio.sleep(1.2)  # at least one more attempt: 0.5 s timeout + backoff
+            await eventually(lambda: sink.stats.failures >= 2, "a second connection attempt")
         finally:
             await sink.aclose(drain=0)
     text = str(raised.value)
@@ -231,3 +232,41 @@ def test_loading_a_config_needs_no_credentials_but_polling_does(
         f"plcstack: error: MQTT broker mqtt://127.0.0.1:{port}: connect: [mqtt] username_env names"
         " the environment variable 'PLCSTACK_TEST_MQTT_USER', which is not set; not connecting\n"
     )
+
+
+def test_relative_paths_in_mqtt_are_relative_to_the_toml_file(
+    tls_broker: TlsBroker, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    site = tmp_path / "site"
+    site.mkdir()
+    for source, name in [
+        (tls_broker.authority.ca, "ca.pem"),
+        (tls_broker.client_cert, "line1.crt"),
+        (tls_broker.client_key, "line1.key"),
+    ]:
+        (site / name).write_bytes(source.read_bytes())
+    (site / "plant.toml").write_text(
+        f"""
+[[plc]]
+name = "press1"
+url = "e71+tcp://127.0.0.1:1"
+[plc.tags]
+strokes = "D100"
+[mqtt]
+url = "{tls_broker.url}"
+mode = "sparkplug"
+client_id = "edge-relative"
+ca_file = "ca.pem"
+cert_file = "line1.crt"
+key_file = "line1.key"
+buffer_path = "queue.sqlite"
+"""
+    )
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # a service's working directory is rarely the config's
+    assert main(["poll", str(site / "plant.toml"), "--format", "none", "--duration", "1.5"]) == 0
+    assert (site / "queue.sqlite").exists() and (site / "queue.sparkplug.json").exists()
+    assert list(elsewhere.iterdir()) == []
+    # the broker took the certificate found next to the file
+    assert "as edge-relative" in tls_broker.broker.log()

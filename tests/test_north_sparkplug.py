@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import json
 import socket
 from typing import Any
@@ -16,6 +15,7 @@ from plcstack.north.sparkplug_pb import Payload
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.values import BOOL, FLOAT32, INT16, UINT16
+from tests.aio_helpers import eventually
 from tests.north_helpers import sample, subscriber
 from tests.poll_fakes import FakeClient
 from tests.servers import Mosquitto
@@ -129,6 +129,10 @@ async def test_sparkplug_session_births_data_deaths_rebirth_and_dcmd(mosquitto: 
         assert metrics(decode(sub.messages, "NDEATH")[0][1]) == {"bdSeq": 0}
         await sub.wait_for(lambda s: len(decode(s.messages, "NBIRTH")) >= 3)
         assert metrics(decode(sub.messages, "NBIRTH")[-1][1])["bdSeq"] == 1
+        # the new session fully up (births acknowledged, subscribed) before closing: on Python
+        # 3.11 a close while aiomqtt awaits an acknowledgement can lose its cancellation in
+        # asyncio.wait_for and hang (a product issue, reported; not this test's subject)
+        await sink.wait_connected(10)
         await sink.aclose()
 
 
@@ -147,7 +151,8 @@ async def test_sparkplug_store_and_forward_marks_replayed_data_historical(
         sink.submit([sample("p", "speed", 1)])
         await sub.wait_for(lambda s: len(decode(s.messages, "DDATA")) >= 1)
         mosquitto.stop()
-        await asyncio.sleep(0.3)
+        # what comes now must go to the buffer (and be replayed as historical)
+        await eventually(lambda: not sink.connected, "the sink notices the broker left")
         for v in (2, 3):
             sink.submit([sample("p", "speed", v)])
         mosquitto.start()

@@ -28,8 +28,16 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.s5memory import Area
-from tests.robust_helpers import MisbehavingProxy, mutations, record_loop_errors
+from tests.robust_helpers import (
+    GOOD,
+    MisbehavingProxy,
+    giving_up_soon,
+    mutations,
+    record_loop_errors,
+)
 
+#: how long the client waits for the answer a mute or late peer never gives (every other request
+#: has GOOD: see tests.robust_helpers)
 TIMEOUT = 0.1
 
 
@@ -59,9 +67,10 @@ STARTERS: dict[str, tuple[Callable[[], Any], str, Callable[[Any], Callable[[int]
 }
 
 
-#: per-protocol client options that keep the fault tests short
+#: per-protocol client options: AS511 waits per character (short only inside giving_up_soon)
+#: and pauses after a NAK (short, so the fault tests stay short)
 CLIENT_OPTIONS: dict[str, dict[str, Any]] = {
-    "as511-tcp": {"char_timeout": 0.05, "nak_backoff": 0.05},
+    "as511-tcp": {"char_timeout": GOOD, "nak_backoff": 0.05},
 }
 
 #: S5-LAN never waits less than 1 s for an answer (its client's [R] deadline): slow cases
@@ -119,13 +128,17 @@ FAULTS: dict[str, type[PlcError]] = {
 async def test_read_fault_is_typed_and_next_answer_is_fresh(name: str, fault: str) -> None:
     async with record_loop_errors() as errors:
         async for target, proxy in _target(name):
-            async with connect(target.url, timeout=TIMEOUT, **CLIENT_OPTIONS.get(name, {})) as plc:
+            async with connect(target.url, timeout=GOOD, **CLIENT_OPTIONS.get(name, {})) as plc:
                 target.set_value(0x1111)
                 assert await plc.read(target.address, 1) == [0x1111]  # warm: caches, params
                 target.set_value(0x2222)
                 proxy.script.mode = fault
                 proxy.script.late = 3.0  # S5-LAN waits at least 1 s whatever the timeout
-                with pytest.raises(PlcError) as info:
+                unanswered = fault in ("mute", "late")
+                with (
+                    giving_up_soon(plc, TIMEOUT) if unanswered else contextlib.nullcontext(),
+                    pytest.raises(PlcError) as info,
+                ):
                     async with asyncio.timeout(10):  # "never hangs", bounded
                         await plc.read(target.address, 1)
                 assert isinstance(info.value, FAULTS[fault]), repr(info.value)
@@ -139,14 +152,17 @@ async def test_read_fault_is_typed_and_next_answer_is_fresh(name: str, fault: st
 async def test_duplicated_answer_is_never_taken_for_the_next_one(name: str) -> None:
     async with record_loop_errors() as errors:
         async for target, proxy in _target(name):
-            async with connect(target.url, timeout=TIMEOUT, **CLIENT_OPTIONS.get(name, {})) as plc:
+            async with connect(target.url, timeout=GOOD, **CLIENT_OPTIONS.get(name, {})) as plc:
                 target.set_value(0x1111)
                 assert await plc.read(target.address, 1) == [0x1111]
                 for step in range(3):
                     proxy.script.mode = "twice"
                     target.set_value(0x2000 + step)
-                    # detecting the surplus is fine; a wrong value is not
-                    with contextlib.suppress(RemoteProtocolError, PlcTimeout, ConnectionLost):
+                    # detecting the surplus is fine (AS511: maybe by timeout); a wrong value is not
+                    with (
+                        giving_up_soon(plc, TIMEOUT),
+                        contextlib.suppress(RemoteProtocolError, PlcTimeout, ConnectionLost),
+                    ):
                         assert await plc.read(target.address, 1) == [0x2000 + step]
                     target.set_value(0x3000 + step)
                     proxy.script.mode = "pass"
@@ -160,14 +176,19 @@ async def test_answer_with_trailing_bytes_is_not_trusted(name: str) -> None:
     (if any) answers this request is unknowable, so no value is returned from it."""
     async with record_loop_errors() as errors:
         async for target, proxy in _target(name):
-            async with connect(target.url, timeout=TIMEOUT, **CLIENT_OPTIONS.get(name, {})) as plc:
+            async with connect(target.url, timeout=GOOD, **CLIENT_OPTIONS.get(name, {})) as plc:
                 assert await plc.read(target.address, 1) is not None  # warm up
                 proxy.script.mode = "mutate"
                 proxy.script.mutate = lambda data: data + b"\x55" * 16
-                with pytest.raises(PlcError) as info:
+                # AS511: each handshake step is mutated, the client may end it by a timeout
+                as511 = name.startswith("as511")
+                with (
+                    giving_up_soon(plc, TIMEOUT) if as511 else contextlib.nullcontext(),
+                    pytest.raises(PlcError) as info,
+                ):
                     async with asyncio.timeout(10):
                         await plc.read(target.address, 1)
-                if not name.startswith("as511"):  # AS511: each handshake step is mutated
+                if not as511:
                     assert isinstance(info.value, RemoteProtocolError), repr(info.value)
                 _names_plc_and_request(info.value, target, "read")
                 assert not plc.transport.is_open
@@ -181,7 +202,7 @@ async def test_cancelled_request_never_answers_the_next_one(name: str) -> None:
     on its way: the late answer must die with the connection, and the client must go on."""
     async with record_loop_errors() as errors:
         async for target, proxy in _target(name):
-            async with connect(target.url, timeout=2, **CLIENT_OPTIONS.get(name, {})) as plc:
+            async with connect(target.url, timeout=GOOD, **CLIENT_OPTIONS.get(name, {})) as plc:
                 target.set_value(0x1111)
                 assert await plc.read(target.address, 1) == [0x1111]
                 for op in ("read", "write"):
@@ -210,12 +231,15 @@ WRITE_FAULTS: dict[str, type[PlcError]] = {
 async def test_failed_write_is_reported_and_never_retried(name: str, fault: str) -> None:
     async with record_loop_errors() as errors:
         async for target, proxy in _target(name):
-            async with connect(target.url, timeout=TIMEOUT, **CLIENT_OPTIONS.get(name, {})) as plc:
+            async with connect(target.url, timeout=GOOD, **CLIENT_OPTIONS.get(name, {})) as plc:
                 assert await plc.read(target.address, 1) is not None  # warm up
                 proxy.script.mode = fault
                 connections = proxy.script.connections
                 before = b"".join(proxy.script.chunks)
-                with pytest.raises(PlcError) as info:
+                with (
+                    giving_up_soon(plc, TIMEOUT) if fault == "mute" else contextlib.nullcontext(),
+                    pytest.raises(PlcError) as info,
+                ):
                     async with asyncio.timeout(10):
                         await plc.write(target.address, [0x5A5A])
                 assert isinstance(info.value, WRITE_FAULTS[fault]), repr(info.value)
@@ -339,14 +363,14 @@ async def test_mutated_answers_give_typed_errors_and_never_a_stale_value(name: s
     async with record_loop_errors() as errors:
         async for target, proxy in _target(name):
             options = CLIENT_OPTIONS.get(name, {})
-            async with connect(target.url, timeout=0.05, **options) as plc:
+            async with connect(target.url, timeout=GOOD, **options) as plc:
                 # S5-LAN waits >= 1 s per unanswered request: fewer rounds there
                 for k in range(8 if name == "s5lan" else MUTATED_ROUNDS):
                     proxy.script.mode, proxy.script.mutate = "mutate", mutate
-                    with contextlib.suppress(PlcError):
+                    with giving_up_soon(plc, TIMEOUT), contextlib.suppress(PlcError):
                         async with asyncio.timeout(10):
                             await plc.read(target.address, rng.randrange(1, 5))
-                    with contextlib.suppress(PlcError):
+                    with giving_up_soon(plc, TIMEOUT), contextlib.suppress(PlcError):
                         async with asyncio.timeout(10):
                             await plc.write(target.address, [rng.randrange(256)])
                     proxy.script.mode = "pass"

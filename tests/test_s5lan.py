@@ -31,6 +31,7 @@ from plcstack.sim import s5lan
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.transports.backoff import Backoff
 from tests.aio_helpers import ends_quietly
+from tests.cli_helpers import cli_in_process
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -487,34 +488,19 @@ def test_locate_address_at_max_points() -> None:
         plc.address_at("nonsense", 1)
 
 
-# -- CLI ---------------------------------------------------------------------------------------
-async def _cli(*args: str) -> tuple[int, str, str]:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "plcstack",
-        *args,
-        cwd=ROOT,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-    )
-    out, err = await asyncio.wait_for(proc.communicate(), 30)
-    assert proc.returncode is not None
-    return proc.returncode, out.decode(), err.decode()
-
-
+# -- CLI (read/write through plcstack.cli.main in this process: tests/cli_helpers.py) --------
 async def test_cli_read_json_and_write(sim: s5lan.S5LanSimulator) -> None:
     sim.memory.write_db_words(10, 5, [0x1000 + i for i in range(20)])
-    code, out, _ = await _cli("read", sim.url, "DB10.DW5", "20", "--json")
+    code, out, _ = await cli_in_process("read", sim.url, "DB10.DW5", "20", "--json")
     assert code == 0
     assert json.loads(out) == {"address": "DB10.DW5", "values": [0x1000 + i for i in range(20)]}
-    code, out, _ = await _cli("write", sim.url, "MW10", "0x1234", "-1")
+    code, out, _ = await cli_in_process("write", sim.url, "MW10", "0x1234", "-1")
     assert code == 0
     assert sim.memory.read_area(Area.FLAGS, 10, 4) == bytes.fromhex("1234FFFF")
-    code, _, err = await _cli("read", sim.url, "DB99.DW0")
+    code, _, err = await cli_in_process("read", sim.url, "DB99.DW0")
     assert code == 1
     assert "Err 2" in err and "does not exist" in err
-    code, _, err = await _cli("read", sim.url, "DB10.DBW10")
+    code, _, err = await cli_in_process("read", sim.url, "DB10.DBW10")
     assert code == 2
     assert "DB10.DW5" in err
 

@@ -15,6 +15,7 @@ import os
 import signal
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from plcstack.cli import plain_text
@@ -117,7 +118,8 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return 2
     # every URL and address checked here, before anything is sent
     poller: Poller | Worker = worker if worker is not None else Poller(config)
-    north_config = parse_north(config.north)
+    # relative file paths in [mqtt] are taken relative to the TOML file, as [opcua] does
+    north_config = parse_north(config.north, base=Path(args.config).parent)
     line: Callable[[Sample], str] | None = None
     if args.format == "influx":
         line = functools.partial(influx_line, measurement=north_config.influx_measurement)

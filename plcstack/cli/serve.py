@@ -21,6 +21,7 @@ import argparse
 import getpass
 import importlib.util
 import sys
+from pathlib import Path
 from typing import Any
 
 from plcstack.cli import plain_text
@@ -97,7 +98,7 @@ async def run_opcua(args: argparse.Namespace) -> int:
     opcua_config = load_opcua_config(args.config)
     from plcstack.north.opcua import OpcUaServer, run_until  # asyncua: only when serving
 
-    metrics = parse_north(config.north).metrics
+    metrics = parse_north(config.north, base=Path(args.config).parent).metrics
     if metrics_port is not None:
         metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", metrics_port)
     poller = Poller(config)  # every URL and address checked before anything is sent

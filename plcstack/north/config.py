@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from plcstack.north.influx import DEFAULT_MEASUREMENT
@@ -46,7 +47,10 @@ class NorthConfig:
         return self.report is not PASS_ALL
 
 
-def parse_north(tables: Mapping[str, Any]) -> NorthConfig:
+def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> NorthConfig:
+    """The north-side tables; ``base`` = the TOML file's directory, for relative file paths
+    (``[mqtt]`` ca_file, cert_file, key_file, buffer_path, state_path; ``[opcua]``
+    certificates). The poll loader checks without it; ``plcstack poll`` passes it."""
     influx = tables.get("influx", {})
     if not isinstance(influx, dict):
         raise ConfigError("[influx] must be a table")
@@ -57,9 +61,9 @@ def parse_north(tables: Mapping[str, Any]) -> NorthConfig:
     if not isinstance(measurement, str) or not measurement.strip():
         raise ConfigError("[influx] measurement must be a non-empty string")
     return NorthConfig(
-        mqtt=parse_mqtt(tables["mqtt"]) if "mqtt" in tables else None,
+        mqtt=parse_mqtt(tables["mqtt"], base=base) if "mqtt" in tables else None,
         metrics=parse_metrics(tables["metrics"]) if "metrics" in tables else None,
         report=parse_report(tables.get("report")),
         influx_measurement=measurement,
-        opcua=parse_opcua_config(tables["opcua"]) if "opcua" in tables else None,
+        opcua=parse_opcua_config(tables["opcua"], base=base) if "opcua" in tables else None,
     )

@@ -37,6 +37,7 @@ import ssl
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 from urllib.parse import urlsplit
 
@@ -137,8 +138,10 @@ class MqttSettings:
         return out[0], out[1]
 
 
-def parse_mqtt(table: Any) -> MqttSettings:
-    """The ``[mqtt]`` table of the poll TOML::
+def parse_mqtt(table: Any, *, base: Path | None = None) -> MqttSettings:
+    """The ``[mqtt]`` table of the poll TOML (``base``: the file's directory, against which
+    relative ``ca_file``, ``cert_file``, ``key_file``, ``buffer_path`` and ``state_path`` are
+    taken, as ``[opcua]`` takes its certificates; None: as written)::
 
     [mqtt]
     url = "mqtt://broker:1883"      # mqtts:// = TLS (port 8883 by default)
@@ -205,6 +208,12 @@ def parse_mqtt(table: Any) -> MqttSettings:
             raise ConfigError(f"[mqtt] {key} must be {lo}..{hi} seconds, got {value!r}")
         return float(value)
 
+    def file(key: str) -> str | None:
+        value = text(key, None)
+        if value is None or base is None or Path(value).is_absolute():
+            return value
+        return str(base / value)
+
     reconnect_max = seconds("reconnect_max", 30.0, 0.1, 3600)
     timeout = seconds("timeout", 10.0, 0.5, 300)
     return MqttSettings(
@@ -218,13 +227,13 @@ def parse_mqtt(table: Any) -> MqttSettings:
         group_id=text("group_id", "plcstack") or "plcstack",
         username_env=text("username_env", None),
         password_env=text("password_env", None),
-        ca_file=text("ca_file", None),
-        cert_file=text("cert_file", None),
-        key_file=text("key_file", None),
+        ca_file=file("ca_file"),
+        cert_file=file("cert_file"),
+        key_file=file("key_file"),
         keepalive=integer("keepalive", 30, 5, 3600),
         timeout=timeout,
-        buffer_path=text("buffer_path", None),
-        state_path=text("state_path", None),
+        buffer_path=file("buffer_path"),
+        state_path=file("state_path"),
         buffer_memory=integer("buffer_memory", 4 << 20, 0, 1 << 40),
         buffer_max=integer("buffer_max", 256 << 20, 1024, 1 << 44),
         inflight=integer("inflight", 64, 1, 65535),

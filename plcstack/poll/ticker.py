@@ -18,6 +18,8 @@ import itertools
 import math
 from collections.abc import Callable
 
+from plcstack.transports.deadlines import future_factory
+
 __all__ = ["Ticker"]
 
 
@@ -36,6 +38,7 @@ class Ticker:
         resolution: float = 0.0,
     ) -> None:
         self._loop = loop
+        self._new_future = future_factory(loop)
         self._clock = clock
         self._resolution = resolution
         self._heap: list[tuple[float, int, asyncio.Future[None]]] = []
@@ -45,7 +48,7 @@ class Ticker:
 
     def wait_until(self, due: float) -> asyncio.Future[None]:
         """A future that completes once the clock reaches ``due`` (within the resolution)."""
-        future: asyncio.Future[None] = self._loop.create_future()
+        future: asyncio.Future[None] = self._new_future()
         heapq.heappush(self._heap, (due, next(self._order), future))
         if due < self._timer_at:
             self._arm(due)

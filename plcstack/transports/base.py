@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import select
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable, Coroutine
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
+from plcstack.transports.deadlines import deadlines_of, future_factory
 
 __all__ = [
     "MAX_QUEUED",
@@ -142,15 +144,15 @@ class QueueProtocolMixin:
         self._closed_exc: BaseException | None = None
         #: deadline of the wait in progress (``None``: none, or a wait without deadline)
         self._deadline: float | None = None
-        #: the one deadline timer and the loop time it is armed for
-        self._timer: asyncio.TimerHandle | None = None
+        #: whether the one deadline timer is armed, and the loop time it is armed for
+        self._timer = False
         self._timer_at = 0.0
-        #: the loop the connection runs on (set when it is made; read on every wait)
-        self._loop: asyncio.AbstractEventLoop | None = None
+        #: ``loop.create_future`` of the connection's loop (``future_factory``), set when it is made
+        self._new_future: Callable[[], asyncio.Future[Any]] | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._flow = transport
-        self._loop = asyncio.get_running_loop()
+        self._new_future = future_factory(asyncio.get_running_loop())
 
     def _push(self, data: bytes) -> None:
         counters = self.counters
@@ -184,15 +186,17 @@ class QueueProtocolMixin:
         while not chunks:
             if self._closed_exc is not None:
                 raise ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
-            loop = self._loop or asyncio.get_running_loop()
-            self._waiter = waiter = loop.create_future()
+            new_future = self._new_future
+            if new_future is None:  # a protocol whose connection_made did not run ours
+                new_future = self._new_future = future_factory(asyncio.get_running_loop())
+            self._waiter = waiter = new_future()
             if deadline is not None:
                 self._deadline = deadline
                 # One timer serves consecutive waits: it is re-armed only for an earlier
                 # deadline (here) or, when it fires, for a later one (``_on_timer``). A fresh
                 # timer per read cost a TimerHandle, a heap push and a cancel on every request.
-                if self._timer is None or self._timer_at > deadline:
-                    self._arm(loop, deadline)
+                if not self._timer or self._timer_at > deadline:
+                    self._arm(asyncio.get_running_loop(), deadline)
             try:
                 await waiter
             finally:
@@ -221,19 +225,23 @@ class QueueProtocolMixin:
                 flow.resume_reading()  # type: ignore[attr-defined]
 
     def _arm(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
-        if self._timer is not None:
-            self._timer.cancel()
-        self._timer = loop.call_at(when, self._on_timer)
+        # on the loop's shared deadline heap (deadlines.py); an entry armed before is left
+        # to come due and be ignored (``_on_timer`` compares its time with ``_timer_at``)
+        self._timer = True
         self._timer_at = when
+        deadlines_of(loop).call_at(when, self._on_timer)
 
-    def _on_timer(self) -> None:
-        """The timer fired at ``_timer_at``: expire the current wait if its deadline is due,
-        re-arm for it if it is later, and lapse if nobody waits with a deadline."""
-        self._timer = None
+    def _on_timer(self, when: float) -> None:
+        """A timer armed for ``when`` fired: if it is the current one, expire the current wait
+        if its deadline is due, re-arm for it if it is later, and lapse if nobody waits with a
+        deadline."""
+        if not self._timer or when != self._timer_at:
+            return  # replaced by an earlier one, or lapsed
+        self._timer = False
         deadline, waiter = self._deadline, self._waiter
         if deadline is None or waiter is None or waiter.done():
             return
-        if deadline <= self._timer_at:
+        if deadline <= when:
             waiter.set_exception(TimeoutError())
         else:
             self._arm(asyncio.get_running_loop(), deadline)
@@ -253,6 +261,42 @@ class ProtocolTransport(Transport):
         self.peer = peer
         self._transport: asyncio.BaseTransport | None = None
         self._protocol: QueueProtocolMixin | None = None
+        #: a poll object watching the socket while open (:func:`watch_socket`); None when closed
+        #: or not a socket (serial)
+        self._watch: select.poll | None = None
+
+    def quiet(self) -> bool:
+        """Open, no chunk queued, and the kernel holds nothing for the socket (one ``poll``)."""
+        watch, protocol, transport = self._watch, self._protocol, self._transport
+        if (
+            watch is None
+            or protocol is None
+            or transport is None
+            or protocol._closed_exc is not None
+            or protocol._chunks
+            or transport.is_closing()
+        ):
+            return False
+        try:
+            return not watch.poll(0)
+        except OSError:
+            return False
+
+    def input_waiting(self) -> bool:
+        """Ask the kernel (one ``poll`` with timeout 0) whether the socket has anything the loop
+        has not handled yet: received bytes or datagrams (an empty one too), the peer's end of
+        stream, an error.
+
+        The descriptor is ours until ``connection_lost`` has run (which sets ``_closed_exc``);
+        after that, or without a watched socket, the answer is "maybe" (``True``).
+        """
+        watch, protocol = self._watch, self._protocol
+        if watch is None or protocol is None or protocol._closed_exc is not None:
+            return True
+        try:
+            return bool(watch.poll(0))
+        except OSError:
+            return True
 
     @property
     def is_open(self) -> bool:
@@ -296,8 +340,30 @@ class ProtocolTransport(Transport):
         transport = self._transport
         self._transport = None
         self._protocol = None
+        self._watch = None
         if transport is not None:
             transport.abort()  # type: ignore[attr-defined]
+
+
+#: what makes a socket "have something for the loop": data, end of stream, an error
+_READABLE = (
+    getattr(select, "POLLIN", 0)
+    | getattr(select, "POLLPRI", 0)
+    | getattr(select, "POLLRDHUP", 0)
+    | getattr(select, "POLLERR", 0)
+    | getattr(select, "POLLHUP", 0)
+)
+
+
+def watch_socket(transport: asyncio.BaseTransport) -> select.poll | None:
+    """A ``poll`` object on the transport's socket, for ``quiet``/``input_waiting``; None
+    where there is no socket or no ``poll`` (those then always take the general path)."""
+    sock = transport.get_extra_info("socket")
+    if sock is None or not hasattr(select, "poll"):
+        return None
+    watch = select.poll()
+    watch.register(sock.fileno(), _READABLE)
+    return watch
 
 
 async def open_with_timeout(peer: str, coro: Awaitable[T], timeout: float | None) -> T:

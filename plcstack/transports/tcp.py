@@ -3,22 +3,17 @@
 from __future__ import annotations
 
 import asyncio
-import select
 import socket
 
 from plcstack.errors import ConnectionLost
-from plcstack.transports.base import ProtocolTransport, QueueProtocolMixin, open_with_timeout
+from plcstack.transports.base import (
+    ProtocolTransport,
+    QueueProtocolMixin,
+    open_with_timeout,
+    watch_socket,
+)
 
 __all__ = ["TcpTransport"]
-
-#: what makes a socket "have something for the loop": data, end of stream, an error
-_READABLE = (
-    getattr(select, "POLLIN", 0)
-    | getattr(select, "POLLPRI", 0)
-    | getattr(select, "POLLRDHUP", 0)
-    | getattr(select, "POLLERR", 0)
-    | getattr(select, "POLLHUP", 0)
-)
 
 
 #: bytes one receive takes at most; larger replies simply arrive in several chunks. Every reply
@@ -60,8 +55,6 @@ class TcpTransport(ProtocolTransport):
         super().__init__(f"{host}:{port}")
         self.host = host
         self.port = port
-        #: a poll object watching the socket while open (``input_waiting``); None when closed
-        self._watch: select.poll | None = None
 
     async def open(self, timeout: float | None) -> None:
         self.abort()
@@ -72,32 +65,11 @@ class TcpTransport(ProtocolTransport):
             timeout,
         )
         sock = transport.get_extra_info("socket")
-        watch = None
         if sock is not None:
             # Requests are small and latency-bound: never let Nagle hold one back.
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            if hasattr(select, "poll"):
-                watch = select.poll()
-                watch.register(sock.fileno(), _READABLE)
         self._transport, self._protocol = transport, protocol
-        self._watch = watch
-
-    def quiet(self) -> bool:
-        """Open, no chunk queued, and the kernel holds nothing for the socket (one ``poll``)."""
-        watch, protocol, transport = self._watch, self._protocol, self._transport
-        if (
-            watch is None
-            or protocol is None
-            or transport is None
-            or protocol._closed_exc is not None
-            or protocol._chunks
-            or transport.is_closing()
-        ):
-            return False
-        try:
-            return not watch.poll(0)
-        except OSError:
-            return False
+        self._watch = watch_socket(transport)
 
     def write(self, data: bytes) -> None:
         # ``ProtocolTransport.write`` with its checks inlined: on every request's path
@@ -110,25 +82,6 @@ class TcpTransport(ProtocolTransport):
         ):
             raise ConnectionLost(f"not connected to {self.peer}")
         transport.write(data)  # type: ignore[attr-defined]
-
-    def input_waiting(self) -> bool:
-        """Ask the kernel (one ``poll`` with timeout 0) whether the socket has anything the loop
-        has not handled yet: received bytes, the peer's end of stream, an error.
-
-        The descriptor is ours until ``connection_lost`` has run (which sets ``_closed_exc``);
-        after that, or without ``poll``, the answer is "maybe" (``True``).
-        """
-        watch, protocol = self._watch, self._protocol
-        if watch is None or protocol is None or protocol._closed_exc is not None:
-            return True
-        try:
-            return bool(watch.poll(0))
-        except OSError:
-            return True
-
-    def abort(self) -> None:
-        self._watch = None
-        super().abort()
 
     def _send(self, data: bytes) -> None:
         self._transport.write(data)  # type: ignore[union-attr]

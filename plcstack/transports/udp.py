@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import asyncio
 
-from plcstack.transports.base import ProtocolTransport, QueueProtocolMixin, open_with_timeout
+from plcstack.transports.base import (
+    ProtocolTransport,
+    QueueProtocolMixin,
+    open_with_timeout,
+    watch_socket,
+)
 
 __all__ = ["UdpTransport"]
 
@@ -55,6 +60,7 @@ class UdpTransport(ProtocolTransport):
         remote = transport.get_extra_info("peername")
         protocol.remote = (remote[0], remote[1]) if remote else None
         self._transport, self._protocol = transport, protocol
+        self._watch = watch_socket(transport)
 
     def _send(self, data: bytes) -> None:
         self._transport.sendto(data)  # type: ignore[union-attr]
