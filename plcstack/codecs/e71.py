@@ -373,7 +373,9 @@ class ClientConnection(ErrorState):
             or type(req := pending[0]) is not ReadWords
             or len(data) != 2 + 2 * req.count
             or not data.startswith(_NORMAL_01H)
-            or not stream.is_empty()
+            or stream.skip_trailer
+            # nothing buffered: ReceiveBuffer's len() == 0, inlined (one call fewer per poll)
+            or len((buf := self._fast_buffer)._buf) != buf._pos
         ):
             return None
         pending.popleft()

@@ -391,11 +391,6 @@ class StreamResponses:
         """A 5BH answer was taken: a 00H trailer may follow it (§13 A3)."""
         self.skip_trailer = True
 
-    def is_empty(self) -> bool:
-        """Nothing buffered and no trailer to skip: the next byte starts an answer."""
-        buf = self._buf  # ReceiveBuffer's own test (len == pos) inlined: on every poll's path
-        return not self.skip_trailer and len(buf._buf) == buf._pos
-
     def next_frame(self, request: E71Request | None, size_of: SizeOf) -> bytes | NeedData:
         buf = self._buf
         have = len(buf)
