@@ -29,6 +29,7 @@ import tempfile
 from collections.abc import Iterator
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from tests.servers import influxd, mosquitto, nats_server
 
@@ -36,6 +37,12 @@ __all__ = ["influxd", "mosquitto", "nats_server"]
 
 # tests/test_loop_error_rule.py runs a small pytest session to prove the rule below
 pytest_plugins = ["pytester"]
+
+# Hypothesis by default fails an example that takes over 200 ms (deadline) and a test whose data
+# generation is slow (too_slow): wall-clock limits, which a loaded 2-core machine (two workers,
+# simulators, servers) breaks at random. How much each test tries stays its own max_examples.
+settings.register_profile("plcstack", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("plcstack")
 
 
 def pytest_configure(config: pytest.Config) -> None:
