@@ -147,6 +147,7 @@ async def test_one_await_word_read_is_the_general_path(steps: list[tuple[Any, ..
 
 
 _DB3 = ("read", "DB3.DW0", 64)
+_ODD_COUNTS = [("read", "DB3.DW0", 2), ("read", "DB3.DW0", 2.0), ("read", "DB3.DW0", True)]
 _SCENARIOS = {
     "block moved by compress": [_DB3, ("change", "move"), _DB3, _DB3],
     "block re-created elsewhere": [_DB3, ("change", "recreate"), _DB3, _DB3],
@@ -158,6 +159,7 @@ _SCENARIOS = {
         ("read", "DB1.DW4", 8),
         ("read", "DB1.DW4", 8),
     ],
+    "counts equal to a planned one but no int": [*_ODD_COUNTS, *_ODD_COUNTS],
     "block deleted, then back": [
         ("read", "DB1.DW1", 3),
         ("change", "delete"),

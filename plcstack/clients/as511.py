@@ -673,7 +673,9 @@ class AS511Client(S5Access, Client):
     async def read(self, address: str, count: int = 1) -> list[int]:
         """Read in S5 notation: words (DBn.DWk, MW, IW, QW, T, C) or bytes (MB, IB, DL/DR)."""
         try:
-            plan = self._block_word_reads.get((address, count)) if self.fast_paths else None
+            # exact int: 2.0 or True would find the plan of 2 or 1 (equal keys) and skip _parse
+            fast = self.fast_paths and type(count) is int
+            plan = self._block_word_reads.get((address, count)) if fast else None
             if plan is not None:
                 # The polling hot path: a DB/DX word read already checked, whose block address
                 # is cached and whose header + data fit one transaction. One await (the
