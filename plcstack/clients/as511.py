@@ -50,7 +50,6 @@ from plcstack.codecs.as511 import (
     MAX_WRITE_BYTES,
     BlockInfo,
     Job,
-    Nak,
     PGConnection,
     PGState,
     Response,
@@ -136,6 +135,8 @@ _NAK_MEANING = {
 
 #: header bytes prepended to a cached block read for the signature check, if the gap is small
 _MAX_SIGNATURE_GAP = 64
+#: most (address, count) word reads whose checks :meth:`AS511Client.read` keeps
+_MAX_PLANS = 4096
 _BITS_PER_BYTE = 11  # 8E1
 
 
@@ -143,6 +144,15 @@ def _stopbits(value: object) -> object:
     if isinstance(value, bool) or not isinstance(value, int | float) or value not in (1, 1.5, 2):
         raise ValueError("not 1, 1.5 or 2")
     return float(value)
+
+
+def _after_signature(head: bytes, info: BlockInfo, offset: int) -> bytes:
+    """What follows the block header (and ``offset`` bytes) in a read that began at the header;
+    :class:`_BlockMoved` when the header is not the cached block's any more."""
+    header = head[:10]
+    if not header_matches(header, info.block_type, info.number) or header != info.header:
+        raise _BlockMoved
+    return head[10 + offset :]
 
 
 class _BlockMoved(Exception):
@@ -186,6 +196,9 @@ class AS511Client(S5Access, Client):
         flag("cache", True, "cache block addresses from B_INFO"),
         flag("strict", False, "check the 5 leading zero bytes of read answers (D.B2)"),
     )
+    #: the cached-address word read in one await (see :meth:`read`); tests switch it off to
+    #: compare it with the general path
+    fast_paths = True
     #: a serial line adds its character format
     SERIAL_OPTIONS = (
         *OPTIONS,
@@ -230,6 +243,14 @@ class AS511Client(S5Access, Client):
         self.cache_enabled = cache
         self.strict = strict
         self.block_cache: dict[tuple[int, int], BlockInfo] = {}
+        #: (address, count) -> (block type code, number, byte offset, byte length, "what" text,
+        #: word layout) of DB/DX word reads already parsed and checked, whose header and data
+        #: fit one transaction: a poller reads the same few addresses every scan (see read)
+        self._block_word_reads: dict[
+            tuple[str, int], tuple[int, int, int, int, str, struct.Struct]
+        ] = {}
+        #: (start, length) -> the 04h job of that span, for the reads above
+        self._read_jobs: dict[tuple[int, int], Job] = {}
         self._sysparams: SystemAddresses | None = None
         # A serial line resynchronises by the 500 ms silence rule; TCP may be half-open.
         self._drop_on_error = not isinstance(transport, SerialTransport)
@@ -275,7 +296,61 @@ class AS511Client(S5Access, Client):
             chunks: list[bytes] = []
             pg = self.pg
             try:
-                event = await self._run(job, chunks)
+                # The dialogue runs in this frame (no ``await self._run(...)``): every answer of
+                # the AS511 dialogue resumes the whole chain of awaiting coroutines, so one
+                # level less is paid 7 times per transaction.
+                loop = asyncio.get_running_loop()
+                out_bytes = 20 + 2 * len(job.params)
+                in_bytes = 20 + 2 * (job.response_length or 64)
+                cap = self.timeout + (out_bytes + in_bytes) * self.line_byte_time + pg.backoff
+                # The whole transaction's bound, checked in the loop rather than by an
+                # ``asyncio.timeout`` context (a timer and a context per transaction; AS511
+                # runs 2-3 transactions per read): every wait is capped by it, and a peer that
+                # keeps sending bytes meets the check after each chunk.
+                give_up = loop.time() + cap
+                transport = self.transport
+                try:
+                    # B5.1/B5.5: after an abort, wait for 500 ms of silence before the next STX.
+                    while (wait := pg.ready_at - loop.time()) > 0:
+                        try:
+                            data = await transport.read(min(loop.time() + wait, give_up))
+                        except TimeoutError:
+                            if loop.time() >= give_up:
+                                raise
+                            continue
+                        pg.receive_data(data, loop.time())
+                        if loop.time() >= give_up:
+                            raise TimeoutError
+                    pg.submit(job, max(loop.time(), pg.ready_at))
+                    transport.write(pg.data_to_send())
+                    while (event := pg.next_event()) is NEED_DATA:
+                        deadline = pg.deadline
+                        capped = deadline is None or deadline > give_up
+                        try:
+                            data = await transport.read(give_up if capped else deadline)
+                        except TimeoutError:
+                            if capped:
+                                raise
+                            pg.timer(max(loop.time(), deadline or 0.0))
+                        else:
+                            chunks.append(data)
+                            now = loop.time()
+                            if now >= give_up:
+                                raise TimeoutError from None
+                            pg.receive_data(data, now)
+                        out = pg.data_to_send()
+                        if out:
+                            transport.write(out)
+                except TimeoutError:
+                    state = pg.state
+                    pg.reset(loop.time())
+                    raise PlcTimeout(
+                        f"no complete answer within {cap:.2f} s "
+                        f"(AS511 transaction stuck in {state.value})"
+                    ) from None
+                except (ConnectionLost, RemoteProtocolError):
+                    pg.reset(loop.time())
+                    raise
             except asyncio.CancelledError:
                 # The caller gave up mid-transaction: the PG must start over (B5.5 silence on a
                 # line, a new connection on TCP), or every later request finds the transaction
@@ -336,63 +411,6 @@ class AS511Client(S5Access, Client):
     def diagnose(self, failure: Failure, reply: bytes) -> str:
         serial = isinstance(self.transport, SerialTransport)
         return as511_hint(failure, reply, serial=serial, first=self.first_on_connection())
-
-    async def _run(self, job: Job, chunks: list[bytes]) -> Response | Nak | Timeout:
-        loop = asyncio.get_running_loop()
-        pg = self.pg
-        out_bytes = 20 + 2 * len(job.params)
-        in_bytes = 20 + 2 * (job.response_length or 64)
-        cap = self.timeout + (out_bytes + in_bytes) * self.line_byte_time + pg.backoff
-        # The whole transaction's bound, checked in the loop rather than by an
-        # ``asyncio.timeout`` context (a timer and a context per transaction; AS511 runs 2-3
-        # transactions per read): every wait is capped by it, and a peer that keeps sending
-        # bytes meets the check after each chunk.
-        give_up = loop.time() + cap
-        transport = self.transport
-        try:
-            # B5.1/B5.5: after an abort, wait for 500 ms of silence before the next STX.
-            while (wait := pg.ready_at - loop.time()) > 0:
-                try:
-                    data = await transport.read(min(loop.time() + wait, give_up))
-                except TimeoutError:
-                    if loop.time() >= give_up:
-                        raise
-                    continue
-                pg.receive_data(data, loop.time())
-                if loop.time() >= give_up:
-                    raise TimeoutError
-            pg.submit(job, max(loop.time(), pg.ready_at))
-            transport.write(pg.data_to_send())
-            while True:
-                event = pg.next_event()
-                if event is not NEED_DATA:
-                    return event
-                deadline = pg.deadline
-                capped = deadline is None or deadline > give_up
-                try:
-                    data = await transport.read(give_up if capped else deadline)
-                except TimeoutError:
-                    if capped:
-                        raise
-                    pg.timer(max(loop.time(), deadline or 0.0))
-                else:
-                    chunks.append(data)
-                    now = loop.time()
-                    if now >= give_up:
-                        raise TimeoutError from None
-                    pg.receive_data(data, now)
-                out = pg.data_to_send()
-                if out:
-                    transport.write(out)
-        except TimeoutError:
-            state = pg.state
-            pg.reset(loop.time())
-            raise PlcTimeout(
-                f"no complete answer within {cap:.2f} s (AS511 transaction stuck in {state.value})"
-            ) from None
-        except (ConnectionLost, RemoteProtocolError):
-            pg.reset(loop.time())
-            raise
 
     # -- functions --------------------------------------------------------------------------
     async def read_system_parameters(self, *, refresh: bool = False) -> SystemAddresses:
@@ -457,7 +475,9 @@ class AS511Client(S5Access, Client):
         return bytes(out)
 
     async def _read_chunk(self, start: int, n: int, what: str) -> bytes:
-        data = await self.transact(read_job(start, n), what)
+        return self._read_answer(await self.transact(read_job(start, n), what), n, what)
+
+    def _read_answer(self, data: bytes, n: int, what: str) -> bytes:
         try:
             return parse_read(data, n, strict=self.strict)
         except RemoteProtocolError as exc:
@@ -525,10 +545,7 @@ class AS511Client(S5Access, Client):
         """Read with a cached address, the block header in the first transaction (signature)."""
         first = min(length, MAX_READ_BYTES - 10 - offset)
         head = await self._read_chunk(info.header_address, 10 + offset + first, what)
-        header = head[:10]
-        if not header_matches(header, info.block_type, info.number) or header != info.header:
-            raise _BlockMoved
-        out = bytearray(head[10 + offset :])
+        out = bytearray(_after_signature(head, info, offset))
         if len(out) < length:
             out += await self.read_absolute(info.dw0 + offset + len(out), length - len(out), what)
         return bytes(out)
@@ -656,6 +673,35 @@ class AS511Client(S5Access, Client):
     async def read(self, address: str, count: int = 1) -> list[int]:
         """Read in S5 notation: words (DBn.DWk, MW, IW, QW, T, C) or bytes (MB, IB, DL/DR)."""
         try:
+            # exact int: 2.0 or True would find the plan of 2 or 1 (equal keys) and skip _parse
+            fast = self.fast_paths and type(count) is int
+            plan = self._block_word_reads.get((address, count)) if fast else None
+            if plan is not None:
+                # The polling hot path: a DB/DX word read already checked, whose block address
+                # is cached and whose header + data fit one transaction. One await (the
+                # transaction) instead of five nested coroutines that each resume on every
+                # answer of the AS511 dialogue; the wire work and every check are those of
+                # read_block_bytes -> _read_verified. Anything else, including every failure
+                # that makes the general path drop the cached address and ask B_INFO again,
+                # continues on the general path from exactly that point.
+                code, number, offset, length, what, words = plan
+                key = (code, number)
+                info = self.block_cache.get(key) if self.cache_enabled else None
+                if info is not None and offset + length <= info.data_bytes:
+                    span = (info.header_address, 10 + offset + length)
+                    job = self._read_jobs.get(span)
+                    if job is None:
+                        job = read_job(*span)  # Job is frozen: one per span serves every read
+                        if len(self._read_jobs) < _MAX_PLANS:
+                            self._read_jobs[span] = job
+                    try:
+                        data = await self.transact(job, what)
+                        head = self._read_answer(data, 10 + offset + length, what)
+                        return list(words.unpack(_after_signature(head, info, offset)))
+                    except (_BlockMoved, PlcErrorResponse, RemoteProtocolError):
+                        # the general path's first attempt failed the same way: it drops the
+                        # address and asks B_INFO again, which _read now does
+                        self.block_cache.pop(key, None)
             return await self._read(address, count)
         except PlcError as exc:
             raise _as_user_request(exc, f"read {address} x{count}") from None
@@ -663,6 +709,18 @@ class AS511Client(S5Access, Client):
     async def _read(self, address: str, count: int) -> list[int]:
         addr = self._parse(address, count)
         nbytes = addr.byte_length(count)
+        if (
+            addr.area.is_block
+            and addr.unit is S5Unit.WORD
+            and addr.byte_offset <= _MAX_SIGNATURE_GAP
+            and 10 + addr.byte_offset + nbytes <= MAX_READ_BYTES
+            and len(self._block_word_reads) < _MAX_PLANS
+        ):
+            code, name = _block_type(addr.area.value)
+            number, offset = addr.db or 0, addr.byte_offset
+            what = f"read {name}{number} bytes {offset}..{offset + nbytes - 1}"
+            words = struct.Struct(f">{count}H")
+            self._block_word_reads[(address, count)] = (code, number, offset, nbytes, what, words)
         if addr.area.is_block:
             raw = await self.read_block_bytes(
                 addr.area.value, addr.db or 0, addr.byte_offset, nbytes
