@@ -148,7 +148,7 @@ async def test_one_await_word_read_is_the_general_path(steps: list[tuple[Any, ..
 
 _DB3 = ("read", "DB3.DW0", 64)
 _ODD_COUNTS = [("read", "DB3.DW0", 2), ("read", "DB3.DW0", 2.0), ("read", "DB3.DW0", True)]
-_SCENARIOS = {
+_SCENARIOS: dict[str, list[tuple[Any, ...]]] = {
     "block moved by compress": [_DB3, ("change", "move"), _DB3, _DB3],
     "block re-created elsewhere": [_DB3, ("change", "recreate"), _DB3, _DB3],
     "answer one byte short": [_DB3, ("change", "short answer"), _DB3, _DB3],
