@@ -380,10 +380,17 @@ class MqttSink:
                 async with asyncio.timeout(2):
                     for topic, payload, qos, retain in self.layout.on_close(time.time()):
                         await client.publish(topic, payload, qos=qos, retain=retain)
-        if self._task is not None:
-            self._task.cancel()
+        task = self._task
+        if task is not None:
+            # Python 3.11's asyncio.wait_for (aiomqtt awaits PUBACK/SUBACK through it) can
+            # swallow a cancellation that arrives together with its result, and the sink task
+            # then carries on: one cancel() and an unbounded await hung here (found under
+            # load). Cancel until it has really ended.
+            while not task.done():
+                task.cancel()
+                await asyncio.wait({task}, timeout=0.5)
             with contextlib.suppress(asyncio.CancelledError):
-                await self._task
+                await task
         for task in list(self._writes):
             task.cancel()
         self.buffer.close()
