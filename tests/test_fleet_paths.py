@@ -344,6 +344,39 @@ async def test_poller_batches_give_the_samples_iteration_gives() -> None:
     assert [s async for s in again] == buffered
 
 
+async def test_batches_that_wait_gather_more_and_lose_nothing() -> None:
+    """``batches(wait=...)``: fewer, larger batches; together exactly the samples, in order,
+    per PLC in scan order; the iteration still ends when the poller closes."""
+    from tests.test_poll_engine import make, tag
+
+    poller, _ = make({f"p{i}": [tag("w", "D0", count=4)] for i in range(5)}, interval=0.005)
+    await poller.start()
+    quick: list[list[Any]] = []
+    gathered: list[list[Any]] = []
+    async with asyncio.timeout(10):
+        async for batch in poller.batches():
+            quick.append(batch)
+            if len(quick) == 10:
+                break
+        async for batch in poller.batches(wait=0.05):
+            assert batch, "never an empty batch"
+            gathered.append(batch)
+            if len(gathered) == 3:
+                break
+    # 5 PLCs scanning every 5 ms: a 50 ms wait gathers several scans of each
+    assert min(len(b) for b in gathered) > max(len(b) for b in quick)
+    seen = [s for b in quick + gathered for s in b]
+    for plc in {s.plc for s in seen}:
+        times = [s.source_time for s in seen if s.plc == plc]
+        assert times == sorted(times)
+    await poller.aclose()
+    async with asyncio.timeout(5):  # ends while or after waiting, with what was buffered
+        rest = [s async for batch in poller.batches(wait=0.05) for s in batch]
+    assert poller.pending() == 0 and all(s.quality.name == "GOOD" for s in rest)
+    with pytest.raises(ValueError):
+        await anext(poller.batches(wait=float("nan")))
+
+
 # -- AS511: the transaction's overall bound without an asyncio.timeout context --------------------
 async def test_as511_chattering_line_still_ends_at_the_transaction_bound() -> None:
     """A peer that never stops sending keeps every per-byte deadline alive; the transaction's

@@ -11,7 +11,8 @@ CPU and runs one of:
   ticks counted as overruns and skipped, as the poller does) and awaits the known reply length;
 * ``clients`` -- the same schedule, each task calling ``plcstack`` ``client.read("D0", 64)``;
 * ``poll``    -- :class:`plcstack.poll.Poller`, one 64-word tag per PLC, interval 0.1 s, and a
-  consumer that takes the samples in batches.
+  consumer that takes the samples in batches (``FLEET_CONSUMER_WAIT`` seconds lets each batch
+  gather that long; default 0, a batch per loop pass).
 
 Reported per kind: process CPU per completed request (``time.process_time``: CPU time of this
 process only, which other jobs on a shared machine barely move, unlike wall-clock rates),
@@ -49,6 +50,11 @@ __all__ = ["KINDS", "REPLY", "REQUEST", "spawn"]
 KINDS = ("floor", "clients", "poll")
 #: 10 Hz
 INTERVAL = 0.1
+#: how long the poll kind's consumer lets a batch gather (``Poller.batches(wait=...)``); 0, a
+#: step per loop pass, keeps the figures comparable with earlier runs. ``FLEET_CONSUMER_WAIT``
+#: sets it (in one back-to-back check on an idle machine, 10 ms made no difference beyond the
+#: run-to-run noise of about 15 %).
+CONSUMER_WAIT = float(os.environ.get("FLEET_CONSUMER_WAIT", "0"))
 REQUEST = frames.e71_read_words("D", 0, WORDS)
 REPLY = frames.e71_reply_words(sample_words())
 
@@ -388,11 +394,12 @@ async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.
     checked: set[str] = set()
 
     async def consume() -> None:
-        # As an application that keeps up should: take what is there in one batch per wake-up.
+        # As an application that keeps up should: take what is there in one batch per wake-up
+        # (gathered for CONSUMER_WAIT, 0 by default).
         # Every sample's quality is checked; its 64 values only for the first sample of each
         # PLC (the responders send one fixed reply), as the floor checks its first reply: a
         # per-sample list comparison would be the consumer's cost, not the poller's.
-        async for batch in poller.batches():
+        async for batch in poller.batches(wait=CONSUMER_WAIT):
             for sample in batch:
                 if sample.value is None:
                     bad.append(f"{sample.plc}: {sample.error}")
