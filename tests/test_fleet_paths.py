@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import socket
 import threading
 import time
@@ -39,6 +38,7 @@ from plcstack.transports.tcp import TcpTransport
 from plcstack.transports.udp import UdpTransport
 from tests.aio_helpers import ends_quietly
 from tests.test_client_base import LineClient
+from tests.test_codec_fast_paths import _decode_all
 
 
 class _StaleServer:
@@ -219,33 +219,6 @@ async def test_clean_requests_are_the_same_on_both_paths(stale_server: Any, gene
 
 
 # -- E71 codec: reused request bytes, one-step decoding of a normal 01H answer -------------------
-def _run_codec(fast: bool, requests: list[Any], stream: bytes, cuts: list[int]) -> list[Any]:
-    """Send ``requests``, feed ``stream`` in pieces, and record every send and event or error."""
-    codec = E71ClientConnection("binary", transport="tcp")
-    codec.fast_paths = fast
-    if not fast:
-        codec._fast_stream = None
-    out: list[Any] = []
-    for request in requests:
-        try:
-            out.append(("sent", codec.send(request)))
-        except PlcError as exc:
-            out.append(("send error", type(exc).__name__, str(exc)))
-    pieces = [stream[a:b] for a, b in itertools.pairwise([0, *sorted(cuts), len(stream)])]
-    for piece in pieces:
-        codec.receive_data(piece)
-        while True:
-            try:
-                event = codec.next_event()
-            except PlcError as exc:
-                out.append(("error", type(exc).__name__, str(exc)))
-                return out
-            if event is NEED_DATA:
-                break
-            out.append(("event", event))
-    return out
-
-
 _D0 = parse_address("D0")
 _M0 = parse_address("M0")
 _READ = ReadWords(_D0, 3)
@@ -276,7 +249,7 @@ def test_e71_fast_paths_decide_as_the_general_path(
 ) -> None:
     stream = b"".join(answers) + tail
     cuts = [c for c in cuts if c <= len(stream)]
-    assert _run_codec(True, _REQUESTS, stream, cuts) == _run_codec(False, _REQUESTS, stream, cuts)
+    assert _decode_all(True, _REQUESTS, stream, cuts) == _decode_all(False, _REQUESTS, stream, cuts)
 
 
 def test_e71_reused_request_bytes_are_its_encoding() -> None:
