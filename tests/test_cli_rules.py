@@ -100,13 +100,19 @@ def test_internal_error_is_one_line_exit_1(
     assert lines == ["plcstack: internal error: KeyError: 'oops' (a bug; -vv shows the traceback)"]
 
 
-def _run_until_first_line(argv: list[str], sig: signal.Signals) -> tuple[int, str, str]:
+def _run_until_first_line(
+    argv: list[str], sig: signal.Signals, *, sigint_ignored: bool = False
+) -> tuple[int, str, str]:
     proc = subprocess.Popen(
         [sys.executable, "-m", "plcstack", *argv],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
         env=ENV,
+        # a parent that ignores SIGINT (some shells and test runners): the child inherits it
+        preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+        if sigint_ignored
+        else None,
     )
     try:
         assert proc.stdout is not None
@@ -204,3 +210,11 @@ def test_verbose_flag_shows_the_trace_in_a_subprocess() -> None:
     url, err = asyncio.run(run())
     assert f"DEBUG plcstack.frames.e71: {url} -> 01 ff 07 00 00 00 00 00 20 44 02 00" in err
     assert f"DEBUG plcstack.frames.e71: {url} <- 81 00 00 00 00 00" in err
+
+
+@pytest.mark.parametrize("argv", [["sim", "e71", "--port", "0"], ["demo", "--interval", "0.05"]])
+def test_ctrl_c_works_when_the_parent_ignored_sigint(argv: list[str]) -> None:
+    """asyncio.run handles SIGINT only if it had its default handler at start-up; `sim` once
+    never ended in CI that way. Every subcommand installs its own handlers."""
+    rc, _, err = _run_until_first_line(argv, signal.SIGINT, sigint_ignored=True)
+    assert rc == 130, err

@@ -19,7 +19,7 @@ import importlib
 import signal
 from typing import Any
 
-from plcstack.cli import UsageError
+from plcstack.cli import EXIT_INTERRUPTED, UsageError
 
 #: simulator name -> module
 SIMULATORS = {
@@ -73,15 +73,23 @@ def _runner(name: str, module: Any) -> Any:
         task = asyncio.current_task()
         assert task is not None
         loop = asyncio.get_running_loop()
-        terminated = False
+        stopped_by: signal.Signals | None = None
 
-        def on_sigterm() -> None:
-            nonlocal terminated
-            terminated = True
+        def on_signal(sig: signal.Signals) -> None:
+            # Our own handlers for both signals, as `poll` and `demo` have: asyncio.run's
+            # SIGINT handling only exists when SIGINT has its default handler at start-up (a
+            # parent that ignores it, as some test runners and shells do for their children,
+            # left Ctrl-C without effect: seen once in CI as a simulator that never ended)
+            nonlocal stopped_by
+            if stopped_by is None:
+                stopped_by = sig
             task.cancel()
 
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(signal.SIGTERM, on_sigterm)
+        installed = []
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.add_signal_handler(sig, on_signal, sig)
+                installed.append(sig)
         try:
             await module.serve_cli(args, announce)
         except (OSError, ValueError, OverflowError) as exc:
@@ -91,12 +99,13 @@ def _runner(name: str, module: Any) -> Any:
             where = _where(args)
             raise UsageError(f"sim {name} cannot start{where}: {reason}") from None
         except asyncio.CancelledError:
-            if not terminated:
+            if stopped_by is None:
                 raise
         finally:
-            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                loop.remove_signal_handler(signal.SIGTERM)
-        return 0
+            for sig in installed:
+                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                    loop.remove_signal_handler(sig)
+        return EXIT_INTERRUPTED if stopped_by is signal.SIGINT else 0
 
     return run
 
