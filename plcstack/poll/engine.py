@@ -90,9 +90,6 @@ class _Group:
     plan: ScanPlan
     next_due: float = 0.0
     isolate: frozenset[str] = frozenset()
-    #: ``plan.whole_reply_tag()``, and the plan it was computed for (plans are rebuilt)
-    whole: str | None = None
-    whole_of: ScanPlan | None = None
 
 
 @dataclass(slots=True)
@@ -464,10 +461,8 @@ class Poller(AsyncResource):
                         stats.latencies.append(end - start)
                         stats.requests += 1
                         unyielded += 1
-                        if group.whole_of is not plan:
-                            group.whole_of, group.whole = plan, plan.whole_reply_tag()
                         if whole_samples and len(reply) == request.count:
-                            whole = group.whole
+                            whole = plan.whole_tag
                     if whole is not None:
                         # What _deliver gives for this plan, without its copy of the reply (see
                         # ScanPlan.whole_reply_tag): one good sample with the reply as value.

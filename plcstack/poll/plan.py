@@ -111,6 +111,11 @@ class TagResult:
 class ScanPlan:
     requests: tuple[ReadRequest, ...]
     tags: tuple[TagPlan, ...]
+    #: :meth:`whole_reply_tag`, computed once with the plan (the poller reads it every scan)
+    whole_tag: str | None = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "whole_tag", self.whole_reply_tag())
 
     def whole_reply_tag(self) -> str | None:
         """The name of the one tag whose value is the whole reply of the one request, as read
