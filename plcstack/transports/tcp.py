@@ -71,18 +71,6 @@ class TcpTransport(ProtocolTransport):
         self._transport, self._protocol = transport, protocol
         self._watch = watch_socket(transport)
 
-    def write(self, data: bytes) -> None:
-        # ``ProtocolTransport.write`` with its checks inlined: on every request's path
-        transport, protocol = self._transport, self._protocol
-        if (
-            transport is None
-            or protocol is None
-            or protocol._closed_exc is not None
-            or transport.is_closing()
-        ):
-            raise ConnectionLost(f"not connected to {self.peer}")
-        transport.write(data)  # type: ignore[attr-defined]
-
     def _send(self, data: bytes) -> None:
         self._transport.write(data)  # type: ignore[union-attr]
 
