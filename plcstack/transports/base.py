@@ -147,12 +147,14 @@ class QueueProtocolMixin:
         #: whether the one deadline timer is armed, and the loop time it is armed for
         self._timer = False
         self._timer_at = 0.0
-        #: ``loop.create_future`` of the connection's loop (``future_factory``), set when it is made
-        self._new_future: Callable[[], asyncio.Future[Any]] | None = None
+        #: ``loop.create_future`` of the connection's loop (``future_factory``): asyncio makes
+        #: protocols inside the loop they serve
+        self._new_future: Callable[[], asyncio.Future[Any]] = future_factory(
+            asyncio.get_running_loop()
+        )
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._flow = transport
-        self._new_future = future_factory(asyncio.get_running_loop())
 
     def _push(self, data: bytes) -> None:
         counters = self.counters
@@ -186,10 +188,7 @@ class QueueProtocolMixin:
         while not chunks:
             if self._closed_exc is not None:
                 raise ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
-            new_future = self._new_future
-            if new_future is None:  # a protocol whose connection_made did not run ours
-                new_future = self._new_future = future_factory(asyncio.get_running_loop())
-            self._waiter = waiter = new_future()
+            self._waiter = waiter = self._new_future()
             if deadline is not None:
                 self._deadline = deadline
                 # One timer serves consecutive waits: it is re-armed only for an earlier
@@ -207,10 +206,7 @@ class QueueProtocolMixin:
             chunks.clear()
         else:
             data = chunks.popleft()
-        counters = self.counters
-        counters.queued -= len(data)
-        if self._paused:
-            self._taken(0)
+        self._taken(len(data))
         return data
 
     def _taken(self, n: int) -> None:
