@@ -374,8 +374,7 @@ class ClientConnection(ErrorState):
             or len(data) != 2 + 2 * req.count
             or not data.startswith(_NORMAL_01H)
             or stream.skip_trailer
-            # nothing buffered: ReceiveBuffer's len() == 0, inlined (one call fewer per poll)
-            or len((buf := self._fast_buffer)._buf) != buf._pos
+            or self._fast_buffer  # bytes buffered before this chunk: the general path
         ):
             return None
         pending.popleft()
