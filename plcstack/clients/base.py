@@ -528,12 +528,8 @@ class RequestClient(Client, Generic[E]):
         of awaiting it in one of its own, one coroutine fewer per request on the polling path.
         """
         flight = self._lock
-        # ``try_acquire``/``release`` inlined for the uncontended case (SingleFlight's two
-        # fields are its documented state): two calls fewer per request
-        if flight._busy:
+        if not flight.try_acquire():  # taken at once when free: no coroutine
             await flight.acquire()
-        else:
-            flight._busy = True
         try:
             transport = self.transport
             # Anything that arrived since the last answer (a duplicated answer, the rest of a
@@ -633,10 +629,7 @@ class RequestClient(Client, Generic[E]):
                 self.stats.errors += 1
                 raise exc.bind(plc=self.name, request=what) from None
         finally:
-            if flight._waiters:
-                flight.release()
-            else:
-                flight._busy = False
+            flight.release()
 
         # every failure above raised: ``event`` is the answer
         return event if finish is None else finish(event, what)

@@ -25,12 +25,7 @@ __all__ = ["SingleFlight"]
 
 
 class SingleFlight:
-    """A FIFO mutex for one connection; the same contract as :class:`asyncio.Lock`.
-
-    Its state is two fields, which ``RequestClient.exchange`` reads and sets inline on the hot
-    path: ``_busy`` (held) and ``_waiters`` (queued futures, or None/empty). Free and nobody
-    queued: set ``_busy``; held with nobody queued: clear it; anything else: the methods.
-    """
+    """A FIFO mutex for one connection; the same contract as :class:`asyncio.Lock`."""
 
     __slots__ = ("_busy", "_waiters")
 
