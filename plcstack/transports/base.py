@@ -263,20 +263,10 @@ class ProtocolTransport(Transport):
 
     def quiet(self) -> bool:
         """Open, no chunk queued, and the kernel holds nothing for the socket (one ``poll``)."""
-        watch, protocol, transport = self._watch, self._protocol, self._transport
-        if (
-            watch is None
-            or protocol is None
-            or transport is None
-            or protocol._closed_exc is not None
-            or protocol._chunks
-            or transport.is_closing()
-        ):
+        protocol, transport = self._protocol, self._transport
+        if protocol is None or transport is None or protocol._chunks or transport.is_closing():
             return False
-        try:
-            return not watch.poll(0)
-        except OSError:
-            return False
+        return not self.input_waiting()  # also "no" when closed or without a watched socket
 
     def input_waiting(self) -> bool:
         """Ask the kernel (one ``poll`` with timeout 0) whether the socket has anything the loop
