@@ -335,6 +335,7 @@ async def test_no_timer_for_a_delay_below_the_timer_resolution(
     monkeypatch.setattr(engine.asyncio, "sleep", sleep)
     monkeypatch.setattr(engine.Ticker, "wait_until", wait_until)
     poller, _ = make({"p": [tag("a", "D0")]}, interval=0.02)
+    poller.callback_scans = False  # the PLC task's sleeps (callback scans: the ticker's rule)
     async with poller:
         samples = await take(poller, 5)
     assert len(samples) == 5

@@ -342,6 +342,22 @@ class Client(AsyncResource):
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
         """Read ``count`` points from ``address``: ints for words/bytes, bools for bits."""
 
+    def start_read(self, address: str, count: int, done: Callable[[Any], None]) -> bool:
+        """Start ``read(address, count)`` without awaiting it, when that needs no waiting:
+        ``True``, and ``done`` is later called once with what ``await read(...)`` returns or
+        the exception it raises; else ``False`` and nothing happened (await :meth:`read`).
+
+        The poller's path for thousands of reads a second (see
+        :meth:`RequestClient.start_exchange`). The default always says ``False``; a client
+        says ``True`` only for reads it has already done once the general way.
+        """
+        return False
+
+    def abandon_exchange(self) -> None:
+        """Give up a read started by :meth:`start_read` and still in flight, if any, without
+        its ``done`` being called; the connection is closed, as when an awaited read is
+        cancelled."""
+
     @abstractmethod
     async def write(self, address: str, values: Points) -> None:
         """Write ``values`` (one point or a sequence) starting at ``address``; returns once the
@@ -556,83 +572,213 @@ class RequestClient(Client, Generic[E]):
                     self._drop()
                     await self._ensure_open(what)
                     transport = self.transport
-            self.stats.requests += 1
             deadline = self.timeout if timeout is None else timeout
-            # every chunk of this answer, kept only for the diagnosis on the failure path (a
-            # list only when the answer comes in more than one chunk)
-            first = b""
-            chunks: list[bytes] | None = None
-            # A settled codec holds no bytes, so right after ``send`` it can only need data:
-            # asking it (as an unsettled one must be asked) would cost a decode attempt.
-            settled, self._settled = self._settled, False
-            sent = False  # whether any byte of the request left this host (failure wording)
             try:
-                codec = self.codec
-                transport.write(codec.send(request))
-                sent = True
-                expires = asyncio.get_running_loop().time() + deadline
-                event = NEED_DATA if settled else codec.next_event()
-                whole = False  # the answer came whole, alone, and was taken in one step
-                if settled and self.quick_answers:
-                    # The usual case of a poll: the whole answer in one chunk and nothing more.
-                    # ``take_answer`` decides exactly as feeding the chunk, decoding and finding
-                    # nothing after it would, or takes nothing and says None (the general
-                    # decoding below then runs as before).
-                    chunk = await transport.read(expires)
-                    # only codecs with the method set ``quick_answers`` (no cast: a call)
-                    quick = codec.take_answer(chunk)  # type: ignore[attr-defined]
-                    if quick is None:
-                        first = chunk
-                        codec.receive_data(chunk)
-                        event = codec.next_event()
-                    else:
-                        event, whole = quick, True
-                while event is NEED_DATA:
-                    chunk = await transport.read(expires)
-                    if chunks is not None:
-                        chunks.append(chunk)
-                    elif first:
-                        chunks = [first, chunk]
-                    else:
-                        first = chunk
-                    codec.receive_data(chunk)
-                    event = codec.next_event()
-                if not whole:
-                    self._check_nothing_follows(codec)
-                self._settled = True
-                if self._unproven:
-                    self._answered()
+                event = self._send_request(request)
+                if event is NEED_DATA:
+                    expires = asyncio.get_running_loop().time() + deadline
+                    read, take = transport.read, self._take_chunk
+                    while event is NEED_DATA:
+                        event = take(await read(expires))
             except asyncio.CancelledError:
                 # The caller gave up (wait_for, a cancelled task) with the answer maybe still on
                 # its way: it must die with the connection, or the codec (still expecting it)
                 # would refuse or mis-assign the next request.
                 self._drop()
                 raise
-            except TimeoutError:
-                timeout_error = PlcTimeout(
-                    f"no complete answer within {deadline:g} s, connection closed"
-                )
-                raise self.request_failed(
-                    timeout_error,
-                    "timeout",
-                    b"".join(chunks or (first,)),
-                    what,
-                    is_write=is_write,
-                    sent=sent,
-                ) from None
-            except (ConnectionLost, RemoteProtocolError) as exc:
-                failure: Failure = "closed" if isinstance(exc, ConnectionLost) else "malformed"
-                raise self.request_failed(
-                    exc, failure, b"".join(chunks or (first,)), what, is_write=is_write, sent=sent
-                ) from None
-            except PlcError as exc:
-                self.stats.errors += 1
-                raise exc.bind(plc=self.name, request=what) from None
+            except (TimeoutError, PlcError) as exc:
+                raise self._exchange_failed(exc, what, is_write, deadline) from None
         finally:
             flight.release()
 
         # every failure above raised: ``event`` is the answer
         return event if finish is None else finish(event, what)
+
+    # -- the steps of one exchange, shared by both drivers ---------------------------------
+    #
+    # ``exchange`` awaits the chunks of an answer; ``start_exchange`` is handed them by the
+    # transport (``deliver``). Both send, decode, settle and fail through the same steps below,
+    # so the two paths cannot decide differently (tests/test_callback_exchange.py compares them).
+
+    #: the exchange in progress: what every chunk of its answer is and was (the first alone,
+    #: then all in a list: the failure path's diagnosis), whether a byte of it left this host,
+    #: and whether its first chunk may be taken whole (``take_answer``)
+    _x_first = b""
+    _x_chunks: list[bytes] | None = None
+    _x_sent = False
+    _x_quick = False
+
+    def _send_request(self, request: Any) -> Any:
+        """Count and send ``request`` on a connection checked for stale input: ``NEED_DATA``,
+        or the answer an unsettled codec already holds (settled, as :meth:`_take_chunk`
+        leaves it). Raises the transport's and the codec's errors."""
+        self.stats.requests += 1
+        self._x_first = b""
+        self._x_chunks = None
+        # A settled codec holds no bytes, so right after ``send`` it can only need data:
+        # asking it (as an unsettled one must be asked) would cost a decode attempt.
+        settled, self._settled = self._settled, False
+        self._x_sent = False
+        codec = self.codec
+        self.transport.write(codec.send(request))
+        self._x_sent = True
+        # The usual case of a poll: the whole answer in one chunk and nothing more (see
+        # ``_take_chunk``).
+        self._x_quick = settled and self.quick_answers
+        if settled:
+            return NEED_DATA
+        event = codec.next_event()
+        return event if event is NEED_DATA else self._answer_complete(event)
+
+    def _take_chunk(self, chunk: bytes) -> Any:
+        """Feed one chunk of the answer: the answer event once it is complete (the codec then
+        settled), else ``NEED_DATA``. Raises what the codec raises."""
+        codec = self.codec
+        if self._x_quick:
+            self._x_quick = False
+            # ``take_answer`` decides exactly as feeding the chunk, decoding and finding
+            # nothing after it would, or takes nothing and says None (the general decoding
+            # below then runs as before). Only codecs with the method set ``quick_answers``.
+            quick = codec.take_answer(chunk)  # type: ignore[attr-defined]
+            if quick is not None:
+                self._settled = True
+                if self._unproven:
+                    self._answered()
+                return quick
+        chunks = self._x_chunks
+        if chunks is not None:
+            chunks.append(chunk)
+        elif self._x_first:
+            self._x_chunks = [self._x_first, chunk]
+        else:
+            self._x_first = chunk
+        codec.receive_data(chunk)
+        event = codec.next_event()
+        return event if event is NEED_DATA else self._answer_complete(event)
+
+    def _answer_complete(self, event: Any) -> Any:
+        self._check_nothing_follows(self.codec)
+        self._settled = True
+        if self._unproven:
+            self._answered()
+        return event
+
+    def _exchange_failed(
+        self, exc: TimeoutError | PlcError, what: str, is_write: bool, deadline: float
+    ) -> PlcError:
+        """The bound error for a failure of the exchange in progress, under the failure policy
+        (:meth:`request_failed`) where the connection can no longer be trusted."""
+        if isinstance(exc, TimeoutError | ConnectionLost | RemoteProtocolError):
+            reply = b"".join(self._x_chunks or (self._x_first,))
+            failure: Failure
+            if isinstance(exc, TimeoutError):
+                failure = "timeout"
+                exc = PlcTimeout(f"no complete answer within {deadline:g} s, connection closed")
+            else:
+                failure = "closed" if isinstance(exc, ConnectionLost) else "malformed"
+            return self.request_failed(
+                exc, failure, reply, what, is_write=is_write, sent=self._x_sent
+            )
+        self.stats.errors += 1
+        return exc.bind(plc=self.name, request=what)
+
+    # -- the callback driver ------------------------------------------------------------------
+    #: the callback exchange in progress (``start_exchange``): its ``done``, ``finish``, text,
+    #: kind and deadline; ``_x_done`` is None when none is
+    _x_done: Callable[[Any], None] | None = None
+    _x_finish: Callable[[Any, str], Any] | None = None
+    _x_what = ""
+    _x_is_write = False
+    _x_deadline = 0.0
+
+    def start_exchange(
+        self,
+        request: Any,
+        what: str,
+        finish: Callable[[E, str], Any],
+        done: Callable[[Any], None],
+        *,
+        is_write: bool = False,
+    ) -> bool:
+        """Send ``request`` now and return ``True`` when that needs no waiting: the lock free,
+        the connection open and quiet, the codec settled. ``done`` is then called exactly once,
+        from the event loop, with ``finish(event, what)`` or with the exception ``exchange``
+        would have raised (the same :class:`PlcError`, after the same failure policy). Else
+        ``False``, and nothing was sent or changed: the caller takes ``exchange``.
+
+        What a poller needs for thousands of requests a second: no coroutine, no task step and
+        no future per request; the transport hands the answer's chunks to this client
+        (:meth:`chunk_received`). ``done`` may run before this returns (a send that fails at
+        once). :meth:`abandon_exchange` gives one up, as cancelling ``exchange`` does.
+        """
+        transport = self.transport
+        if (
+            not self._settled
+            or self.stale_check_needs_loop_pass
+            or not transport.quiet()
+            or not self._lock.try_acquire()
+        ):
+            return False
+        self._x_done, self._x_finish, self._x_what, self._x_is_write = done, finish, what, is_write
+        deadline = self._x_deadline = self.timeout
+        try:
+            event = self._send_request(request)
+        except Exception as exc:
+            self._x_failed(exc)
+            return True
+        if event is NEED_DATA:  # always, from a settled codec; else the general step decides
+            transport.deliver(self, asyncio.get_running_loop().time() + deadline)
+        else:
+            self._x_answered(event)
+        return True
+
+    def chunk_received(self, data: bytes) -> None:
+        """A chunk of the answer to the callback exchange (the transport's :class:`Receiver`)."""
+        try:
+            event = self._take_chunk(data)
+        except Exception as exc:
+            self._x_failed(exc)
+            return
+        if event is not NEED_DATA:
+            self.transport.stop_delivery()
+            self._x_answered(event)
+
+    def receive_failed(self, exc: Exception) -> None:
+        """The callback exchange's deadline passed or its connection ended (:class:`Receiver`)."""
+        self._x_failed(exc)
+
+    def _x_answered(self, event: Any) -> None:
+        done, finish = self._x_done, self._x_finish
+        self._x_done = None
+        self._lock.release()
+        try:
+            result = finish(event, self._x_what)  # type: ignore[misc]  # set with done
+        except Exception as exc:  # the PLC's error code, bound (as ``exchange`` raises it)
+            result = exc
+        done(result)  # type: ignore[misc]
+
+    def _x_failed(self, exc: Exception) -> None:
+        done = self._x_done
+        if done is None:
+            return  # abandoned meanwhile
+        self._x_done = None
+        self.transport.stop_delivery()
+        error: Exception
+        if isinstance(exc, TimeoutError | PlcError):
+            error = self._exchange_failed(exc, self._x_what, self._x_is_write, self._x_deadline)
+        else:  # a bug in a codec: what it left behind cannot be trusted
+            self._drop()
+            error = exc
+        self._lock.release()
+        done(error)
+
+    def abandon_exchange(self) -> None:
+        if self._x_done is None:
+            return
+        self._x_done = None
+        self.transport.stop_delivery()
+        self._drop()
+        self._lock.release()
 
     @staticmethod
     def _check_nothing_follows(codec: ClientCodec) -> None:

@@ -262,6 +262,17 @@ class E71Client(E71CommandsMixin):
                 return self.exchange(request, what, is_write=False, finish=self._finish)
         return self._read(address, count)
 
+    def start_read(self, address: str, count: int, done: Callable[[Any], None]) -> bool:
+        """:meth:`read` as a callback exchange, for word reads already checked once (the
+        request object from ``read``'s cache, the same checks of ``pc`` and the timer)."""
+        cached = self._word_reads.get((address, count))
+        if cached is None:
+            return False
+        request, what = cached
+        if request.pc != self.pc or request.timer != self.monitoring_timer:
+            return False
+        return self.start_exchange(request, what, self._finish, done)
+
     def _finish_words(self, event: Response, what: str) -> list[int]:
         if type(event) is WordsResponse:
             return list(event.values)

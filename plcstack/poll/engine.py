@@ -42,7 +42,7 @@ import collections
 import logging
 import time
 from collections.abc import AsyncIterator, Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Self
 
 from plcstack.clients import connect
@@ -57,6 +57,7 @@ from plcstack.errors import (
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, describe, encode_tag
 from plcstack.poll.samples import Quality, Sample, make_sample
+from plcstack.poll.scanner import Scanner, advance
 from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
 from plcstack.poll.ticker import Ticker
 from plcstack.resource import AsyncResource
@@ -102,6 +103,7 @@ class _Plc:
     order: WordOrder = Endian.BIG
     byte_order: ByteOrder = Endian.BIG
     task: asyncio.Task[None] | None = None
+    scanners: list[Scanner] = field(default_factory=list)
 
 
 ClientFactory = Callable[[PlcConfig], Client]
@@ -133,6 +135,10 @@ class Poller(AsyncResource):
     #: the PLC tasks wait for their next scan on one shared :class:`Ticker` instead of one
     #: ``asyncio.sleep`` timer each; tests turn it off to compare both
     shared_timer = True
+    #: scans run as callbacks where they can (:mod:`.scanner`: no task step per scan) when
+    #: there is no concurrency cap and the shared timer is on; tests turn this off to run
+    #: every scan in the PLC's task and compare
+    callback_scans = True
     #: a scan whose one tag is the whole reply of its one request (``ScanPlan.whole_reply_tag``)
     #: hands the reply out as the sample's value without ``_deliver``; tests turn this off to
     #: compare both
@@ -221,7 +227,13 @@ class Poller(AsyncResource):
                 # configured alike do not all send in the same millisecond, every interval.
                 spread = min(group.interval, 1.0)
                 group.next_due = now + spread * (i / count if count > 1 else 0.0)
-            plc.task = asyncio.create_task(self._run(plc), name=f"poll {plc.config.name}")
+        for plc in self._plcs.values():
+            if self.callback_scans and self.shared_timer and self._semaphore is None:
+                plc.scanners = [Scanner(self, plc, g, self._ticker) for g in plc.groups]
+                for scanner in plc.scanners:
+                    scanner.start()
+            else:
+                plc.task = asyncio.create_task(self._run(plc), name=f"poll {plc.config.name}")
 
     async def aclose(self) -> None:
         """Stop polling, close every connection; iteration ends after the buffered samples."""
@@ -231,6 +243,13 @@ class Poller(AsyncResource):
         tasks = [p.task for p in self._plcs.values() if p.task is not None]
         for task in tasks:
             task.cancel()
+        for plc in self._plcs.values():
+            for scanner in plc.scanners:
+                scan = scanner.close()
+                if scan is not None:
+                    tasks.append(scan)
+            # a callback request in flight dies with its connection, as a cancelled read does
+            plc.client.abandon_exchange()
         await asyncio.gather(*tasks, return_exceptions=True)
         if self._ticker is not None:
             self._ticker.close()
@@ -394,28 +413,18 @@ class Poller(AsyncResource):
     # are what the garbage collector keeps traversing while a thousand reads are in flight.
 
     async def _run(self, plc: _Plc) -> None:
+        """The PLC's scans in a task (when callback scans are off, see :attr:`callback_scans`)."""
         groups = plc.groups
         if not groups:
             return
         clock = time.perf_counter
         resolution = self._resolution
-        semaphore = self._semaphore
-        client = plc.client
-        stats = plc.stats
-        only = groups[0] if len(groups) == 1 else None
-        inline = self.inline_single_request
-        whole_samples = self.whole_reply_samples
-        queue = self._queue
-        limit = self.config.queue
-        wakeup = self._wakeup
-        name = plc.config.name
-        good = Quality.GOOD
         # one loop timer for every PLC's next scan (see ticker.py); tests may switch it off to
         # compare with asyncio.sleep
         ticker = self._ticker if self.shared_timer else None
         unyielded = 0  # scans since this task last slept
         while True:
-            due = only.next_due if only is not None else min(g.next_due for g in groups)
+            due = min(g.next_due for g in groups)
             now = clock()
             if due - now > resolution:
                 if ticker is not None:
@@ -432,73 +441,82 @@ class Poller(AsyncResource):
                 unyielded = 0
                 now = clock()
             ready = now + resolution
-            for group in groups if only is not None else sorted(groups, key=_due):
+            for group in sorted(groups, key=_due) if len(groups) > 1 else groups:
                 if group.next_due > ready:
                     continue
-                plan = group.plan
-                if inline and len(plan.requests) == 1:
-                    request = plan.requests[0]
-                    stats.scans += 1
-                    if semaphore is not None:
-                        await semaphore.acquire()
-                    wall = time.time()
-                    start = clock()
-                    try:
-                        reply: Sequence[int | bool] | PlcError = await client.read(
-                            request.address, request.count
-                        )
-                    except Exception as exc:
-                        reply = self._failed(plc, group, plan, 0, exc)
-                    finally:
-                        if semaphore is not None:
-                            semaphore.release()
-                    end = clock()
-                    offset = wall - start
-                    whole: str | None = None
-                    if isinstance(reply, PlcError):
-                        unyielded = MAX_SCANS_WITHOUT_YIELD
-                    else:
-                        stats.latencies.append(end - start)
-                        stats.requests += 1
-                        unyielded += 1
-                        if whole_samples and len(reply) == request.count:
-                            whole = plan.whole_tag
-                    if whole is not None:
-                        # What _deliver gives for this plan, without its copy of the reply (see
-                        # ScanPlan.whole_reply_tag): one good sample with the reply as value.
-                        sample = make_sample(
-                            name,
-                            whole,
-                            reply,  # type: ignore[arg-type]  # the list client.read returned
-                            good,
-                            start + offset,
-                            end + offset,
-                            None,
-                        )
-                        queue.append(sample)
-                        stats.samples += 1
-                        if len(queue) > limit:
-                            self._trim()
-                        wakeup.set()
-                        del sample
-                    else:
-                        self._deliver(plc, plan, (reply,), start + offset, end + offset, None, None)
-                    # this task lives on: drop the reply before the next wait, or each PLC keeps
-                    # its last reply (64 words: about 2.5 KiB of int objects) alive until then
-                    del reply
+                if await self._scan_group(plc, group):
+                    unyielded = MAX_SCANS_WITHOUT_YIELD
                 else:
-                    if await self._scan(plc, group):
-                        unyielded = MAX_SCANS_WITHOUT_YIELD
-                    else:
-                        unyielded += 1
-                    end = clock()
-                interval = group.interval
-                next_due = group.next_due + interval
-                if next_due <= end:
-                    missed = int((end - next_due) // interval) + 1
-                    stats.overruns += missed
-                    next_due += missed * interval
-                group.next_due = next_due
+                    unyielded += 1
+                advance(plc.stats, group, clock())
+
+    async def _scan_group(self, plc: _Plc, group: _Group) -> bool:
+        """One scan of ``group`` awaiting the client; returns whether a request failed."""
+        plan = group.plan
+        if not (self.inline_single_request and len(plan.requests) == 1):
+            return await self._scan(plc, group)
+        request = plan.requests[0]
+        plc.stats.scans += 1
+        semaphore = self._semaphore
+        if semaphore is not None:
+            await semaphore.acquire()
+        clock = time.perf_counter
+        wall = time.time()
+        start = clock()
+        try:
+            reply: Sequence[int | bool] | Exception = await plc.client.read(
+                request.address, request.count
+            )
+        except Exception as exc:
+            reply = exc
+        finally:
+            if semaphore is not None:
+                semaphore.release()
+        return self._single_done(plc, group, plan, reply, start, clock(), wall - start)
+
+    def _single_done(
+        self,
+        plc: _Plc,
+        group: _Group,
+        plan: ScanPlan,
+        reply: Sequence[int | bool] | Exception,
+        start: float,
+        end: float,
+        offset: float,
+    ) -> bool:
+        """Deliver a scan of one request (its reply, or what the read raised); returns whether
+        it failed. ``start``/``end`` are ``perf_counter`` times, ``offset`` makes them Unix
+        times. The one definition for the task and the callback scans (scanner.py)."""
+        stats = plc.stats
+        if isinstance(reply, Exception):
+            error = self._failed(plc, group, plan, 0, reply)
+            self._deliver(plc, plan, (error,), start + offset, end + offset, None, None)
+            return True
+        stats.latencies.append(end - start)
+        stats.requests += 1
+        whole = plan.whole_tag
+        if whole is not None and self.whole_reply_samples and len(reply) == plan.requests[0].count:
+            # What _deliver gives for this plan, without its copy of the reply (see
+            # ScanPlan.whole_reply_tag): one good sample with the reply as value.
+            queue = self._queue
+            queue.append(
+                make_sample(
+                    plc.config.name,
+                    whole,
+                    reply,  # type: ignore[arg-type]  # the list client.read returned
+                    Quality.GOOD,
+                    start + offset,
+                    end + offset,
+                    None,
+                )
+            )
+            stats.samples += 1
+            if len(queue) > self.config.queue:
+                self._trim()
+            self._wakeup.set()
+        else:
+            self._deliver(plc, plan, (reply,), start + offset, end + offset, None, None)
+        return False
 
     def _failed(
         self, plc: _Plc, group: _Group, plan: ScanPlan, index: int, exc: Exception

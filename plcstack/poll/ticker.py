@@ -8,6 +8,10 @@ The ticker keeps the PLC tasks' due times in its own heap of plain tuples (compa
 arms a single loop timer for the earliest; when it fires, every task that is due wakes. The
 times are the poller's schedule clock (``time.perf_counter``); the loop only ever gets relative
 delays, as with ``asyncio.sleep``.
+
+Besides futures to await (``wait_until``, the PLC tasks), the heap holds plain callbacks
+(``call_at``): the poller's callback-driven scans (``poll/scanner.py``) start their request
+right in the ticker's timer callback, without a task step.
 """
 
 from __future__ import annotations
@@ -15,12 +19,15 @@ from __future__ import annotations
 import asyncio
 import heapq
 import itertools
+import logging
 import math
 from collections.abc import Callable
 
 from plcstack.transports.deadlines import future_factory
 
 __all__ = ["Ticker"]
+
+_log = logging.getLogger(__name__)
 
 
 class Ticker:
@@ -41,7 +48,7 @@ class Ticker:
         self._new_future = future_factory(loop)
         self._clock = clock
         self._resolution = resolution
-        self._heap: list[tuple[float, int, asyncio.Future[None]]] = []
+        self._heap: list[tuple[float, int, asyncio.Future[None] | Callable[[], None]]] = []
         self._order = itertools.count()
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at = math.inf
@@ -54,14 +61,22 @@ class Ticker:
             self._arm(due)
         return future
 
+    def call_at(self, due: float, callback: Callable[[], None]) -> None:
+        """Call ``callback()`` once the clock reaches ``due`` (within the resolution), from the
+        ticker's loop timer. An exception it raises is logged; the other entries still run."""
+        heapq.heappush(self._heap, (due, next(self._order), callback))
+        if due < self._timer_at:
+            self._arm(due)
+
     def close(self) -> None:
-        """Drop the loop timer and every waiter (cancelled)."""
+        """Drop the loop timer, every waiter (cancelled) and every callback (never called)."""
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
         self._timer_at = math.inf
-        for _, _, future in self._heap:
-            future.cancel()
+        for _, _, item in self._heap:
+            if isinstance(item, asyncio.Future):
+                item.cancel()
         self._heap.clear()
 
     def __len__(self) -> int:
@@ -79,8 +94,14 @@ class Ticker:
         heap = self._heap
         ready = self._clock() + self._resolution
         while heap and heap[0][0] <= ready:
-            future = heapq.heappop(heap)[2]
-            if not future.done():
-                future.set_result(None)
-        if heap:
+            item = heapq.heappop(heap)[2]
+            if isinstance(item, asyncio.Future):
+                if not item.done():
+                    item.set_result(None)
+                continue
+            try:
+                item()
+            except Exception:  # one broken callback must not stop the others' schedules
+                _log.exception("ticker callback %r failed", item)
+        if heap and heap[0][0] < self._timer_at:  # a callback may have armed already
             self._arm(heap[0][0])

@@ -14,7 +14,7 @@ import select
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
 from plcstack.transports.deadlines import deadlines_of, future_factory
@@ -24,11 +24,25 @@ __all__ = [
     "ProtocolTransport",
     "QueueProtocolMixin",
     "ReceiveCounters",
+    "Receiver",
     "Transport",
     "open_with_timeout",
 ]
 
 T = TypeVar("T")
+
+
+class Receiver(Protocol):
+    """Who takes a connection's chunks as they arrive (:meth:`Transport.deliver`), instead of a
+    reader awaiting :meth:`Transport.read`: a client's callback-driven exchange."""
+
+    def chunk_received(self, data: bytes) -> None:
+        """A chunk (stream) or datagram arrived."""
+
+    def receive_failed(self, exc: Exception) -> None:
+        """The delivery ended without the receiver stopping it: ``TimeoutError`` when its
+        deadline passed, :class:`ConnectionLost` when the connection ended. Called once; the
+        receiver is detached before."""
 
 
 class Transport(ABC):
@@ -92,6 +106,20 @@ class Transport(ABC):
         """
         return True
 
+    def deliver(self, receiver: Receiver, deadline: float) -> None:
+        """Hand every chunk that arrives from now on to ``receiver`` as it arrives, until
+        :meth:`stop_delivery` or until ``deadline`` (loop time) passes or the connection ends
+        (then ``receiver.receive_failed``). Only called after :meth:`quiet` said ``True``:
+        a transport that never says so need not implement it.
+
+        The callback-driven exchange (``RequestClient.start_exchange``): no future, no task
+        step per answer, where ``read`` costs both.
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not deliver to receivers")
+
+    def stop_delivery(self) -> None:
+        """Detach the receiver of :meth:`deliver` (nothing when none is attached)."""
+
 
 #: bytes a connection holds received and unread before it stops reading (TCP, serial) or drops
 #: datagrams (UDP). The largest legal answer of our protocols is a little over 2 KiB (S5-LAN,
@@ -147,6 +175,8 @@ class QueueProtocolMixin:
         #: whether the one deadline timer is armed, and the loop time it is armed for
         self._timer = False
         self._timer_at = 0.0
+        #: takes every chunk as it arrives instead of the queue (:meth:`Transport.deliver`)
+        self._receiver: Receiver | None = None
         #: ``loop.create_future`` of the connection's loop (``future_factory``): asyncio makes
         #: protocols inside the loop they serve
         self._new_future: Callable[[], asyncio.Future[Any]] = future_factory(
@@ -157,6 +187,10 @@ class QueueProtocolMixin:
         self._flow = transport
 
     def _push(self, data: bytes) -> None:
+        receiver = self._receiver
+        if receiver is not None:
+            receiver.chunk_received(data)
+            return
         counters = self.counters
         queued = counters.queued + len(data)
         if queued > self.max_queued:
@@ -179,6 +213,11 @@ class QueueProtocolMixin:
     def _fail(self, exc: BaseException) -> None:
         if self._closed_exc is None:
             self._closed_exc = exc
+        receiver = self._receiver
+        if receiver is not None:
+            self._receiver = None
+            self._deadline = None
+            receiver.receive_failed(self._lost())
         waiter = self._waiter
         if waiter is not None and not waiter.done():
             waiter.set_result(None)
@@ -187,7 +226,7 @@ class QueueProtocolMixin:
         chunks = self._chunks
         while not chunks:
             if self._closed_exc is not None:
-                raise ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
+                raise self._lost()
             self._waiter = waiter = self._new_future()
             if deadline is not None:
                 self._deadline = deadline
@@ -209,6 +248,17 @@ class QueueProtocolMixin:
         self._taken(len(data))
         return data
 
+    def _lost(self) -> ConnectionLost:
+        return ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
+
+    def _deliver(self, receiver: Receiver, deadline: float) -> None:
+        """Attach ``receiver`` (see :meth:`Transport.deliver`) with its deadline on the
+        connection's one timer, as a wait in :meth:`_next_chunk` does."""
+        self._receiver = receiver
+        self._deadline = deadline
+        if not self._timer or self._timer_at > deadline:
+            self._arm(asyncio.get_running_loop(), deadline)
+
     def _taken(self, n: int) -> None:
         """``n`` queued bytes were handed to the reader: resume reading once the queue is empty
         (not at the first byte below the limit, which would pause again at once)."""
@@ -229,18 +279,22 @@ class QueueProtocolMixin:
 
     def _on_timer(self, when: float) -> None:
         """A timer armed for ``when`` fired: if it is the current one, expire the current wait
-        if its deadline is due, re-arm for it if it is later, and lapse if nobody waits with a
-        deadline."""
+        or delivery if its deadline is due, re-arm for it if it is later, and lapse if nobody
+        waits with a deadline."""
         if not self._timer or when != self._timer_at:
             return  # replaced by an earlier one, or lapsed
         self._timer = False
-        deadline, waiter = self._deadline, self._waiter
-        if deadline is None or waiter is None or waiter.done():
+        deadline, waiter, receiver = self._deadline, self._waiter, self._receiver
+        if deadline is None or (receiver is None and (waiter is None or waiter.done())):
             return
-        if deadline <= when:
-            waiter.set_exception(TimeoutError())
-        else:
+        if deadline > when:
             self._arm(asyncio.get_running_loop(), deadline)
+        elif receiver is not None:
+            self._receiver = None
+            self._deadline = None
+            receiver.receive_failed(TimeoutError())
+        else:
+            waiter.set_exception(TimeoutError())  # type: ignore[union-attr]  # checked above
 
 
 class ProtocolTransport(Transport):
@@ -283,6 +337,18 @@ class ProtocolTransport(Transport):
             return bool(watch.poll(0))
         except OSError:
             return True
+
+    def deliver(self, receiver: Receiver, deadline: float) -> None:
+        protocol = self._protocol
+        if protocol is None:
+            raise ConnectionLost(f"not connected to {self.peer}")
+        protocol._deliver(receiver, deadline)
+
+    def stop_delivery(self) -> None:
+        protocol = self._protocol
+        if protocol is not None:
+            protocol._receiver = None
+            protocol._deadline = None
 
     @property
     def is_open(self) -> bool:

@@ -35,6 +35,7 @@ import gc
 import importlib
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -304,9 +305,14 @@ async def _measure(
 
             profiler = cProfile.Profile(time.process_time)  # CPU, not wall: shared machines
             profiler.enable()
+        passes = _count_passes(asyncio.get_running_loop())
+        u0 = resource.getrusage(resource.RUSAGE_SELF)
+        p0 = passes[0]
         r0, o0, c0, t0 = requests(), overruns(), time.process_time(), time.perf_counter()
         await asyncio.sleep(duration)
         r1, o1, c1, t1 = requests(), overruns(), time.process_time(), time.perf_counter()
+        u1 = resource.getrusage(resource.RUSAGE_SELF)
+        p1 = passes[0]
         if profiler is not None:
             profiler.disable()
             profiler.dump_stats(cast(str, profile))
@@ -367,6 +373,11 @@ async def _measure(
         "gc_us_per_request": 1e6 * gc_seconds / done if done else None,
         "gc_collections": collections,
         "gc_tracked_objects": tracked,
+        "user_us_per_request": 1e6 * (u1.ru_utime - u0.ru_utime) / done if done else None,
+        "sys_us_per_request": 1e6 * (u1.ru_stime - u0.ru_stime) / done if done else None,
+        "sleeps_per_request": (u1.ru_nvcsw - u0.ru_nvcsw) / done if done else None,
+        "preempted_per_request": (u1.ru_nivcsw - u0.ru_nivcsw) / done if done else None,
+        "passes_per_request": (p1 - p0) / done if done and p1 >= 0 else None,
         "overruns": o1 - o0,
         "p50_ms": pct(50),
         "p99_ms": pct(99),
@@ -411,6 +422,23 @@ async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.
     consumer = asyncio.create_task(consume())
     await poller.start()
     return poller, consumer
+
+
+def _count_passes(loop: asyncio.AbstractEventLoop) -> list[int]:
+    """A counter of the loop's passes (selector polls); ``[-1]`` where it cannot be counted
+    (uvloop runs its passes in C)."""
+    selector = getattr(loop, "_selector", None)
+    if selector is None:
+        return [-1]
+    count = [0]
+    select = selector.select
+
+    def counted(timeout: float | None = None) -> Any:
+        count[0] += 1
+        return select(timeout)
+
+    selector.select = counted
+    return count
 
 
 _gc_seconds = [0.0]

@@ -1,0 +1,155 @@
+"""Callback-driven scans: one scan group of one PLC without a task.
+
+A PLC task spends, per scan of one request, two task steps (woken by its timer, then by the
+answer) and two futures, on top of what the request itself costs; with a thousand PLCs at 10 Hz
+that was the largest share of the poller's excess over a raw asyncio loop (issue 16). A
+:class:`Scanner` instead starts the request in the ticker's timer callback
+(``Client.start_read``) and receives the result in a callback from the transport's
+``buffer_updated``: the sample is queued and the next scan put on the ticker in the same loop
+pass that received the answer.
+
+Only the plain case runs this way: a group whose plan is one request, which the client can send
+at once (lock free, connection open and quiet, codec settled, the read done once before).
+Everything else (connecting, a stale-input check, a request queued behind a write, a plan of
+several requests) runs that scan through the task path's own code (``Poller._scan_group``) in a
+task of its own, and the next scan is tried the quick way again. Both paths deliver through
+``Poller._single_done`` and schedule through :func:`advance`: tests/test_scanner.py compares
+them sample for sample.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Protocol
+
+from plcstack.poll.stats import PlcStats
+from plcstack.poll.ticker import Ticker
+
+if TYPE_CHECKING:
+    from plcstack.poll.engine import Poller, _Group, _Plc
+
+__all__ = ["Scanner", "advance"]
+
+_log = logging.getLogger(__name__)
+
+
+class _Scheduled(Protocol):
+    interval: float
+    next_due: float
+
+
+def advance(stats: PlcStats, group: _Scheduled, end: float) -> None:
+    """Move ``group``'s schedule past a scan that ended at ``end``: to its next tick, or, when
+    the scan ran past that, to the first tick in the future, counting the missed ones as
+    overruns (missed scans are never queued up)."""
+    interval = group.interval
+    next_due = group.next_due + interval
+    if next_due <= end:
+        missed = int((end - next_due) // interval) + 1
+        stats.overruns += missed
+        next_due += missed * interval
+    group.next_due = next_due
+
+
+class Scanner:
+    """The scans of one group of one PLC, on the poller's :class:`Ticker`.
+
+    ``start`` puts the first scan on the ticker; from then on every scan puts the next one there
+    when it has ended, so a group never has two scans at once. ``close`` stops it: a scan
+    waiting on the ticker never runs, a task-path scan in progress is cancelled (the caller
+    awaits what ``close`` returns), and the poller abandons a callback request in flight.
+    """
+
+    __slots__ = (
+        "_closed",
+        "_done_cb",
+        "_fire_cb",
+        "_group",
+        "_offset",
+        "_plan",
+        "_plc",
+        "_poller",
+        "_start",
+        "_task",
+        "_ticker",
+    )
+
+    def __init__(self, poller: Poller, plc: _Plc, group: _Group, ticker: Ticker) -> None:
+        self._poller = poller
+        self._plc = plc
+        self._group = group
+        self._ticker = ticker
+        self._plan = group.plan  # the plan of the request in flight
+        self._start = 0.0  # its perf_counter send time, and the offset to Unix time
+        self._offset = 0.0
+        self._task: asyncio.Task[None] | None = None
+        self._closed = False
+        # bound once: a bound method made per scan would be one more object per request
+        self._fire_cb = self._fire
+        self._done_cb = self._done
+
+    def start(self) -> None:
+        self._ticker.call_at(self._group.next_due, self._fire_cb)
+
+    def close(self) -> asyncio.Task[None] | None:
+        """Stop scanning; returns the task-path scan in progress (cancelled), if any."""
+        self._closed = True
+        task = self._task
+        if task is not None:
+            task.cancel()
+        return task
+
+    def _fire(self) -> None:
+        """The scan is due (the ticker's callback): start its request, or its task."""
+        if self._closed:
+            return
+        plan = self._group.plan
+        if len(plan.requests) == 1 and self._poller.inline_single_request:
+            request = plan.requests[0]
+            wall = time.time()
+            self._start = start = time.perf_counter()
+            self._offset = wall - start
+            self._plan = plan
+            try:
+                started = self._plc.client.start_read(request.address, request.count, self._done_cb)
+            except Exception as exc:  # a client bug: this scan's failure, as a read's would be
+                started = False
+                self._plc.stats.scans += 1
+                self._done(exc)
+                return
+            if started:
+                self._plc.stats.scans += 1
+                return
+        self._task = asyncio.get_running_loop().create_task(self._scan_task())
+
+    def _done(self, reply: Sequence[int | bool] | Exception) -> None:
+        """The callback request's result (``start_read``'s ``done``)."""
+        end = time.perf_counter()
+        if self._closed:
+            return
+        try:
+            self._poller._single_done(
+                self._plc, self._group, self._plan, reply, self._start, end, self._offset
+            )
+        except Exception:  # a bug must not end this group's scans
+            _log.exception("%s: delivering a scan failed", self._plc.config.name)
+        self._next(end)
+
+    async def _scan_task(self) -> None:
+        """One scan the general way (connect, stale-input check, a queued request, several
+        requests), then back to the callback path for the next."""
+        try:
+            await self._poller._scan_group(self._plc, self._group)
+        except Exception:  # _scan_group turns read failures into samples: this is a bug
+            _log.exception("%s: a scan failed", self._plc.config.name)
+        self._task = None
+        if not self._closed:
+            self._next(time.perf_counter())
+
+    def _next(self, end: float) -> None:
+        group = self._group
+        advance(self._plc.stats, group, end)
+        self._ticker.call_at(group.next_due, self._fire_cb)
