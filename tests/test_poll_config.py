@@ -61,6 +61,15 @@ def test_full_example() -> None:
     assert p2.tags[0].name == "level.1"
 
 
+def test_batch_wait_default_zero_and_checked_in_python_too() -> None:
+    good = parse_config(GOOD)
+    assert good.batch_wait == 0.01
+    assert parse_config("[poll]\nbatch_wait = 0\n" + GOOD.split("[poll]")[1]).batch_wait == 0
+    assert PollConfig(good.plcs, good.groups, batch_wait=0.2).batch_wait == 0.2
+    with pytest.raises(ConfigError, match="batch_wait"):
+        PollConfig(good.plcs, good.groups, batch_wait=float("inf"))
+
+
 def test_s5_default_word_order_is_big() -> None:
     plc = PlcConfig("x", "fetchwrite://127.0.0.1:2000", ())
     assert plc.order is WordOrder.BIG
@@ -76,6 +85,10 @@ ERRORS = [
     ("", ["no PLC configured"]),
     ("[poll]\nconcurency = 3\n" + with_plc(""), ["unknown key", "concurency", "cfg.toml:2"]),
     ("[poll]\nconcurrency = 0\n" + with_plc(""), ["concurrency", "at least 1"]),
+    ("[poll]\nbatch_wait = -0.5\n" + with_plc(""), ["batch_wait", "0 to 1", "cfg.toml:2"]),
+    ("[poll]\nbatch_wait = 5\n" + with_plc(""), ["batch_wait", "0 to 1", "cfg.toml:2"]),
+    ('[poll]\nbatch_wait = "soon"\n' + with_plc(""), ["batch_wait", "'soon'"]),
+    ("[poll]\nbatch_wait = nan\n" + with_plc(""), ["batch_wait", "nan"]),
     ("[poll]\ninterval = -1\n" + with_plc(""), ["interval", "greater than 0"]),
     ('[groups]\nfast = "x"\n' + with_plc(""), ["fast", "number"]),
     ('[[plc]]\nname = "p1"\n[plc.tags]\na = "D0"\n', ["p1", "missing url", "cfg.toml:1"]),

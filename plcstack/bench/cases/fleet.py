@@ -11,8 +11,9 @@ CPU and runs one of:
   ticks counted as overruns and skipped, as the poller does) and awaits the known reply length;
 * ``clients`` -- the same schedule, each task calling ``plcstack`` ``client.read("D0", 64)``;
 * ``poll``    -- :class:`plcstack.poll.Poller`, one 64-word tag per PLC, interval 0.1 s, and a
-  consumer that takes the samples in batches (``FLEET_CONSUMER_WAIT`` seconds lets each batch
-  gather that long; default 0, a batch per loop pass).
+  consumer that takes the samples in batches as ``plcstack poll``'s north side does: each
+  gathers for ``[poll] batch_wait`` (10 ms) after its first sample. ``FLEET_CONSUMER_WAIT``
+  seconds replaces that (0: a batch per event-loop pass, the consumer of earlier runs).
 
 Reported per kind: process CPU per completed request (``time.process_time``: CPU time of this
 process only, which other jobs on a shared machine barely move, unlike wall-clock rates),
@@ -45,17 +46,18 @@ from typing import Any, cast
 from plcstack.bench import frames
 from plcstack.bench.cases import WORDS, sample_words
 from plcstack.bench.cases.fanout import PACKAGE_PARENT, raise_fd_limit
+from plcstack.poll.config import DEFAULT_BATCH_WAIT
 
 __all__ = ["KINDS", "REPLY", "REQUEST", "spawn"]
 
 KINDS = ("floor", "clients", "poll")
 #: 10 Hz
 INTERVAL = 0.1
-#: how long the poll kind's consumer lets a batch gather (``Poller.batches(wait=...)``); 0, a
-#: step per loop pass, keeps the figures comparable with earlier runs. ``FLEET_CONSUMER_WAIT``
-#: sets it (in one back-to-back check on an idle machine, 10 ms made no difference beyond the
-#: run-to-run noise of about 15 %).
-CONSUMER_WAIT = float(os.environ.get("FLEET_CONSUMER_WAIT", "0"))
+#: how long the poll kind's consumer lets a batch gather (``Poller.batches(wait=...)``): None,
+#: the poller's ``batch_wait`` as the north side uses it; ``FLEET_CONSUMER_WAIT`` sets it (0 is
+#: a batch per loop pass, which with callback scans cost about 9 us per request more)
+_wait = os.environ.get("FLEET_CONSUMER_WAIT")
+CONSUMER_WAIT = float(_wait) if _wait else None
 REQUEST = frames.e71_read_words("D", 0, WORDS)
 REPLY = frames.e71_reply_words(sample_words())
 
@@ -382,6 +384,13 @@ async def _measure(
         "p50_ms": pct(50),
         "p99_ms": pct(99),
         "pinned": responder_cpu is not None,
+        "consumer_wait": (
+            None
+            if kind != "poll"
+            else CONSUMER_WAIT
+            if CONSUMER_WAIT is not None
+            else DEFAULT_BATCH_WAIT
+        ),
     }
 
 
@@ -405,12 +414,13 @@ async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.
     checked: set[str] = set()
 
     async def consume() -> None:
-        # As an application that keeps up should: take what is there in one batch per wake-up
-        # (gathered for CONSUMER_WAIT, 0 by default).
+        # As the north side does: take what is there in one batch per wake-up, gathered for
+        # the poller's batch_wait (or CONSUMER_WAIT).
         # Every sample's quality is checked; its 64 values only for the first sample of each
         # PLC (the responders send one fixed reply), as the floor checks its first reply: a
         # per-sample list comparison would be the consumer's cost, not the poller's.
-        async for batch in poller.batches(wait=CONSUMER_WAIT):
+        wait = poller.config.batch_wait if CONSUMER_WAIT is None else CONSUMER_WAIT
+        async for batch in poller.batches(wait=wait):
             for sample in batch:
                 if sample.value is None:
                     bad.append(f"{sample.plc}: {sample.error}")

@@ -1,0 +1,44 @@
+"""The north side takes the poller's samples in batches that gather for ``[poll] batch_wait``.
+
+With a thousand PLCs a consumer woken once per event-loop pass cost more CPU per sample than the
+requests did (issue 16); the pipeline therefore asks the poller for gathered batches.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from typing import Any
+
+from plcstack.north.config import NorthConfig
+from plcstack.north.pipeline import North
+from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.poll.samples import Quality, Sample
+
+
+class _Poller:
+    """What North reads of a Poller, recording how it asks for batches."""
+
+    def __init__(self, config: PollConfig) -> None:
+        self.config = config
+        self.waits: list[float] = []
+        self.stats: dict[str, Any] = {}
+        self.dropped = 0
+
+    async def batches(self, wait: float = 0.0) -> AsyncIterator[list[Sample]]:
+        self.waits.append(wait)
+        yield [Sample("p", "a", 1, Quality.GOOD, 1.0, 2.0)]
+
+
+def _config(**kw: Any) -> PollConfig:
+    plc = PlcConfig(name="p", url="e71+tcp://127.0.0.1:5000", tags=(TagConfig("a", "D0"),))
+    return PollConfig((plc,), **kw)
+
+
+async def test_pipeline_gathers_batches_for_batch_wait() -> None:
+    for config, expected in ((_config(), 0.01), (_config(batch_wait=0), 0.0)):
+        poller = _Poller(config)
+        seen: list[list[Sample]] = []
+        north = North(poller, NorthConfig())
+        await north.run(emit=seen.append)
+        assert poller.waits == [expected]
+        assert [s.value for batch in seen for s in batch] == [1]
