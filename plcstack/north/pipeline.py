@@ -8,8 +8,9 @@ async with Poller(config) as poller, North(poller, parse_north(config.north)) as
 The consumer takes what the poller has, in batches that gather for ``[poll] batch_wait``
 seconds after their first sample (10 ms by default: with a thousand PLCs, one wake-up per
 event-loop pass cost more CPU than the requests themselves), lets the metrics see it (``up``
-needs the unfiltered truth), filters it once through :class:`ReportByException` and hands the same list to each sink. Sinks never block the
-consumer: the MQTT sink queues (memory, then disk), stdout is written by the caller's ``emit``.
+needs the unfiltered truth), filters it once through :class:`ReportByException` and hands
+the same list to each sink. Sinks never block the consumer: the MQTT sink queues (memory,
+then disk), stdout is written by the caller's ``emit``.
 Writes come back the other way only through the poller's ``write_tag``.
 """
 
