@@ -727,7 +727,7 @@ class RequestClient(Client, Generic[E]):
             self._x_failed(exc)
             return True
         if event is NEED_DATA:  # always, from a settled codec; else the general step decides
-            transport.deliver(self, asyncio.get_running_loop().time() + deadline)
+            transport.deliver(self, deadline)
         else:
             self._x_answered(event)
         return True

@@ -272,6 +272,9 @@ class ClientConnection(ErrorState):
     def send(self, request: Request | ExtensionRequest) -> bytes:
         if self.error is not None:
             self._check_usable()
+        if request is self._last_read:  # only ever set by the fast path below: its bytes again
+            self._pending.append(request)
+            return self._last_bytes
         if type(request) is ReadWords and self._unit == 1 and self.fast_paths:
             # The polling hot path: the checks of the general path (``_Header.encode``), inlined
             # over the fields a binary 01H frame holds, and one struct call. Anything it does

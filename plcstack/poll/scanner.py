@@ -34,6 +34,9 @@ if TYPE_CHECKING:
 __all__ = ["Scanner", "advance"]
 
 _log = logging.getLogger(__name__)
+#: the schedule's clock and the samples' wall clock (see Poller: one time.time() per scan)
+_clock = time.perf_counter
+_wall_clock = time.time
 
 
 class _Scheduled(Protocol):
@@ -64,6 +67,7 @@ class Scanner:
     """
 
     __slots__ = (
+        "_client",
         "_closed",
         "_done_cb",
         "_fire_cb",
@@ -72,7 +76,9 @@ class Scanner:
         "_plan",
         "_plc",
         "_poller",
+        "_single",
         "_start",
+        "_stats",
         "_task",
         "_ticker",
     )
@@ -82,6 +88,10 @@ class Scanner:
         self._plc = plc
         self._group = group
         self._ticker = ticker
+        self._client = plc.client
+        self._stats = plc.stats
+        #: the poller's switch, read when scanning starts (as its tasks read it)
+        self._single = poller.inline_single_request
         self._plan = group.plan  # the plan of the request in flight
         self._start = 0.0  # its perf_counter send time, and the offset to Unix time
         self._offset = 0.0
@@ -107,36 +117,38 @@ class Scanner:
         if self._closed:
             return
         plan = self._group.plan
-        if len(plan.requests) == 1 and self._poller.inline_single_request:
-            request = plan.requests[0]
-            wall = time.time()
-            self._start = start = time.perf_counter()
+        requests = plan.requests
+        if len(requests) == 1 and self._single:
+            request = requests[0]
+            wall = _wall_clock()
+            self._start = start = _clock()
             self._offset = wall - start
             self._plan = plan
             try:
-                started = self._plc.client.start_read(request.address, request.count, self._done_cb)
+                started = self._client.start_read(request.address, request.count, self._done_cb)
             except Exception as exc:  # a client bug: this scan's failure, as a read's would be
-                started = False
-                self._plc.stats.scans += 1
+                self._stats.scans += 1
                 self._done(exc)
                 return
             if started:
-                self._plc.stats.scans += 1
+                self._stats.scans += 1
                 return
         self._task = asyncio.get_running_loop().create_task(self._scan_task())
 
     def _done(self, reply: Sequence[int | bool] | Exception) -> None:
         """The callback request's result (``start_read``'s ``done``)."""
-        end = time.perf_counter()
+        end = _clock()
         if self._closed:
             return
+        group = self._group
         try:
             self._poller._single_done(
-                self._plc, self._group, self._plan, reply, self._start, end, self._offset
+                self._plc, group, self._plan, reply, self._start, end, self._offset
             )
         except Exception:  # a bug must not end this group's scans
             _log.exception("%s: delivering a scan failed", self._plc.config.name)
-        self._next(end)
+        advance(self._stats, group, end)
+        self._ticker.call_at(group.next_due, self._fire_cb)
 
     async def _scan_task(self) -> None:
         """One scan the general way (connect, stale-input check, a queued request, several
@@ -147,9 +159,6 @@ class Scanner:
             _log.exception("%s: a scan failed", self._plc.config.name)
         self._task = None
         if not self._closed:
-            self._next(time.perf_counter())
-
-    def _next(self, end: float) -> None:
-        group = self._group
-        advance(self._plc.stats, group, end)
-        self._ticker.call_at(group.next_due, self._fire_cb)
+            group = self._group
+            advance(self._stats, group, _clock())
+            self._ticker.call_at(group.next_due, self._fire_cb)

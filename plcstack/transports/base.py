@@ -106,10 +106,12 @@ class Transport(ABC):
         """
         return True
 
-    def deliver(self, receiver: Receiver, deadline: float) -> None:
+    def deliver(self, receiver: Receiver, timeout: float) -> None:
         """Hand every chunk that arrives from now on to ``receiver`` as it arrives, until
-        :meth:`stop_delivery` or until ``deadline`` (loop time) passes or the connection ends
-        (then ``receiver.receive_failed``). Only called after :meth:`quiet` said ``True``:
+        :meth:`stop_delivery` or until ``timeout`` seconds have passed or the connection ends
+        (then ``receiver.receive_failed``). Relative, unlike ``read``'s deadline: the
+        transport knows its loop, and asking for the running loop costs a system call
+        (``getpid``) on every request. Only called after :meth:`quiet` said ``True``:
         a transport that never says so need not implement it.
 
         The callback-driven exchange (``RequestClient.start_exchange``): no future, no task
@@ -179,9 +181,8 @@ class QueueProtocolMixin:
         self._receiver: Receiver | None = None
         #: ``loop.create_future`` of the connection's loop (``future_factory``): asyncio makes
         #: protocols inside the loop they serve
-        self._new_future: Callable[[], asyncio.Future[Any]] = future_factory(
-            asyncio.get_running_loop()
-        )
+        self._loop = loop = asyncio.get_running_loop()
+        self._new_future: Callable[[], asyncio.Future[Any]] = future_factory(loop)
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._flow = transport
@@ -251,13 +252,14 @@ class QueueProtocolMixin:
     def _lost(self) -> ConnectionLost:
         return ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
 
-    def _deliver(self, receiver: Receiver, deadline: float) -> None:
+    def _deliver(self, receiver: Receiver, timeout: float) -> None:
         """Attach ``receiver`` (see :meth:`Transport.deliver`) with its deadline on the
         connection's one timer, as a wait in :meth:`_next_chunk` does."""
+        loop = self._loop
         self._receiver = receiver
-        self._deadline = deadline
+        self._deadline = deadline = loop.time() + timeout
         if not self._timer or self._timer_at > deadline:
-            self._arm(asyncio.get_running_loop(), deadline)
+            self._arm(loop, deadline)
 
     def _taken(self, n: int) -> None:
         """``n`` queued bytes were handed to the reader: resume reading once the queue is empty
@@ -338,11 +340,11 @@ class ProtocolTransport(Transport):
         except OSError:
             return True
 
-    def deliver(self, receiver: Receiver, deadline: float) -> None:
+    def deliver(self, receiver: Receiver, timeout: float) -> None:
         protocol = self._protocol
         if protocol is None:
             raise ConnectionLost(f"not connected to {self.peer}")
-        protocol._deliver(receiver, deadline)
+        protocol._deliver(receiver, timeout)
 
     def stop_delivery(self) -> None:
         protocol = self._protocol
