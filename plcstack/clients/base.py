@@ -342,6 +342,10 @@ class Client(AsyncResource):
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:
         """Read ``count`` points from ``address``: ints for words/bytes, bools for bits."""
 
+    #: whether :meth:`start_read` can say ``True`` at all: the poller runs the scans of a PLC
+    #: whose client cannot on the PLC's task instead (one task step per scan, no task per scan)
+    callback_reads: ClassVar[bool] = False
+
     def start_read(self, address: str, count: int, done: Callable[[Any], None]) -> bool:
         """Start ``read(address, count)`` without awaiting it, when that needs no waiting:
         ``True``, and ``done`` is later called once with what ``await read(...)`` returns or

@@ -262,6 +262,8 @@ class E71Client(E71CommandsMixin):
                 return self.exchange(request, what, is_write=False, finish=self._finish)
         return self._read(address, count)
 
+    callback_reads = True
+
     def start_read(self, address: str, count: int, done: Callable[[Any], None]) -> bool:
         """:meth:`read` as a callback exchange, for word reads already checked once (the
         request object from ``read``'s cache, the same checks of ``pc`` and the timer)."""

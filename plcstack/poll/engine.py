@@ -136,8 +136,9 @@ class Poller(AsyncResource):
     #: ``asyncio.sleep`` timer each; tests turn it off to compare both
     shared_timer = True
     #: scans run as callbacks where they can (:mod:`.scanner`: no task step per scan) when
-    #: there is no concurrency cap and the shared timer is on; tests turn this off to run
-    #: every scan in the PLC's task and compare
+    #: there is no concurrency cap, the shared timer is on and the PLC's client can start
+    #: reads (``Client.callback_reads``: E71); tests turn this off to run every scan in the
+    #: PLC's task and compare
     callback_scans = True
     #: a scan whose one tag is the whole reply of its one request (``ScanPlan.whole_reply_tag``)
     #: hands the reply out as the sample's value without ``_deliver``; tests turn this off to
@@ -228,7 +229,12 @@ class Poller(AsyncResource):
                 spread = min(group.interval, 1.0)
                 group.next_due = now + spread * (i / count if count > 1 else 0.0)
         for plc in self._plcs.values():
-            if self.callback_scans and self.shared_timer and self._semaphore is None:
+            if (
+                self.callback_scans
+                and self.shared_timer
+                and self._semaphore is None
+                and plc.client.callback_reads
+            ):
                 plc.scanners = [Scanner(self, plc, g, self._ticker) for g in plc.groups]
                 for scanner in plc.scanners:
                     scanner.start()
