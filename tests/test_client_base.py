@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from plcstack.clients.base import ClientCodec, RequestClient
+from plcstack.clients.exchange import ClientCodec, RequestClient
 from plcstack.codecs._common import NEED_DATA, NeedData, ReceiveBuffer
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout, RemoteProtocolError
 from plcstack.transports import Backoff, TcpTransport

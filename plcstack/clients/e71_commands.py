@@ -17,7 +17,7 @@ from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
-from plcstack.clients.base import RequestClient
+from plcstack.clients.exchange import RequestClient
 from plcstack.codecs.e71 import (
     Ack,
     Code,

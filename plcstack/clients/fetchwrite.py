@@ -30,7 +30,8 @@ import struct
 from collections.abc import Hashable, Sequence
 from typing import Any, Final, Literal, Self
 
-from plcstack.clients.base import Points, RequestClient, as_points
+from plcstack.clients.base import Points, as_points
+from plcstack.clients.exchange import RequestClient
 from plcstack.clients.options import COMMON, choice, flag, integer, seconds
 from plcstack.clients.s5access import S5Access
 from plcstack.codecs._common import NEED_DATA

@@ -41,9 +41,9 @@ from plcstack.clients.base import (
     DEFAULT_CONNECT_TIMEOUT,
     DEFAULT_TIMEOUT,
     Points,
-    RequestClient,
     as_points,
 )
+from plcstack.clients.exchange import RequestClient
 from plcstack.clients.options import COMMON, choice, flag
 from plcstack.clients.s5access import S5Access
 from plcstack.codecs.s5lan import (
