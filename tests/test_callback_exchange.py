@@ -451,6 +451,20 @@ async def test_refused_for_a_read_never_done_once(kind: Kind) -> None:
         await simulator.aclose()
 
 
+async def test_refused_when_the_header_fields_changed(sim: Any) -> None:
+    """The cached request carries ``pc`` and the monitoring timer: after a change the read must
+    be sent as changed, so the callback path (which reuses the cached request) says False."""
+    async with make_client(sim, "tcp") as client:
+        assert await client.read("D0", 4) == WORDS
+        client.monitoring_timer += 1
+        _refuses(client, sim)
+        client.monitoring_timer -= 1
+        client.pc = 0x00
+        _refuses(client, sim)
+        client.pc = 0xFF
+        assert await read_callback(client, sim.port) == ("ok", WORDS)
+
+
 # -- single flight, abandon ---------------------------------------------------------------------
 async def test_awaited_requests_queue_behind_a_callback_read(sim: Any) -> None:
     async with make_client(sim, "tcp") as client:
