@@ -514,7 +514,7 @@ def test_cli_smoke_writes_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFi
         # with the protocols merged, the smoke run really measures (nothing silently skipped)
         assert {"codec/e71+tcp/read64", "conn/e71+tcp/read64", "conn/e71+udp/write64"} <= ran
         assert {"fanout/e71+tcp/poll", "fanout/e71+tcp/clients"} <= ran
-        assert "fleet/e71+tcp/poll" in ran
+        assert {"fleet/e71+tcp/poll", "fleet/e71+tcp/poll (decoded floor)"} <= ran
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "case" in capsys.readouterr().out
 
@@ -526,6 +526,24 @@ def test_fleet_frames_are_the_spec_read_of_64_words() -> None:
     # 01H, PC FFH, timer, head D0, device code D, 64 points (E71 spec: batch read in words)
     assert bytes.fromhex("01ff0a00000000002044" + "4000") == fleet.REQUEST
     assert fleet.REPLY[:2] == b"\x81\x00" and len(fleet.REPLY) == 2 + 2 * WORDS
+
+
+@pytest.mark.parametrize("decode", [False, True])
+async def test_fleet_floor_hands_out_bytes_or_the_decoded_words(decode: bool) -> None:
+    from plcstack.bench.cases import WORDS, fleet, sample_words
+
+    conn = fleet._FloorConn()
+    conn.decode = decode
+    conn.waiter = asyncio.get_running_loop().create_future()
+    for part in (fleet.REPLY[:7], fleet.REPLY[7:]):  # in two chunks, as TCP may deliver it
+        buffer = conn.get_buffer(-1)
+        buffer[: len(part)] = part
+        conn.buffer_updated(len(part))
+    reply = await conn.waiter
+    if decode:
+        assert type(reply) is list and reply == sample_words() and len(reply) == WORDS
+    else:
+        assert reply == fleet.REPLY
 
 
 def test_fleet_row_takes_medians_and_the_ratio_of_cpu_per_request() -> None:

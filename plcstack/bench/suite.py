@@ -269,16 +269,19 @@ def run_fanout(plan: Plan, loop_name: str, say: Callable[[str], None]) -> list[R
 
 
 def run_fleet(plan: Plan, loop_name: str, say: Callable[[str], None]) -> list[Result]:
-    """Floor and poller children alternate ``fleet_repeats`` times per N (load on a shared
-    machine drifts; neighbouring pairs see the same); CPU per request and ratio are medians."""
+    """Floor, decoded floor and poller children alternate ``fleet_repeats`` times per N (load on
+    a shared machine drifts; neighbouring runs see the same); CPU per request and ratio are
+    medians. Two rows per N: the poller against the raw floor (bytes), and against the floor
+    that also turns each reply into its 64 ints (``decoded``, see the fleet case)."""
     rows: list[Result] = []
     name = "fleet/e71+tcp/poll"
+    kinds = ("floor", "decoded", "poll")
     for n in plan.fleet_ns:
-        pairs: list[tuple[dict[str, Any], dict[str, Any]]] = []
+        runs: list[list[dict[str, Any]]] = []
         failed = ""
         for i in range(plan.fleet_repeats):
             got = []
-            for kind in ("floor", "poll"):
+            for kind in kinds:
                 say(f"fleet/e71+tcp/{kind} N={n} at 10 Hz on {loop_name} ({i + 1})")
                 summary = fleet.spawn(
                     kind,
@@ -292,11 +295,14 @@ def run_fleet(plan: Plan, loop_name: str, say: Callable[[str], None]) -> list[Re
                 got.append(summary)
             if failed:
                 break
-            pairs.append((got[0], got[1]))
+            runs.append(got)
         if failed:
             rows.append(Result.skipped(name, loop_name, n, failed, group="fleet"))
             continue
-        rows.append(fleet_row(name, loop_name, n, pairs))
+        rows.append(fleet_row(name, loop_name, n, [(r[0], r[2]) for r in runs]))
+        rows.append(
+            fleet_row(f"{name} (decoded floor)", loop_name, n, [(r[1], r[2]) for r in runs])
+        )
     return rows
 
 

@@ -9,6 +9,10 @@ CPU and runs one of:
 * ``floor``   -- a raw-asyncio fleet of the same shape: per PLC one connection and one task that
   sends pre-built request bytes on a 10 Hz schedule (start times spread over the interval, missed
   ticks counted as overruns and skipped, as the poller does) and awaits the known reply length;
+* ``decoded`` -- the floor, but each reply turned into its 64 words as a list of Python ints with
+  one ``struct`` call: the least any word read must do for its caller (the stack hands out those
+  ints; the floor's bytes are not yet values). Allocating 64 ints per request in a heap of a
+  thousand connections is a cost of its own, so the stack is reported against both;
 * ``clients`` -- the same schedule, each task calling ``plcstack`` ``client.read("D0", 64)``;
 * ``poll``    -- :class:`plcstack.poll.Poller`, one 64-word tag per PLC, interval 0.1 s, and a
   consumer that takes the samples in batches as ``plcstack poll``'s north side does: each
@@ -37,6 +41,7 @@ import importlib
 import json
 import os
 import resource
+import struct
 import subprocess
 import sys
 import time
@@ -50,7 +55,7 @@ from plcstack.poll.config import DEFAULT_BATCH_WAIT
 
 __all__ = ["KINDS", "REPLY", "REQUEST", "spawn"]
 
-KINDS = ("floor", "clients", "poll")
+KINDS = ("floor", "decoded", "clients", "poll")
 #: 10 Hz
 INTERVAL = 0.1
 #: how long the poll kind's consumer lets a batch gather (``Poller.batches(wait=...)``): None,
@@ -60,6 +65,8 @@ _wait = os.environ.get("FLEET_CONSUMER_WAIT")
 CONSUMER_WAIT = float(_wait) if _wait else None
 REQUEST = frames.e71_read_words("D", 0, WORDS)
 REPLY = frames.e71_reply_words(sample_words())
+#: the reply's words, little-endian after the 2-byte header (the ``decoded`` kind)
+_WORDS = struct.Struct(f"<{WORDS}H")
 
 
 # -- the PLCs' side -------------------------------------------------------------------------------
@@ -161,11 +168,14 @@ class _FloorConn(asyncio.BufferedProtocol):
     the ratio.
     """
 
+    #: hand out the reply's words as ints (``decoded``) instead of its bytes (``floor``)
+    decode = False
+
     def __init__(self) -> None:
         self.buffer = bytearray(4096)
         self.view = memoryview(self.buffer)
         self.have = 0
-        self.waiter: asyncio.Future[bytes] | None = None
+        self.waiter: asyncio.Future[bytes | list[int]] | None = None
         self.transport: asyncio.Transport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -177,7 +187,11 @@ class _FloorConn(asyncio.BufferedProtocol):
     def buffer_updated(self, nbytes: int) -> None:
         self.have += nbytes
         if self.have >= len(REPLY) and self.waiter is not None and not self.waiter.done():
-            reply = bytes(self.view[: len(REPLY)])
+            reply: bytes | list[int] = (
+                list(_WORDS.unpack_from(self.view, 2))
+                if self.decode
+                else bytes(self.view[: len(REPLY)])
+            )
             self.have = 0
             self.waiter.set_result(reply)
 
@@ -213,15 +227,18 @@ async def _schedule(
             next_due += missed * INTERVAL
 
 
-async def _floor_fleet(ports: list[int], counters: _Counters) -> list[asyncio.Task[None]]:
+async def _floor_fleet(
+    ports: list[int], counters: _Counters, decode: bool = False
+) -> list[asyncio.Task[None]]:
     loop = asyncio.get_running_loop()
     now = time.perf_counter()
     tasks = []
     for i, port in enumerate(ports):
         _, conn = await loop.create_connection(_FloorConn, "127.0.0.1", port)
+        conn.decode = decode
 
-        def make(conn: _FloorConn = conn) -> Callable[[], asyncio.Future[bytes]]:
-            def request() -> asyncio.Future[bytes]:
+        def make(conn: _FloorConn = conn) -> Callable[[], asyncio.Future[bytes | list[int]]]:
+            def request() -> asyncio.Future[bytes | list[int]]:
                 conn.waiter = waiter = loop.create_future()
                 assert conn.transport is not None
                 conn.transport.write(REQUEST)
@@ -267,8 +284,8 @@ async def _measure(
     consumer: asyncio.Task[None] | None = None
     bad: list[str] = []
     try:
-        if kind == "floor":
-            tasks = await _floor_fleet(ports, counters)
+        if kind in ("floor", "decoded"):
+            tasks = await _floor_fleet(ports, counters, decode=kind == "decoded")
         elif kind == "clients":
             tasks, closers = await _client_fleet(ports, counters)
         else:
