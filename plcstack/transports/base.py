@@ -252,15 +252,6 @@ class QueueProtocolMixin:
     def _lost(self) -> ConnectionLost:
         return ConnectionLost(f"connection to {self._peer} lost: {self._closed_exc}")
 
-    def _deliver(self, receiver: Receiver, timeout: float) -> None:
-        """Attach ``receiver`` (see :meth:`Transport.deliver`) with its deadline on the
-        connection's one timer, as a wait in :meth:`_next_chunk` does."""
-        loop = self._loop
-        self._receiver = receiver
-        self._deadline = deadline = loop.time() + timeout
-        if not self._timer or self._timer_at > deadline:
-            self._arm(loop, deadline)
-
     def _taken(self, n: int) -> None:
         """``n`` queued bytes were handed to the reader: resume reading once the queue is empty
         (not at the first byte below the limit, which would pause again at once)."""
@@ -318,11 +309,23 @@ class ProtocolTransport(Transport):
         self._watch: select.poll | None = None
 
     def quiet(self) -> bool:
-        """Open, no chunk queued, and the kernel holds nothing for the socket (one ``poll``)."""
-        protocol, transport = self._protocol, self._transport
-        if protocol is None or transport is None or protocol._chunks or transport.is_closing():
+        """Open, no chunk queued, and the kernel holds nothing for the socket: the ``poll`` of
+        :meth:`input_waiting`, asked here directly (once per polled request, and this method
+        already holds what ``input_waiting`` would look up again)."""
+        protocol, transport, watch = self._protocol, self._transport, self._watch
+        if (
+            protocol is None
+            or transport is None
+            or watch is None
+            or protocol._chunks
+            or protocol._closed_exc is not None
+            or transport.is_closing()
+        ):
             return False
-        return not self.input_waiting()  # also "no" when closed or without a watched socket
+        try:
+            return not watch.poll(0)
+        except OSError:
+            return False
 
     def input_waiting(self) -> bool:
         """Ask the kernel (one ``poll`` with timeout 0) whether the socket has anything the loop
@@ -344,7 +347,13 @@ class ProtocolTransport(Transport):
         protocol = self._protocol
         if protocol is None:
             raise ConnectionLost(f"not connected to {self.peer}")
-        protocol._deliver(receiver, timeout)
+        # the receiver, with its deadline on the connection's one timer (as a wait in
+        # ``_next_chunk`` arms it)
+        loop = protocol._loop
+        protocol._receiver = receiver
+        protocol._deadline = deadline = loop.time() + timeout
+        if not protocol._timer or protocol._timer_at > deadline:
+            protocol._arm(loop, deadline)
 
     def stop_delivery(self) -> None:
         protocol = self._protocol
