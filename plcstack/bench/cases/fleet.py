@@ -51,6 +51,7 @@ from typing import Any, cast
 from plcstack.bench import frames
 from plcstack.bench.cases import WORDS, sample_words
 from plcstack.bench.cases.fanout import PACKAGE_PARENT, raise_fd_limit
+from plcstack.bench.opcodes import OpcodeCounter
 from plcstack.poll.config import DEFAULT_BATCH_WAIT
 
 __all__ = ["KINDS", "REPLY", "REQUEST", "spawn"]
@@ -270,7 +271,12 @@ async def _client_fleet(ports: list[int], counters: _Counters) -> tuple[list[Any
 
 
 async def _measure(
-    kind: str, n: int, duration: float, warmup: float, profile: str | None = None
+    kind: str,
+    n: int,
+    duration: float,
+    warmup: float,
+    profile: str | None = None,
+    opcodes: str | None = None,
 ) -> dict[str, Any]:
     cpus = _cpus()
     responder_cpu = cpus[-1] if len(cpus) >= 2 else None
@@ -328,8 +334,16 @@ async def _measure(
         u0 = resource.getrusage(resource.RUSAGE_SELF)
         p0 = passes[0]
         r0, o0, c0, t0 = requests(), overruns(), time.process_time(), time.perf_counter()
+        # bytecodes of exactly the window, not of the counting around it (bench/opcodes.py)
+        counter = OpcodeCounter() if opcodes else None
+        if counter is not None:
+            counter.enable()
         await asyncio.sleep(duration)
+        if counter is not None:
+            counter.disable()
         r1, o1, c1, t1 = requests(), overruns(), time.process_time(), time.perf_counter()
+        if counter is not None:
+            counter.dump(cast(str, opcodes), r1 - r0)
         u1 = resource.getrusage(resource.RUSAGE_SELF)
         p1 = passes[0]
         if profiler is not None:
@@ -480,14 +494,21 @@ def _gc_callback(phase: str, info: dict[str, Any]) -> None:
 
 
 def run_child(
-    kind: str, n: int, *, loop: str, duration: float, warmup: float, profile: str | None = None
+    kind: str,
+    n: int,
+    *,
+    loop: str,
+    duration: float,
+    warmup: float,
+    profile: str | None = None,
+    opcodes: str | None = None,
 ) -> dict[str, Any]:
     factory: Callable[[], asyncio.AbstractEventLoop] = asyncio.new_event_loop
     if loop == "uvloop":
         factory = importlib.import_module("uvloop").new_event_loop
     gc.callbacks.append(_gc_callback)
     with asyncio.Runner(loop_factory=factory) as runner:
-        return runner.run(_measure(kind, n, duration, warmup, profile))
+        return runner.run(_measure(kind, n, duration, warmup, profile, opcodes))
 
 
 # -- parent side ----------------------------------------------------------------------------------
@@ -520,11 +541,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warmup", type=float, default=0.5)
     parser.add_argument("--cpu", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--profile", metavar="FILE", help="cProfile the measured window into FILE")
+    parser.add_argument(
+        "--opcodes",
+        metavar="FILE",
+        help="count the window's bytecodes per function into FILE (python -m "
+        "plcstack.bench.opcodes FILE... compares them per request; use a small N)",
+    )
     args = parser.parse_args(argv)
     if args.kind == "serve":
         return _serve_main(args.n, args.cpu)
     summary = run_child(args.kind, args.n, loop=args.loop, duration=args.duration,
-                        warmup=args.warmup, profile=args.profile)  # fmt: skip
+                        warmup=args.warmup, profile=args.profile,
+                        opcodes=args.opcodes)  # fmt: skip
     print(json.dumps(summary))
     return 0
 
