@@ -6,7 +6,8 @@ requests did (issue 16); the pipeline therefore asks the poller for gathered bat
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+import asyncio
+from collections.abc import AsyncIterator, Iterable
 from typing import Any
 
 from plcstack.north.config import NorthConfig
@@ -42,3 +43,27 @@ async def test_pipeline_gathers_batches_for_batch_wait() -> None:
         await north.run(emit=seen.append)
         assert poller.waits == [expected]
         assert [s.value for batch in seen for s in batch] == [1]
+
+
+async def test_opcua_server_gathers_batches_for_batch_wait() -> None:
+    from plcstack.north.opcua import OpcUaServer
+    from plcstack.poll.engine import Poller
+
+    poller = Poller(_config(batch_wait=0.25))  # never started: only its batches are asked for
+    recorder = _Poller(poller.config)
+    poller.batches = recorder.batches  # type: ignore[method-assign]
+    server = OpcUaServer(poller)
+    sent: list[list[Sample]] = []
+    observed: list[list[Sample]] = []
+
+    async def send(batch: Iterable[Sample]) -> None:
+        sent.append(list(batch))
+
+    server.send = send  # type: ignore[method-assign,assignment]
+    try:
+        async with asyncio.timeout(5):  # a consumer iterating the unstarted poller would wait
+            await server.run(observe=observed.append)
+    finally:
+        await poller.aclose()
+    assert recorder.waits == [0.25]
+    assert [s.value for batch in sent for s in batch] == [1] and observed == sent

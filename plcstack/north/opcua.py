@@ -784,9 +784,9 @@ class OpcUaServer:
         serve opcua`` with ``[metrics]``).
         """
         poller = self.poller
-        async for sample in poller:
-            batch = [sample]
-            batch.extend(poller.drain())
+        # gathered for poll.batch_wait, as the north pipeline takes them: one wake-up per
+        # event-loop pass would cost more than the requests with many PLCs (issue 16)
+        async for batch in poller.batches(wait=poller.config.batch_wait):
             if observe is not None:
                 observe(batch)
             await self.send(batch)
