@@ -76,7 +76,7 @@ class Fleet:
     def __init__(self) -> None:
         self.sims: dict[str, Any] = {}
 
-    async def start(self) -> PollConfig:
+    async def start(self, concurrency: int | None = None) -> PollConfig:
         self.sims["steady1"] = await sim_e71.start(_memory())
         self.sims["steady2"] = await sim_e71.start(_memory(), transport="udp")
         self.sims["multi"] = await sim_e71.start(_memory())
@@ -105,7 +105,7 @@ class Fleet:
                 (tag("a", "D1022", group="fast"), tag("b", "D1025", group="fast")),
             ),
         )
-        return PollConfig(plcs, GROUPS, concurrency=None, queue=100_000)
+        return PollConfig(plcs, GROUPS, concurrency=concurrency, queue=100_000)
 
     def shrink_isolate(self) -> None:
         """The isolate PLC now has only D0-D1023 (CPU group I): the merged read D1022 x4 is
@@ -172,9 +172,11 @@ class Counting:
 ENOUGH = 6
 
 
-async def _run(callback: bool) -> tuple[dict[tuple[str, str], Any], dict[str, Any], Counting]:
+async def _run(
+    callback: bool, concurrency: int | None = None
+) -> tuple[dict[tuple[str, str], Any], dict[str, Any], Counting]:
     fleet = Fleet()
-    config = await fleet.start()
+    config = await fleet.start(concurrency)
     poller = Poller(config)
     poller.callback_scans = callback
     counting = Counting(poller)
@@ -248,9 +250,12 @@ def _counters(poller: Poller, name: str, samples: list[Sample]) -> dict[str, Any
     }
 
 
-async def test_callback_scans_give_what_the_plc_tasks_give() -> None:
-    tasks_tags, tasks_counters, tasks_count = await _run(callback=False)
-    cb_tags, cb_counters, cb_count = await _run(callback=True)
+@pytest.mark.parametrize("concurrency", [None, 2], ids=["no-cap", "cap-2"])
+async def test_callback_scans_give_what_the_plc_tasks_give(concurrency: int | None) -> None:
+    """Also under a concurrency cap smaller than the fleet (issue 16: a cap used to turn the
+    callback scans off): scans that find no slot free wait on the task path."""
+    tasks_tags, tasks_counters, tasks_count = await _run(False, concurrency)
+    cb_tags, cb_counters, cb_count = await _run(True, concurrency)
     assert cb_tags == tasks_tags
     assert cb_counters == tasks_counters
     # not vacuous: the callback path ran the plain scans, the task path the rest

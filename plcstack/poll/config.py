@@ -3,7 +3,7 @@
 ```toml
 [poll]
 concurrency = 32        # optional cap on requests in flight across all PLCs (default: none;
-                        # with a cap every PLC scans on its task, not by callbacks: more CPU)
+                        # a scan that finds every slot taken waits its turn in a task)
 queue = 10000           # samples held for a slow consumer; beyond that the oldest are dropped
 batch_wait = 0.01       # seconds a batch for the north side gathers after its first sample
 max_gap = 8             # unused points one merged request may carry between two tags

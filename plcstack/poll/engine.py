@@ -16,12 +16,14 @@ How it behaves, and why:
   back, and the sample is queued in the same loop pass, with no task step and no future per
   request. Anything else (connecting, a stale-input check, a request queued behind a write, a scan
   of several requests) runs that scan through the same code the PLC tasks use, in a task of its
-  own. Other clients, and every PLC when ``poll.concurrency`` is set, scan in one task per PLC.
-* An optional semaphore bounds how many requests are in flight across all PLCs
-  (``poll.concurrency``; no cap by default, since a cap lets enough hung PLCs, each holding a slot
-  for a whole deadline, delay the healthy ones). It is held only around one request, never
-  while a task sleeps, so a dead PLC costs a slot for at most one connect attempt, and while
-  its client backs off, its requests fail at once.
+  own. Other clients scan in one task per PLC.
+* An optional cap bounds how many requests are in flight across all PLCs (``poll.concurrency``;
+  no cap by default, since a cap lets enough hung PLCs, each holding a slot for a whole
+  deadline, delay the healthy ones). A slot (:class:`.slots.Slots`, FIFO) is held only around
+  one request, never while a scan waits for its time, so a dead PLC costs a slot for at most one
+  connect attempt, and while its client backs off, its requests fail at once. A callback scan
+  takes a free slot without waiting; when none is free, that scan runs on the task path, which
+  queues for a slot in arrival order. So a cap keeps the callback scans.
 * When a request fails on the connection (timeout, connection lost, connect failed), the rest of
   that scan is not attempted: those tags get the same error, and a slow PLC costs one deadline
   per scan instead of one per request.
@@ -64,6 +66,7 @@ from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, describe, encode_tag
 from plcstack.poll.samples import Quality, Sample, make_sample
 from plcstack.poll.scanner import Scanner, advance
+from plcstack.poll.slots import Slots
 from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
 from plcstack.poll.ticker import Ticker
 from plcstack.resource import AsyncResource
@@ -142,8 +145,8 @@ class Poller(AsyncResource):
     #: ``asyncio.sleep`` timer each; tests turn it off to compare both
     shared_timer = True
     #: scans run as callbacks where they can (:mod:`.scanner`: no task step per scan) when
-    #: there is no concurrency cap, the shared timer is on and the PLC's client can start
-    #: reads (``Client.callback_reads``: E71); tests turn this off to run every scan in the
+    #: the shared timer is on and the PLC's client can start reads (``Client.callback_reads``:
+    #: E71), with or without a concurrency cap; tests turn this off to run every scan in the
     #: PLC's task and compare
     callback_scans = True
     #: a scan whose one tag is the whole reply of its one request (``ScanPlan.whole_reply_tag``)
@@ -157,8 +160,9 @@ class Poller(AsyncResource):
         self.dropped = 0
         self._queue: collections.deque[Sample] = collections.deque()
         self._wakeup = asyncio.Event()
-        self._semaphore: asyncio.Semaphore | None = (
-            asyncio.Semaphore(config.concurrency) if config.concurrency is not None else None
+        #: the concurrency cap's slots (``poll.concurrency``), shared by both kinds of scan
+        self._slots: Slots | None = (
+            Slots(config.concurrency) if config.concurrency is not None else None
         )
         self._resolution = 0.0  # the running loop's timer resolution, set by start()
         self._ticker: Ticker | None = None  # set by start()
@@ -235,12 +239,7 @@ class Poller(AsyncResource):
                 spread = min(group.interval, 1.0)
                 group.next_due = now + spread * (i / count if count > 1 else 0.0)
         for plc in self._plcs.values():
-            if (
-                self.callback_scans
-                and self.shared_timer
-                and self._semaphore is None
-                and plc.client.callback_reads
-            ):
+            if self.callback_scans and self.shared_timer and plc.client.callback_reads:
                 plc.scanners = [Scanner(self, plc, g, self._ticker) for g in plc.groups]
                 for scanner in plc.scanners:
                     scanner.start()
@@ -469,9 +468,9 @@ class Poller(AsyncResource):
             return await self._scan(plc, group)
         request = plan.requests[0]
         plc.stats.scans += 1
-        semaphore = self._semaphore
-        if semaphore is not None:
-            await semaphore.acquire()
+        slots = self._slots
+        if slots is not None:
+            await slots.acquire()
         clock = time.perf_counter
         wall = time.time()
         start = clock()
@@ -482,8 +481,8 @@ class Poller(AsyncResource):
         except Exception as exc:
             reply = exc
         finally:
-            if semaphore is not None:
-                semaphore.release()
+            if slots is not None:
+                slots.release()
         return self._single_done(plc, group, plan, reply, start, clock(), wall - start)
 
     def _single_done(
@@ -569,7 +568,7 @@ class Poller(AsyncResource):
         plan = group.plan
         stats = plc.stats
         client = plc.client
-        semaphore = self._semaphore
+        slots = self._slots
         clock = time.perf_counter
         count = len(plan.requests)
         replies: list[Sequence[int | bool] | PlcError] = []
@@ -587,8 +586,8 @@ class Poller(AsyncResource):
                 sent.extend([now] * (count - index))
                 received.extend([now] * (count - index))
                 break
-            if semaphore is not None:
-                await semaphore.acquire()
+            if slots is not None:
+                await slots.acquire()
             start = clock()
             try:
                 points = await client.read(request.address, request.count)
@@ -604,8 +603,8 @@ class Poller(AsyncResource):
                 received.append(end + offset)
                 continue
             finally:
-                if semaphore is not None:
-                    semaphore.release()
+                if slots is not None:
+                    slots.release()
             replies.append(error)
             sent.append(start + offset)
             received.append(clock() + offset)

@@ -15,6 +15,12 @@ several requests) runs that scan through the task path's own code (``Poller._sca
 task of its own, and the next scan is tried the quick way again. Both paths deliver through
 ``Poller._single_done`` and schedule through :func:`advance`: tests/test_scanner.py compares
 them sample for sample.
+
+Under a concurrency cap (``poll.concurrency``) a callback scan takes one of the poller's slots
+with :meth:`.slots.Slots.try_acquire` before it starts its request and gives it back when the
+answer (or the failure) arrives. When no slot is free, the scan runs on the task path, which
+awaits a slot behind the scans already waiting: ``try_acquire`` never succeeds while anyone
+waits, so the callback scans cannot overtake that queue, and the cap holds across both paths.
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Protocol
 
+from plcstack.poll.slots import Slots
 from plcstack.poll.stats import PlcStats
 from plcstack.poll.ticker import Ticker
 
@@ -63,7 +70,9 @@ class Scanner:
     ``start`` puts the first scan on the ticker; from then on every scan puts the next one there
     when it has ended, so a group never has two scans at once. ``close`` stops it: a scan
     waiting on the ticker never runs, a task-path scan in progress is cancelled (the caller
-    awaits what ``close`` returns), and the poller abandons a callback request in flight.
+    awaits what ``close`` returns), and the poller abandons a callback request in flight;
+    that request's slot of the concurrency cap is given back at once, since its ``done`` will
+    never come.
     """
 
     __slots__ = (
@@ -72,11 +81,13 @@ class Scanner:
         "_done_cb",
         "_fire_cb",
         "_group",
+        "_holding",
         "_offset",
         "_plan",
         "_plc",
         "_poller",
         "_single",
+        "_slots",
         "_start",
         "_stats",
         "_task",
@@ -97,6 +108,11 @@ class Scanner:
         self._offset = 0.0
         self._task: asyncio.Task[None] | None = None
         self._closed = False
+        #: the concurrency cap's slots, and whether this scanner's callback request holds one
+        #: (so that ``done``, a refusal, a raising ``start_read`` and ``close`` give it back
+        #: exactly once between them)
+        self._slots = poller._slots
+        self._holding = False
         # bound once: a bound method made per scan would be one more object per request
         self._fire_cb = self._fire
         self._done_cb = self._done
@@ -107,6 +123,7 @@ class Scanner:
     def close(self) -> asyncio.Task[None] | None:
         """Stop scanning; returns the task-path scan in progress (cancelled), if any."""
         self._closed = True
+        self._give_back()
         task = self._task
         if task is not None:
             task.cancel()
@@ -118,7 +135,8 @@ class Scanner:
             return
         plan = self._group.plan
         requests = plan.requests
-        if len(requests) == 1 and self._single:
+        slots = self._slots
+        if len(requests) == 1 and self._single and (slots is None or self._take_slot(slots)):
             request = requests[0]
             wall = _wall_clock()
             self._start = start = _clock()
@@ -133,11 +151,17 @@ class Scanner:
             if started:
                 self._stats.scans += 1
                 return
+            self._give_back()  # nothing was sent: the task path awaits a slot of its own
         self._task = asyncio.get_running_loop().create_task(self._scan_task())
 
     def _done(self, reply: Sequence[int | bool] | Exception) -> None:
         """The callback request's result (``start_read``'s ``done``)."""
         end = _clock()
+        # The request is over: its slot goes back before the sample is delivered, as on the
+        # task path (released in _scan_group before _single_done), so a scan waiting for a
+        # slot is not held up by delivery, and a delivery that fails cannot keep the slot.
+        if self._holding:  # tested here: no call per request without a cap
+            self._give_back()
         if self._closed:
             return
         group = self._group
@@ -149,6 +173,20 @@ class Scanner:
             _log.exception("%s: delivering a scan failed", self._plc.config.name)
         advance(self._stats, group, end)
         self._ticker.call_at(group.next_due, self._fire_cb)
+
+    def _take_slot(self, slots: Slots) -> bool:
+        """Take a slot for a callback request if one is free without waiting."""
+        if slots.try_acquire():
+            self._holding = True
+            return True
+        return False
+
+    def _give_back(self) -> None:
+        """Give the callback request's slot back, if it holds one (at most once)."""
+        slots = self._slots
+        if self._holding and slots is not None:
+            self._holding = False
+            slots.release()
 
     async def _scan_task(self) -> None:
         """One scan the general way (connect, stale-input check, a queued request, several
