@@ -44,6 +44,10 @@ class Meter:
         self.now = 0
         self.most = 0
         self.answered = 0
+        #: which PLC's requests to hold (unanswered until ``gate`` is set), asked as each arrives
+        self.hold: Callable[[str], bool] = lambda name: False
+        self.held = 0
+        self.gate = asyncio.Event()
 
 
 class SlowE71:
@@ -51,7 +55,8 @@ class SlowE71:
     request counts as in flight from its arrival until just before its answer is written, so
     the client cannot have sent its next one while this one still counts."""
 
-    def __init__(self, meter: Meter, delay: float) -> None:
+    def __init__(self, name: str, meter: Meter, delay: float) -> None:
+        self.name = name
         self.meter = meter
         self.delay = delay
         self.memory = MelsecMemory()
@@ -74,7 +79,11 @@ class SlowE71:
                     meter.now += 1
                     meter.most = max(meter.most, meter.now)
                     try:
-                        await asyncio.sleep(self.delay)
+                        if meter.hold(self.name):
+                            meter.held += 1
+                            await meter.gate.wait()
+                        else:
+                            await asyncio.sleep(self.delay)
                     finally:
                         meter.now -= 1
                     meter.answered += 1
@@ -85,6 +94,7 @@ class SlowE71:
             writer.close()
 
     async def aclose(self) -> None:
+        self.meter.gate.set()
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(asyncio.TimeoutError):
@@ -97,7 +107,7 @@ async def _fleet(
     """PLC ``i`` answers after ``(i + 1) * delay``: with 30 ms scans and ``delay`` = 2 ms the
     six ask for 1.4 slots on average, so the cap is sometimes full and sometimes not, and both
     the callback path and the queue for a slot are taken."""
-    peers = [await SlowE71(meter, (i + 1) * delay).start() for i in range(plcs)]
+    peers = [await SlowE71(f"p{i}", meter, (i + 1) * delay).start() for i in range(plcs)]
     configs = tuple(
         PlcConfig(
             f"p{i}",
@@ -123,6 +133,11 @@ def _free(slots: Slots) -> int:
     for _ in range(taken):
         slots.release()
     return taken
+
+
+def _holding_of(poller: Poller, name: str) -> bool:
+    """Whether the PLC's callback request holds a slot now (it has one scan group)."""
+    return poller._plc(name).scanners[0]._holding
 
 
 def _holding(poller: Poller) -> int:
@@ -178,13 +193,14 @@ async def test_aclose_with_requests_in_flight_frees_every_slot(
                 lambda: sum(n >= 2 for n in counting.started.values()) >= PLCS // 2,
                 "callback scans ran under the cap",
             )
-            for peer in peers:
-                peer.delay = 5.0  # from now on no answer comes before aclose
-            # both slots held, at least one by a callback request, and scans queued behind them
+            # From the next callback request on, no answer comes before aclose: that one holds a
+            # slot, the next request of any path the other; the other PLCs' scans then queue.
+            meter.hold = lambda name: meter.held > 0 or _holding_of(poller, name)
             await eventually(
-                lambda: meter.now == CAP and _holding(poller) >= 1 and slots._waiters,
-                "callback requests in flight with scans waiting for a slot",
+                lambda: meter.held == CAP and slots._waiters,
+                "requests in flight on every slot, with scans waiting for one",
             )
+            assert meter.now == CAP and _holding(poller) >= 1
             assert slots.locked() and not slots.try_acquire()
             await poller.aclose()
             assert _free(slots) == CAP  # all given back: callback, task path and waiters
