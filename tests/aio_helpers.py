@@ -5,8 +5,9 @@ from __future__ import annotations
 import asyncio
 import functools
 from collections.abc import Awaitable, Callable
+from typing import Any
 
-__all__ = ["Handler", "ends_quietly", "eventually"]
+__all__ = ["Handler", "ends_quietly", "eventually", "poll_tasks_left"]
 
 Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
 
@@ -44,3 +45,13 @@ async def eventually(condition: Callable[[], object], what: str, timeout: float 
         if loop.time() > deadline:
             raise AssertionError(f"not within {timeout:g} s: {what}")
         await asyncio.sleep(0.01)
+
+
+def poll_tasks_left() -> list[asyncio.Task[Any]]:
+    """Tasks of the poller (its PLC tasks and task-path scans) still alive, besides the
+    caller's: after ``Poller.aclose`` there must be none."""
+    return [
+        t
+        for t in asyncio.all_tasks()
+        if t is not asyncio.current_task() and "poll" in repr(t.get_coro())
+    ]

@@ -19,18 +19,19 @@ from typing import Any
 
 import pytest
 
+from plcstack.clients.flight import Slots
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.e71 import Code, E71ServerConnection
 from plcstack.codecs.e71_commands import DECODERS
 from plcstack.poll.config import PlcConfig, PollConfig
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample
-from plcstack.poll.slots import Slots
 from plcstack.sim import e71 as sim_e71
 from plcstack.sim.melsec_memory import MelsecMemory
-from tests.aio_helpers import ends_quietly, eventually
+from tests.aio_helpers import ends_quietly, eventually, poll_tasks_left
 from tests.test_poll_engine import tag
 from tests.test_scanner import Counting
+from tests.test_slots import _free
 
 WORDS = [0x1234, 0, 0xFFFF, 7]
 CAP = 2
@@ -126,15 +127,6 @@ def _slots(poller: Poller) -> Slots:
     return slots
 
 
-def _free(slots: Slots) -> int:
-    taken = 0
-    while slots.try_acquire():
-        taken += 1
-    for _ in range(taken):
-        slots.release()
-    return taken
-
-
 def _holding_of(poller: Poller, name: str) -> bool:
     """Whether the PLC's callback request holds a slot now (it has one scan group)."""
     return poller._plc(name).scanners[0]._holding
@@ -205,12 +197,7 @@ async def test_aclose_with_requests_in_flight_frees_every_slot(
             await poller.aclose()
             assert _free(slots) == CAP  # all given back: callback, task path and waiters
             assert _holding(poller) == 0 and not slots._waiters
-            mine = [
-                t
-                for t in asyncio.all_tasks()
-                if t is not asyncio.current_task() and "poll" in repr(t.get_coro())
-            ]
-            assert mine == []
+            assert poll_tasks_left() == []
         assert [r for r in caplog.records if r.levelno >= logging.ERROR] == []
     finally:
         await poller.aclose()

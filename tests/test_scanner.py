@@ -31,7 +31,7 @@ from plcstack.poll.samples import Quality, Sample
 from plcstack.poll.ticker import Ticker
 from plcstack.sim import e71 as sim_e71
 from plcstack.sim.melsec_memory import MelsecMemory
-from tests.aio_helpers import eventually
+from tests.aio_helpers import eventually, poll_tasks_left
 from tests.test_poll_engine import tag
 
 GROUPS = {"fast": 0.01, "slow": 0.03}
@@ -316,12 +316,7 @@ async def test_aclose_during_a_callback_request(caplog: pytest.LogCaptureFixture
             assert poller.stats["p"].samples == samples
             left = [s async for s in poller]
             assert len(left) <= samples
-            mine = [
-                t
-                for t in asyncio.all_tasks()
-                if t is not asyncio.current_task() and "poll" in repr(t.get_coro())
-            ]
-            assert mine == []
+            assert poll_tasks_left() == []
         assert [r for r in caplog.records if r.levelno >= logging.ERROR] == []
     finally:
         await poller.aclose()

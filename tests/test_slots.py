@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from plcstack.poll.slots import Slots
+from plcstack.clients.flight import Slots
 
 
 def _free(slots: Slots) -> int:

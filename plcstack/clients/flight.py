@@ -1,17 +1,24 @@
-"""The single-flight lock of a client: one request on a connection at a time, in arrival order.
+"""Taking turns on connections and requests: FIFO, cancel-safe, free turns taken without waiting.
 
-``asyncio.Lock`` does the job, but ``async with lock`` costs three coroutine objects
-(``__aenter__``, ``acquire``, ``__aexit__``) and their calls on every request, even when nobody
-else waits, which is almost always the case on a polling connection. :class:`SingleFlight`
-has the same contract with a synchronous fast path: :meth:`try_acquire` takes a free lock
-without creating anything; only a request that has to queue behind another awaits
-:meth:`acquire`. ``async with`` still works, for the paths where a few hundred nanoseconds do
-not matter (connect, writes of the rarer commands).
+:class:`Slots` is a FIFO counting semaphore with a synchronous :meth:`Slots.try_acquire`;
+:class:`SingleFlight`, the clients' one-request-per-connection lock, is ``Slots(1)``.
 
-The hand-over is a baton pass: :meth:`release` with waiters does not free the lock but gives it
-to the first waiter that is still waiting, so a request arriving meanwhile cannot overtake the
-queue. A waiter cancelled after it was given the baton passes it on (it never ran, so nothing
-was sent on its behalf).
+``asyncio.Lock`` and ``asyncio.Semaphore`` keep the same contracts, but can only be taken by
+awaiting them: ``async with lock`` costs three coroutine objects (``__aenter__``, ``acquire``,
+``__aexit__``) on every request, even when nobody else waits, which is almost always the case
+on a polling connection; and the poller's callback scans (:mod:`plcstack.poll.scanner`) start
+their request in a timer callback, where nothing can be awaited at all, so with
+``asyncio.Semaphore`` a ``poll.concurrency`` cap put every PLC back on the slower task path.
+Here a free turn is taken by :meth:`Slots.try_acquire` without creating anything; only a taker
+that has to queue awaits :meth:`Slots.acquire`. ``async with`` still works on a SingleFlight,
+for the paths where a few hundred nanoseconds do not matter (connect, the rarer commands).
+
+The hand-over is a baton pass: :meth:`Slots.release` with waiters does not free the slot but
+gives it to the first waiter that is still waiting. Hence the invariant that makes
+:meth:`Slots.try_acquire` fair: a slot is free only while nobody waits, so nobody arriving
+meanwhile (a request, a callback scan) can overtake the queue. A waiter cancelled after it was
+handed the slot passes it on (it never ran, so nothing was sent on its behalf); one cancelled
+before leaves the queue.
 """
 
 from __future__ import annotations
@@ -21,61 +28,83 @@ import collections
 import contextlib
 from types import TracebackType
 
-__all__ = ["SingleFlight"]
+__all__ = ["SingleFlight", "Slots"]
 
 
-class SingleFlight:
-    """A FIFO mutex for one connection; the same contract as :class:`asyncio.Lock`."""
+class Slots:
+    """``size`` slots taken in FIFO order; the contract of :class:`asyncio.Semaphore` (bounded:
+    releasing more than was taken is an error) plus a synchronous :meth:`try_acquire`."""
 
-    __slots__ = ("_busy", "_waiters")
+    __slots__ = ("_free", "_size", "_waiters")
 
-    def __init__(self) -> None:
-        self._busy = False
-        self._waiters: collections.deque[asyncio.Future[None]] | None = None
+    def __init__(self, size: int) -> None:
+        if size < 1:
+            raise ValueError(f"Slots needs at least one slot, not {size!r}")
+        self._size = size
+        #: free slots; never above 0 while ``_waiters`` holds anyone (see the module docstring)
+        self._free = size
+        self._waiters: collections.deque[asyncio.Future[None]] = collections.deque()
+
+    @property
+    def size(self) -> int:
+        return self._size
 
     def locked(self) -> bool:
-        return self._busy
+        """Whether a slot cannot be taken without waiting."""
+        return self._free == 0
 
     def try_acquire(self) -> bool:
-        """Take the lock if it is free and nobody queues for it; never waits."""
-        if self._busy:
+        """Take a free slot; never waits. Refused while anyone waits: slots are free only when
+        nobody does (a release with waiters hands its slot over instead of freeing it)."""
+        if self._free == 0:
             return False
-        self._busy = True
+        self._free -= 1
         return True
 
     async def acquire(self) -> bool:
-        """Take the lock, waiting behind every earlier waiter."""
-        if not self._busy:
-            self._busy = True
+        """Take a slot, waiting behind every earlier waiter."""
+        if self._free:
+            self._free -= 1
             return True
-        waiters = self._waiters
-        if waiters is None:
-            waiters = self._waiters = collections.deque()
         waiter: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        waiters = self._waiters
         waiters.append(waiter)
         try:
             await waiter
         except asyncio.CancelledError:
             if waiter.done() and not waiter.cancelled():
-                # the baton was handed to us just before the cancel: pass it on
+                # a slot was handed to us just before the cancel: pass it on
                 self.release()
             else:
                 with contextlib.suppress(ValueError):  # a release may have skipped it already
                     waiters.remove(waiter)
             raise
-        return True  # the releaser left ``_busy`` set for us
+        return True  # the releaser did not free the slot: it is ours
 
     def release(self) -> None:
-        """Free the lock, or hand it to the first waiter that still waits."""
-        if not self._busy:
-            raise RuntimeError("SingleFlight released while not held")
+        """Give a slot back: to the first waiter that still waits, else free it."""
         waiters = self._waiters
         while waiters:
             waiter = waiters.popleft()
             if not waiter.done():
-                waiter.set_result(None)  # ``_busy`` stays set: it is the waiter's now
+                waiter.set_result(None)  # the slot stays taken: it is the waiter's now
                 return
-        self._busy = False
+        if self._free >= self._size:
+            raise RuntimeError(f"{type(self).__name__} released with all {self._size} slot(s) free")
+        self._free += 1
+
+    def __repr__(self) -> str:
+        return f"<Slots {self._free}/{self._size} free, {len(self._waiters)} waiting>"
+
+
+class SingleFlight(Slots):
+    """The single-flight lock of a connection: one request at a time, in arrival order
+    (``Slots(1)``, with the contract of :class:`asyncio.Lock`)."""
+
+    __slots__ = ()
+
+    def __init__(self) -> None:
+        super().__init__(1)
 
     async def __aenter__(self) -> None:
         await self.acquire()
@@ -89,6 +118,5 @@ class SingleFlight:
         self.release()
 
     def __repr__(self) -> str:
-        waiting = len(self._waiters) if self._waiters else 0
-        state = "locked" if self._busy else "unlocked"
-        return f"<SingleFlight {state}, {waiting} waiting>"
+        state = "locked" if self.locked() else "unlocked"
+        return f"<SingleFlight {state}, {len(self._waiters)} waiting>"

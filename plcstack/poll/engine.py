@@ -19,9 +19,10 @@ How it behaves, and why:
   own. Other clients scan in one task per PLC.
 * An optional cap bounds how many requests are in flight across all PLCs (``poll.concurrency``;
   no cap by default, since a cap lets enough hung PLCs, each holding a slot for a whole
-  deadline, delay the healthy ones). A slot (:class:`.slots.Slots`, FIFO) is held only around
-  one request, never while a scan waits for its time, so a dead PLC costs a slot for at most one
-  connect attempt, and while its client backs off, its requests fail at once. A callback scan
+  deadline, delay the healthy ones). A slot (:class:`~plcstack.clients.flight.Slots`, FIFO) is
+  held only around one request, never while a scan waits for its time, so a dead PLC costs a slot
+  for at most one connect attempt, and while its client backs off, its requests fail at once.
+  A callback scan
   takes a free slot without waiting; when none is free, that scan runs on the task path, which
   queues for a slot in arrival order. So a cap keeps the callback scans.
 * When a request fails on the connection (timeout, connection lost, connect failed), the rest of
@@ -55,6 +56,7 @@ from typing import Any, Self
 
 from plcstack.clients import connect
 from plcstack.clients.base import Client
+from plcstack.clients.flight import Slots
 from plcstack.errors import (
     AddressError,
     ConnectionLost,
@@ -66,7 +68,6 @@ from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, describe, encode_tag
 from plcstack.poll.samples import Quality, Sample, make_sample
 from plcstack.poll.scanner import Scanner, advance
-from plcstack.poll.slots import Slots
 from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
 from plcstack.poll.ticker import Ticker
 from plcstack.resource import AsyncResource

@@ -17,10 +17,11 @@ task of its own, and the next scan is tried the quick way again. Both paths deli
 them sample for sample.
 
 Under a concurrency cap (``poll.concurrency``) a callback scan takes one of the poller's slots
-with :meth:`.slots.Slots.try_acquire` before it starts its request and gives it back when the
-answer (or the failure) arrives. When no slot is free, the scan runs on the task path, which
-awaits a slot behind the scans already waiting: ``try_acquire`` never succeeds while anyone
-waits, so the callback scans cannot overtake that queue, and the cap holds across both paths.
+with :meth:`~plcstack.clients.flight.Slots.try_acquire` before it starts its request and gives
+it back when the answer (or the failure) arrives. When no slot is free, the scan runs on the
+task path, which awaits a slot behind the scans already waiting: ``try_acquire`` never succeeds
+while anyone waits, so the callback scans cannot overtake that queue, and the cap holds across
+both paths.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Protocol
 
-from plcstack.poll.slots import Slots
+from plcstack.clients.flight import Slots
 from plcstack.poll.stats import PlcStats
 from plcstack.poll.ticker import Ticker
 
