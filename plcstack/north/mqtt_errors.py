@@ -81,6 +81,10 @@ _MEANINGS: tuple[tuple[tuple[str, ...], str], ...] = (
 )
 
 
+#: what Python's ssl module says when the peer closes the TLS connection without a close alert
+_CLOSED_IN_TLS = "EOF OCCURRED IN VIOLATION OF PROTOCOL"
+
+
 def connect_error(
     exc: BaseException, paho_lines: Any, *, broker: str, connected: bool, settings: Any
 ) -> PlcError:
@@ -95,6 +99,22 @@ def connect_error(
         meaning += "; set [mqtt] cert_file and key_file"
     elif meaning == _MEANINGS[0][1]:
         meaning += f"; it did not accept {settings.cert_file!r}"
+    if meaning is None and not connected and _CLOSED_IN_TLS in probe:
+        # The broker hung up during or right after the TLS handshake. Under TLS 1.3 it checks
+        # our certificate after the handshake and sends its alert as it closes: whether the
+        # alert (UNKNOWN_CA, above) or only the close reaches us is a race. A close is what a
+        # rejected certificate looks like when the alert lost that race.
+        if getattr(settings, "cert_file", None):
+            meaning = (
+                "the broker closed the TLS connection after the handshake: it most likely "
+                f"rejected our client certificate (cert_file {settings.cert_file!r}): not "
+                "signed by a CA it trusts, or not meant for client use"
+            )
+        else:
+            meaning = (
+                "the broker closed the TLS connection during the handshake; if it requires a "
+                "client certificate, set [mqtt] cert_file and key_file"
+            )
     message = f"{meaning} ({detail})" if meaning else detail
     if connected:
         return ConnectionLost(f"connection lost: {message}", plc=broker, request="session")
