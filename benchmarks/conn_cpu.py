@@ -14,50 +14,33 @@ from __future__ import annotations
 import asyncio
 import statistics
 import sys
-import time
 from typing import Any
 
-import plcstack
-from plcstack.bench.cases.conn import check_floor, check_stack, open_stack, stack_op, start_sim
+from plcstack.bench.cases.conn import start_sim
 from plcstack.bench.cases.protocols import by_key
-from plcstack.bench.floor import open_floor
-from plcstack.bench.runner import measure_workers
+from plcstack.bench.profiling import CpuPair, cpu_per_op
 
 
 async def run(key: str, repeats: int, seconds: float, kind: Any) -> str:
-    case = by_key(key)
-    builder = case.floor_read if kind == "read" else case.floor_write
-    assert builder is not None
-    job = builder()
-    sim = await start_sim(case)
-    url = plcstack.parse_url(sim.url)
-    assert url.host is not None and url.port is not None
-    floor = await open_floor(url.host, url.port, udp=case.udp)
-    client = await open_stack(case, sim.url)
+    sim = await start_sim(by_key(key))
     try:
-        await check_floor(floor, job)
-        await check_stack(client, case, kind)
-        stack = stack_op(client, case, kind)
+        pair = await CpuPair.open(key, sim.url, kind)
+        try:
 
-        def floor_op() -> Any:
-            return floor.run(job)
+            async def window(op: Any) -> float:
+                return (await cpu_per_op(op, seconds))[0]
 
-        async def window(op: Any) -> float:
-            started = time.process_time()
-            sample = await measure_workers([op], duration=seconds)
-            return (time.process_time() - started) / max(1, sample.ops) * 1e6
-
-        await window(floor_op)
-        await window(stack)
-        floors, stacks, ratios = [], [], []
-        for _ in range(repeats):
-            f, s = await window(floor_op), await window(stack)
-            floors.append(f)
-            stacks.append(s)
-            ratios.append(f / s)
+            await window(pair.floor_op)
+            await window(pair.stack_op)
+            floors, stacks, ratios = [], [], []
+            for _ in range(repeats):
+                f, s = await window(pair.floor_op), await window(pair.stack_op)
+                floors.append(f)
+                stacks.append(s)
+                ratios.append(f / s)
+        finally:
+            await pair.aclose()
     finally:
-        await client.aclose()
-        await floor.aclose()
         await sim.aclose()
     return (
         f"{key} {kind}: floor {statistics.median(floors):.1f} us/req, stack "

@@ -142,41 +142,68 @@ async def _client(url: str, key: str, kind: Kind, seconds: float) -> tuple[Any, 
     return profiler, sample.ops
 
 
+class CpuPair:
+    """One checked floor connection and one checked stack client to the same PLC, with the
+    operation each repeats: what the CPU comparisons of one connection measure (``_cpu`` here,
+    ``benchmarks/conn_cpu.py`` with the simulator in the same process)."""
+
+    def __init__(self, floor: Any, client: Any, floor_op: Any, stack_op: Any) -> None:
+        self.floor, self.client = floor, client
+        self.floor_op, self.stack_op = floor_op, stack_op
+
+    @classmethod
+    async def open(cls, key: str, url: str, kind: Kind) -> CpuPair:
+        case = by_key(key)
+        job_builder = case.floor_read if kind == "read" else case.floor_write
+        assert job_builder is not None
+        job = job_builder()
+        parsed = plcstack.parse_url(url)
+        assert parsed.host is not None and parsed.port is not None
+        floor = await open_floor(parsed.host, parsed.port, udp=case.udp)
+        client = await open_stack(case, url)
+        try:
+            await check_floor(floor, job)
+            await check_stack(client, case, kind)
+        except BaseException:
+            await client.aclose()
+            await floor.aclose()
+            raise
+
+        def floor_op() -> Any:
+            return floor.run(job)
+
+        return cls(floor, client, floor_op, stack_op(client, case, kind))
+
+    async def aclose(self) -> None:
+        await self.client.aclose()
+        await self.floor.aclose()
+
+
+async def cpu_per_op(op: Any, seconds: float) -> tuple[float, float]:
+    """Process CPU per operation (us) and operations per second of ``op`` repeated for
+    ``seconds``: CPU time, which load on a shared machine barely moves."""
+    started = time.process_time()
+    sample = await measure_workers([op], duration=seconds)
+    cpu = (time.process_time() - started) / max(1, sample.ops) * 1e6
+    return cpu, sample.ops / sample.seconds
+
+
 async def _cpu(url: str, key: str, kind: Kind, seconds: float, repeats: int) -> str:
     """Process CPU per request of the floor and the stack, alternating, one connection each,
     the simulator in another process: a ratio that load on a shared machine barely moves
     (wall-clock ops/s of the ``conn`` rows swing by 0.3 there)."""
-    case = by_key(key)
-    job_builder = case.floor_read if kind == "read" else case.floor_write
-    assert job_builder is not None
-    job = job_builder()
-    parsed = plcstack.parse_url(url)
-    assert parsed.host is not None and parsed.port is not None
-    floor = await open_floor(parsed.host, parsed.port, udp=case.udp)
-    client = await open_stack(case, url)
+    pair = await CpuPair.open(key, url, kind)
     lines = [
         f"{'floor us/req':>13} {'stack us/req':>13} {'floor/stack':>12}"
         f" {'floor req/s':>12} {'stack req/s':>12} {'stack/floor':>12}"
     ]
     try:
-        await check_floor(floor, job)
-        await check_stack(client, case, kind)
-        stack = stack_op(client, case, kind)
-
-        def floor_op() -> Any:
-            return floor.run(job)
-
-        async def cpu_per_op(op: Any) -> tuple[float, float]:
-            started = time.process_time()
-            sample = await measure_workers([op], duration=seconds)
-            cpu = (time.process_time() - started) / max(1, sample.ops) * 1e6
-            return cpu, sample.ops / sample.seconds
-
-        await measure_workers([floor_op], duration=0.2)  # warm-up
-        await measure_workers([stack], duration=0.2)
+        await measure_workers([pair.floor_op], duration=0.2)  # warm-up
+        await measure_workers([pair.stack_op], duration=0.2)
         ratios, rates = [], []
         for _ in range(repeats):
-            (f, f_rate), (st, s_rate) = await cpu_per_op(floor_op), await cpu_per_op(stack)
+            f, f_rate = await cpu_per_op(pair.floor_op, seconds)
+            st, s_rate = await cpu_per_op(pair.stack_op, seconds)
             ratios.append(f / st)
             rates.append(s_rate / f_rate)
             lines.append(
@@ -188,8 +215,7 @@ async def _cpu(url: str, key: str, kind: Kind, seconds: float, repeats: int) -> 
             f"median rate ratio stack/floor {statistics.median(rates):.2f}"
         )
     finally:
-        await client.aclose()
-        await floor.aclose()
+        await pair.aclose()
     return "\n".join(lines)
 
 
