@@ -178,22 +178,30 @@ class PollConfig:
 # -- validation shared by TOML and Python-built configs --------------------------------------
 
 
+def batch_wait_problem(wait: object) -> str | None:
+    """What is wrong with a ``batch_wait`` value, or None: the one rule, for the TOML loader
+    (which adds the file and line) and for configs built in Python."""
+    if (
+        isinstance(wait, bool)
+        or not isinstance(wait, int | float)
+        or not (0 <= wait <= MAX_BATCH_WAIT)
+    ):
+        return (
+            f"poll.batch_wait must be a number of seconds from 0 to {MAX_BATCH_WAIT:g}, "
+            f"not {wait!r}"
+        )
+    return None
+
+
 def validate(config: PollConfig) -> None:
     """Check a config built in Python the same way the TOML loader does."""
     if config.concurrency is not None and config.concurrency < 1:
         raise ConfigError("poll.concurrency must be at least 1")
     if config.queue < 1:
         raise ConfigError("poll.queue must be at least 1")
-    wait = config.batch_wait
-    if (
-        isinstance(wait, bool)
-        or not isinstance(wait, int | float)
-        or not (0 <= wait <= MAX_BATCH_WAIT)
-    ):
-        raise ConfigError(
-            f"poll.batch_wait must be a number of seconds from 0 to {MAX_BATCH_WAIT:g}, "
-            f"not {wait!r}"
-        )
+    problem = batch_wait_problem(config.batch_wait)
+    if problem:
+        raise ConfigError(problem)
     for name, interval in config.groups.items():
         if not (
             isinstance(interval, int | float)
@@ -390,6 +398,9 @@ class _Loader:
         )
         queue = self._int(poll, "queue", DEFAULT_QUEUE, 1, "poll")
         batch_wait = poll.get("batch_wait", DEFAULT_BATCH_WAIT)
+        problem = batch_wait_problem(batch_wait)
+        if problem:
+            raise self.error(problem, "batch_wait")
         max_gap = self._int(poll, "max_gap", DEFAULT_MAX_GAP, 0, "poll")
         timeout = self._number(poll, "timeout", 2.0, "poll") if "timeout" in poll else None
         connect_timeout = (
@@ -424,10 +435,7 @@ class _Loader:
         self.plc_index, self.plc_name = -1, None
         if not plcs:
             raise self.error("no PLC configured: add a [[plc]] table with name, url and tags")
-        try:
-            return PollConfig(tuple(plcs), groups, concurrency, queue, north, batch_wait)
-        except ConfigError as exc:  # batch_wait: the one [poll] value checked there
-            raise self.error(exc.message, "batch_wait") from None
+        return PollConfig(tuple(plcs), groups, concurrency, queue, north, batch_wait)
 
     def _plc(
         self,
