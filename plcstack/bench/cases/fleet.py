@@ -59,11 +59,12 @@ __all__ = ["KINDS", "REPLY", "REQUEST", "spawn"]
 KINDS = ("floor", "decoded", "clients", "poll")
 #: 10 Hz
 INTERVAL = 0.1
-#: how long the poll kind's consumer lets a batch gather (``Poller.batches(wait=...)``): None,
-#: the poller's ``batch_wait`` as the north side uses it; ``FLEET_CONSUMER_WAIT`` sets it (0 is
-#: a batch per loop pass, which with callback scans cost about 9 us per request more)
+#: how long the poll kind's consumer lets a batch gather (``Poller.batches(wait=...)``): the
+#: default ``[poll] batch_wait``, as the north side uses it (the fleet's poller keeps the
+#: default); ``FLEET_CONSUMER_WAIT`` sets it (0 is a batch per loop pass, which with callback
+#: scans cost about 9 us per request more)
 _wait = os.environ.get("FLEET_CONSUMER_WAIT")
-CONSUMER_WAIT = float(_wait) if _wait else None
+CONSUMER_WAIT = float(_wait) if _wait else DEFAULT_BATCH_WAIT
 REQUEST = frames.e71_read_words("D", 0, WORDS)
 REPLY = frames.e71_reply_words(sample_words())
 #: the reply's words, little-endian after the 2-byte header (the ``decoded`` kind)
@@ -415,13 +416,7 @@ async def _measure(
         "p50_ms": pct(50),
         "p99_ms": pct(99),
         "pinned": responder_cpu is not None,
-        "consumer_wait": (
-            None
-            if kind != "poll"
-            else CONSUMER_WAIT
-            if CONSUMER_WAIT is not None
-            else DEFAULT_BATCH_WAIT
-        ),
+        "consumer_wait": CONSUMER_WAIT if kind == "poll" else None,
     }
 
 
@@ -446,12 +441,11 @@ async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.
 
     async def consume() -> None:
         # As the north side does: take what is there in one batch per wake-up, gathered for
-        # the poller's batch_wait (or CONSUMER_WAIT).
+        # CONSUMER_WAIT.
         # Every sample's quality is checked; its 64 values only for the first sample of each
         # PLC (the responders send one fixed reply), as the floor checks its first reply: a
         # per-sample list comparison would be the consumer's cost, not the poller's.
-        wait = poller.config.batch_wait if CONSUMER_WAIT is None else CONSUMER_WAIT
-        async for batch in poller.batches(wait=wait):
+        async for batch in poller.batches(wait=CONSUMER_WAIT):
             for sample in batch:
                 if sample.value is None:
                     bad.append(f"{sample.plc}: {sample.error}")
