@@ -70,6 +70,20 @@ async def first_failure(sink: MqttSink, timeout: float = 10) -> None:
             await asyncio.sleep(0.02)
 
 
+async def refused(sink: MqttSink, match: str) -> ConnectFailed:
+    """Start ``sink``, wait for its first failed connect and return the ``ConnectFailed`` that
+    waiting for a connection then raises (its message must match ``match``); the sink is
+    closed after."""
+    await sink.start()
+    try:
+        await first_failure(sink)
+        with pytest.raises(ConnectFailed, match=match) as raised:
+            await sink.wait_connected(0.01)
+    finally:
+        await sink.aclose(drain=0)
+    return raised.value
+
+
 async def test_a_client_certificate_signed_by_the_brokers_ca_gets_in(tls_broker: TlsBroker) -> None:
     host, port = tls_broker.broker.host, tls_broker.broker.port
     async with subscriber(host, port, "plcstack/#") as sub:
@@ -121,17 +135,11 @@ async def test_a_client_certificate_of_another_ca_is_refused_with_the_reason(
     # by then), so the limit must outlast a TLS handshake on a loaded machine: with 0.5 s the
     # handshake once had not finished, and the failure was a plain timeout.
     sink = MqttSink(tls_broker.settings(timeout=1.5, cert_file=str(cert), key_file=str(key)))
-    await sink.start()
-    try:
-        await first_failure(sink)
-        with pytest.raises(ConnectFailed, match="rejected our client certificate") as raised:
-            await sink.wait_connected(0.01)
-    finally:
-        await sink.aclose(drain=0)
-    assert str(raised.value).startswith(f"MQTT broker {tls_broker.url}: connect: ")
+    error = await refused(sink, "rejected our client certificate")
+    assert str(error).startswith(f"MQTT broker {tls_broker.url}: connect: ")
     # the broker's alert, or only its close when the alert lost the race (see mqtt_errors.py):
     # the message says the certificate was rejected either way
-    text = str(raised.value).upper()
+    text = str(error).upper()
     assert "UNKNOWN_CA" in text or "EOF OCCURRED IN VIOLATION OF PROTOCOL" in text, text
 
 
@@ -211,14 +219,8 @@ async def test_credentials_come_from_the_environment_when_the_sink_connects(
     finally:
         await sink.aclose()
     wrong = MqttSink(settings, env={**env, "PLCSTACK_TEST_MQTT_PASSWORD": "guess"})
-    await wrong.start()
-    try:
-        await first_failure(wrong)
-        with pytest.raises(ConnectFailed, match="the broker refused the login") as raised:
-            await wrong.wait_connected(0.01)
-    finally:
-        await wrong.aclose(drain=0)
-    assert str(raised.value).startswith(f"MQTT broker {login_broker.url}: connect: ")
+    error = await refused(wrong, "the broker refused the login")
+    assert str(error).startswith(f"MQTT broker {login_broker.url}: connect: ")
     unset = MqttSink(settings, env={"PLCSTACK_TEST_MQTT_USER": "line1"})
     with pytest.raises(ConfigError) as missing:
         await unset.start()
