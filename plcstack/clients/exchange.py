@@ -7,8 +7,8 @@ exchange has two drivers over the same steps (``_send_request``, ``_take_chunk``
 
 * :meth:`RequestClient.exchange` awaits the answer's chunks (every request of the API);
 * :meth:`RequestClient.start_exchange` is handed them by the transport as they arrive
-  (``Transport.deliver``) and calls back: no coroutine, no task step and no future per request,
-  for the poller's scans of thousands of PLCs (``poll/scanner.py``).
+  (``Transport.send_delivering``) and calls back: no coroutine, no task step and no future
+  per request, for the poller's scans of thousands of PLCs (``poll/scanner.py``).
 
 The two cannot decide differently because they share every decision; tests/test_callback_exchange.py
 compares them on the same peers.
@@ -26,6 +26,7 @@ from plcstack.clients.base import Client
 from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
 from plcstack.errors import ConnectionLost, PlcError, PlcTimeout, RemoteProtocolError
+from plcstack.transports.base import Receiver
 
 __all__ = ["ClientCodec", "RequestClient"]
 
@@ -163,8 +164,9 @@ class RequestClient(Client, Generic[E]):
     # -- the steps of one exchange, shared by both drivers ---------------------------------
     #
     # ``exchange`` awaits the chunks of an answer; ``start_exchange`` is handed them by the
-    # transport (``deliver``). Both send, decode, settle and fail through the same steps below,
-    # so the two paths cannot decide differently (tests/test_callback_exchange.py compares them).
+    # transport (``send_delivering``). Both send, decode, settle and fail through the same
+    # steps below, so the two paths cannot decide differently (tests/test_callback_exchange.py
+    # compares them).
 
     #: the exchange in progress: what every chunk of its answer is and was (the first alone,
     #: then all in a list: the failure path's diagnosis), whether a byte of it left this host,
@@ -174,10 +176,12 @@ class RequestClient(Client, Generic[E]):
     _x_sent = False
     _x_quick = False
 
-    def _send_request(self, request: Any) -> Any:
+    def _send_request(self, request: Any, receiver: Receiver | None = None) -> Any:
         """Count and send ``request`` on a connection checked for stale input: ``NEED_DATA``,
         or the answer an unsettled codec already holds (settled, as :meth:`_take_chunk`
-        leaves it). Raises the transport's and the codec's errors."""
+        leaves it). Raises the transport's and the codec's errors. With ``receiver`` (the
+        callback driver) the transport hands the answer's chunks to it, under the deadline
+        ``_x_deadline``."""
         self.stats.requests += 1
         self._x_first = b""
         self._x_chunks = None
@@ -186,7 +190,10 @@ class RequestClient(Client, Generic[E]):
         settled, self._settled = self._settled, False
         self._x_sent = False
         codec = self.codec
-        self.transport.write(codec.send(request))
+        if receiver is None:
+            self.transport.write(codec.send(request))
+        else:
+            self.transport.send_delivering(codec.send(request), receiver, self._x_deadline)
         self._x_sent = True
         # The usual case of a poll: the whole answer in one chunk and nothing more (see
         # ``_take_chunk``).
@@ -286,15 +293,13 @@ class RequestClient(Client, Generic[E]):
         ):
             return False
         self._x_done, self._x_finish, self._x_what, self._x_is_write = done, finish, what, is_write
-        deadline = self._x_deadline = self.timeout
+        self._x_deadline = self.timeout
         try:
-            event = self._send_request(request)
+            event = self._send_request(request, self)
         except Exception as exc:
             self._x_failed(exc)
             return True
-        if event is NEED_DATA:  # always, from a settled codec; else the general step decides
-            transport.deliver(self, deadline)
-        else:
+        if event is not NEED_DATA:  # never from a settled codec; the general step decided
             self._x_answered(event)
         return True
 
@@ -306,7 +311,6 @@ class RequestClient(Client, Generic[E]):
             self._x_failed(exc)
             return
         if event is not NEED_DATA:
-            self.transport.stop_delivery()
             self._x_answered(event)
 
     def receive_failed(self, exc: Exception) -> None:
@@ -314,6 +318,7 @@ class RequestClient(Client, Generic[E]):
         self._x_failed(exc)
 
     def _x_answered(self, event: Any) -> None:
+        self.transport.stop_delivery()
         done, finish = self._x_done, self._x_finish
         self._x_done = None
         self._lock.release()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import select
+import weakref
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass
@@ -33,8 +34,8 @@ T = TypeVar("T")
 
 
 class Receiver(Protocol):
-    """Who takes a connection's chunks as they arrive (:meth:`Transport.deliver`), instead of a
-    reader awaiting :meth:`Transport.read`: a client's callback-driven exchange."""
+    """Who takes a connection's chunks as they arrive (:meth:`Transport.send_delivering`),
+    instead of a reader awaiting :meth:`Transport.read`: a client's callback-driven exchange."""
 
     def chunk_received(self, data: bytes) -> None:
         """A chunk (stream) or datagram arrived."""
@@ -106,21 +107,23 @@ class Transport(ABC):
         """
         return True
 
-    def deliver(self, receiver: Receiver, timeout: float) -> None:
-        """Hand every chunk that arrives from now on to ``receiver`` as it arrives, until
-        :meth:`stop_delivery` or until ``timeout`` seconds have passed or the connection ends
-        (then ``receiver.receive_failed``). Relative, unlike ``read``'s deadline: the
-        transport knows its loop, and asking for the running loop costs a system call
-        (``getpid``) on every request. Only called after :meth:`quiet` said ``True``:
-        a transport that never says so need not implement it.
+    def send_delivering(self, data: bytes, receiver: Receiver, timeout: float) -> None:
+        """:meth:`write` ``data``, then hand every chunk that arrives to ``receiver`` as it
+        arrives, until :meth:`stop_delivery` or until ``timeout`` seconds have passed or the
+        connection ends (then ``receiver.receive_failed``). Raises as ``write`` does, and
+        then attaches nothing. Only called after :meth:`quiet` said ``True``: a transport
+        that never says so need not implement it.
 
-        The callback-driven exchange (``RequestClient.start_exchange``): no future, no task
-        step per answer, where ``read`` costs both.
+        The callback-driven exchange (``RequestClient.start_exchange``): no future and no
+        task step per answer, where ``read`` costs both; and one call where ``write`` and
+        attaching the receiver were two, on every polled request. The timeout is relative,
+        unlike ``read``'s deadline: the transport knows its loop, and asking for the running
+        loop costs a system call (``getpid``).
         """
         raise NotImplementedError(f"{type(self).__name__} does not deliver to receivers")
 
     def stop_delivery(self) -> None:
-        """Detach the receiver of :meth:`deliver` (nothing when none is attached)."""
+        """Detach the receiver of :meth:`send_delivering` (nothing when none is attached)."""
 
 
 #: bytes a connection holds received and unread before it stops reading (TCP, serial) or drops
@@ -177,12 +180,18 @@ class QueueProtocolMixin:
         #: whether the one deadline timer is armed, and the loop time it is armed for
         self._timer = False
         self._timer_at = 0.0
-        #: takes every chunk as it arrives instead of the queue (:meth:`Transport.deliver`)
+        #: takes every chunk as it arrives instead of the queue (:meth:`Transport.send_delivering`)
         self._receiver: Receiver | None = None
         #: ``loop.create_future`` of the connection's loop (``future_factory``): asyncio makes
         #: protocols inside the loop they serve
         self._loop = loop = asyncio.get_running_loop()
         self._new_future: Callable[[], asyncio.Future[Any]] = future_factory(loop)
+        #: the loop's deadline heap, and this connection's entry for it (held weakly there),
+        #: looked up and made once rather than on every arming
+        self._deadlines = deadlines_of(loop)
+        self._timer_entry: weakref.WeakMethod[Callable[[float], None]] = weakref.WeakMethod(
+            self._on_timer
+        )
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self._flow = transport
@@ -235,7 +244,7 @@ class QueueProtocolMixin:
                 # deadline (here) or, when it fires, for a later one (``_on_timer``). A fresh
                 # timer per read cost a TimerHandle, a heap push and a cancel on every request.
                 if not self._timer or self._timer_at > deadline:
-                    self._arm(asyncio.get_running_loop(), deadline)
+                    self._arm(deadline)
             try:
                 await waiter
             finally:
@@ -263,12 +272,12 @@ class QueueProtocolMixin:
             if flow is not None and not flow.is_closing():
                 flow.resume_reading()  # type: ignore[attr-defined]
 
-    def _arm(self, loop: asyncio.AbstractEventLoop, when: float) -> None:
+    def _arm(self, when: float) -> None:
         # on the loop's shared deadline heap (deadlines.py); an entry armed before is left
         # to come due and be ignored (``_on_timer`` compares its time with ``_timer_at``)
         self._timer = True
         self._timer_at = when
-        deadlines_of(loop).call_at(when, self._on_timer)
+        self._deadlines.call_weak(when, self._timer_entry)
 
     def _on_timer(self, when: float) -> None:
         """A timer armed for ``when`` fired: if it is the current one, expire the current wait
@@ -281,7 +290,7 @@ class QueueProtocolMixin:
         if deadline is None or (receiver is None and (waiter is None or waiter.done())):
             return
         if deadline > when:
-            self._arm(asyncio.get_running_loop(), deadline)
+            self._arm(deadline)
         elif receiver is not None:
             self._receiver = None
             self._deadline = None
@@ -312,14 +321,14 @@ class ProtocolTransport(Transport):
         """Open, no chunk queued, and the kernel holds nothing for the socket: the ``poll`` of
         :meth:`input_waiting`, asked here directly (once per polled request, and this method
         already holds what ``input_waiting`` would look up again)."""
-        protocol, transport, watch = self._protocol, self._transport, self._watch
+        watch = self._watch
+        if watch is None:  # closed (``abort``/``aclose`` drop it first), or not a socket
+            return False
+        protocol = self._protocol
         if (
-            protocol is None
-            or transport is None
-            or watch is None
-            or protocol._chunks
-            or protocol._closed_exc is not None
-            or transport.is_closing()
+            protocol._chunks  # type: ignore[union-attr]  # set with the watch
+            or protocol._closed_exc is not None  # type: ignore[union-attr]
+            or self._transport.is_closing()  # type: ignore[union-attr]
         ):
             return False
         try:
@@ -343,17 +352,15 @@ class ProtocolTransport(Transport):
         except OSError:
             return True
 
-    def deliver(self, receiver: Receiver, timeout: float) -> None:
+    def send_delivering(self, data: bytes, receiver: Receiver, timeout: float) -> None:
+        self.write(data)
         protocol = self._protocol
-        if protocol is None:
-            raise ConnectionLost(f"not connected to {self.peer}")
         # the receiver, with its deadline on the connection's one timer (as a wait in
         # ``_next_chunk`` arms it)
-        loop = protocol._loop
-        protocol._receiver = receiver
-        protocol._deadline = deadline = loop.time() + timeout
-        if not protocol._timer or protocol._timer_at > deadline:
-            protocol._arm(loop, deadline)
+        protocol._receiver = receiver  # type: ignore[union-attr]
+        protocol._deadline = deadline = protocol._loop.time() + timeout  # type: ignore[union-attr]
+        if not protocol._timer or protocol._timer_at > deadline:  # type: ignore[union-attr]
+            protocol._arm(deadline)  # type: ignore[union-attr]
 
     def stop_delivery(self) -> None:
         protocol = self._protocol
@@ -374,7 +381,13 @@ class ProtocolTransport(Transport):
     def _send(self, data: bytes) -> None: ...
 
     def write(self, data: bytes) -> None:
-        if not self.is_open:
+        # ``is_open`` spelled out: this runs once per request
+        transport = self._transport
+        if (
+            transport is None
+            or self._protocol._closed_exc is not None  # type: ignore[union-attr]  # set together
+            or transport.is_closing()
+        ):
             raise ConnectionLost(f"not connected to {self.peer}")
         self._send(data)
 

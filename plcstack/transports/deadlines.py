@@ -54,7 +54,11 @@ class Deadlines:
     def call_at(self, when: float, callback: Callable[[float], None]) -> None:
         """``callback`` is a bound method, held weakly: a connection that is gone is not kept
         alive (nor, through it, its loop) until its entry comes due."""
-        entry = weakref.WeakMethod(callback)
+        self.call_weak(when, weakref.WeakMethod(callback))
+
+    def call_weak(self, when: float, entry: weakref.WeakMethod[Callable[[float], None]]) -> None:
+        """:meth:`call_at` with the weak reference made by the caller: a connection re-arms
+        with the one it made once, instead of a new object per arming."""
         heapq.heappush(self._heap, (when, next(self._order), entry))
         if when < self._timer_at:
             loop = self._loop()

@@ -38,7 +38,11 @@ class _TcpProtocol(QueueProtocolMixin, asyncio.BufferedProtocol):
         return self._buffer
 
     def buffer_updated(self, nbytes: int) -> None:
-        self._push(bytes(self._buffer[:nbytes]))
+        receiver = self._receiver
+        if receiver is not None:  # a callback exchange's answer: straight to it (``_push``)
+            receiver.chunk_received(bytes(self._buffer[:nbytes]))
+        else:
+            self._push(bytes(self._buffer[:nbytes]))
 
     def eof_received(self) -> bool | None:
         self._fail(EOFError("peer closed the connection"))
