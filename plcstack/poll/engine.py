@@ -499,36 +499,53 @@ class Poller(AsyncResource):
         """Deliver a scan of one request (its reply, or what the read raised); returns whether
         it failed. ``start``/``end`` are ``perf_counter`` times, ``offset`` makes them Unix
         times. The one definition for the task and the callback scans (scanner.py)."""
-        stats = plc.stats
         if isinstance(reply, Exception):
             error = self._failed(plc, group, plan, 0, reply)
             self._deliver(plc, plan, (error,), start + offset, end + offset, None, None)
             return True
-        stats.latencies.append(end - start)
-        stats.requests += 1
         whole = plan.whole_tag
         if whole is not None and self.whole_reply_samples and len(reply) == plan.requests[0].count:
-            # What _deliver gives for this plan, without its copy of the reply (see
-            # ScanPlan.whole_reply_tag): one good sample with the reply as value.
-            queue = self._queue
-            queue.append(
-                make_sample(
-                    plc.config.name,
-                    whole,
-                    reply,  # type: ignore[arg-type]  # the list client.read returned
-                    Quality.GOOD,
-                    start + offset,
-                    end + offset,
-                    None,
-                )
-            )
-            stats.samples += 1
-            if len(queue) > self.config.queue:
-                self._trim()
-            self._wakeup.set()
+            self._whole_reply(plc.stats, plc.config.name, whole, reply, start, end, offset)
         else:
+            stats = plc.stats
+            stats.latencies.append(end - start)
+            stats.requests += 1
             self._deliver(plc, plan, (reply,), start + offset, end + offset, None, None)
         return False
+
+    def _whole_reply(
+        self,
+        stats: PlcStats,
+        name: str,
+        tag: str,
+        reply: Sequence[int | bool],
+        start: float,
+        end: float,
+        offset: float,
+    ) -> None:
+        """A good reply to a plan of one request whose one tag is the whole reply
+        (``ScanPlan.whole_reply_tag``): counted, and queued as the one sample ``_deliver``
+        would give, without its copy of the reply. ``_single_done`` and the scanner's
+        callback (which knows its plan's tag and checks the reply's length itself) both
+        come here."""
+        stats.latencies.append(end - start)
+        stats.requests += 1
+        queue = self._queue
+        queue.append(
+            make_sample(
+                name,
+                tag,
+                reply,  # type: ignore[arg-type]  # the list client.read returned
+                Quality.GOOD,
+                start + offset,
+                end + offset,
+                None,
+            )
+        )
+        stats.samples += 1
+        if len(queue) > self.config.queue:
+            self._trim()
+        self._wakeup.set()
 
     def _failed(
         self, plc: _Plc, group: _Group, plan: ScanPlan, index: int, exc: Exception

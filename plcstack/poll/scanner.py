@@ -38,6 +38,7 @@ from plcstack.poll.ticker import Ticker
 
 if TYPE_CHECKING:
     from plcstack.poll.engine import Poller, _Group, _Plc
+    from plcstack.poll.plan import ScanPlan
 
 __all__ = ["Scanner", "advance"]
 
@@ -77,12 +78,14 @@ class Scanner:
     """
 
     __slots__ = (
-        "_client",
+        "_address",
         "_closed",
+        "_count",
         "_done_cb",
         "_fire_cb",
         "_group",
         "_holding",
+        "_name",
         "_offset",
         "_plan",
         "_plc",
@@ -90,9 +93,11 @@ class Scanner:
         "_single",
         "_slots",
         "_start",
+        "_start_read",
         "_stats",
         "_task",
         "_ticker",
+        "_whole",
     )
 
     def __init__(self, poller: Poller, plc: _Plc, group: _Group, ticker: Ticker) -> None:
@@ -100,11 +105,12 @@ class Scanner:
         self._plc = plc
         self._group = group
         self._ticker = ticker
-        self._client = plc.client
         self._stats = plc.stats
+        self._name = plc.config.name
         #: the poller's switch, read when scanning starts (as its tasks read it)
         self._single = poller.inline_single_request
-        self._plan = group.plan  # the plan of the request in flight
+        self._start_read = plc.client.start_read
+        self._use(group.plan)
         self._start = 0.0  # its perf_counter send time, and the offset to Unix time
         self._offset = 0.0
         self._task: asyncio.Task[None] | None = None
@@ -130,21 +136,34 @@ class Scanner:
             task.cancel()
         return task
 
+    def _use(self, plan: ScanPlan) -> None:
+        """Take what ``_fire`` and ``_done`` need of ``plan`` once, not on every scan: the
+        plan changes only when the poller isolates a tag after a PLC error."""
+        #: the plan of the callback request in flight (the group's may change meanwhile)
+        self._plan = plan
+        requests = plan.requests
+        #: the one request's address and count; count 0: not a plan for a callback scan
+        if len(requests) == 1 and self._single:
+            self._address, self._count = requests[0].address, requests[0].count
+        else:
+            self._address, self._count = "", 0
+        #: the tag whose sample is the whole reply (``Poller._whole_reply``), or None
+        self._whole = plan.whole_tag if self._poller.whole_reply_samples else None
+
     def _fire(self) -> None:
         """The scan is due (the ticker's callback): start its request, or its task."""
         if self._closed:
             return
         plan = self._group.plan
-        requests = plan.requests
+        if plan is not self._plan:
+            self._use(plan)
         slots = self._slots
-        if len(requests) == 1 and self._single and (slots is None or self._take_slot(slots)):
-            request = requests[0]
+        if self._count and (slots is None or self._take_slot(slots)):
             wall = _wall_clock()
             self._start = start = _clock()
             self._offset = wall - start
-            self._plan = plan
             try:
-                started = self._client.start_read(request.address, request.count, self._done_cb)
+                started = self._start_read(self._address, self._count, self._done_cb)
             except Exception as exc:  # a client bug: this scan's failure, as a read's would be
                 self._stats.scans += 1
                 self._done(exc)
@@ -167,9 +186,16 @@ class Scanner:
             return
         group = self._group
         try:
-            self._poller._single_done(
-                self._plc, group, self._plan, reply, self._start, end, self._offset
-            )
+            whole = self._whole
+            if whole is not None and type(reply) is list and len(reply) == self._count:
+                # what _single_done decides for this reply, its checks done once in _use
+                self._poller._whole_reply(
+                    self._stats, self._name, whole, reply, self._start, end, self._offset
+                )
+            else:
+                self._poller._single_done(
+                    self._plc, group, self._plan, reply, self._start, end, self._offset
+                )
         except Exception:  # a bug must not end this group's scans
             _log.exception("%s: delivering a scan failed", self._plc.config.name)
         advance(self._stats, group, end)
