@@ -258,9 +258,12 @@ class ClientConnection(ErrorState):
         else:
             self._fast_buffer = ReceiveBuffer()
             self._feed = framer.feed
-        #: the last ReadWords sent and its encoding (frozen: the same object encodes the same)
+        #: the last ReadWords sent and its encoding (frozen: the same object encodes the same),
+        #: and the size and word layout of its normal binary answer (``take_answer``)
         self._last_read: ReadWords | None = None
         self._last_bytes = b""
+        self._last_size = 0
+        self._last_unpack = _words_struct(1)
         #: points registered by the last acknowledged 06H / words by the last 07H
         self.monitor_bits: int | None = None
         self.monitor_words: int | None = None
@@ -303,6 +306,7 @@ class ClientConnection(ErrorState):
                 ):
                     data = _READ_FRAME.pack(0x01, pc, timer, number, dev.code, count & 0xFF, 0)
                     self._last_read, self._last_bytes = request, data
+                    self._last_size, self._last_unpack = 2 + 2 * count, _words_struct(count)
                     self._pending.append(request)
                     return data
         if isinstance(request, MonitorBits) and self.monitor_bits is None:
@@ -371,18 +375,19 @@ class ClientConnection(ErrorState):
         pending = self._pending
         if (
             stream is None
-            or self.error is not None
             or len(pending) != 1
-            or type(req := pending[0]) is not ReadWords
-            or len(data) != 2 + 2 * req.count
+            # a 01H read encoded by ``send``'s fast path, which noted its answer's size and
+            # layout (a polled read is always the same object)
+            or pending[0] is not self._last_read
+            or len(data) != self._last_size
             or not data.startswith(_NORMAL_01H)
+            or self.error is not None
             or stream.skip_trailer
             or self._fast_buffer  # bytes buffered before this chunk: the general path
         ):
             return None
         pending.popleft()
-        unpack = _WORDS_STRUCTS.get(req.count) or _words_struct(req.count)
-        return WordsResponse(1, unpack.unpack_from(data, 2))
+        return WordsResponse(1, self._last_unpack.unpack_from(data, 2))
 
     # -- sizing and decoding ------------------------------------------------------------------
     def _response_size(self, req: E71Request, head: bytes) -> int | None:
