@@ -1,4 +1,4 @@
-"""The callback exchange (``Client.start_read`` / ``RequestClient.start_exchange``) decides
+"""The callback exchange (``Client.start_read``: E71's ``WordReadLane``) decides
 exactly as the awaited one (``await client.read``), over real loopback sockets.
 
 Every case plays one script through a twin peer for each path: a warm-up read the general way
@@ -8,7 +8,7 @@ read. The outcomes (values, or exception type and text), the client's counters, 
 the answer came in, whether the connection stayed open and how many connections the peer saw
 must be the same on both paths; and ``done`` must run exactly once.
 
-Also: when ``start_exchange`` must refuse (and send nothing), single flight with awaited
+Also: when ``start_read`` must refuse (and send nothing), single flight with awaited
 requests, and ``abandon_exchange``.
 """
 
@@ -32,7 +32,8 @@ from plcstack.codecs.e71_commands import DECODERS
 from plcstack.sim import e71 as sim_e71
 from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.transports import Backoff, TcpTransport
-from plcstack.transports.udp import UdpTransport
+from plcstack.transports.tcp import _TcpProtocol
+from plcstack.transports.udp import UdpTransport, _UdpProtocol
 from tests.aio_helpers import ends_quietly, eventually
 
 Kind = Literal["tcp", "udp"]
@@ -227,28 +228,45 @@ async def read_callback(
 _started: list[Done] = []
 
 
-async def play(path: str, kind: Kind, script: Sequence[Reply], timeout: float = 1.0) -> Any:
+async def play(
+    path: str, kind: Kind, script: Sequence[Reply], timeout: float = 1.0, *, fresh: bool = False
+) -> Any:
     """The warm-up read, the read under test on ``path``, the follow-up read: what each gave,
     with the counters and the connection state after each."""
     peer = await ScriptedE71(kind).start()
     client = make_client(peer, kind, timeout)
-    chunks: list[bytes] = []
-    take = client._take_chunk
+    # chunks as the transport received them (a prepared read takes the plain answer without
+    # the client's general step, so they are counted below both paths)
+    chunks: list[int] = []
+    tcp_received, udp_received = _TcpProtocol.buffer_updated, _UdpProtocol.datagram_received
 
-    def counting(chunk: bytes) -> Any:
-        chunks.append(chunk)
-        return take(chunk)
+    def tcp_counting(protocol: _TcpProtocol, nbytes: int) -> None:
+        chunks.append(nbytes)
+        tcp_received(protocol, nbytes)
 
-    client._take_chunk = counting  # type: ignore[method-assign]
+    def udp_counting(protocol: _UdpProtocol, data: bytes, addr: tuple[str | bytes, int]) -> None:
+        chunks.append(len(data))
+        udp_received(protocol, data, addr)
+
+    _TcpProtocol.buffer_updated = tcp_counting  # type: ignore[method-assign, assignment]
+    _UdpProtocol.datagram_received = udp_counting  # type: ignore[method-assign, assignment]
     record: list[Any] = []
 
     def state(outcome: Outcome) -> None:
         stats = dataclasses.asdict(client.stats)
-        record.append((outcome, stats, client.transport.is_open, peer.connections, len(chunks)))
+        # and whether the connection has proven itself (an answer) and how often fresh ones
+        # failed before one did: the failure policy's backoff depends on them
+        proof = (client._unproven, client._unproven_failures)
+        record.append(
+            (outcome, stats, client.transport.is_open, peer.connections, len(chunks), proof)
+        )
         chunks.clear()
 
     try:
         state(await read_awaited(client, peer.port))
+        if fresh:  # the read under test is the first exchange on a new connection
+            client.transport.abort()
+            await client.open()
         peer.replies.extend(script)
         _started.clear()
         if path == "callback":
@@ -264,15 +282,19 @@ async def play(path: str, kind: Kind, script: Sequence[Reply], timeout: float = 
         # done ran exactly once, also when more came after the answer, or a deadline passed
         assert [len(d.calls) for d in _started] == ([1] if path == "callback" else [])
     finally:
+        _TcpProtocol.buffer_updated = tcp_received  # type: ignore[method-assign]
+        _UdpProtocol.datagram_received = udp_received  # type: ignore[method-assign]
         await client.aclose()
         await peer.aclose()
     return record
 
 
-async def differential(kind: Kind, script: Sequence[Reply], timeout: float = 1.0) -> Any:
+async def differential(
+    kind: Kind, script: Sequence[Reply], timeout: float = 1.0, *, fresh: bool = False
+) -> Any:
     """Play ``script`` on both paths; they must agree. Returns the record (of either)."""
-    awaited = await play("awaited", kind, script, timeout)
-    called = await play("callback", kind, script, timeout)
+    awaited = await play("awaited", kind, script, timeout, fresh=fresh)
+    called = await play("callback", kind, script, timeout, fresh=fresh)
     assert called == awaited
     assert awaited[0][0] == ("ok", WORDS)  # the warm-up read
     return awaited
@@ -298,7 +320,7 @@ CASES: list[tuple[str, Reply, tuple[Kind, ...]]] = [
 async def test_callback_read_decides_as_the_awaited_read(kind: Kind, name: str) -> None:
     script = next(s for n, s, _ in CASES if n == name)
     record = await differential(kind, [script])
-    (outcome, stats, is_open, _, chunks) = record[1]
+    (outcome, stats, is_open, _, chunks, _) = record[1]
     follow_up = record[2]
     assert follow_up[0] == ("ok", WORDS), follow_up  # the client always recovers
     kind_, text = outcome
@@ -324,10 +346,46 @@ async def test_callback_read_decides_as_the_awaited_read(kind: Kind, name: str) 
 @pytest.mark.parametrize("kind", ["tcp", "udp"])
 async def test_no_answer_within_the_deadline_is_the_same_timeout(kind: Kind) -> None:
     record = await differential(kind, [lambda n: [0.3, n]], timeout=0.1)
-    (kind_, text), stats, is_open, _, chunks = record[1]
+    (kind_, text), stats, is_open, _, chunks, _ = record[1]
     assert kind_ == "PlcTimeout" and "within 0.1 s" in text and not is_open and chunks == 0
     assert stats["timeouts"] == 1
     assert record[2][0] == ("ok", WORDS) and record[2][3] == 2  # reconnected
+
+
+@pytest.mark.parametrize(
+    ("kind", "name"),
+    [("tcp", "normal"), ("udp", "normal"), ("tcp", "close mid-answer"), ("tcp", "extra bytes")],
+)
+async def test_on_a_fresh_connection_the_answer_or_failure_counts_alike(
+    kind: Kind, name: str
+) -> None:
+    """The read under test is the first exchange of a new connection: an answer proves the
+    connection (the backoff starts over), a close or garbage before any answer counts towards
+    backing off; both paths must leave the same proof state (compared in every record)."""
+    script = next(s for n, s, _ in CASES if n == name)
+    record = await differential(kind, [script], fresh=True)
+    (outcome, _, _, connections, _, proof) = record[1]
+    assert connections == 2  # the read under test did run on the new connection
+    if name == "normal":
+        assert outcome == ("ok", WORDS) and proof == (False, 0)
+    else:
+        assert outcome[0] != "ok" and proof == (True, 1)
+
+
+async def test_callback_reads_follow_each_other() -> None:
+    """Every read after a plain answer is taken the callback way again (the answer left the
+    codec settled and the lock free), each counted once, on one connection."""
+    peer = await ScriptedE71("tcp").start()
+    client = make_client(peer, "tcp", 1.0)
+    try:
+        assert await read_awaited(client, peer.port) == ("ok", WORDS)
+        for _ in range(5):
+            assert await read_callback(client, peer.port) == ("ok", WORDS)
+        assert client.stats.requests == 6 and client.stats.errors == 0
+        assert peer.connections == 1 and len(peer.received) == 6
+    finally:
+        await client.aclose()
+        await peer.aclose()
 
 
 _tails = st.sampled_from([b"", b"\x81\x00", b"\x00", b"\x81\x56", b"\x80\x00\x01"])
@@ -354,7 +412,7 @@ def test_any_chunking_and_garbage_decide_alike(cuts: list[int], tail: bytes, clo
     asyncio.run(differential("tcp", [script], timeout=1.0))
 
 
-# -- when start_exchange must refuse: nothing sent, nothing counted ------------------------------
+# -- when start_read must refuse: nothing sent, nothing counted ------------------------------
 @pytest.fixture
 async def sim() -> Any:
     simulator = await sim_e71.start(_memory())

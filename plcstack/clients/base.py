@@ -336,9 +336,9 @@ class Client(AsyncResource):
         ``True``, and ``done`` is later called once with what ``await read(...)`` returns or
         the exception it raises; else ``False`` and nothing happened (await :meth:`read`).
 
-        The poller's path for thousands of reads a second (see
-        :meth:`RequestClient.start_exchange`). The default always says ``False``; a client
-        says ``True`` only for reads it has already done once the general way.
+        The poller's path for thousands of reads a second (see ``clients/e71_lane.py``). The
+        default always says ``False``; a client says ``True`` only for reads it has already
+        done once the general way.
         """
         return False
 

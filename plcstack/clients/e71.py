@@ -28,6 +28,7 @@ from plcstack.clients.base import (
     as_points,
 )
 from plcstack.clients.e71_commands import E71CommandsMixin
+from plcstack.clients.e71_lane import WordReadLane
 from plcstack.clients.options import COMMON, choice, integer
 from plcstack.codecs.e71 import (
     DEFAULT_PC,
@@ -139,7 +140,7 @@ class E71Client(E71CommandsMixin):
         self._monitor: tuple[int | None, int | None] = (None, None)
         #: (address, count) -> (01H request, its "what" text) of word reads already checked;
         #: a poller reads the same few addresses every scan (see ``read``)
-        self._word_reads: dict[tuple[str, int], tuple[ReadWords, str]] = {}
+        self._word_reads: dict[tuple[str, int], WordReadLane] = {}
         #: bound once: a bound method made per read would be one more object per request
         self._finish: Callable[[Response, str], list[int]] = self._finish_words
         self.codec: E71ClientConnection = self.new_codec()
@@ -255,25 +256,20 @@ class E71Client(E71CommandsMixin):
         itself: no coroutine of its own on the polling hot path. Not ``async`` for that reason;
         every error still comes from awaiting the result, as from any ``async def``.
         """
-        cached = self._word_reads.get((address, count))
-        if cached is not None:
-            request, what = cached
+        lane = self._word_reads.get((address, count))
+        if lane is not None:
+            request = lane.request
             if request.pc == self.pc and request.timer == self.monitoring_timer:
-                return self.exchange(request, what, is_write=False, finish=self._finish)
+                return self.exchange(request, lane.what, is_write=False, finish=self._finish)
         return self._read(address, count)
 
     callback_reads = True
 
     def start_read(self, address: str, count: int, done: Callable[[Any], None]) -> bool:
-        """:meth:`read` as a callback exchange, for word reads already checked once (the
-        request object from ``read``'s cache, the same checks of ``pc`` and the timer)."""
-        cached = self._word_reads.get((address, count))
-        if cached is None:
-            return False
-        request, what = cached
-        if request.pc != self.pc or request.timer != self.monitoring_timer:
-            return False
-        return self.start_exchange(request, what, self._finish, done)
+        """:meth:`read` as a callback exchange, for word reads already checked once: the
+        read's :class:`~plcstack.clients.e71_lane.WordReadLane` from ``read``'s cache."""
+        lane = self._word_reads.get((address, count))
+        return lane is not None and lane.start(done)
 
     def _finish_words(self, event: Response, what: str) -> list[int]:
         if type(event) is WordsResponse:
@@ -292,7 +288,7 @@ class E71Client(E71CommandsMixin):
         if type(address) is str and type(count) is int:
             if len(self._word_reads) >= _READ_CACHE:
                 self._word_reads.clear()
-            self._word_reads[(address, count)] = (request, what)
+            self._word_reads[(address, count)] = WordReadLane(self, request, what)
         return await self._read_words(request, what)
 
     async def write(self, address: str, values: Points) -> None:

@@ -2,13 +2,17 @@
 
 A :class:`RequestClient` sends a request and decodes its answer with a Sans-IO codec
 (``send``/``receive_data``/``next_event``), under the failure policy of :class:`Client`. The
-exchange has two drivers over the same steps (``_send_request``, ``_take_chunk``,
-``_answer_complete``, ``_exchange_failed``):
+exchange has two drivers over the same steps (``_take_chunk``, ``_answer_complete``,
+``_exchange_failed``):
 
 * :meth:`RequestClient.exchange` awaits the answer's chunks (every request of the API);
-* :meth:`RequestClient.start_exchange` is handed them by the transport as they arrive
-  (``Transport.send_delivering``) and calls back: no coroutine, no task step and no future
-  per request, for the poller's scans of thousands of PLCs (``poll/scanner.py``).
+* a prepared read (E71's :class:`~plcstack.clients.e71_lane.WordReadLane`, behind
+  ``Client.start_read``) is handed them by the transport as they arrive
+  (``Transport.send_delivering``) and calls back: no coroutine, no task step and no future per
+  request, for the poller's scans of thousands of PLCs (``poll/scanner.py``). It takes the
+  plain answer with the codec's own quick step and hands anything else to the callback steps
+  here (``_x_adopt``, ``chunk_received``, ``receive_failed``), which decide with the steps
+  ``exchange`` uses.
 
 The two cannot decide differently because they share every decision; tests/test_callback_exchange.py
 compares them on the same peers.
@@ -26,7 +30,6 @@ from plcstack.clients.base import Client
 from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
 from plcstack.errors import ConnectionLost, PlcError, PlcTimeout, RemoteProtocolError
-from plcstack.transports.base import Receiver
 
 __all__ = ["ClientCodec", "RequestClient"]
 
@@ -163,9 +166,9 @@ class RequestClient(Client, Generic[E]):
 
     # -- the steps of one exchange, shared by both drivers ---------------------------------
     #
-    # ``exchange`` awaits the chunks of an answer; ``start_exchange`` is handed them by the
-    # transport (``send_delivering``). Both send, decode, settle and fail through the same
-    # steps below, so the two paths cannot decide differently (tests/test_callback_exchange.py
+    # ``exchange`` awaits the chunks of an answer; the callback driver is handed them by the
+    # transport (``send_delivering``). Both decode, settle and fail through the same steps
+    # below, so the two paths cannot decide differently (tests/test_callback_exchange.py
     # compares them).
 
     #: the exchange in progress: what every chunk of its answer is and was (the first alone,
@@ -176,12 +179,10 @@ class RequestClient(Client, Generic[E]):
     _x_sent = False
     _x_quick = False
 
-    def _send_request(self, request: Any, receiver: Receiver | None = None) -> Any:
+    def _send_request(self, request: Any) -> Any:
         """Count and send ``request`` on a connection checked for stale input: ``NEED_DATA``,
         or the answer an unsettled codec already holds (settled, as :meth:`_take_chunk`
-        leaves it). Raises the transport's and the codec's errors. With ``receiver`` (the
-        callback driver) the transport hands the answer's chunks to it, under the deadline
-        ``_x_deadline``."""
+        leaves it). Raises the transport's and the codec's errors."""
         self.stats.requests += 1
         self._x_first = b""
         self._x_chunks = None
@@ -190,10 +191,7 @@ class RequestClient(Client, Generic[E]):
         settled, self._settled = self._settled, False
         self._x_sent = False
         codec = self.codec
-        if receiver is None:
-            self.transport.write(codec.send(request))
-        else:
-            self.transport.send_delivering(codec.send(request), receiver, self._x_deadline)
+        self.transport.write(codec.send(request))
         self._x_sent = True
         # The usual case of a poll: the whole answer in one chunk and nothing more (see
         # ``_take_chunk``).
@@ -256,55 +254,43 @@ class RequestClient(Client, Generic[E]):
         return exc.bind(plc=self.name, request=what)
 
     # -- the callback driver ------------------------------------------------------------------
-    #: the callback exchange in progress (``start_exchange``): its ``done``, ``finish``, text,
-    #: kind and deadline; ``_x_done`` is None when none is
+    # A prepared read (E71's ``WordReadLane``, ``clients/e71_lane.py``) starts an exchange
+    # without awaiting (the transport hands the answer's chunks to it: ``send_delivering``)
+    # and takes a plain answer itself. Anything else it hands to the steps below (``_x_adopt``),
+    # which decide with the steps ``exchange`` uses and call its ``done`` exactly once.
+
+    #: the callback exchange in progress: its ``done``, ``finish``, text, kind and deadline;
+    #: ``_x_done`` is None when none is
     _x_done: Callable[[Any], None] | None = None
     _x_finish: Callable[[Any, str], Any] | None = None
     _x_what = ""
     _x_is_write = False
     _x_deadline = 0.0
 
-    def start_exchange(
+    def _x_adopt(
         self,
-        request: Any,
-        what: str,
-        finish: Callable[[E, str], Any],
         done: Callable[[Any], None],
+        finish: Callable[[Any, str], Any],
+        what: str,
         *,
+        sent: bool,
         is_write: bool = False,
-    ) -> bool:
-        """Send ``request`` now and return ``True`` when that needs no waiting: the lock free,
-        the connection open and quiet, the codec settled. ``done`` is then called exactly once,
-        from the event loop, with ``finish(event, what)`` or with the exception ``exchange``
-        would have raised (the same :class:`PlcError`, after the same failure policy). Else
-        ``False``, and nothing was sent or changed: the caller takes ``exchange``.
-
-        What a poller needs for thousands of requests a second: no coroutine, no task step and
-        no future per request; the transport hands the answer's chunks to this client
-        (:meth:`chunk_received`). ``done`` may run before this returns (a send that fails at
-        once). :meth:`abandon_exchange` gives one up, as cancelling ``exchange`` does.
-        """
-        transport = self.transport
-        if (
-            not self._settled
-            or self.stale_check_needs_loop_pass
-            or not transport.quiet()
-            or not self._lock.try_acquire()
-        ):
-            return False
+    ) -> None:
+        """Take over a callback exchange that a prepared read started (``_x_done`` set, the
+        request counted as ``_send_request`` counts it, the codec unsettled), in the state
+        ``_send_request`` would have left: from here on the steps below decide. ``sent``:
+        whether the request was handed to the transport. Its quick step (``take_answer``) is
+        spent: the prepared read tried it on the first chunk, if one came."""
         self._x_done, self._x_finish, self._x_what, self._x_is_write = done, finish, what, is_write
         self._x_deadline = self.timeout
-        try:
-            event = self._send_request(request, self)
-        except Exception as exc:
-            self._x_failed(exc)
-            return True
-        if event is not NEED_DATA:  # never from a settled codec; the general step decided
-            self._x_answered(event)
-        return True
+        self._x_first = b""
+        self._x_chunks = None
+        self._x_sent = sent
+        self._x_quick = False
 
     def chunk_received(self, data: bytes) -> None:
-        """A chunk of the answer to the callback exchange (the transport's :class:`Receiver`)."""
+        """A chunk of the answer to the callback exchange, from the prepared read that
+        started it (the transport's :class:`~plcstack.transports.base.Receiver`)."""
         try:
             event = self._take_chunk(data)
         except Exception as exc:
@@ -314,7 +300,8 @@ class RequestClient(Client, Generic[E]):
             self._x_answered(event)
 
     def receive_failed(self, exc: Exception) -> None:
-        """The callback exchange's deadline passed or its connection ended (:class:`Receiver`)."""
+        """The callback exchange's deadline passed or its connection ended (from the prepared
+        read that started it)."""
         self._x_failed(exc)
 
     def _x_answered(self, event: Any) -> None:

@@ -114,7 +114,7 @@ class Transport(ABC):
         then attaches nothing. Only called after :meth:`quiet` said ``True``: a transport
         that never says so need not implement it.
 
-        The callback-driven exchange (``RequestClient.start_exchange``): no future and no
+        The callback-driven exchange (``clients/e71_lane.py``): no future and no
         task step per answer, where ``read`` costs both; and one call where ``write`` and
         attaching the receiver were two, on every polled request. The timeout is relative,
         unlike ``read``'s deadline: the transport knows its loop, and asking for the running
