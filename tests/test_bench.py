@@ -546,6 +546,30 @@ async def test_fleet_floor_hands_out_bytes_or_the_decoded_words(decode: bool) ->
         assert reply == fleet.REPLY
 
 
+def test_fleet_alternate_runs_every_kind_per_round_in_abba_order() -> None:
+    """One child, one set of responders, the kinds back to back and reversed every other round;
+    a ratio per round from that round's runs, and their median."""
+    from plcstack.bench.cases import fleet
+
+    summary = fleet.spawn(
+        "alternate", 2, loop="asyncio", duration=0.1, warmup=0.15,
+        kinds=("floor", "decoded", "poll"), rounds=2, timeout=20.0,
+    )  # fmt: skip
+    assert "note" not in summary, summary
+    order = [(run["round"], run["kind"]) for run in summary["runs"]]
+    assert order == [(0, "floor"), (0, "decoded"), (0, "poll"),
+                     (1, "poll"), (1, "decoded"), (1, "floor")]  # fmt: skip
+    runs = {(run["round"], run["kind"]): run for run in summary["runs"]}
+    assert all(run["requests"] > 0 and run["overruns"] == 0 for run in runs.values())
+    for base in ("floor", "decoded"):
+        expected = [
+            runs[r, base]["cpu_us_per_request"] / runs[r, "poll"]["cpu_us_per_request"]
+            for r in range(2)
+        ]
+        assert summary["ratios"][base] == pytest.approx(expected)
+        assert summary["ratio"][base] == pytest.approx(sum(expected) / 2)
+
+
 def test_fleet_row_takes_medians_and_the_ratio_of_cpu_per_request() -> None:
     from plcstack.bench.suite import fleet_row
 

@@ -269,39 +269,51 @@ def run_fanout(plan: Plan, loop_name: str, say: Callable[[str], None]) -> list[R
 
 
 def run_fleet(plan: Plan, loop_name: str, say: Callable[[str], None]) -> list[Result]:
-    """Floor, decoded floor and poller children alternate ``fleet_repeats`` times per N (load on
-    a shared machine drifts; neighbouring runs see the same); CPU per request and ratio are
-    medians. Two rows per N: the poller against the raw floor (bytes), and against the floor
-    that also turns each reply into its 64 ints (``decoded``, see the fleet case)."""
+    """Floor, decoded floor and poller alternate for ``fleet_repeats`` rounds per N, in one
+    child process against one set of responders (the fleet case's ``alternate``: runs of one
+    round back to back, ABBA order; separate processes minutes apart differed by 15 % on a
+    shared machine). CPU per request and ratio are medians over the rounds. Two rows per N:
+    the poller against the raw floor (bytes), and against the floor that also turns each
+    reply into its 64 ints (``decoded``, see the fleet case)."""
     rows: list[Result] = []
     name = "fleet/e71+tcp/poll"
     kinds = ("floor", "decoded", "poll")
     for n in plan.fleet_ns:
-        runs: list[list[dict[str, Any]]] = []
-        failed = ""
-        for i in range(plan.fleet_repeats):
-            got = []
-            for kind in kinds:
-                say(f"fleet/e71+tcp/{kind} N={n} at 10 Hz on {loop_name} ({i + 1})")
-                summary = fleet.spawn(
-                    kind,
-                    n,
-                    loop=loop_name,
-                    duration=plan.fleet_duration,
-                    warmup=plan.fleet_warmup,
-                )
-                if "cpu_us_per_request" not in summary or not summary["cpu_us_per_request"]:
-                    failed = f"{kind}: {summary.get('note', 'no requests completed')}"
-                got.append(summary)
-            if failed:
-                break
-            runs.append(got)
-        if failed:
-            rows.append(Result.skipped(name, loop_name, n, failed, group="fleet"))
+        say(
+            f"fleet/e71+tcp N={n} at 10 Hz on {loop_name}: {', '.join(kinds)} alternating, "
+            f"{plan.fleet_repeats} round(s)"
+        )
+        summary = fleet.spawn(
+            "alternate",
+            n,
+            loop=loop_name,
+            duration=plan.fleet_duration,
+            warmup=plan.fleet_warmup,
+            kinds=kinds,
+            rounds=plan.fleet_repeats,
+        )
+        runs = {(run["round"], run["kind"]): run for run in summary.get("runs", ())}
+        failed = summary.get("note", "")
+        if not failed:
+            for (r, kind), run in sorted(runs.items()):
+                if not run.get("cpu_us_per_request"):
+                    failed = f"{kind} (round {r + 1}): no requests completed"
+                    break
+        if failed or len(runs) != len(kinds) * plan.fleet_repeats:
+            reason = failed or "the child reported fewer runs than asked"
+            rows.append(Result.skipped(name, loop_name, n, reason, group="fleet"))
             continue
-        rows.append(fleet_row(name, loop_name, n, [(r[0], r[2]) for r in runs]))
+        rounds = range(plan.fleet_repeats)
         rows.append(
-            fleet_row(f"{name} (decoded floor)", loop_name, n, [(r[1], r[2]) for r in runs])
+            fleet_row(name, loop_name, n, [(runs[r, "floor"], runs[r, "poll"]) for r in rounds])
+        )
+        rows.append(
+            fleet_row(
+                f"{name} (decoded floor)",
+                loop_name,
+                n,
+                [(runs[r, "decoded"], runs[r, "poll"]) for r in rounds],
+            )
         )
     return rows
 

@@ -28,7 +28,10 @@ Run one measurement (a JSON line on stdout)::
 
     python -m plcstack.bench.cases.fleet poll 1000 --loop asyncio --duration 5
 
-``plcstack bench`` runs floor and stack in fresh child processes (:func:`spawn`) and pairs them.
+or several kinds in one process, alternating, with the ratio of each base to the last kind per
+round (``alternate``; ``plcstack bench`` runs floor, decoded and poll this way)::
+
+    python -m plcstack.bench.cases.fleet alternate 1000 --kinds floor,decoded,poll --rounds 6
 """
 
 from __future__ import annotations
@@ -41,11 +44,12 @@ import importlib
 import json
 import os
 import resource
+import statistics
 import struct
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable, Iterator
 from typing import Any, cast
 
 from plcstack.bench import frames
@@ -231,12 +235,14 @@ async def _schedule(
 
 async def _floor_fleet(
     ports: list[int], counters: _Counters, decode: bool = False
-) -> list[asyncio.Task[None]]:
+) -> tuple[list[asyncio.Task[None]], list[Closer]]:
     loop = asyncio.get_running_loop()
     now = time.perf_counter()
     tasks = []
+    closers: list[Closer] = []
     for i, port in enumerate(ports):
-        _, conn = await loop.create_connection(_FloorConn, "127.0.0.1", port)
+        transport, conn = await loop.create_connection(_FloorConn, "127.0.0.1", port)
+        closers.append(_closer(transport))
         conn.decode = decode
 
         def make(conn: _FloorConn = conn) -> Callable[[], asyncio.Future[bytes | list[int]]]:
@@ -250,10 +256,23 @@ async def _floor_fleet(
 
         due = now + 0.2 + INTERVAL * i / len(ports)
         tasks.append(asyncio.create_task(_schedule(due, counters, make(), [False])))
-    return tasks
+    return tasks, closers
 
 
-async def _client_fleet(ports: list[int], counters: _Counters) -> tuple[list[Any], list[Any]]:
+#: closes one connection or client of a fleet when its run ends
+Closer = Callable[[], Awaitable[None]]
+
+
+def _closer(transport: asyncio.BaseTransport) -> Closer:
+    async def close() -> None:
+        transport.close()
+
+    return close
+
+
+async def _client_fleet(
+    ports: list[int], counters: _Counters
+) -> tuple[list[asyncio.Task[None]], list[Closer]]:
     import plcstack
 
     clients = [plcstack.connect(f"e71+tcp://127.0.0.1:{port}") for port in ports]
@@ -268,7 +287,27 @@ async def _client_fleet(ports: list[int], counters: _Counters) -> tuple[list[Any
 
         due = now + INTERVAL * i / len(clients)
         tasks.append(asyncio.create_task(_schedule(due, counters, make(), [False])))
-    return tasks, clients
+    return tasks, [client.aclose for client in clients]
+
+
+@contextlib.contextmanager
+def _responders(n: int) -> Iterator[tuple[list[int], bool]]:
+    """Pin this process, start the responders on the other CPU; their ports, and whether the
+    two are pinned apart. Stops the responders at the end."""
+    cpus = _cpus()
+    responder_cpu = cpus[-1] if len(cpus) >= 2 else None
+    _pin(cpus[0] if len(cpus) >= 2 else None)
+    raise_fd_limit(2 * n + 64)
+    proc, ports = _start_responders(n, responder_cpu)
+    try:
+        yield ports, responder_cpu is not None
+    finally:
+        assert proc.stdin is not None
+        proc.stdin.close()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
 
 
 async def _measure(
@@ -279,20 +318,74 @@ async def _measure(
     profile: str | None = None,
     opcodes: str | None = None,
 ) -> dict[str, Any]:
-    cpus = _cpus()
-    responder_cpu = cpus[-1] if len(cpus) >= 2 else None
-    _pin(cpus[0] if len(cpus) >= 2 else None)
-    raise_fd_limit(2 * n + 64)
-    proc, ports = _start_responders(n, responder_cpu)
+    with _responders(n) as (ports, pinned):
+        summary = await _run_kind(kind, ports, duration, warmup, profile, opcodes)
+    summary["pinned"] = pinned
+    return summary
+
+
+async def _measure_alternating(
+    kinds: tuple[str, ...], n: int, rounds: int, duration: float, warmup: float
+) -> dict[str, Any]:
+    """Every kind in this one process against one set of responders, in alternating runs.
+
+    Separate processes a few minutes apart gave the same kind CPU costs 15 % apart on this
+    two-core VM (the host's load moves them), more than the differences measured; the ratio
+    of two such runs moved by 0.15. Here each round runs every kind back to back, in the
+    reverse order every other round (ABBA: the last of a round is the first of the next, so
+    a slow drift charges all alike), and a ratio is taken per round: the last kind is the one
+    measured, every other one a base, and ``ratio[base]`` is the median over the rounds of
+    ``base / last`` CPU per request.
+    """
+    measured = kinds[-1]
+    runs: list[dict[str, Any]] = []
+    with _responders(n) as (ports, pinned):
+        for r in range(rounds):
+            for kind in kinds if r % 2 == 0 else kinds[::-1]:
+                run = await _run_kind(kind, ports, duration, warmup)
+                run["round"] = r
+                runs.append(run)
+                gc.collect()  # the last fleet's garbage is not the next one's cost
+
+    def cost(kind: str) -> list[float]:
+        return [run["cpu_us_per_request"] or 0.0 for run in runs if run["kind"] == kind]
+
+    ratios = {
+        base: [b / m for b, m in zip(cost(base), cost(measured), strict=True) if b and m]
+        for base in kinds[:-1]
+    }
+    return {
+        "kind": "alternate",
+        "kinds": list(kinds),
+        "n": n,
+        "rounds": rounds,
+        "pinned": pinned,
+        "ratio": {base: statistics.median(r) for base, r in ratios.items() if r},
+        "ratios": ratios,
+        "cpu_us_per_request": {k: statistics.median(cost(k)) for k in kinds if cost(k)},
+        "runs": runs,
+    }
+
+
+async def _run_kind(
+    kind: str,
+    ports: list[int],
+    duration: float,
+    warmup: float,
+    profile: str | None = None,
+    opcodes: str | None = None,
+) -> dict[str, Any]:
+    """Start a fleet of ``kind`` against the responders' ``ports``, measure it, close it."""
+    n = len(ports)
     counters = _Counters()
     tasks: list[asyncio.Task[None]] = []
-    closers: list[Any] = []
+    closers: list[Closer] = []
     poller: Any = None
     consumer: asyncio.Task[None] | None = None
     bad: list[str] = []
     try:
         if kind in ("floor", "decoded"):
-            tasks = await _floor_fleet(ports, counters, decode=kind == "decoded")
+            tasks, closers = await _floor_fleet(ports, counters, decode=kind == "decoded")
         elif kind == "clients":
             tasks, closers = await _client_fleet(ports, counters)
         else:
@@ -373,19 +466,13 @@ async def _measure(
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
-        for client in closers:
-            await client.aclose()
+        for close in closers:
+            await close()
         if poller is not None:
             await poller.aclose()
         if consumer is not None:
             consumer.cancel()
             await asyncio.gather(consumer, return_exceptions=True)
-        assert proc.stdin is not None
-        proc.stdin.close()
-        try:
-            proc.wait(5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
     done = r1 - r0
     latencies.sort()
 
@@ -415,7 +502,6 @@ async def _measure(
         "overruns": o1 - o0,
         "p50_ms": pct(50),
         "p99_ms": pct(99),
-        "pinned": responder_cpu is not None,
         "consumer_wait": CONSUMER_WAIT if kind == "poll" else None,
     }
 
@@ -496,24 +582,45 @@ def run_child(
     warmup: float,
     profile: str | None = None,
     opcodes: str | None = None,
+    kinds: tuple[str, ...] = ("floor", "poll"),
+    rounds: int = 4,
 ) -> dict[str, Any]:
+    """One kind's measurement, or with ``kind`` ``"alternate"`` every kind of ``kinds`` in
+    alternating runs (:func:`_measure_alternating`)."""
     factory: Callable[[], asyncio.AbstractEventLoop] = asyncio.new_event_loop
     if loop == "uvloop":
         factory = importlib.import_module("uvloop").new_event_loop
     gc.callbacks.append(_gc_callback)
     with asyncio.Runner(loop_factory=factory) as runner:
-        return runner.run(_measure(kind, n, duration, warmup, profile, opcodes))
+        if kind == "alternate":
+            summary = runner.run(_measure_alternating(kinds, n, rounds, duration, warmup))
+        else:
+            summary = runner.run(_measure(kind, n, duration, warmup, profile, opcodes))
+    summary["loop"] = loop
+    return summary
 
 
 # -- parent side ----------------------------------------------------------------------------------
 def spawn(
-    kind: str, n: int, *, loop: str, duration: float, warmup: float, timeout: float = 120.0
+    kind: str,
+    n: int,
+    *,
+    loop: str,
+    duration: float,
+    warmup: float,
+    kinds: tuple[str, ...] = ("floor", "poll"),
+    rounds: int = 1,
+    timeout: float = 120.0,
 ) -> dict[str, Any]:
-    """One measurement in a fresh child process; its JSON summary, or ``{"note": ...}``."""
+    """One measurement in a fresh child process; its JSON summary, or ``{"note": ...}``.
+    With ``kind`` ``"alternate"``: ``rounds`` rounds of ``kinds`` (``timeout`` per run)."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(PACKAGE_PARENT), env.get("PYTHONPATH", "")])
     cmd = [sys.executable, "-m", "plcstack.bench.cases.fleet", kind, str(n), "--loop", loop]
     cmd += ["--duration", str(duration), "--warmup", str(warmup)]
+    if kind == "alternate":
+        cmd += ["--kinds", ",".join(kinds), "--rounds", str(rounds)]
+        timeout *= rounds * len(kinds)
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
     except subprocess.TimeoutExpired:
@@ -528,7 +635,7 @@ def spawn(
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m plcstack.bench.cases.fleet")
-    parser.add_argument("kind", choices=(*KINDS, "serve"))
+    parser.add_argument("kind", choices=(*KINDS, "alternate", "serve"))
     parser.add_argument("n", type=int)
     parser.add_argument("--loop", choices=("asyncio", "uvloop"), default="asyncio")
     parser.add_argument("--duration", type=float, default=3.0)
@@ -541,12 +648,24 @@ def main(argv: list[str] | None = None) -> int:
         help="count the window's bytecodes per function into FILE (python -m "
         "plcstack.bench.opcodes FILE... compares them per request; use a small N)",
     )
+    parser.add_argument(
+        "--kinds",
+        default="floor,poll",
+        help="with kind 'alternate': the kinds to alternate, comma-separated, the measured one "
+        "last and the bases before it (default floor,poll)",
+    )
+    parser.add_argument("--rounds", type=int, default=4, help="with kind 'alternate' (default 4)")
     args = parser.parse_args(argv)
+    kinds = tuple(args.kinds.split(","))
+    if len(kinds) < 2 or len(set(kinds)) != len(kinds) or not set(kinds) <= set(KINDS):
+        parser.error(f"--kinds takes two or more of {', '.join(KINDS)}, comma-separated")
+    if args.rounds < 1:
+        parser.error("--rounds must be at least 1")
     if args.kind == "serve":
         return _serve_main(args.n, args.cpu)
     summary = run_child(args.kind, args.n, loop=args.loop, duration=args.duration,
-                        warmup=args.warmup, profile=args.profile,
-                        opcodes=args.opcodes)  # fmt: skip
+                        warmup=args.warmup, profile=args.profile, opcodes=args.opcodes,
+                        kinds=kinds, rounds=args.rounds)  # fmt: skip
     print(json.dumps(summary))
     return 0
 
