@@ -13,14 +13,15 @@ A :class:`WordReadLane` is that plain case, kept with the client's cache of chec
 (one lane per address and count). :meth:`~WordReadLane.start` sends only when that needs no
 waiting: codec settled, single-flight lock free, connection quiet (the stale-input check of
 ``exchange``), ``pc`` and timer unchanged; and counts the request as ``_send_request`` does.
-When the codec takes the first chunk as the whole normal answer (``take_answer``, the same step
-``_take_chunk`` tries first), the lane settles, releases and calls back as ``_x_answered``
-does. At the first sign of anything else (a send that fails, an answer the codec does not take
-whole, a deadline, a lost connection, a transport that never takes answers whole) it hands the
-exchange to the general steps (``RequestClient._x_adopt``) with the state they would have kept,
-and they decide: the codec and the failure policy are never bypassed, only the bookkeeping the
-plain case does not read. tests/test_callback_exchange.py holds the lane to the awaited read on
-every case it has (split, extra, error codes, close mid-answer, deadlines, datagrams, garbage).
+When the codec takes the first chunk as the whole normal answer (``take_words``, the decision
+of ``take_answer``, which ``_take_chunk`` tries first), the lane settles, releases and calls
+back as ``_x_answered`` does. At the first sign of anything else (a send that fails, an answer
+the codec does not take whole, a deadline, a lost connection, a transport that never takes
+answers whole) it hands the exchange to the general steps (``RequestClient._x_adopt``) with
+the state they would have kept, and they decide: the codec and the failure policy are never
+bypassed, only the bookkeeping the plain case does not read. tests/test_callback_exchange.py
+holds the lane to the awaited read on every case it has (split, extra, error codes, close
+mid-answer, deadlines, datagrams, garbage).
 """
 
 from __future__ import annotations
@@ -93,24 +94,24 @@ class WordReadLane:
             client.chunk_received(data)
             return
         try:
-            answer = client.codec.take_answer(data)
+            words = client.codec.take_words(data)
         except Exception as exc:  # a bug in the codec: as the general step treats one
             self._hand_over(sent=True)
             client._x_failed(exc)
             return
-        if answer is None:  # not the whole normal answer alone: the general steps decide
+        if words is None:  # not the whole normal answer alone: the general steps decide
             self._hand_over(sent=True)
             client.chunk_received(data)
             return
-        # ``_take_chunk``'s quick step, then ``_x_answered`` with the E71 client's finish
-        # (``_finish_words``: the words of a ``WordsResponse`` as a list)
+        # ``_take_chunk``'s quick step (``take_answer`` is ``take_words`` in an event), then
+        # ``_x_answered`` with the E71 client's finish (``_finish_words``: the words as a list)
         client._settled = True
         if client._unproven:
             client._answered()
         client._x_done = None
         client.transport.stop_delivery()
         client._lock.release()
-        self._done(list(answer.values))  # type: ignore[misc]  # set by start
+        self._done(list(words))  # type: ignore[misc]  # set by start
 
     def receive_failed(self, exc: Exception) -> None:
         """The deadline passed or the connection ended (:class:`Receiver`)."""

@@ -371,6 +371,12 @@ class ClientConnection(ErrorState):
         answer, a trailer to skip, several pending requests), the caller takes the general
         path with the same bytes (tests/test_fleet_paths.py compares both).
         """
+        words = self.take_words(data)
+        return None if words is None else WordsResponse(1, words)
+
+    def take_words(self, data: bytes) -> tuple[int, ...] | None:
+        """:meth:`take_answer`'s words alone: the same decision without the event object,
+        for a caller that hands out only the words (the E71 client's prepared reads)."""
         stream = self._fast_stream
         pending = self._pending
         if (
@@ -387,7 +393,8 @@ class ClientConnection(ErrorState):
         ):
             return None
         pending.popleft()
-        return WordsResponse(1, self._last_unpack.unpack_from(data, 2))
+        words: tuple[int, ...] = self._last_unpack.unpack_from(data, 2)
+        return words
 
     # -- sizing and decoding ------------------------------------------------------------------
     def _response_size(self, req: E71Request, head: bytes) -> int | None:
