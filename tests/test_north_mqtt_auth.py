@@ -103,7 +103,8 @@ async def test_a_client_certificate_signed_by_the_brokers_ca_gets_in(tls_broker:
 async def test_no_client_certificate_is_a_typed_error_naming_the_broker(
     tls_broker: TlsBroker, caplog: pytest.LogCaptureFixture
 ) -> None:
-    sink = MqttSink(tls_broker.settings(timeout=0.5))
+    # a limit a loaded machine's TLS handshake fits in (as for the foreign CA below)
+    sink = MqttSink(tls_broker.settings(timeout=1.5))
     with caplog.at_level(logging.WARNING, logger="plcstack.north.mqtt"):
         await sink.start()
         try:
@@ -117,8 +118,15 @@ async def test_no_client_certificate_is_a_typed_error_naming_the_broker(
             await sink.aclose(drain=0)
     text = str(raised.value)
     assert text.startswith(f"MQTT broker {tls_broker.url}: connect: ")
-    assert "the broker requires a client certificate; set [mqtt] cert_file and key_file" in text
-    assert "CERTIFICATE_REQUIRED" in text.upper() or "DID NOT RETURN A CERTIFICATE" in text.upper()
+    # the broker's alert, or only its close when the alert lost the race (TLS 1.3 checks the
+    # client's certificate after the handshake; see mqtt_errors.py): either way the message
+    # says to set the certificate
+    upper = text.upper()
+    if "EOF OCCURRED IN VIOLATION OF PROTOCOL" in upper:
+        assert "if it requires a client certificate, set [mqtt] cert_file and key_file" in text
+    else:
+        assert "the broker requires a client certificate; set [mqtt] cert_file and key_file" in text
+        assert "CERTIFICATE_REQUIRED" in upper or "DID NOT RETURN A CERTIFICATE" in upper
     assert sink.stats.connects == connects_before == 0
     assert sink.stats.failures >= 2
     # ...and says so once, not once per attempt
