@@ -45,14 +45,14 @@ class WordReadLane:
     for the exchange it started. One exchange at a time: the client's lock guarantees it.
     """
 
-    __slots__ = ("_client", "_done", "_handed", "request", "what")
+    __slots__ = ("_client", "_handed", "request", "what")
 
     def __init__(self, client: E71Client, request: ReadWords, what: str) -> None:
         self._client = client
         self.request = request
         self.what = what
-        #: the exchange in flight: its ``done``, and whether the general steps have it
-        self._done: Callable[[Any], None] | None = None
+        #: whether the general steps run the exchange in flight (its ``done`` is the client's
+        #: ``_x_done``, which ``abandon_exchange`` clears)
         self._handed = False
 
     def start(self, done: Callable[[Any], None]) -> bool:
@@ -73,7 +73,7 @@ class WordReadLane:
             return False
         # what the general steps read while the exchange is in flight: that it is
         # (``abandon_exchange``), counted, and that the codec is no longer settled
-        client._x_done = self._done = done
+        client._x_done = done
         self._handed = False
         client.stats.requests += 1
         client._settled = False
@@ -105,13 +105,9 @@ class WordReadLane:
             return
         # ``_take_chunk``'s quick step (``take_answer`` is ``take_words`` in an event), then
         # ``_x_answered`` with the E71 client's finish (``_finish_words``: the words as a list)
-        client._settled = True
-        if client._unproven:
-            client._answered()
-        client._x_done = None
-        client.transport.stop_delivery()
-        client._lock.release()
-        self._done(list(words))  # type: ignore[misc]  # set by start
+        client._answer_taken()
+        done = client._x_end()
+        done(list(words))
 
     def receive_failed(self, exc: Exception) -> None:
         """The deadline passed or the connection ended (:class:`Receiver`)."""
@@ -123,4 +119,4 @@ class WordReadLane:
         if not self._handed:
             self._handed = True
             client = self._client
-            client._x_adopt(self._done, client._finish, self.what, sent=sent)  # type: ignore[arg-type]
+            client._x_adopt(client._finish, self.what, sent=sent)

@@ -212,9 +212,7 @@ class RequestClient(Client, Generic[E]):
             # below then runs as before). Only codecs with the method set ``quick_answers``.
             quick = codec.take_answer(chunk)  # type: ignore[attr-defined]
             if quick is not None:
-                self._settled = True
-                if self._unproven:
-                    self._answered()
+                self._answer_taken()
                 return quick
         chunks = self._x_chunks
         if chunks is not None:
@@ -229,10 +227,15 @@ class RequestClient(Client, Generic[E]):
 
     def _answer_complete(self, event: Any) -> Any:
         self._check_nothing_follows(self.codec)
+        self._answer_taken()
+        return event
+
+    def _answer_taken(self) -> None:
+        """The codec gave the whole answer and holds nothing after it: it is settled, and the
+        connection has proven itself (the backoff starts over)."""
         self._settled = True
         if self._unproven:
             self._answered()
-        return event
 
     def _exchange_failed(
         self, exc: TimeoutError | PlcError, what: str, is_write: bool, deadline: float
@@ -259,29 +262,20 @@ class RequestClient(Client, Generic[E]):
     # and takes a plain answer itself. Anything else it hands to the steps below (``_x_adopt``),
     # which decide with the steps ``exchange`` uses and call its ``done`` exactly once.
 
-    #: the callback exchange in progress: its ``done``, ``finish``, text, kind and deadline;
-    #: ``_x_done`` is None when none is
+    #: the callback exchange in progress (always a read: ``Client.start_read``): its
+    #: ``done``, ``finish``, text and deadline; ``_x_done`` is None when none is
     _x_done: Callable[[Any], None] | None = None
     _x_finish: Callable[[Any, str], Any] | None = None
     _x_what = ""
-    _x_is_write = False
     _x_deadline = 0.0
 
-    def _x_adopt(
-        self,
-        done: Callable[[Any], None],
-        finish: Callable[[Any, str], Any],
-        what: str,
-        *,
-        sent: bool,
-        is_write: bool = False,
-    ) -> None:
+    def _x_adopt(self, finish: Callable[[Any, str], Any], what: str, *, sent: bool) -> None:
         """Take over a callback exchange that a prepared read started (``_x_done`` set, the
         request counted as ``_send_request`` counts it, the codec unsettled), in the state
         ``_send_request`` would have left: from here on the steps below decide. ``sent``:
         whether the request was handed to the transport. Its quick step (``take_answer``) is
         spent: the prepared read tried it on the first chunk, if one came."""
-        self._x_done, self._x_finish, self._x_what, self._x_is_write = done, finish, what, is_write
+        self._x_finish, self._x_what = finish, what
         self._x_deadline = self.timeout
         self._x_first = b""
         self._x_chunks = None
@@ -304,39 +298,41 @@ class RequestClient(Client, Generic[E]):
         read that started it)."""
         self._x_failed(exc)
 
-    def _x_answered(self, event: Any) -> None:
-        self.transport.stop_delivery()
-        done, finish = self._x_done, self._x_finish
+    def _x_end(self) -> Callable[[Any], None]:
+        """End the callback exchange in flight: no longer in flight, its receiver detached,
+        the lock released (a waiter it is handed to runs in a later loop pass). Its ``done``.
+        """
+        done = self._x_done
         self._x_done = None
+        self.transport.stop_delivery()
         self._lock.release()
+        return done  # type: ignore[return-value]  # callers check or know it is in flight
+
+    def _x_answered(self, event: Any) -> None:
+        done = self._x_end()
         try:
-            result = finish(event, self._x_what)  # type: ignore[misc]  # set with done
+            result = self._x_finish(event, self._x_what)  # type: ignore[misc]  # set with done
         except Exception as exc:  # the PLC's error code, bound (as ``exchange`` raises it)
             result = exc
-        done(result)  # type: ignore[misc]
+        done(result)
 
     def _x_failed(self, exc: Exception) -> None:
-        done = self._x_done
-        if done is None:
+        if self._x_done is None:
             return  # abandoned meanwhile
-        self._x_done = None
-        self.transport.stop_delivery()
+        done = self._x_end()
         error: Exception
         if isinstance(exc, TimeoutError | PlcError):
-            error = self._exchange_failed(exc, self._x_what, self._x_is_write, self._x_deadline)
+            is_write = False  # a callback exchange is a read
+            error = self._exchange_failed(exc, self._x_what, is_write, self._x_deadline)
         else:  # a bug in a codec: what it left behind cannot be trusted
             self._drop()
             error = exc
-        self._lock.release()
         done(error)
 
     def abandon_exchange(self) -> None:
-        if self._x_done is None:
-            return
-        self._x_done = None
-        self.transport.stop_delivery()
-        self._drop()
-        self._lock.release()
+        if self._x_done is not None:
+            self._x_end()
+            self._drop()
 
     @staticmethod
     def _check_nothing_follows(codec: ClientCodec) -> None:
