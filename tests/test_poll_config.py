@@ -9,7 +9,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plcstack import values as vt
-from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, load_config, parse_config
+from plcstack.poll.config import (
+    ConfigError,
+    PlcConfig,
+    PollConfig,
+    TagConfig,
+    load_config,
+    parse_config,
+)
 from plcstack.values import WordOrder
 
 GOOD = """
@@ -111,6 +118,22 @@ ERRORS = [
     (with_plc("", tags='a = { address = "D0", count = true }'), ["p1", "tag 'a'", "count"]),
     (with_plc("", tags='a = { address = "D0", group = "x" }'), ["p1", "tag 'a'", "scan group 'x'"]),
     (with_plc("", tags='a = { address = "D0", scale = 2 }'), ["p1", "tag 'a'", "scale"]),
+    (
+        with_plc("", tags='a = { address = "D0", description = 5 }'),
+        ["p1", "tag 'a'", "description", "non-empty string", "cfg.toml:6"],
+    ),
+    (
+        with_plc("", tags='a = { address = "D0", description = " " }'),
+        ["p1", "tag 'a'", "description", "non-empty"],
+    ),
+    (
+        with_plc("", tags='a = { address = "D0", description = "two\\nlines" }'),
+        ["p1", "tag 'a'", "description", "control characters", "'\\n'"],
+    ),
+    (
+        with_plc("", tags='a = { address = "D0", description = "' + "x" * 1025 + '" }'),
+        ["p1", "tag 'a'", "description", "at most 1024"],
+    ),
     (with_plc("") + with_plc(""), ["p1", "used twice", "cfg.toml:8"]),
     (with_plc("max_gap = -1"), ["p1", "max_gap", "at least 0"]),
     (with_plc("timeout = 0"), ["p1", "timeout", "greater than 0"]),
@@ -126,6 +149,28 @@ def test_validation_errors(text: str, words: list[str]) -> None:
     message = str(err.value)
     for word in words:
         assert word in message, message
+
+
+def test_description_is_read_and_optional() -> None:
+    tags = (
+        'pump = { address = "M10", type = "bool", description = "Feed pump 2 running\tP-102" }\n'
+        'level = "D0"\n'
+        'temp = { address = "D2", description = "Öltemperatur °C 油温" }\n'
+    )
+    pump, level, temp = parse_config(with_plc("", tags=tags)).plcs[0].tags
+    assert pump.description == "Feed pump 2 running\tP-102"
+    assert level.description is None
+    assert temp.description == "Öltemperatur °C 油温"
+
+
+def test_python_built_description_is_checked_too() -> None:
+    good = vt.INT16
+    ok = PlcConfig("p", "e71+tcp://127.0.0.1:1", (TagConfig("a", "D0", good, description="x"),))
+    assert PollConfig((ok,)).plcs[0].tags[0].description == "x"
+    for bad in ("", "a\nb", 5):
+        tag = TagConfig("a", "D0", good, description=bad)  # type: ignore[arg-type]
+        with pytest.raises(ConfigError, match="tag 'a': description"):
+            PollConfig((PlcConfig("p", "e71+tcp://127.0.0.1:1", (tag,)),))
 
 
 def test_python_built_config_is_validated_too() -> None:

@@ -29,11 +29,13 @@ alarms = { address = "M0", type = "bool", count = 16 }
 level = { address = "D110", type = "int16", scale = [0, 4000, 0.0, 100.0], unit = "%" }
 door = { address = "D120.3", type = "bool" }              # bit 3 of D120 (S5: "DB10.DW5.3")
 setpoint = { address = "D130", type = "int16", writable = true }   # north-side servers may write
+pump = { address = "M10", type = "bool", description = "Feed pump 2 running" }
 ```
 
 Tag types are the value types of :mod:`plcstack.values` by name (``int16``, ``float32``, ``kg``,
 ``kt``, ``bcd16``, ``string:10``, ...). ``scale = [raw_lo, raw_hi, eng_lo, eng_hi]`` maps a number
-linearly onto engineering units (writes map back).
+linearly onto engineering units (writes map back). ``description`` is free text for people (the
+OPC UA Description attribute, a Sparkplug metric property, the web console); the poller ignores it.
 
 Other top-level tables (``[opcua]``, ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``) belong
 to the north side (plcstack.north); the poller checks that they are tables, and the loader checks
@@ -129,6 +131,10 @@ class TagConfig:
     #: engineering unit of the value (``"°C"``, ``"bar"``), for north-side servers (OPC UA
     #: EngineeringUnits); the poller itself does not use it
     unit: str | None = None
+    #: what the tag means, for people (``"Feed pump 2 running"``): north-side servers show it
+    #: (OPC UA Description, a Sparkplug metric property, the web console); tag lists imported
+    #: from engineering tools carry it; the poller itself does not use it
+    description: str | None = None
 
 
 @dataclass(frozen=True)
@@ -193,6 +199,26 @@ def batch_wait_problem(wait: object) -> str | None:
     return None
 
 
+#: longest tag description taken: a paragraph, not a manual (OPC UA clients show it in one line)
+MAX_DESCRIPTION = 1024
+
+
+def text_problem(key: str, value: object) -> str | None:
+    """What is wrong with a tag's free-text field (``description``), or None: the one rule for
+    the TOML loader and for configs built in Python. Control characters other than tab are
+    refused so the text prints on one line in logs, CSV and the OPC UA browse tree."""
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value.strip():
+        return f"{key} must be a non-empty string, not {value!r}"
+    if len(value) > MAX_DESCRIPTION:
+        return f"{key} must be at most {MAX_DESCRIPTION} characters, not {len(value)}"
+    bad = next((c for c in value if (ord(c) < 32 and c != "\t") or ord(c) == 127), None)
+    if bad is not None:
+        return f"{key} must not contain control characters (found {bad!r})"
+    return None
+
+
 def validate(config: PollConfig) -> None:
     """Check a config built in Python the same way the TOML loader does."""
     if config.concurrency is not None and config.concurrency < 1:
@@ -241,6 +267,9 @@ def validate(config: PollConfig) -> None:
                 raise ConfigError(
                     f"{where}: scale needs a numeric type, not {tag.type.name}", plc=plc.name
                 )
+            problem = text_problem("description", tag.description)
+            if problem:
+                raise ConfigError(f"{where}: {problem}", plc=plc.name)
             if tag.group not in config.groups:
                 raise ConfigError(
                     f"{where}: unknown scan group {tag.group!r} "
@@ -526,7 +555,8 @@ class _Loader:
                 name,
             )
         unknown = self._unknown(
-            spec, {"address", "type", "count", "group", "scale", "writable", "unit"}
+            spec,
+            {"address", "type", "count", "group", "scale", "writable", "unit", "description"},
         )
         if unknown:
             raise self.error(f"{where}: unknown key(s) {', '.join(unknown)}", name)
@@ -571,6 +601,10 @@ class _Loader:
         unit = spec.get("unit")
         if unit is not None and (not isinstance(unit, str) or not unit.strip()):
             raise self.error(f"{where}: unit must be a non-empty string, not {unit!r}", name)
+        description = spec.get("description")
+        problem = text_problem("description", description)
+        if problem:
+            raise self.error(f"{where}: {problem}", name)
         return TagConfig(
             name,
             address.strip(),
@@ -580,4 +614,5 @@ class _Loader:
             scale=scale,
             writable=writable,
             unit=unit,
+            description=description,
         )
