@@ -17,7 +17,7 @@ from plcstack.north.buffer import StoreAndForward
 from plcstack.north.mqtt import MqttSettings, MqttSink, parse_mqtt
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
-from plcstack.values import BOOL, UINT16
+from plcstack.values import BOOL, KY, UINT16
 from tests.aio_helpers import eventually
 from tests.north_certs import Authority
 from tests.north_helpers import sample, subscriber
@@ -174,6 +174,7 @@ def make_poller() -> tuple[Poller, dict[str, FakeClient]]:
         TagConfig("speed", "D10", UINT16, writable=True),
         TagConfig("on", "M3", BOOL, writable=True),
         TagConfig("locked", "D20", UINT16),
+        TagConfig("pair", "D30", KY, writable=True),
     )
     config = PollConfig((PlcConfig("press1", "e71+tcp://127.0.0.1:1", tags),), {"default": 60})
     return Poller(config, client_factory=factory), fakes
@@ -201,10 +202,20 @@ async def test_writes_are_confirmed_or_refused_with_the_reason(mosquitto: Mosqui
             assert await ask('{"id": 1, "tag": "speed", "value": 1234}') == {"id": 1, "ok": True}
             assert fakes["press1"].memory["D"][10] == 1234
             assert await ask('{"id": "b", "tag": "on", "value": true}') == {"id": "b", "ok": True}
+            # the one value grammar of every north side: integral floats, KY in both forms
+            assert (await ask('{"id": "f", "tag": "speed", "value": 1201.0}'))["ok"] is True
+            assert fakes["press1"].memory["D"][10] == 1201
+            assert (await ask('{"id": "k", "tag": "pair", "value": "7,8"}'))["ok"] is True
+            assert fakes["press1"].memory["D"][30] == 0x0708
+            assert (await ask('{"id": "l", "tag": "pair", "value": [9, 10]}'))["ok"] is True
+            assert fakes["press1"].memory["D"][30] == 0x090A
+            assert (await ask('{"id": 1, "tag": "speed", "value": 1234}'))["ok"] is True
             refused = {
                 '{"id": 2, "tag": "nope", "value": 1}': "unknown_tag",
                 '{"id": 3, "tag": "speed", "value": 70000}': "wrong_type",
                 '{"id": 4, "tag": "speed", "value": "fast"}': "wrong_type",
+                '{"id": 4, "tag": "speed", "value": 1201.5}': "wrong_type",
+                '{"id": 4, "tag": "pair", "value": "7;8"}': "wrong_type",
                 '{"id": 5, "tag": "speed"}': "bad_request",
                 '{"id": 9, "tag": "locked", "value": 1}': "not_writable",
                 "not json": "bad_request",

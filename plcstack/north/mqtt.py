@@ -51,6 +51,7 @@ from plcstack.north.layout import (
     write_response_topic,
 )
 from plcstack.north.mqtt_errors import PahoLog, connect_error
+from plcstack.north.write_values import parse_write_value, result_code
 from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Sample
 from plcstack.transports.backoff import Backoff
@@ -596,12 +597,13 @@ class MqttSink:
                 False,
             )
         try:
+            tags = getattr(self.writer, "tags", None)
+            config = tags(plc).get(tag) if tags is not None else None
+            if config is not None:  # the one value grammar of every north side
+                value = parse_write_value(config[0], value, plc=plc)
             await self.writer.write_tag(plc, tag, value)
         except AddressError as exc:
-            code = "unknown_tag" if "no tag named" in exc.message else "wrong_type"
-            if "no PLC named" in exc.message:
-                code = "unknown_plc"
-            return code, str(exc), False
+            return result_code(exc), str(exc), False
         except (PlcErrorResponse, ConnectFailed) as exc:
             return "plc_error", str(exc), False
         except PlcError as exc:

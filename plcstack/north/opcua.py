@@ -87,6 +87,7 @@ from plcstack.north.opcua_config import (
     load_opcua_config,
     parse_opcua_config,
 )
+from plcstack.north.write_values import parse_write_value
 from plcstack.poll.config import ConfigError, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample
@@ -281,18 +282,10 @@ class _Binding:
         if variant is None or variant.VariantType != self.vtype:
             raise ValueError("type mismatch")
         value = variant.Value
-        convert = _from_ky if self.tag.type.name == "ky" else _as_is
-        if self.tag.count == 1:
-            if isinstance(value, list | tuple):
-                raise ValueError("array for a scalar")
-            return convert(value)
-        if not isinstance(value, list | tuple) or len(value) != self.tag.count:
-            raise ValueError("wrong array length")
-        return [convert(v) for v in value]
-
-
-def _as_is(value: Any) -> Any:
-    return value
+        if self.tag.count == 1 and isinstance(value, list | tuple):
+            raise ValueError("array for a scalar")
+        # the one value grammar of every north side (KY "12,255", lists of count values)
+        return parse_write_value(self.tag, value, plc=self.plc)
 
 
 def same_value(a: Any, b: Any) -> bool:
@@ -305,15 +298,6 @@ def same_value(a: Any, b: Any) -> bool:
     if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
         return all(same_value(x, y) for x, y in zip(a, b, strict=True))
     return False
-
-
-def _from_ky(text: Any) -> tuple[int, int]:
-    """A KY value as read ("12,255") back into its two bytes; ValueError if it is not one."""
-    parts = str(text).split(",")
-    if len(parts) != 2:
-        raise ValueError("KY is two bytes: 'high,low'")
-    high, low = (int(p.strip()) for p in parts)
-    return high, low
 
 
 def _text(value: Any) -> str:
