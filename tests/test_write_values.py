@@ -48,9 +48,11 @@ from plcstack.values.points import Scale
 )
 def test_every_north_side_value_form_is_accepted(tag: TagConfig, sent: Any, written: Any) -> None:
     got = parse_write_value(tag, sent)
-    assert got == written and type(got) is type(written)
+    assert got == written
+    assert type(got) is type(written)
     if isinstance(got, list):
-        assert [type(v) for v in got] == [type(v) for v in list(written)]
+        items: list[Any] = written
+        assert [type(v) for v in got] == [type(v) for v in items]
 
 
 @pytest.mark.parametrize(
