@@ -48,11 +48,9 @@ from plcstack.values.points import Scale
 )
 def test_every_north_side_value_form_is_accepted(tag: TagConfig, sent: Any, written: Any) -> None:
     got = parse_write_value(tag, sent)
-    assert got == written
-    assert type(got) is type(written)
+    assert (got, type(got)) == (written, type(written))
     if isinstance(got, list):
-        items: list[Any] = written
-        assert [type(v) for v in got] == [type(v) for v in items]
+        assert [type(v) for v in got] == [type(v) for v in written]
 
 
 @pytest.mark.parametrize(
