@@ -7,6 +7,7 @@ import asyncio
 
 from plcstack.north.buffer import StoreAndForward
 from plcstack.north.mqtt import MqttSettings, MqttSink
+from plcstack.north.supervise import Supervisor
 
 
 async def test_aclose_ends_a_task_that_swallowed_the_first_cancel() -> None:
@@ -24,9 +25,9 @@ async def test_aclose_ends_a_task_that_swallowed_the_first_cancel() -> None:
                     raise
                 # as 3.11's wait_for does when the result came with the cancel: carry on
 
-    sink._task = asyncio.create_task(stubborn())
+    sink._task = Supervisor().start("mqtt", stubborn)
     await asyncio.sleep(0)
     async with asyncio.timeout(5) as bound:  # before the fix: only this bound ended it
         await sink.aclose(drain=0)
     assert not bound.expired()
-    assert sink._task.done() and swallowed == 2
+    assert sink._task.task is not None and sink._task.task.done() and swallowed == 2

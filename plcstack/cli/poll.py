@@ -2,7 +2,11 @@
 
 stdout carries only samples (JSON lines or InfluxDB line protocol), so Telegraf's ``execd`` input
 or a pipe can consume it; the statistics go to stderr when polling ends (``--duration`` elapsed,
-Ctrl-C, SIGTERM, or the reader of stdout went away). Exit 0, or 130 after Ctrl-C.
+Ctrl-C, SIGTERM, or the reader of stdout went away), with each sink's backlog and drops.
+
+Exit 0 after ``--duration``, SIGTERM or a closed stdout; 130 after Ctrl-C; 1, with one line on
+stderr saying what, when polling ended because something failed (it never ends early with 0);
+2 for a bad configuration or a missing optional extra (the line names the pip install to run).
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ import argparse
 import asyncio
 import contextlib
 import functools
+import logging
 import os
 import signal
 import sys
@@ -21,7 +26,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 from plcstack.cli import plain_text
 from plcstack.north.config import parse_north
 from plcstack.north.influx import influx_line
-from plcstack.north.pipeline import North
+from plcstack.north.pipeline import North, missing, needs_of
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Sample
@@ -30,6 +35,8 @@ from plcstack.scale import cli as scale_cli
 
 if TYPE_CHECKING:
     from plcstack.scale.worker import Worker
+
+log = logging.getLogger("plcstack.cli.poll")
 
 
 def register(subparsers: Any) -> None:
@@ -110,6 +117,17 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
             print(f"plcstack poll: error: --{name} must be greater than 0", file=sys.stderr)
             return 2
     config = load_config(args.config)
+    # relative file paths in [mqtt] are taken relative to the TOML file, as [opcua] does
+    north_config = parse_north(config.north, base=Path(args.config).parent)
+    needs = needs_of(north_config)
+    if getattr(args, "mqtt", None) is not None:
+        needs.append(("--mqtt (scale-out)", "aiomqtt", "scale"))
+    if getattr(args, "nats", None) is not None:
+        needs.append(("--nats (scale-out)", "nats", "scale"))
+    problem = missing(needs)
+    if problem is not None:
+        print(f"plcstack poll: error: {problem}", file=sys.stderr)
+        return 2
     try:
         config = scale_cli.select(config, args)
         worker = scale_cli.make_worker(config, args)  # --mqtt: one worker of a cluster
@@ -118,8 +136,6 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return 2
     # every URL and address checked here, before anything is sent
     poller: Poller | Worker = worker if worker is not None else Poller(config)
-    # relative file paths in [mqtt] are taken relative to the TOML file, as [opcua] does
-    north_config = parse_north(config.north, base=Path(args.config).parent)
     line: Callable[[Sample], str] | None = None
     if args.format == "influx":
         line = functools.partial(influx_line, measurement=north_config.influx_measurement)
@@ -129,17 +145,23 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     stop = StopEvent()
     installed = install_stop_signals(stop)
     north = North(poller, north_config)
+    failure: str | None = None
     try:
         async with poller, north:
-            consumer = asyncio.create_task(_write_samples(north, emit, out, stop))
+            consumer = asyncio.create_task(
+                _write_samples(north, emit, out, stop), name="the sample consumer"
+            )
             stopper = asyncio.create_task(stop.wait())
             helpers = {consumer, stopper}
             every = getattr(args, "stats_every", None)
             if every is not None:
-                helpers.add(asyncio.create_task(_report_stats(poller, every)))
-            await asyncio.wait(
-                {consumer, stopper}, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
+                helpers.add(
+                    asyncio.create_task(_report_stats(poller, every), name="the statistics")
+                )
+            done, _ = await asyncio.wait(
+                helpers, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
             )
+            failure = ended_early(done - {stopper}, stop)
             for task in helpers:
                 task.cancel()
             await asyncio.gather(*helpers, return_exceptions=True)
@@ -152,7 +174,29 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     finally:
         remove_stop_signals(installed)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
+    for summary in north.summary():
+        print(summary, file=sys.stderr)
+    if failure is not None:
+        print(f"plcstack poll: error: {failure}", file=sys.stderr, flush=True)
+        return 1
     return stop.exit_code()
+
+
+def ended_early(done: set[asyncio.Task[Any]], stop: asyncio.Event) -> str | None:
+    """Why a run ends before its time, from the tasks that should have run until cancelled:
+    None if none of them ended (the duration ran out, or ``stop`` was set by a signal or a
+    closed stdout), else one line naming the task and its exception."""
+    for task in done:
+        if task.cancelled():
+            continue
+        exc = task.exception()
+        if exc is not None:
+            log.debug("traceback of %s", task.get_name(), exc_info=exc)
+            text = " ".join(str(exc).split())
+            return f"{task.get_name()} failed: {type(exc).__name__}{': ' + text if text else ''}"
+        if not stop.is_set():
+            return f"{task.get_name()} ended unexpectedly"
+    return None
 
 
 async def _report_stats(poller: Poller | Worker, every: float) -> None:

@@ -37,6 +37,8 @@ Exported (``plc`` label per PLC)::
     plcstack_mqtt_connected, plcstack_mqtt_sent_total, plcstack_mqtt_replayed_total,
     plcstack_mqtt_connection_failures_total
     plcstack_rbe_suppressed_total        samples held back by report-by-exception
+    plcstack_sink_errors_total           per sink (``sink`` = its name): samples it could not
+                                         take and deaths of its task (logged at ERROR)
 
 ``/healthz`` answers 200 ``ok`` while the poller runs, 503 with the reason otherwise. The server
 binds 127.0.0.1 unless ``[metrics] host`` says otherwise: metrics name every PLC of the plant.
@@ -125,8 +127,13 @@ class PlcstackCollector:
     objects with ``buffer`` (a StoreAndForward) and ``stats`` (SinkStats) and ``connected``.
     """
 
-    def __init__(self, poller: Any, sinks: Sequence[Any] = (), rbe: Any = None) -> None:
+    def __init__(
+        self, poller: Any, sinks: Sequence[Any] = (), rbe: Any = None, supervisor: Any = None
+    ) -> None:
+        """``supervisor``: the run's :class:`~plcstack.north.supervise.Supervisor`, whose
+        ``errors`` (sink name -> failures) become ``plcstack_sink_errors_total``."""
         self.poller = poller
+        self.supervisor = supervisor
         self.sinks = list(sinks)
         self.rbe = rbe
         self._up: dict[str, bool] = {}
@@ -263,6 +270,15 @@ class PlcstackCollector:
                 for i, sink in enumerate(self.sinks):
                     c.add_metric([str(i)], float(get(sink)))
                 yield c
+        if self.supervisor is not None:
+            errors = CounterMetricFamily(
+                "plcstack_sink_errors",
+                "samples a sink could not take and deaths of its task (the log says which)",
+                labels=["sink"],
+            )
+            for name, count in sorted(self.supervisor.errors.items()):
+                errors.add_metric([name], float(count))
+            yield errors
         if self.rbe is not None:
             yield CounterMetricFamily(
                 "plcstack_rbe_suppressed",

@@ -45,6 +45,7 @@ from plcstack.errors import AddressError, ConnectFailed, PlcError, PlcErrorRespo
 from plcstack.north.buffer import Message, StoreAndForward
 from plcstack.north.layout import (
     JsonLayout,
+    data_payload,
     split_scans,
     topic_level,
     write_response_payload,
@@ -52,6 +53,7 @@ from plcstack.north.layout import (
 )
 from plcstack.north.mqtt_errors import PahoLog, connect_error
 from plcstack.north.write_values import parse_write_value, result_code
+from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Sample
 from plcstack.transports.backoff import Backoff
@@ -311,19 +313,38 @@ class MqttSink:
         if plcs is None:
             plcs = writer.plcs if writer is not None else []
         self._plc_by_level = {topic_level(p): p for p in plcs}
-        self._task: asyncio.Task[None] | None = None
+        #: runs the connection task; North sets its run's supervisor before ``start``
+        self.supervisor: Supervisor | None = None
+        self._task: Supervised | None = None
         self._connected_event = asyncio.Event()
         self._idle = asyncio.Event()  # set while the publisher has nothing to send
 
+    @property
+    def name(self) -> str:
+        """The sink's name in logs, metrics and ``/healthz``: ``mqtt`` or ``sparkplug``."""
+        return "sparkplug" if self.settings.mode == "sparkplug" else "mqtt"
+
     # -- in: samples ----------------------------------------------------------------------------
     def submit(self, samples: Sequence[Sample]) -> None:
-        """Queue the messages for these samples (never blocks, never raises for the network)."""
+        """Queue the messages for these samples (never blocks, never raises for the network).
+
+        All or nothing: every message is encoded before the first is queued, so a sample the
+        layout cannot encode raises with nothing queued, and the supervisor's retry without it
+        queues nothing twice.
+        """
         if not samples:
             return
-        for topic, payload, qos, retain in self.layout.messages(
-            split_scans(samples, self.group_of)
-        ):
+        messages = self.layout.messages(split_scans(samples, self.group_of))
+        for topic, payload, qos, retain in messages:
             self._put(topic, payload, qos, retain)
+
+    def probe(self, sample: Sample) -> None:
+        """Raise if the layout cannot encode ``sample``; queues nothing, changes no state."""
+        probe = getattr(self.layout, "probe", None)
+        if probe is not None:
+            probe(sample)
+        else:
+            data_payload(sample.plc, "", [sample])
 
     def _put(self, topic: str, payload: bytes, qos: int, retain: bool) -> None:
         self.buffer.put(topic, payload, qos, retain)
@@ -332,6 +353,18 @@ class MqttSink:
             self.stats.buffered += 1
         self._idle.clear()
         self._wake.set()
+
+    def summary(self) -> str:
+        """One line for stderr at the end of a run: what was sent, what was not, and where."""
+        waiting = len(self.buffer)
+        where = ""
+        if waiting:
+            path = self.settings.buffer_path
+            where = f" (kept in {path} for the next run)" if path else " (lost: no buffer_path)"
+        return (
+            f"{self.name} {self.settings.url}: {self.stats.sent} sent, {waiting} not delivered"
+            f"{where}, {self.buffer.dropped} dropped by buffer_max"
+        )
 
     # -- lifecycle ------------------------------------------------------------------------------
     def prepare(self) -> None:
@@ -347,7 +380,9 @@ class MqttSink:
 
     async def start(self) -> None:
         self.prepare()
-        self._task = asyncio.create_task(self.run(), name="mqtt-sink")
+        if self.supervisor is None:
+            self.supervisor = Supervisor()
+        self._task = self.supervisor.start(self.name, self.run)
 
     async def wait_connected(self, timeout: float) -> None:
         """Wait for a connection; after ``timeout`` raise why the last attempt failed (a
@@ -381,17 +416,10 @@ class MqttSink:
                 async with asyncio.timeout(2):
                     for topic, payload, qos, retain in self.layout.on_close(time.time()):
                         await client.publish(topic, payload, qos=qos, retain=retain)
-        task = self._task
-        if task is not None:
-            # Python 3.11's asyncio.wait_for (aiomqtt awaits PUBACK/SUBACK through it) can
-            # swallow a cancellation that arrives together with its result, and the sink task
-            # then carries on: one cancel() and an unbounded await hung here (found under
-            # load). Cancel until it has really ended.
-            while not task.done():
-                task.cancel()
-                await asyncio.wait({task}, timeout=0.5)
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        if self._task is not None:
+            # cancels until the task has really ended (aiomqtt awaits PUBACK/SUBACK through
+            # Python 3.11's wait_for, which can swallow one cancellation)
+            await self._task.stop()
         for task in list(self._writes):
             task.cancel()
         self.buffer.close()

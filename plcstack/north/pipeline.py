@@ -12,11 +12,16 @@ needs the unfiltered truth), filters it once through :class:`ReportByException` 
 the same list to each sink. Sinks never block the consumer: the MQTT sink queues (memory,
 then disk), stdout is written by the caller's ``emit``.
 Writes come back the other way only through the poller's ``write_tag``.
+
+Every sink is supervised (:mod:`plcstack.north.supervise`): a sample a sink cannot take costs
+that sample only (ERROR log with PLC and tag, ``plcstack_sink_errors_total{sink}``), a sink
+task that dies is restarted with backoff, and ``/healthz`` answers 503 naming it meanwhile.
 """
 
 from __future__ import annotations
 
-import contextlib
+import importlib
+import logging
 from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import Any, Self
@@ -25,9 +30,48 @@ from plcstack.north.config import NorthConfig
 from plcstack.north.metrics import MetricsServer, PlcstackCollector
 from plcstack.north.mqtt import MqttSink
 from plcstack.north.rbe import ReportByException
+from plcstack.north.supervise import Supervisor
 from plcstack.poll.samples import Sample
 
-__all__ = ["North"]
+__all__ = ["North", "missing", "needs_of", "sink_name"]
+
+log = logging.getLogger("plcstack.north")
+
+
+def sink_name(sink: Any) -> str:
+    """How logs, metrics and ``/healthz`` name a sink: its ``name``, else its class."""
+    return str(getattr(sink, "name", None) or type(sink).__name__)
+
+
+def missing(needs: Sequence[tuple[str, str, str]]) -> str | None:
+    """The first of ``(what, module, extra)`` whose module cannot be imported, as one line
+    naming the pip install that fixes it; None if all are there. Checked at start: a sink
+    whose library is missing would otherwise fail only inside its task, after the run began."""
+    for what, module, extra in needs:
+        try:
+            importlib.import_module(module)
+        except ImportError:
+            return (
+                f"{what} needs the Python package {module.split('.')[0]}, which is not installed:"
+                f" pip install 'plcstack[{extra}]'"
+            )
+    return None
+
+
+def needs_of(config: NorthConfig) -> list[tuple[str, str, str]]:
+    """``(what, module, extra)`` for each optional library the configured tables use."""
+    needs = []
+    if config.mqtt is not None:
+        if config.mqtt.mode == "sparkplug":
+            needs += [
+                ("[mqtt] mode = sparkplug", "aiomqtt", "sparkplug"),
+                ("[mqtt] mode = sparkplug", "google.protobuf", "sparkplug"),
+            ]
+        else:
+            needs.append(("[mqtt]", "aiomqtt", "mqtt"))
+    if config.metrics is not None:
+        needs.append(("[metrics]", "prometheus_client", "metrics"))
+    return needs
 
 
 class North:
@@ -37,6 +81,7 @@ class North:
         self.poller = poller
         self.config = config
         self.rbe = ReportByException(config.report)
+        self.supervisor = Supervisor()
         self.sinks: list[Any] = list(sinks)
         self.mqtt: MqttSink | None = None
         if config.mqtt is not None:
@@ -64,8 +109,14 @@ class North:
                 plcs=[plc.name for plc in poller.config.plcs],
             )
             self.sinks.append(self.mqtt)
+        for sink in self.sinks:
+            if hasattr(sink, "supervisor"):
+                sink.supervisor = self.supervisor  # its tasks run under the run's supervisor
         self.collector = PlcstackCollector(
-            poller, [s for s in self.sinks if hasattr(s, "buffer")], self.rbe
+            poller,
+            [s for s in self.sinks if hasattr(s, "buffer")],
+            self.rbe,
+            supervisor=self.supervisor,
         )
         self.metrics: MetricsServer | None = None
         if config.metrics is not None:
@@ -73,7 +124,9 @@ class North:
         self._running = False
 
     def _health(self) -> str | None:
-        return None if self._running else "the poller is not running"
+        if not self._running:
+            return "the poller is not running"
+        return self.supervisor.health()
 
     async def __aenter__(self) -> Self:
         try:
@@ -104,10 +157,28 @@ class North:
         for sink in self.sinks:
             close = getattr(sink, "aclose", None)
             if close is not None:
-                with contextlib.suppress(Exception):
+                try:
                     await close()
+                except Exception as exc:  # the others still close; this one is said
+                    name = sink_name(sink)
+                    log.error("%s: closing failed: %s: %s", name, type(exc).__name__, exc)
+        await self.supervisor.aclose()
         if self.metrics is not None:
             await self.metrics.aclose()
+
+    def summary(self) -> list[str]:
+        """One line per sink for stderr at the end of a run: sent, not delivered (and where
+        it is kept), dropped, failures."""
+        lines = []
+        for sink in self.sinks:
+            describe = getattr(sink, "summary", None)
+            text = describe() if describe is not None else sink_name(sink)
+            errors = self.supervisor.errors.get(sink_name(sink), 0)
+            lines.append(f"{text}, {errors} sink errors")
+        errors = self.supervisor.errors.get("stdout", 0)
+        if errors:
+            lines.append(f"stdout: {errors} sink errors (samples it could not take)")
+        return lines
 
     def deliver(
         self, batch: Sequence[Sample], emit: Callable[[list[Sample]], None] | None = None
@@ -116,10 +187,11 @@ class North:
         self.collector.observe(batch)
         reported = self.rbe.filter(batch) if self.config.reports_by_exception else list(batch)
         if reported:
+            submit = self.supervisor.submit
             for sink in self.sinks:
-                sink.submit(reported)
+                submit(sink_name(sink), sink.submit, reported, getattr(sink, "probe", None))
             if emit is not None:
-                emit(reported)
+                submit("stdout", emit, reported)
         return reported
 
     async def run(self, emit: Callable[[list[Sample]], None] | None = None) -> None:

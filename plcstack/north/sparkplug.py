@@ -222,6 +222,11 @@ class SparkplugLayout:
             m.datatype = _datatype(type_name, value)
             _set_value(m, m.datatype, value)
 
+    def probe(self, sample: Sample) -> None:
+        """Raise if ``sample`` cannot be encoded as a metric; no state changes (the sink's
+        supervisor finds the one sample a batch failed on with it)."""
+        self._add_metrics(Payload(), sample.plc, [sample], birth=False)
+
     def _dbirth(self, plc: str, now: float) -> bytes:
         p = Payload()
         p.timestamp = int(now * 1000)
