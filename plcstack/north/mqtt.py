@@ -52,8 +52,8 @@ from plcstack.north.layout import (
     write_response_topic,
 )
 from plcstack.north.mqtt_errors import PahoLog, connect_error
-from plcstack.north.write_values import parse_write_value, result_code
 from plcstack.north.supervise import Supervised, Supervisor
+from plcstack.north.write_values import parse_write_value, result_code
 from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Sample
 from plcstack.transports.backoff import Backoff
