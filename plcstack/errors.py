@@ -7,6 +7,9 @@ name the PLC (its URL), the request, and for PLC error codes the meaning from th
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Iterable, Sequence
+
 __all__ = [
     "AddressError",
     "ConnectFailed",
@@ -19,6 +22,7 @@ __all__ = [
     "RemoteProtocolError",
     "ValueDecodeError",
     "ValueEncodeError",
+    "unknown_names",
 ]
 
 
@@ -124,3 +128,14 @@ class ConnectFailed(ConnectionLost):
     A subclass of :class:`ConnectionLost` so code that only cares about "the PLC is not reachable"
     catches both, while a caller that wants to tell "never got in" from "dropped mid-request" can.
     """
+
+
+def unknown_names(unknown: Sequence[str], known: Iterable[str]) -> str:
+    """``"mqt (did you mean mqtt?), colour"``: unknown names, each with the known one it is
+    closest to, for every "unknown key/table/option" message (a typo costs a lookup otherwise)."""
+    choices = sorted(set(known))
+    parts = []
+    for name in unknown:
+        close = difflib.get_close_matches(name, choices, n=1, cutoff=0.6)
+        parts.append(f"{name} (did you mean {close[0]}?)" if close else name)
+    return ", ".join(parts)

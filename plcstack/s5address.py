@@ -20,8 +20,11 @@ Decisions where S5 usage is not uniform:
   would let one string mean DW5 to one reader and DW10 to another, so it is refused with a
   message naming the S5 equivalent. ``DB10.DBB3`` has no such ambiguity and is accepted.
 * ``MW10`` is the word whose high byte is MB10 (S5 operand convention), so MW10 and MW11 overlap.
-* Bit operands (``M10.3``, ``E0.0``) and double words (``MD``, ``DD``) are refused: none of the
-  three protocols transfers them; read the byte or the words and pick the bits.
+* Bit operands (``M10.3``, ``E0.0``, ``DB10.DW5.3``) are not points: none of the three
+  protocols transfers a single bit. A typed read takes them as ``BOOL`` (``--type bool``,
+  ``read_as("M10.3", BOOL)``: the byte or word is read and the bit picked); a plain read or any
+  write of one is refused with that advice. Double words (``MD``, ``DD``) are refused: read two
+  words (or a 32-bit type).
 * Numbers: DB/DX 1..255 (DB0 is the block address list, not a data block), offsets 0..65535;
   each protocol checks its own narrower limits.
 """
@@ -178,6 +181,9 @@ _AREA_LETTERS: Final = {
     "Q": S5Area.OUTPUTS,
 }
 
+#: the one advice for a bit operand, whichever family's parser meets it
+READ_A_BIT: Final = "read it as a bool (--type bool, or read_as(address, BOOL) in Python)"
+
 _HELP = (
     "expected S5 notation such as DB10.DW5, DX3.DW0, DB10.DL5, MB100, MW10, IB0/EB0, "
     "QW0/AW0, T5, C5/Z5"
@@ -213,7 +219,7 @@ def _parse(norm: str, text: str) -> S5Address:
         if db == 0:
             raise AddressError(f"{kind}0 is not a data block (it holds the block address list)")
         if bit or op in ("DBX", "D"):
-            raise AddressError("bit operands are not supported; read the word and test the bit")
+            return _bit_operand(f"{kind}{db}.DW{n}" if op in ("DW", "D") else None)
         if op in ("DBD", "DD"):
             raise AddressError("double words are not supported; read two data words")
         if op == "DBW":
@@ -234,9 +240,7 @@ def _parse(norm: str, text: str) -> S5Address:
     if m:
         letter, size, index, bit = m.groups()
         if bit is not None or size is None:
-            raise AddressError(
-                f"bit operands are not supported; read the byte ({letter}B{index}) and test the bit"
-            )
+            return _bit_operand(f"{letter}{size or 'B'}{index}")
         if size == "D":
             raise AddressError(f"double words are not supported; read two words ({letter}W...)")
         unit = S5Unit.WORD if size == "W" else S5Unit.BYTE
@@ -246,4 +250,21 @@ def _parse(norm: str, text: str) -> S5Address:
         letter, index = m.groups()
         area = S5Area.TIMERS if letter == "T" else S5Area.COUNTERS
         return S5Address(area, S5Unit.WORD, int(index))
+    melsec = _MELSEC.fullmatch(norm)
+    if melsec:
+        raise AddressError(
+            f"{text!r} is not an S5 address but MELSEC notation (this is a Siemens S5 PLC); {_HELP}"
+        )
     raise AddressError(f"{text!r} is not an S5 address; {_HELP}")
+
+
+#: MELSEC device addresses (D100, X1F, TN5, W1A) that are no S5 operand
+_MELSEC: Final = re.compile(r"(D|W|R|X|Y|B|F|L|S|TN|TS|TC|CN|CS|CC)[0-9A-F]+")
+
+
+def _bit_operand(whole: str | None) -> S5Address:
+    """A bit operand is not a point: the advice to read it as a bool (see the module doc)."""
+    points = f"the {'word' if whole and 'W' in whole else 'byte'} {whole}" if whole else "points"
+    raise AddressError(
+        f"a bit operand is not a point: {READ_A_BIT}; a plain read or write takes {points}"
+    )

@@ -25,6 +25,7 @@ import importlib
 import logging
 import sys
 from collections.abc import Iterator, Sequence
+from typing import NoReturn
 
 from plcstack import __version__
 from plcstack.errors import AddressError, PlcError
@@ -86,6 +87,37 @@ def add_logging_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+class CommandParser(argparse.ArgumentParser):
+    """The parser of ``plcstack`` and, by argparse's inheritance, of every subcommand.
+
+    Two differences from argparse's own: a usage error is the same one line as every other
+    error (``plcstack: error: read: ...`` and where to get help, exit 2) instead of a usage
+    block under a prefix of its own; and a subcommand's options may stand anywhere among its
+    positionals (``read URL D100 --timeout 1 2``), which plain argparse refuses for an optional
+    positional like ``count`` (it reports ``unrecognized arguments: 2``).
+    """
+
+    _intermixing = False
+
+    def error(self, message: str) -> NoReturn:
+        command = self.prog.removeprefix("plcstack").strip()
+        where = f"{command}: " if command else ""
+        _fail("error", f"{where}{message} (see: {self.prog} --help)")
+        sys.exit(EXIT_USAGE)
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        if self._intermixing or self._subparsers is not None:
+            return super().parse_known_args(args, namespace)
+        # argparse's intermixed parsing calls back into this method for its two passes
+        self._intermixing = True
+        try:
+            return super().parse_known_intermixed_args(args, namespace)
+        finally:
+            self._intermixing = False
+
+
 def _all_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser]:
     yield parser
     for action in parser._actions:
@@ -95,7 +127,7 @@ def _all_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentP
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="plcstack",
         description="Read, write, poll and simulate legacy PLCs (MELSEC E71, Siemens S5).",
         epilog=EXIT_CODES + ". Documentation: the docs/ folder of the source distribution; "
@@ -126,7 +158,10 @@ def _fail(kind: str, message: object) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or the one-line usage error already printed
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
     unconfigure = configure(_level(args))
     try:
         code: int = asyncio.run(args.func(args))

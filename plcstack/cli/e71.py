@@ -69,7 +69,7 @@ def register(subparsers: Any) -> None:
     w = sub.add_parser("write", help="write a file into an area")
     for q in (r, w):
         q.add_argument("url", help="E71 URL")
-        q.add_argument("area", choices=list(AREAS))
+        q.add_argument("area", choices=list(AREAS), help="the area: " + ", ".join(AREAS))
         q.add_argument("start", type=_int, help="start address (step / byte)")
         q.add_argument("--chunk", type=_int, default=256, help="units per request (1-256)")
         q.add_argument("--progress", action="store_true", help="progress bar even when not a tty")

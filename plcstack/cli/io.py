@@ -12,10 +12,15 @@ from plcstack.errors import AddressError
 from plcstack.output import float32_short, json_safe
 from plcstack.values import TYPES, Scalar, WordOrder, value_type
 
-_TYPE_HELP = (
-    f"value type (default raw: one value per point): {', '.join(TYPES)}, string:N[:space]. "
-    "Types wider than a point (int32, float32, kg, bcd32, strings) span several; COUNT then "
-    "counts values, not points. A bit of a word: ADDRESS D100.3 / DB10.DW5.3 with --type bool"
+_TYPES = f"value type (default raw: one value per point): {', '.join(TYPES)}, string:N[:space]. "
+_READ_TYPE_HELP = (
+    _TYPES + "Types wider than a point (int32, float32, kg, bcd32, strings) span several; COUNT "
+    "then counts values, not points. A bit: ADDRESS D100.3, DB10.DW5.3 or M10.3 with --type bool"
+)
+_WRITE_TYPE_HELP = (
+    _TYPES + "Each VALUE is one value of the type; types wider than a point (int32, float32, "
+    "kg, bcd32, strings) fill several points each. A bit of a word is not written (that would "
+    "be a read-modify-write racing the PLC program): write the whole word"
 )
 
 
@@ -29,7 +34,7 @@ def register(subparsers: Any) -> None:
     read.add_argument("address", help="first address, e.g. D100, M0, DB10.DW5, MB100")
     read.add_argument("count", nargs="?", type=int, default=1, help="number of points (default 1)")
     read.add_argument("--json", action="store_true", help='print {"address": ..., "values": [...]}')
-    _add_common_options(read)
+    _add_common_options(read, _READ_TYPE_HELP)
     read.set_defaults(func=run_read)
 
     write = subparsers.add_parser("write", help="write points to a PLC")
@@ -40,17 +45,17 @@ def register(subparsers: Any) -> None:
         nargs="+",
         help="values: integers (123, -5, 0x1F), true/false for bits, decimals with --type float32",
     )
-    _add_common_options(write)
+    _add_common_options(write, _WRITE_TYPE_HELP)
     # argparse takes "-2.5e3" or "-inf" for an option (its own rule knows only -5 and -.5);
     # no option of ``write`` starts with a digit, a dot or these words, so values they are
     write._negative_number_matcher = _NEGATIVE_VALUE
     write.set_defaults(func=run_write)
 
 
-def _add_common_options(parser: argparse.ArgumentParser) -> None:
+def _add_common_options(parser: argparse.ArgumentParser, type_help: str) -> None:
     """Options ``read`` and ``write`` share: the deadline and how values map onto points."""
     parser.add_argument("--timeout", type=float, default=None, help="request deadline in seconds")
-    parser.add_argument("--type", type=_type_name, default="raw", metavar="TYPE", help=_TYPE_HELP)
+    parser.add_argument("--type", type=_type_name, default="raw", metavar="TYPE", help=type_help)
     parser.add_argument(
         "--word-order",
         choices=("big", "little"),
@@ -72,12 +77,25 @@ def parse_value(text: str) -> int | bool:
         raise AddressError(f"value {text!r} is not an integer or true/false") from None
 
 
+def shown(value: object) -> str:
+    """``value`` for a terminal: a text's control characters (a KC word of two raw bytes, a
+    string with NULs) escaped as ``\\x01``, so the output neither moves the cursor nor hides
+    characters; printable text, numbers and bits as they are."""
+    text = str(value)
+    if text.isprintable():
+        return text
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def _options(args: argparse.Namespace) -> dict[str, Any]:
     return {"timeout": args.timeout} if args.timeout is not None else {}
 
 
 def _type_name(text: str) -> str:
-    value_type(text)  # an unknown name is a usage error (exit 2) naming the known types
+    try:
+        value_type(text)  # an unknown name is a usage error (exit 2) naming the known types
+    except AddressError as exc:
+        raise argparse.ArgumentTypeError(exc.message) from None
     return text
 
 
@@ -125,7 +143,7 @@ async def run_read(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"address": args.address, "values": json_safe(values)}))
     else:
-        print(f"{args.address}: " + " ".join(str(v) for v in values))
+        print(f"{args.address}: " + " ".join(shown(v) for v in values))
     return 0
 
 

@@ -77,6 +77,7 @@ from plcstack.errors import (
     PlcErrorResponse,
     PlcTimeout,
     RemoteProtocolError,
+    ValueEncodeError,
 )
 from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
 from plcstack.transports.backoff import Backoff
@@ -733,7 +734,7 @@ class AS511Client(S5Access, Client):
 
     async def write(self, address: str, values: Points) -> None:
         """Write in S5 notation; returns once the PLC acknowledged every byte."""
-        values = as_points(values)
+        values = as_points(values, plc=self.name, request=f"write {address}")
         try:
             await self._write(address, values)
         except PlcError as exc:
@@ -813,7 +814,9 @@ def _area(area: S5Area | str) -> S5Area:
 
 def _check_byte(value: int | bool) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 0xFF:
-        raise AddressError(f"byte value {value!r} is not an integer in 0..255")
+        raise ValueEncodeError(
+            f"byte value {value!r} ({type(value).__name__}) is not an integer in 0..255"
+        )
     return value
 
 
@@ -824,7 +827,9 @@ def _pack_words(values: Sequence[int] | Sequence[bool]) -> bytes:
     out = bytearray()
     for value in values:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise AddressError(f"word value {value!r} is not an integer")
+            raise ValueEncodeError(
+                f"word value {value!r} ({type(value).__name__}) is not an integer"
+            )
         if not -0x8000 <= value <= 0xFFFF:
             raise AddressError(f"word value {value} is outside -32768..65535")
         out += struct.pack(">H", value & 0xFFFF)

@@ -23,6 +23,7 @@ from plcstack.errors import (
     ConnectFailed,
     ConnectionLost,
     PlcError,
+    ValueEncodeError,
 )
 from plcstack.logs import install_trace
 from plcstack.resource import AsyncResource
@@ -36,6 +37,7 @@ from plcstack.values import (
     ValueType,
     WordOrder,
     bits_of_points,
+    value_type,
 )
 
 __all__ = [
@@ -57,11 +59,35 @@ T = TypeVar("T")
 Points = int | bool | Sequence[int] | Sequence[bool]
 
 
-def as_points(values: Points) -> Sequence[int] | Sequence[bool]:
+def as_points(
+    values: Points, *, plc: str | None = None, request: str | None = None
+) -> Sequence[int] | Sequence[bool]:
     """``values`` as a sequence: a single int or bool (``plc.write("D100", 5)``) becomes a list
-    of one; anything else is returned unchanged for the client's own checks."""
+    of one; a list, tuple or range is returned unchanged for the client's own per-value checks.
+
+    Anything else is a :class:`~plcstack.errors.ValueEncodeError` naming the value and its type,
+    before any length or address is looked at: a float or ``None`` would otherwise surface as a
+    bare ``TypeError``, and ``bytes``/``str`` would be written as one point per byte or
+    character, which is never what a word write means (typed values go through ``write_as``).
+    """
     if isinstance(values, int):
         return [values]
+    if isinstance(values, str | bytes | bytearray | memoryview) or not isinstance(values, Sequence):
+        hint = (
+            "for text use write_as(address, string(N), ...)"
+            if isinstance(values, str)
+            else "for bytes pass a list of ints, one per point"
+            if isinstance(values, bytes | bytearray | memoryview)
+            else "for a float use write_as(address, FLOAT32 or KG, ...)"
+            if isinstance(values, float)
+            else "pass an int, a bool or a list of them"
+        )
+        raise ValueEncodeError(
+            f"value {values!r} ({type(values).__name__}) cannot be written as points: write takes "
+            f"an int, a bool or a sequence of them; {hint}",
+            plc=plc,
+            request=request,
+        )
     return values
 
 
@@ -359,6 +385,16 @@ class Client(AsyncResource):
         bit number the notation does not allow."""
         return address, None
 
+    def _named_type(self, vtype: ValueType[T] | str, what: str) -> ValueType[T]:
+        """``vtype`` itself, or the type a name (``"kg"``) stands for: one spelling of the
+        value types for the CLI, the poll config and Python."""
+        if not isinstance(vtype, str):
+            return vtype
+        try:
+            return value_type(vtype)
+        except AddressError as exc:
+            raise exc.bind(plc=self.name, request=what) from None
+
     def _value_span(
         self, address: str, vtype: ValueType[Any], count: int, what: str
     ) -> tuple[str, int | None, int, int]:
@@ -399,6 +435,26 @@ class Client(AsyncResource):
     async def read_as(
         self,
         address: str,
+        vtype: str,
+        count: None = None,
+        *,
+        word_order: WordOrder | None = None,
+    ) -> Any: ...
+
+    @overload
+    async def read_as(
+        self,
+        address: str,
+        vtype: str,
+        count: int,
+        *,
+        word_order: WordOrder | None = None,
+    ) -> list[Any]: ...
+
+    @overload
+    async def read_as(
+        self,
+        address: str,
         vtype: ValueType[T],
         count: int,
         *,
@@ -408,7 +464,7 @@ class Client(AsyncResource):
     async def read_as(
         self,
         address: str,
-        vtype: ValueType[Any],
+        vtype: ValueType[Any] | str,
         count: int | None = None,
         *,
         word_order: WordOrder | None = None,
@@ -416,11 +472,14 @@ class Client(AsyncResource):
         """One value of ``vtype`` at ``address`` (``count`` omitted) or a list of ``count``.
 
         ``await plc.read_as("DB10.DW4", KG)`` is a ``float`` to mypy too; a bit of a word
-        (``D100.3``, ``DB10.DW5.3``) reads as ``BOOL``. Multi-point values use the PLC
-        family's word order unless ``word_order`` is given. One request, like :meth:`read`.
+        (``D100.3``, ``DB10.DW5.3``, ``M10.3``) reads as ``BOOL``. ``vtype`` may also be a type
+        name as the CLI and the poll config spell it (``"kg"``, ``"int32"``, ``"string:8"``).
+        Multi-point values use the PLC family's word order unless ``word_order`` is given. One
+        request, like :meth:`read`.
         """
         n = 1 if count is None else count
         what = f"read {address} as {getattr(vtype, 'name', vtype)} x{n}"
+        vtype = self._named_type(vtype, what)
         base, bit, bits, points = self._value_span(address, vtype, n, what)
         raw = await self.read(base, points)
         try:
@@ -436,19 +495,21 @@ class Client(AsyncResource):
     async def write_as(
         self,
         address: str,
-        vtype: ValueType[T],
+        vtype: ValueType[T] | str,
         value: T | list[T],
         *,
         word_order: WordOrder | None = None,
     ) -> None:
         """Write one value of ``vtype`` (or a ``list`` of values) from ``address`` on.
 
-        Every value is checked first: one that the type cannot hold (NaN as KG, 10000 as
-        BCD16) raises :class:`~plcstack.errors.ValueEncodeError` and nothing is sent. A bit
-        of a word is refused: it would be a read-modify-write racing the PLC program.
+        ``vtype`` is a type or its name (``"float32"``). Every value is checked first: one that
+        the type cannot hold (NaN as KG, 10000 as BCD16) raises
+        :class:`~plcstack.errors.ValueEncodeError` and nothing is sent. A bit of a word is
+        refused: it would be a read-modify-write racing the PLC program.
         """
         values: list[Any] = value if isinstance(value, list) else [value]
         what = f"write {address} as {getattr(vtype, 'name', vtype)} x{len(values)}"
+        vtype = self._named_type(vtype, what)
         base, bit, bits, _ = self._value_span(address, vtype, max(1, len(values)), what)
         try:
             if not values:

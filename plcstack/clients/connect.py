@@ -11,6 +11,7 @@ scheme does not take, a misspelt one included (``tiemout=3``), is an
 from __future__ import annotations
 
 import enum
+import inspect
 from typing import Final
 
 from plcstack.clients.as511 import AS511Client
@@ -118,3 +119,43 @@ def connect(
     cls = SCHEMES[parsed.scheme]
     options = resolve(cls.options_for(parsed), parsed, keywords, other=sorted(_ALL_OPTIONS))
     return cls.create(parsed, options)
+
+
+class _PerScheme:
+    """A default that differs by scheme, as ``help(connect)`` shows it."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+
+    def __repr__(self) -> str:
+        return self.text
+
+
+def _shown_signature() -> inspect.Signature:
+    """``connect``'s signature with each option's real default (from the client schemas) in
+    place of the not-given marker, so ``help(plcstack.connect)`` says ``timeout: float = 2.0``.
+    Only what ``help()`` and editors show changes; calls still tell "not given" from ``None``."""
+    defaults: dict[str, dict[str, object]] = {}
+    for scheme, cls in SCHEMES.items():
+        serial = AS511Client.SERIAL_OPTIONS if cls is AS511Client else ()
+        for option in (*cls.OPTIONS, *serial):
+            defaults.setdefault(option.name, {})[scheme] = option.default
+    signature = inspect.signature(connect)
+    parameters = []
+    for parameter in signature.parameters.values():
+        per_scheme = defaults.get(parameter.name)
+        if parameter.kind is inspect.Parameter.KEYWORD_ONLY and per_scheme:
+            values = list(per_scheme.values())
+            if all(v == values[0] for v in values):
+                default: object = values[0]
+            else:
+                default = _PerScheme(
+                    " / ".join(f"{scheme}: {value!r}" for scheme, value in per_scheme.items())
+                )
+            annotation = str(parameter.annotation).replace(" | _Unset", "")
+            parameter = parameter.replace(default=default, annotation=annotation)
+        parameters.append(parameter)
+    return signature.replace(parameters=parameters)
+
+
+connect.__signature__ = _shown_signature()  # type: ignore[attr-defined]

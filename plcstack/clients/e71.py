@@ -65,6 +65,7 @@ from plcstack.errors import (
     LocalProtocolError,
     PlcErrorResponse,
     RemoteProtocolError,
+    ValueEncodeError,
 )
 from plcstack.transports import ip_transport
 from plcstack.transports.backoff import Backoff
@@ -234,7 +235,11 @@ class E71Client(E71CommandsMixin):
         out = []
         for v in values:
             if isinstance(v, bool) or not isinstance(v, int) or not -0x8000 <= v <= 0xFFFF:
-                raise self._bad(f"word value {v!r} is not an integer in -32768..65535", what)
+                raise ValueEncodeError(
+                    f"word value {v!r} ({type(v).__name__}) is not an integer in -32768..65535",
+                    plc=self.name,
+                    request=what,
+                )
             out.append(v & 0xFFFF)
         return tuple(out)
 
@@ -293,7 +298,7 @@ class E71Client(E71CommandsMixin):
 
     async def write(self, address: str, values: Points) -> None:
         """Bits to a bit device (02H) or words to a word device (03H); <= 256 points."""
-        values = as_points(values)
+        values = as_points(values, plc=self.name, request=f"write {address}")
         what = f"write {address} x{len(values)}"
         ref = self._ref(address, what)
         self._check_span(ref, len(values), MAX_POINTS, what)

@@ -292,7 +292,7 @@ class E71FixedBufferClient(Client):
 
     async def write(self, address: str, values: Points) -> None:
         """Send ``values`` as one telegram (``address`` is ignored)."""
-        await self.send([int(v) for v in as_points(values)])
+        await self.send([int(v) for v in as_points(values, plc=self.name, request="send")])
 
 
 class E71BroadcastReceiver(AsyncResource):

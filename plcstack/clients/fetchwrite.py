@@ -48,7 +48,13 @@ from plcstack.codecs.fetchwrite import (
 from plcstack.codecs.mk import LifeAckTimer, MkConnection
 from plcstack.diagnose import Failure, fetchwrite_hint
 from plcstack.durations import check_seconds
-from plcstack.errors import AddressError, ConnectionLost, PlcError, PlcErrorResponse
+from plcstack.errors import (
+    AddressError,
+    ConnectionLost,
+    PlcError,
+    PlcErrorResponse,
+    ValueEncodeError,
+)
 from plcstack.s5address import FETCHWRITE_ORG, S5Address, S5Area, S5Unit, parse_s5_address
 from plcstack.transports.backoff import Backoff
 from plcstack.transports.tcp import TcpTransport
@@ -337,7 +343,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         return plan
 
     async def write(self, address: str, values: Points) -> None:
-        values = as_points(values)
+        values = as_points(values, plc=self.name, request=f"write {address}")
         n = len(values)
         what = f"write {address} x{n}"
         plan = self._write_plans.get((address, n)) if type(address) is str else None
@@ -492,7 +498,10 @@ def _encode_values(unit: S5Unit, values: Sequence[int] | Sequence[bool]) -> byte
     out = bytearray()
     for value in values:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise AddressError(f"value {value!r} is not an integer (S5 has no bit writes here)")
+            raise ValueEncodeError(
+                f"value {value!r} ({type(value).__name__}) is not an integer "
+                "(S5 has no bit writes here)"
+            )
         if not lo <= value <= hi:
             raise AddressError(f"value {value} is outside {lo}..{hi}")
         out += (value & (0xFFFF if unit is S5Unit.WORD else 0xFF)).to_bytes(unit.size, "big")

@@ -54,7 +54,11 @@ class Option:
             return self.check(self.parse(raw) if from_url and isinstance(raw, str) else raw)
         except (ValueError, TypeError, AddressError) as exc:
             reason = exc.message if isinstance(exc, AddressError) else str(exc)
-            raise OptionError(f"option {self.name}={raw!r}: {reason}", option=self.name) from None
+            # a check that already names the option (check_seconds does) is not prefixed twice
+            prefix = (
+                "" if reason.startswith(f"option {self.name}=") else f"option {self.name}={raw!r}: "
+            )
+            raise OptionError(f"{prefix}{reason}", option=self.name) from None
 
 
 def _same(text: str) -> object:

@@ -63,6 +63,7 @@ from plcstack.errors import (
     AddressError,
     PlcError,
     PlcErrorResponse,
+    ValueEncodeError,
 )
 from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
 from plcstack.transports.backoff import Backoff
@@ -219,7 +220,7 @@ class S5LanClient(S5Access, RequestClient[Response]):
         return list(swap_words(wire)[skip : skip + count])
 
     async def write(self, address: str, values: Points) -> None:
-        values = as_points(values)
+        values = as_points(values, plc=self.name, request=f"write {address}")
         n = len(values)
         plan = self._write_plans.get((address, n)) if type(address) is str else None
         if plan is None:
@@ -374,8 +375,9 @@ class S5LanClient(S5Access, RequestClient[Response]):
         out = bytearray()
         for i, value in enumerate(values):
             if isinstance(value, bool) or not isinstance(value, int):
-                raise AddressError(
-                    f"value #{i} {value!r} is not an integer (S5-LAN has no bit access)",
+                raise ValueEncodeError(
+                    f"value #{i} {value!r} ({type(value).__name__}) is not an integer "
+                    "(S5-LAN has no bit access)",
                     plc=self.name,
                     request=f"write {addr}",
                 )

@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import enum
 import functools
+import re
 from dataclasses import dataclass
 from typing import Final
 
 from plcstack.codecs.e71_wire import Malformed, Reader
 from plcstack.errors import AddressError, LocalProtocolError
+from plcstack.s5address import READ_A_BIT, parse_s5_address
 
 __all__ = [
     "DEVICE_BY_CODE",
@@ -171,20 +173,74 @@ def _parse(text: str, last: dict[Device, int] | None) -> DeviceRef:
             device, digits = _NAMES[upper[:size]], upper[size:]
             break
     if device is None:
+        foreign = _foreign(upper)
+        if foreign:
+            raise AddressError(f"address {text!r}{foreign}")
         known = ", ".join([*(d.letters for d in Device), "L", "S"])
         raise AddressError(f"unknown MELSEC device in address {text!r}; known: {known}")
     try:
         if not digits or not all(c in "0123456789ABCDEF" for c in digits):
             raise ValueError
         number = int(digits, device.base)
+        if device.base == 10 and not digits.isdigit():
+            raise ValueError
     except ValueError:
-        kind = "hexadecimal" if device.base == 16 else "decimal"
-        raise AddressError(
-            f"address {text!r}: {device.letters} takes a {kind} device number"
-        ) from None
+        raise AddressError(_bad_number(text, upper, device, digits)) from None
     if not in_range(device, number, 1, last or WIDEST_RANGES):
         raise AddressError(f"address {text!r}: device number out of range for {device.letters}")
     return DeviceRef(device, number)
+
+
+#: what a digit typed as a letter usually was (``D1O0``, ``DI00``)
+_LOOKALIKES: Final = str.maketrans({"O": "0", "I": "1", "L": "1"})
+#: the hexadecimal devices, for the message of a decimal one given hex digits
+_HEX_NAMES: Final = ", ".join(d.letters for d in Device if d.base == 16)
+
+
+def _foreign(upper: str) -> str:
+    """`` (... notation; ...)`` when ``upper`` is an address of the Siemens S5 family (``DB10.DW0``,
+    ``MB100``, ``M10.3``), else ``""``: the message then says what the PLC family expects
+    instead of complaining about the digits of a device it never meant."""
+    try:
+        s5 = parse_s5_address(upper)
+    except AddressError:
+        if not _S5_SHAPE.fullmatch(upper):
+            return ""
+        return (
+            ": that is Siemens S5/S7 notation, but this is a MELSEC PLC; use device letters "
+            "and numbers like D100 (data register), M0 (relay), X1F (input, hex)"
+        )
+    return (
+        f": that is Siemens S5 notation ({s5}), but this is a MELSEC PLC; use device letters "
+        "and numbers like D100 (data register), M0 (relay), X1F (input, hex)"
+    )
+
+
+#: S5/S7 operand shapes the S5 parser refuses but still recognises as its own family
+_S5_SHAPE: Final = re.compile(r"(DB|DX)\d+\..*|[MEIAQ][BWD]?\d+\.\d+|[MEIAQ][BWD]\d+")
+
+
+def _bad_number(text: str, upper: str, device: Device, digits: str) -> str:
+    """The message for a device letter followed by something that is not its number."""
+    foreign = _foreign(upper)
+    if foreign:
+        return f"address {text!r}{foreign}"
+    word, dot, bit = digits.partition(".")
+    if dot and word and bit and not device.is_bit:
+        return (
+            f"address {text!r} is a bit of the word {device.letters}{word}: {READ_A_BIT}; "
+            "a plain read or write takes whole points"
+        )
+    kind = "hexadecimal (0-9, A-F)" if device.base == 16 else "decimal"
+    example = device.format_number(0x1F if device.base == 16 else 100)
+    message = f"address {text!r}: {device.letters} takes a {kind} device number like {example}"
+    fixed = digits.translate(_LOOKALIKES)
+    allowed = "0123456789ABCDEF" if device.base == 16 else "0123456789"
+    if fixed != digits and fixed and all(c in allowed for c in fixed):
+        return f"{message}; did you mean {device.letters}{fixed}?"
+    if device.base == 10 and digits and all(c in "0123456789ABCDEF" for c in digits):
+        return f"{message}, not hexadecimal {digits!r} (hexadecimal devices: {_HEX_NAMES})"
+    return f"{message}; {digits!r} is not one" if digits else f"{message}; the number is missing"
 
 
 def dev_value(ref: DeviceRef) -> int:

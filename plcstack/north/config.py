@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from plcstack.errors import unknown_names
 from plcstack.north.influx import DEFAULT_MEASUREMENT
 from plcstack.north.metrics import MetricsSettings, parse_metrics
 from plcstack.north.mqtt import MqttSettings, parse_mqtt
@@ -56,7 +57,7 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
         raise ConfigError("[influx] must be a table")
     unknown = sorted(set(influx) - {"measurement"})
     if unknown:
-        raise ConfigError(f"[influx]: unknown key(s) {', '.join(unknown)}")
+        raise ConfigError(f"[influx]: unknown key(s) {unknown_names(unknown, ['measurement'])}")
     measurement = influx.get("measurement", DEFAULT_MEASUREMENT)
     if not isinstance(measurement, str) or not measurement.strip():
         raise ConfigError("[influx] measurement must be a non-empty string")

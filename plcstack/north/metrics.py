@@ -55,7 +55,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from plcstack.errors import ValueDecodeError
+from plcstack.errors import ValueDecodeError, unknown_names
 from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Quality, Sample
 
@@ -87,7 +87,7 @@ def parse_metrics(table: Any) -> MetricsSettings:
         raise ConfigError("[metrics] must be a table")
     unknown = sorted(set(table) - {"host", "port"})
     if unknown:
-        raise ConfigError(f"[metrics]: unknown key(s) {', '.join(unknown)}")
+        raise ConfigError(f"[metrics]: unknown key(s) {unknown_names(unknown, {'host', 'port'})}")
     host = table.get("host", "127.0.0.1")
     port = table.get("port", 9108)
     if not isinstance(host, str) or not host:

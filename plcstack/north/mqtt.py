@@ -41,7 +41,13 @@ from pathlib import Path
 from typing import Any, Protocol
 from urllib.parse import urlsplit
 
-from plcstack.errors import AddressError, ConnectFailed, PlcError, PlcErrorResponse
+from plcstack.errors import (
+    AddressError,
+    ConnectFailed,
+    PlcError,
+    PlcErrorResponse,
+    unknown_names,
+)
 from plcstack.north.buffer import Message, StoreAndForward
 from plcstack.north.layout import (
     JsonLayout,
@@ -173,7 +179,7 @@ def parse_mqtt(table: Any, *, base: Path | None = None) -> MqttSettings:
     }  # fmt: skip
     unknown = sorted(set(table) - allowed)
     if unknown:
-        raise ConfigError(f"[mqtt]: unknown key(s) {', '.join(unknown)}")
+        raise ConfigError(f"[mqtt]: unknown key(s) {unknown_names(unknown, allowed)}")
 
     def text(key: str, default: str | None) -> str | None:
         value = table.get(key, default)

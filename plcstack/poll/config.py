@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from plcstack.errors import AddressError
+from plcstack.errors import AddressError, unknown_names
 from plcstack.url import parse_url
 from plcstack.values import (
     RAW,
@@ -384,14 +384,26 @@ class _Loader:
     def _unknown(table: Mapping[str, Any], allowed: set[str]) -> list[str]:
         return sorted(set(table) - allowed)
 
+    def _check_keys(
+        self, table: Mapping[str, Any], allowed: set[str], where: str, line_key: str | None = None
+    ) -> None:
+        """Every key of ``table`` is one of ``allowed``; else the error names each unknown key
+        with the allowed one it is closest to (``adress (did you mean address?)``)."""
+        unknown = self._unknown(table, allowed)
+        if unknown:
+            names = unknown_names(unknown, allowed)
+            raise self.error(f"{where}unknown key(s) {names}", line_key or unknown[0])
+
     def load(self, data: dict[str, Any]) -> PollConfig:
         from plcstack.north.config import NORTH_TABLES, parse_north
 
-        unknown = self._unknown(data, {"poll", "groups", "plc", *NORTH_SECTIONS})
+        top = {"poll", "groups", "plc", *NORTH_SECTIONS}
+        unknown = self._unknown(data, top)
         if unknown:
             raise self.error(
-                f"unknown top-level key(s) {', '.join(unknown)}; expected poll, groups, plc"
-                f" or {', '.join(NORTH_SECTIONS)}"
+                f"unknown top-level key(s) {unknown_names(unknown, top)}; expected poll, groups,"
+                f" plc or {', '.join(NORTH_SECTIONS)}",
+                unknown[0],
             )
         for section in NORTH_SECTIONS:
             if section in data and not isinstance(data[section], dict):
@@ -405,7 +417,7 @@ class _Loader:
         poll = data.get("poll", {})
         if not isinstance(poll, dict):
             raise self.error("[poll] must be a table", "poll")
-        unknown = self._unknown(
+        self._check_keys(
             poll,
             {
                 "concurrency",
@@ -417,9 +429,8 @@ class _Loader:
                 "backoff_max",
                 "interval",
             },
+            "[poll]: ",
         )
-        if unknown:
-            raise self.error(f"unknown key(s) in [poll]: {', '.join(unknown)}", unknown[0])
         concurrency = (
             self._int(poll, "concurrency", 1, 1, "poll")
             if "concurrency" in poll
@@ -484,7 +495,7 @@ class _Loader:
         self.plc_name = name
         if not isinstance(url, str):
             raise self.error('missing url (e.g. url = "e71+tcp://10.0.0.5:5000")', "url")
-        unknown = self._unknown(
+        self._check_keys(
             raw,
             {
                 "name",
@@ -497,9 +508,8 @@ class _Loader:
                 "connect_timeout",
                 "backoff_max",
             },
+            "",
         )
-        if unknown:
-            raise self.error(f"unknown key(s) {', '.join(unknown)}", unknown[0])
         try:
             parse_url(url)
         except AddressError as exc:
@@ -554,12 +564,12 @@ class _Loader:
                 f'{where}: expected "ADDRESS" or {{ address = ..., type = ..., count = ... }}',
                 name,
             )
-        unknown = self._unknown(
+        self._check_keys(
             spec,
             {"address", "type", "count", "group", "scale", "writable", "unit", "description"},
+            f"{where}: ",
+            name,
         )
-        if unknown:
-            raise self.error(f"{where}: unknown key(s) {', '.join(unknown)}", name)
         address = spec.get("address")
         if not isinstance(address, str) or not address.strip():
             raise self.error(f"{where}: missing address", name)

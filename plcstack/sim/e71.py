@@ -446,9 +446,20 @@ def _close_all(sim: E71TcpSimulator) -> None:
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5000, help="port (default 5000; 0 = any)")
-    parser.add_argument("--code", choices=("binary", "ascii"), default="binary")
+    parser.add_argument(
+        "--code",
+        choices=("binary", "ascii"),
+        default="binary",
+        help="frame coding the clients must use, like DIP switch SW2 (default binary; "
+        "a client sets ?code=ascii)",
+    )
     add_idle_timeout_argument(parser)
-    parser.add_argument("--transport", choices=("tcp", "udp"), default="tcp")
+    parser.add_argument(
+        "--transport",
+        choices=("tcp", "udp"),
+        default="tcp",
+        help="listen on TCP (URL e71+tcp://) or UDP (URL e71+udp://) (default tcp)",
+    )
     parser.add_argument(
         "--cpu-group",
         choices=[g.value for g in CpuGroup],
