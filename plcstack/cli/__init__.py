@@ -41,6 +41,7 @@ COMMAND_MODULES = [
     "plcstack.cli.sim",
     "plcstack.cli.gateway",
     "plcstack.cli.bench",
+    "plcstack.cli.tags",
 ]
 
 EXIT_OK = 0
