@@ -19,7 +19,7 @@ comments do not say which tags the north side may write.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,7 +29,7 @@ from plcstack.poll.config import TagConfig, text_problem
 from plcstack.tags.addresses import native_address
 from plcstack.tags.convert import ImportedTags, check_tags
 from plcstack.tags.names import tag_names
-from plcstack.tags.table import Row, TagListError, decode, rows, sniff_delimiter
+from plcstack.tags.table import Row, TagListError, decode, rows
 from plcstack.values import BOOL, UINT16, ValueType
 
 __all__ = ["Skipped", "read_gx"]
@@ -60,6 +60,21 @@ def _columns(row: Row) -> dict[str, int] | None:
     return found if "device" in found and "comment" in found else None
 
 
+def _header(text: str, source: str) -> tuple[Iterator[Row], dict[str, int]] | None:
+    """The records after the header line and the header's columns: the delimiter is the one
+    (tab, then comma) that splits one of the first lines into known column names."""
+    for delimiter in "\t,":
+        records = rows(text, source, delimiter)
+        try:
+            for _, row in zip(range(_MAX_TITLE + 1), records, strict=False):
+                columns = _columns(row)
+                if columns is not None:
+                    return records, columns
+        except TagListError:
+            continue  # not this delimiter's CSV: try the next one
+    return None
+
+
 def _device(text: str) -> tuple[str, bool]:
     """plcstack's notation of a device and whether it holds one bit (a bit of a word
     ``D100.F`` is written as GX Works writes it: one hexadecimal digit)."""
@@ -83,13 +98,8 @@ def read_gx(
     ``skip_unsupported`` leaves out (and reports to ``skipped``) devices the PLC family cannot
     hold (a Q-series ``SM400`` in an A-series project); without it they are refused."""
     text = decode(data, source, fallback="cp932")
-    records = rows(text, source, sniff_delimiter(text, "\t,"))
-    columns: dict[str, int] | None = None
-    for count, row in enumerate(records):
-        columns = _columns(row)
-        if columns is not None or count >= _MAX_TITLE:
-            break
-    if columns is None:
+    found_header = _header(text, source)
+    if found_header is None:
         raise TagListError.at(
             source,
             None,
@@ -97,9 +107,10 @@ def read_gx(
             'no header line with a device and a comment column (e.g. "Device Name", '
             '"Comment") in its first lines',
         )
+    records, columns = found_header
 
     def cell(row: Row, column: str) -> str:
-        index = columns.get(column) if columns else None
+        index = columns.get(column)
         return row.cells[index].strip() if index is not None and index < len(row.cells) else ""
 
     entries: list[tuple[str, str, int]] = []

@@ -106,6 +106,7 @@ _NAME_OF = {v.name: k for k, v in KEPWARE_TYPES.items()}
 #: Kepware's numeric types, accepted as a "Scaled Data Type"
 _SCALED = {"char", "byte", "short", "word", "long", "dword", "float", "double", "bcd", "lbcd"}
 _INTEGER = re.compile(r"^[+-]?\d+$")
+_FREE_TEXT = ("Description", "Eng Units")
 
 
 class _Reader:
@@ -123,12 +124,14 @@ class _Reader:
         index = self.columns.get(column)
         if index is None or index >= len(self.row.cells):
             return ""
-        return self.row.cells[index]
+        text = self.row.cells[index]
+        # free text is kept as written (round trips); structural cells lose stray spaces
+        return text if column in _FREE_TEXT else text.strip()
 
     def header(self, row: Row) -> None:
         self.row = row
         for index, name in enumerate(row.cells):
-            known = _KNOWN.get(name.lower())
+            known = _KNOWN.get(name.strip().lower())
             if known is None:
                 raise self.fail(
                     None,
@@ -253,7 +256,7 @@ class _Reader:
         return name
 
     def text(self, column: str, key: str) -> str | None:
-        value = self.cell(column) or None
+        value = self.cell(column) if self.cell(column).strip() else None
         problem = text_problem(key, value)
         if problem:
             raise self.fail(column, problem)

@@ -36,7 +36,7 @@ class TagListError(AddressError):
 
 @dataclass(frozen=True)
 class Row:
-    """One record: its cells and the file line it starts on (1-based)."""
+    """One record: its cells (as written, spaces kept) and the line it starts on (1-based)."""
 
     line: int
     cells: tuple[str, ...]
@@ -72,7 +72,8 @@ def decode(data: bytes, source: str, *, fallback: str) -> str:
 
 
 def sniff_delimiter(text: str, choices: str) -> str:
-    """The first of ``choices`` found in the first non-blank line (default: its first one)."""
+    """The one of ``choices`` seen most in the first non-blank line (the heading record);
+    ``choices[0]`` when none is seen."""
     first = next((line for line in text.splitlines() if line.strip()), "")
     counts = {c: first.count(c) for c in choices}
     best = max(choices, key=lambda c: counts[c])
@@ -87,6 +88,6 @@ def rows(text: str, source: str, delimiter: str) -> Iterator[Row]:
         for cells in reader:
             line, start = start, reader.line_num + 1
             if any(c.strip() for c in cells):
-                yield Row(line, tuple(c.strip() for c in cells))
+                yield Row(line, tuple(cells))
     except csv.Error as exc:
         raise TagListError.at(source, reader.line_num, None, f"not valid CSV: {exc}") from None
