@@ -29,7 +29,16 @@ NAME = st.text(
     max_size=20,
 )
 FINITE = st.floats(-1e6, 1e6, allow_nan=False) | st.integers(-30000, 30000)
-WORD_TYPES: list[vt.ValueType[Any]] = [vt.RAW, vt.INT16, vt.UINT16, vt.INT32, vt.UINT32, vt.FLOAT32, vt.BCD16, vt.BCD32]
+WORD_TYPES: list[vt.ValueType[Any]] = [
+    vt.RAW,
+    vt.INT16,
+    vt.UINT16,
+    vt.INT32,
+    vt.UINT32,
+    vt.FLOAT32,
+    vt.BCD16,
+    vt.BCD32,
+]
 
 
 @st.composite
