@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import dataclasses
 import functools
 import logging
 import os
@@ -26,7 +27,6 @@ from typing import TYPE_CHECKING, Any, TextIO
 from plcstack.cli import plain_text
 from plcstack.north.config import parse_north
 from plcstack.north.influx import influx_line
-from plcstack.north.pipeline import North, missing, needs_of
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Sample
@@ -69,6 +69,13 @@ def register(subparsers: Any) -> None:
         default=None,
         metavar="SECONDS",
         help="also print the statistics on stderr every SECONDS (for long runs)",
+    )
+    poll.add_argument(
+        "--web-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="serve the web console and REST API on PORT (0: any free port), over [web] port",
     )
     scale_cli.add_arguments(poll)
     poll.set_defaults(func=run_poll)
@@ -119,6 +126,12 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     config = load_config(args.config)
     # relative file paths in [mqtt] are taken relative to the TOML file, as [opcua] does
     north_config = parse_north(config.north, base=Path(args.config).parent)
+    try:
+        web = with_port(north_config.web, getattr(args, "web_port", None))
+    except ValueError as exc:
+        print(f"plcstack poll: error: {exc}", file=sys.stderr)
+        return 2
+    north_config = dataclasses.replace(north_config, web=web)
     needs = needs_of(north_config)
     if getattr(args, "mqtt", None) is not None:
         needs.append(("--mqtt (scale-out)", "aiomqtt", "scale"))
@@ -136,6 +149,8 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return 2
     # every URL and address checked here, before anything is sent
     poller: Poller | Worker = worker if worker is not None else Poller(config)
+from plcstack.north.pipeline import North, missing, needs_of
+from plcstack.north.web.settings import with_port
     line: Callable[[Sample], str] | None = None
     if args.format == "influx":
         line = functools.partial(influx_line, measurement=north_config.influx_measurement)

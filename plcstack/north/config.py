@@ -1,5 +1,5 @@
 """The north-side tables of the poll TOML: ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``,
-``[opcua]``.
+``[opcua]``, ``[web]``.
 
 They sit next to ``[poll]`` and ``[[plc]]`` in the same file; the poll loader keeps them as raw
 tables (``PollConfig.north``) and checks them here at load time, so a typo is a
@@ -25,12 +25,13 @@ from plcstack.north.metrics import MetricsSettings, parse_metrics
 from plcstack.north.mqtt import MqttSettings, parse_mqtt
 from plcstack.north.opcua_config import OpcUaConfig, parse_opcua_config
 from plcstack.north.rbe import PASS_ALL, parse_report
+from plcstack.north.web.settings import WebSettings, parse_web
 from plcstack.poll.config import ConfigError
 
 __all__ = ["NORTH_TABLES", "NorthConfig", "parse_north"]
 
 #: top-level TOML tables that belong to the north side
-NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua")
+NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua", "web")
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,8 @@ class NorthConfig:
     #: checked here; ``plcstack serve opcua`` reads it again with load_opcua_config, which
     #: takes relative certificate paths relative to the TOML file
     opcua: OpcUaConfig | None = None
+    #: the web console and REST API (plcstack.north.web)
+    web: WebSettings | None = None
 
     @property
     def reports_by_exception(self) -> bool:
@@ -67,4 +70,5 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
         report=parse_report(tables.get("report")),
         influx_measurement=measurement,
         opcua=parse_opcua_config(tables["opcua"], base=base) if "opcua" in tables else None,
+        web=parse_web(tables["web"]) if "web" in tables else None,
     )

@@ -71,6 +71,8 @@ def needs_of(config: NorthConfig) -> list[tuple[str, str, str]]:
             needs.append(("[mqtt]", "aiomqtt", "mqtt"))
     if config.metrics is not None:
         needs.append(("[metrics]", "prometheus_client", "metrics"))
+    if config.web is not None:
+        needs.append(("[web] or --web-port", "aiohttp", "web"))
     return needs
 
 
@@ -109,6 +111,12 @@ class North:
                 plcs=[plc.name for plc in poller.config.plcs],
             )
             self.sinks.append(self.mqtt)
+        self.web: Any = None
+        if config.web is not None:  # the web console: a sink, and a server (the web extra)
+            from plcstack.north.web.server import WebConsole
+
+            self.web = WebConsole(poller, config.web)
+            self.sinks.append(self.web)
         for sink in self.sinks:
             if hasattr(sink, "supervisor"):
                 sink.supervisor = self.supervisor  # its tasks run under the run's supervisor

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import array
 import itertools
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 __all__ = ["LATENCY_WINDOW", "LatencyWindow", "PlcStats", "format_stats"]
@@ -88,11 +88,17 @@ class PlcStats:
 
     def percentile(self, q: float) -> float | None:
         """Latency percentile in seconds over the recent window (nearest rank); None if empty."""
-        if not self.latencies:
-            return None
-        data = sorted(self.latencies)
-        rank = max(0, min(len(data) - 1, int(q / 100.0 * len(data) + 0.5) - 1))
-        return data[rank]
+        return self.percentiles((q,))[0]
+
+    def percentiles(self, qs: Sequence[float], newest: int | None = None) -> list[float | None]:
+        """Several percentiles from one sort, over the ``newest`` latencies (default: the whole
+        window); None each if there is none. A console looking at a thousand PLCs every few
+        seconds takes a short window: a 4096-point sort per PLC per look adds up."""
+        data = sorted(self.latencies if newest is None else self.latencies.tail(newest))
+        if not data:
+            return [None for _ in qs]
+        n = len(data)
+        return [data[max(0, min(n - 1, int(q / 100.0 * n + 0.5) - 1))] for q in qs]
 
 
 #: widest line of the statistics table (a terminal's 80 columns, less one)

@@ -1,0 +1,154 @@
+"""The REST API: the console's data for scripts, and writes with a bearer token.
+
+```
+GET  /api/plcs                      [{name, up, last_error, error_time, requests, errors,
+                                      reconnects, p50_ms, p99_ms}, ...]
+GET  /api/tags[?plc=NAME]           [{plc, tag, value, quality, source_time, error}, ...]
+GET  /api/plcs/{plc}/tags/{tag}/trend   [[unix_time, value], ...] oldest first
+POST /api/plcs/{plc}/tags/{tag}     {"value": v} with "Authorization: Bearer TOKEN"
+                                    -> {"ok": true}
+                                    or {"ok": false, "error": CODE, "message": ...,
+                                        "may_have_executed": ...}
+```
+
+Write refusals, in the order they are checked: writes off (no token configured) 403
+``not_writable``; no or wrong token 401 ``unauthorized``; a body that is not ``{"value": v}``
+400 ``bad_request``; unknown PLC or tag 404 ``unknown_plc``/``unknown_tag``; a tag without
+``writable = true`` 403 ``not_writable``; too many writes waiting 503 ``busy``; a value the tag's
+type cannot take 400 ``wrong_type``; the PLC refused or did not answer 502 ``plc_error`` (with
+``may_have_executed`` true when the request was sent and its outcome is unknown). The codes are
+the MQTT write codes. The token is compared in constant time; nothing writes through ``GET``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+import logging
+from typing import TYPE_CHECKING, Any
+
+from aiohttp import web
+
+from plcstack.errors import AddressError, ConnectFailed, PlcError, PlcErrorResponse
+from plcstack.north.web.state import tag_row
+
+if TYPE_CHECKING:
+    from plcstack.north.web.server import WebConsole
+
+__all__ = ["MAX_PENDING_WRITES", "routes"]
+
+log = logging.getLogger("plcstack.web")
+
+#: writes in flight at once from the web; more are refused with ``busy``
+MAX_PENDING_WRITES = 16
+
+_STATUS = {
+    "unauthorized": 401,
+    "not_writable": 403,
+    "bad_request": 400,
+    "wrong_type": 400,
+    "unknown_plc": 404,
+    "unknown_tag": 404,
+    "busy": 503,
+    "plc_error": 502,
+}
+
+
+def _json(data: Any, status: int = 200) -> web.Response:
+    return web.Response(
+        text=json.dumps(data, separators=(",", ":")),
+        status=status,
+        content_type="application/json",
+    )
+
+
+def refusal(code: str, message: str, may_have_executed: bool = False) -> web.Response:
+    response = _json(
+        {"ok": False, "error": code, "message": message, "may_have_executed": may_have_executed},
+        _STATUS[code],
+    )
+    if code == "unauthorized":
+        response.headers["WWW-Authenticate"] = 'Bearer realm="plcstack"'
+    return response
+
+
+def token_matches(header: str | None, token: str) -> bool:
+    """``Authorization: Bearer TOKEN``, compared in constant time."""
+    if header is None or not header.startswith("Bearer "):
+        return False
+    given = header[len("Bearer ") :].strip().encode()
+    return hmac.compare_digest(given, token.encode())
+
+
+def routes(console: WebConsole) -> list[web.RouteDef]:
+    state = console.state
+
+    async def plcs(request: web.Request) -> web.Response:
+        return _json(console.plc_rows(None))
+
+    async def tags(request: web.Request) -> web.Response:
+        plc = request.query.get("plc")
+        if plc is not None and plc not in state.plcs:
+            return refusal("unknown_plc", f"no PLC named {plc!r} here")
+        return _json([tag_row(s) for s in state.latest.values() if plc is None or s.plc == plc])
+
+    async def trend(request: web.Request) -> web.Response:
+        plc, tag = request.match_info["plc"], request.match_info["tag"]
+        if (plc, tag) not in state.tags:
+            code = "unknown_tag" if plc in state.plcs else "unknown_plc"
+            return refusal(code, f"no tag {tag!r} of a PLC {plc!r} here")
+        return _json([[t, v] for t, v in state.trend(plc, tag)])
+
+    async def write(request: web.Request) -> web.Response:
+        plc, tag = request.match_info["plc"], request.match_info["tag"]
+        token = console.token
+        if token is None:
+            return refusal(
+                "not_writable",
+                "writes are off: the console was started without a write token"
+                " ([web] write_token_env names an environment variable that is not set)",
+            )
+        if not token_matches(request.headers.get("Authorization"), token):
+            log.warning(
+                "web write %s/%s refused: no or wrong token from %s", plc, tag, request.remote
+            )
+            return refusal("unauthorized", "a valid 'Authorization: Bearer TOKEN' is required")
+        try:
+            body = await request.json()
+        except (ValueError, UnicodeDecodeError):
+            return refusal("bad_request", 'the body must be JSON: {"value": ...}')
+        if not isinstance(body, dict) or "value" not in body:
+            return refusal("bad_request", 'the body must be a JSON object {"value": ...}')
+        return await console.write(plc, tag, body["value"])
+
+    return [
+        web.get("/api/plcs", plcs),
+        web.get("/api/tags", tags),
+        web.get("/api/plcs/{plc}/tags/{tag}/trend", trend),
+        web.post("/api/plcs/{plc}/tags/{tag}", write),
+    ]
+
+
+async def classified_write(
+    writer: Any, plc: str, tag: str, value: Any
+) -> tuple[str, str, bool] | None:
+    """Run one write through ``writer.write_tag``; None if confirmed, else
+    ``(code, message, may_have_executed)`` with the MQTT write codes."""
+    try:
+        await writer.write_tag(plc, tag, value)
+    except AddressError as exc:
+        code = "unknown_tag" if "no tag named" in exc.message else "wrong_type"
+        if "no PLC named" in exc.message:
+            code = "unknown_plc"
+        return code, str(exc), False
+    except (PlcErrorResponse, ConnectFailed) as exc:
+        return "plc_error", str(exc), False
+    except PlcError as exc:  # a timeout or a lost connection after sending
+        return "plc_error", str(exc), True
+    except asyncio.CancelledError:
+        raise
+    except Exception as exc:  # a writer bug still gets an answer
+        log.exception("web write %s/%s failed", plc, tag)
+        return "plc_error", f"{type(exc).__name__}: {exc}", True
+    return None

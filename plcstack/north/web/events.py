@@ -1,0 +1,204 @@
+"""Server-sent events to the browsers: changes only, pushed twice a second, bounded per client.
+
+One :class:`EventHub` per console. Every :data:`PUSH_EVERY` seconds it takes the tags that
+changed since the last push from the :class:`~.state.ConsoleState`, encodes them ONCE per scope
+(every PLC for the overview, one PLC for its page) and offers the same bytes to each client of
+that scope; the PLCs' health and counters go out every :data:`PLCS_EVERY` seconds, only the rows
+that changed. A new client first gets a snapshot of its scope, so nothing that changed between
+the page's rendering and the stream's start is missed.
+
+Bounded memory: a client holds at most :data:`QUEUE_LIMIT` messages not yet written (each at
+most one row per tag of its scope), and the socket's own buffer is bounded by aiohttp's flow
+control (a write waits for the peer to read). A client whose queue is full does not read: it is
+dropped (its connection aborted), never buffered without limit. At most :data:`MAX_CLIENTS`
+streams at once; more get 503.
+
+Event format (``data`` is JSON)::
+
+    event: tags     data: [[plc, tag, value, quality, source_time, error], ...]
+    event: plcs     data: [{name, up, last_error, error_time, requests, errors, ...}, ...]
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import json
+import logging
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from plcstack.north.web.state import ConsoleState
+from plcstack.output import json_safe
+from plcstack.poll.samples import Sample
+
+__all__ = ["MAX_CLIENTS", "PUSH_EVERY", "QUEUE_LIMIT", "EventClient", "EventHub", "sse"]
+
+log = logging.getLogger("plcstack.web")
+
+PUSH_EVERY = 0.5
+PLCS_EVERY = 2.0
+QUEUE_LIMIT = 32
+MAX_CLIENTS = 64
+
+
+def sse(event: str, data: Any) -> bytes:
+    """One server-sent event; JSON has no line breaks, so ``data`` is one line."""
+    return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n".encode()
+
+
+def tag_rows(samples: Iterable[Sample]) -> list[list[Any]]:
+    return [
+        [s.plc, s.tag, json_safe(s.value), s.quality.value, s.source_time, s.error] for s in samples
+    ]
+
+
+class EventClient:
+    """One browser's stream: a bounded queue of encoded events."""
+
+    def __init__(self, plc: str | None, limit: int = QUEUE_LIMIT) -> None:
+        #: the PLC whose page this is, None for the overview
+        self.plc = plc
+        self.limit = limit
+        self.dropped = False
+        self.closed = False
+        #: called once when the client is dropped (the handler aborts its connection)
+        self.on_drop: Callable[[], None] | None = None
+        self._queue: collections.deque[bytes] = collections.deque()
+        self._wake = asyncio.Event()
+
+    def offer(self, data: bytes) -> None:
+        if self.closed:
+            return
+        if len(self._queue) >= self.limit:
+            log.warning(
+                "web console: dropped a browser that read nothing of its last %d updates",
+                self.limit,
+            )
+            self.drop()
+            return
+        self._queue.append(data)
+        self._wake.set()
+
+    def drop(self) -> None:
+        """End a client that does not read: its queue freed, its connection aborted."""
+        if self.closed:
+            return
+        self.dropped = True
+        self.close()
+        if self.on_drop is not None:
+            self.on_drop()
+
+    def close(self) -> None:
+        """End the stream after nothing more (the console is closing)."""
+        self.closed = True
+        self._queue.clear()
+        self._wake.set()
+
+    async def next(self) -> bytes | None:
+        """The next event to write, or None once dropped."""
+        while not self._queue:
+            if self.closed:
+                return None
+            self._wake.clear()
+            await self._wake.wait()
+        return self._queue.popleft()
+
+
+class EventHub:
+    """Pushes changes from the state to every connected client (see the module docstring)."""
+
+    def __init__(
+        self,
+        state: ConsoleState,
+        plc_rows: Callable[[str | None], list[dict[str, Any]]],
+        *,
+        push_every: float = PUSH_EVERY,
+        plcs_every: float = PLCS_EVERY,
+        max_clients: int = MAX_CLIENTS,
+    ) -> None:
+        self.state = state
+        #: PLC rows of one scope (None: every PLC)
+        self.plc_rows = plc_rows
+        self.push_every = push_every
+        self.plcs_every = plcs_every
+        self.max_clients = max_clients
+        self.clients: set[EventClient] = set()
+        self.dropped = 0
+        self._since_plcs = 0.0
+        self._last_plcs: dict[str, dict[str, Any]] = {}
+
+    def connect(self, plc: str | None) -> EventClient | None:
+        """A new client with its snapshot queued; None when :attr:`max_clients` are connected."""
+        if len(self.clients) >= self.max_clients:
+            return None
+        client = EventClient(plc)
+        latest = self.state.latest.values()
+        samples = latest if plc is None else (s for s in latest if s.plc == plc)
+        client.offer(sse("tags", tag_rows(samples)))
+        client.offer(sse("plcs", self.plc_rows(plc)))
+        self.clients.add(client)
+        return client
+
+    def disconnect(self, client: EventClient) -> None:
+        if client in self.clients:
+            self.clients.discard(client)
+            if client.dropped:
+                self.dropped += 1
+
+    async def run(self) -> None:
+        """Push until cancelled."""
+        while True:
+            await asyncio.sleep(self.push_every)
+            self.push()
+
+    def push(self) -> None:
+        """One round: the changed tags, and every :attr:`plcs_every` the changed PLC rows."""
+        changes = self.state.take_changes()
+        self._since_plcs += self.push_every
+        plcs_due = self._since_plcs >= self.plcs_every
+        if plcs_due:
+            self._since_plcs = 0.0
+        clients = [c for c in self.clients if not c.closed]
+        if not clients:
+            self._last_plcs.clear()  # a client that comes gets a snapshot anyway
+            return
+        if changes:
+            self._fan_out(clients, "tags", changes, lambda s: s.plc, tag_rows)
+        if plcs_due:
+            rows = self.plc_rows(None)
+            last = self._last_plcs
+            fresh = [r for r in rows if last.get(r["name"]) != r]
+            self._last_plcs = {r["name"]: r for r in rows}
+            if fresh:
+                self._fan_out(clients, "plcs", fresh, lambda r: r["name"], list)
+
+    def _fan_out(
+        self,
+        clients: list[EventClient],
+        event: str,
+        items: list[Any],
+        plc_of: Callable[[Any], str],
+        encode: Callable[[list[Any]], list[Any]],
+    ) -> None:
+        """Encode once per scope, offer to each client of it."""
+        everything: bytes | None = None
+        by_plc: dict[str, list[Any]] | None = None
+        encoded: dict[str, bytes] = {}
+        for client in clients:
+            if client.plc is None:
+                if everything is None:
+                    everything = sse(event, encode(items))
+                client.offer(everything)
+                continue
+            if by_plc is None:
+                by_plc = {}
+                for item in items:
+                    by_plc.setdefault(plc_of(item), []).append(item)
+            mine = by_plc.get(client.plc)
+            if not mine:
+                continue
+            data = encoded.get(client.plc)
+            if data is None:
+                data = encoded[client.plc] = sse(event, encode(mine))
+            client.offer(data)

@@ -1,0 +1,238 @@
+""":class:`WebConsole`: the console's aiohttp application, run on the poller's own event loop.
+
+A north-side sink like the others: ``start()``, ``submit(batch)`` (the state takes the samples;
+nothing is sent from there), ``aclose()``. Binds 127.0.0.1 unless ``[web] host`` says otherwise:
+the pages name every PLC of the plant. Every response carries a Content-Security-Policy that
+allows scripts, styles and connections from the console itself only (no inline script), and
+``nosniff``; request bodies are limited to 64 KiB.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import sys
+from importlib import resources
+from typing import Any
+
+from aiohttp import web
+
+from plcstack.north.web.api import MAX_PENDING_WRITES, classified_write, refusal, routes
+from plcstack.north.web.events import EventClient, EventHub
+from plcstack.north.web.pages import esc, overview_page, plc_page
+from plcstack.north.web.settings import WebSettings
+from plcstack.north.web.state import ConsoleState, plc_row
+from plcstack.poll.config import ConfigError
+from plcstack.poll.samples import Sample
+
+__all__ = ["WebConsole"]
+
+log = logging.getLogger("plcstack.web")
+
+MAX_BODY = 64 * 1024
+#: a stream with nothing to say sends a comment this often (finds peers that went away)
+KEEPALIVE = 15.0
+_HEADERS = {
+    "Content-Security-Policy": (
+        "default-src 'none'; script-src 'self'; style-src 'self'; connect-src 'self';"
+        " img-src 'self'; form-action 'self'; base-uri 'none'; frame-ancestors 'none'"
+    ),
+    "X-Content-Type-Options": "nosniff",
+    "Referrer-Policy": "no-referrer",
+}
+_STATIC = {"console.js": "text/javascript", "console.css": "text/css"}
+
+
+class WebConsole:
+    """The web console and REST API of one poller (see the package docstring)."""
+
+    def __init__(self, poller: Any, settings: WebSettings | None = None) -> None:
+        self.poller = poller
+        self.settings = settings or WebSettings()
+        self.state = ConsoleState(poller.config.plcs, trend_seconds=self.settings.trend_seconds)
+        self.hub = EventHub(self.state, self.plc_rows)
+        self.port = self.settings.port
+        #: the write token, read from the environment at start (None: writes are off)
+        self.token: str | None = None
+        self._runner: web.AppRunner | None = None
+        self._pusher: asyncio.Task[None] | None = None
+        self._writes: set[asyncio.Task[Any]] = set()
+        files = resources.files(__package__ or "plcstack.north.web")
+        self._static = {name: (files / name).read_bytes() for name in _STATIC}
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.settings.host}:{self.port}/"
+
+    # -- the sink protocol ----------------------------------------------------------------------
+    def submit(self, batch: list[Sample]) -> None:
+        self.state.submit(batch)
+
+    async def start(self) -> None:
+        """Listen; a :class:`ConfigError` naming the address if that is not possible."""
+        self.token = self.settings.write_token()
+        app = web.Application(client_max_size=MAX_BODY)
+        app.on_response_prepare.append(_secure)
+        app.add_routes(
+            [
+                web.get("/", self._overview),
+                web.get("/plc/{plc}", self._plc),
+                web.get("/events", self._events),
+                web.get("/static/{name}", self._file),
+                *routes(self),
+            ]
+        )
+        runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        await runner.setup()
+        host, port = self.settings.host, self.settings.port
+        site = web.TCPSite(runner, host, port, shutdown_timeout=1.0)
+        try:
+            await site.start()
+        except OSError as exc:
+            await runner.cleanup()
+            raise ConfigError(
+                f"[web] cannot serve the console on {host}:{port}: {exc.strerror or exc}"
+                " (another process on that port? set [web] port or --web-port)"
+            ) from None
+        self._runner = runner
+        self.port = runner.addresses[0][1]  # the port taken when [web] port = 0
+        self._pusher = asyncio.create_task(self.hub.run(), name="web console push")
+        self._pusher.add_done_callback(_observe)
+        # where to point the browser, on stderr as the simulators say where they listen
+        print(
+            f"plcstack: web console on {self.url} (writes {'on' if self.token else 'off'})",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    async def aclose(self) -> None:
+        if self._pusher is not None:
+            self._pusher.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._pusher
+            self._pusher = None
+        for client in list(self.hub.clients):
+            client.close()
+        for task in list(self._writes):
+            task.cancel()
+        if self._writes:
+            await asyncio.gather(*self._writes, return_exceptions=True)
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    # -- data -----------------------------------------------------------------------------------
+    def plc_rows(self, plc: str | None) -> list[dict[str, Any]]:
+        stats = getattr(self.poller, "stats", {})
+        health = self.state.health
+        names = list(health) if plc is None else [plc]
+        return [plc_row(name, health[name], stats.get(name)) for name in names]
+
+    async def write(self, plc: str, tag: str, value: Any) -> web.Response:
+        """One write from the web, after the token was checked (see :mod:`.api`)."""
+        config = self.state.tags.get((plc, tag))
+        if config is None:
+            if plc not in self.state.plcs:
+                return refusal("unknown_plc", f"no PLC named {plc!r} here")
+            return refusal("unknown_tag", f"{plc}: no tag named {tag!r}")
+        if not config.writable:
+            return refusal(
+                "not_writable",
+                f"{plc}: write {tag}: the tag is read-only for north-side clients"
+                " (set writable = true in its configuration); not attempted",
+            )
+        if not hasattr(self.poller, "write_tag"):
+            return refusal("not_writable", "this poller takes no writes")
+        if len(self._writes) >= MAX_PENDING_WRITES:
+            return refusal("busy", "too many writes waiting; not attempted")
+        task = asyncio.create_task(classified_write(self.poller, plc, tag, value))
+        self._writes.add(task)
+        task.add_done_callback(self._writes.discard)
+        # shielded: a browser that goes away does not cancel a write half done
+        result = await asyncio.shield(task)
+        if result is None:
+            log.info("web write %s/%s = %r done", plc, tag, value)
+            return web.json_response({"ok": True})
+        code, message, may_have_executed = result
+        log.warning("web write %s/%s refused: %s %s", plc, tag, code, message)
+        return refusal(code, message, may_have_executed)
+
+    # -- pages ----------------------------------------------------------------------------------
+    async def _overview(self, request: web.Request) -> web.Response:
+        return _html(
+            overview_page(
+                self.state, self.plc_rows(None), trend_seconds=self.settings.trend_seconds
+            )
+        )
+
+    async def _plc(self, request: web.Request) -> web.Response:
+        plc = request.match_info["plc"]
+        if plc not in self.state.plcs:
+            return _html(f"<!doctype html><title>not found</title>no PLC {esc(plc)}", 404)
+        return _html(
+            plc_page(
+                self.state,
+                plc,
+                self.plc_rows(plc),
+                trend_seconds=self.settings.trend_seconds,
+                writes_enabled=self.token is not None,
+            )
+        )
+
+    async def _file(self, request: web.Request) -> web.Response:
+        name = request.match_info["name"]
+        if name not in self._static:
+            raise web.HTTPNotFound()
+        return web.Response(
+            body=self._static[name],
+            content_type=_STATIC[name],
+            headers={"Cache-Control": "no-cache"},
+        )
+
+    async def _events(self, request: web.Request) -> web.StreamResponse:
+        plc = request.query.get("plc") or None
+        if plc is not None and plc not in self.state.plcs:
+            return refusal("unknown_plc", f"no PLC named {plc!r} here")
+        client = self.hub.connect(plc)
+        if client is None:
+            raise web.HTTPServiceUnavailable(text="too many browsers connected\n")
+        transport = request.transport
+        if transport is not None:
+            client.on_drop = transport.abort
+        response = web.StreamResponse(
+            headers={"Content-Type": "text/event-stream", "Cache-Control": "no-cache"}
+        )
+        try:
+            await response.prepare(request)
+            await _stream(client, response)
+        except (ConnectionError, RuntimeError):
+            pass  # the browser went away, or was dropped for not reading
+        finally:
+            self.hub.disconnect(client)
+        return response
+
+
+async def _stream(client: EventClient, response: web.StreamResponse) -> None:
+    while True:
+        try:
+            async with asyncio.timeout(KEEPALIVE):
+                data = await client.next()
+        except TimeoutError:
+            data = b": keepalive\n\n"
+        if data is None:
+            return
+        await response.write(data)
+
+
+def _html(text: str, status: int = 200) -> web.Response:
+    return web.Response(text=text, status=status, content_type="text/html", charset="utf-8")
+
+
+async def _secure(request: web.Request, response: web.StreamResponse) -> None:
+    response.headers.update(_HEADERS)
+
+
+def _observe(task: asyncio.Task[None]) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("web console: the push to the browsers stopped", exc_info=task.exception())
