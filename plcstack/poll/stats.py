@@ -44,6 +44,13 @@ class LatencyWindow:
             data[i] = value
             self._next = i + 1 if i + 1 < self.maxlen else 0
 
+    def replace_newest(self, value: float) -> None:
+        """Overwrite the newest entry (a trend's last point taking a later value of its
+        second); nothing if empty."""
+        data = self._data
+        if data:
+            data[(self._next if len(data) == self.maxlen else len(data)) - 1] = value
+
     def __len__(self) -> int:
         return len(self._data)
 

@@ -196,4 +196,4 @@ def plc_page(
 
 def _description(tag: TagConfig) -> str:
     """The tag's description where the config has one."""
-    return str(getattr(tag, "description", None) or "")
+    return tag.description or ""

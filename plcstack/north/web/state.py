@@ -6,9 +6,9 @@ latest sample and one trend ring per configured tag (two float32 arrays of ``tre
 points: 2.4 KB a tag at the default 300), one health record per PLC, and the set of tags that
 changed since the last push to the browsers (at most one entry per tag).
 
-The trend keeps at most one point per :data:`TREND_STEP` seconds, so a 10 Hz tag covers the same
-minutes as a 1 Hz one; times are float32 seconds since the console started (precise to a few
-milliseconds for weeks), values float32 (a chart's precision).
+The trend keeps at most one point per :data:`TREND_STEP` seconds (the latest value within it),
+so a 10 Hz tag covers the same minutes as a 1 Hz one; times are float32 seconds since the
+console started (precise to a few milliseconds for weeks), values float32 (a chart's precision).
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ class Trend:
     def add(self, t: float, value: float) -> None:
         rel = t - self._epoch
         if rel - self.last < TREND_STEP:
+            self.values.replace_newest(value)  # the latest value of this step wins
             return
         self.last = rel
         self.times.append(rel)
