@@ -27,6 +27,8 @@ from typing import TYPE_CHECKING, Any, TextIO
 from plcstack.cli import plain_text
 from plcstack.north.config import parse_north
 from plcstack.north.influx import influx_line
+from plcstack.north.pipeline import North, missing, needs_of
+from plcstack.north.web.settings import with_port
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Sample
@@ -149,8 +151,6 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return 2
     # every URL and address checked here, before anything is sent
     poller: Poller | Worker = worker if worker is not None else Poller(config)
-from plcstack.north.pipeline import North, missing, needs_of
-from plcstack.north.web.settings import with_port
     line: Callable[[Sample], str] | None = None
     if args.format == "influx":
         line = functools.partial(influx_line, measurement=north_config.influx_measurement)

@@ -22,7 +22,6 @@ the MQTT write codes. The token is compared in constant time; nothing writes thr
 
 from __future__ import annotations
 
-import asyncio
 import hmac
 import json
 import logging
@@ -32,6 +31,7 @@ from aiohttp import web
 
 from plcstack.errors import AddressError, ConnectFailed, PlcError, PlcErrorResponse
 from plcstack.north.web.state import tag_row
+from plcstack.north.write_values import parse_write_value, result_code
 
 if TYPE_CHECKING:
     from plcstack.north.web.server import WebConsole
@@ -133,21 +133,20 @@ def routes(console: WebConsole) -> list[web.RouteDef]:
 async def classified_write(
     writer: Any, plc: str, tag: str, value: Any
 ) -> tuple[str, str, bool] | None:
-    """Run one write through ``writer.write_tag``; None if confirmed, else
-    ``(code, message, may_have_executed)`` with the MQTT write codes."""
+    """Run one write through the value grammar and ``writer.write_tag``; None if confirmed,
+    else ``(code, message, may_have_executed)`` with the MQTT write codes."""
     try:
+        tags = getattr(writer, "tags", None)
+        config = tags(plc).get(tag) if tags is not None else None
+        if config is not None:  # the one value grammar of every north side
+            value = parse_write_value(config[0], value, plc=plc)
         await writer.write_tag(plc, tag, value)
     except AddressError as exc:
-        code = "unknown_tag" if "no tag named" in exc.message else "wrong_type"
-        if "no PLC named" in exc.message:
-            code = "unknown_plc"
-        return code, str(exc), False
+        return result_code(exc), str(exc), False
     except (PlcErrorResponse, ConnectFailed) as exc:
         return "plc_error", str(exc), False
     except PlcError as exc:  # a timeout or a lost connection after sending
         return "plc_error", str(exc), True
-    except asyncio.CancelledError:
-        raise
     except Exception as exc:  # a writer bug still gets an answer
         log.exception("web write %s/%s failed", plc, tag)
         return "plc_error", f"{type(exc).__name__}: {exc}", True

@@ -10,7 +10,6 @@ allows scripts, styles and connections from the console itself only (no inline s
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import sys
 from importlib import resources
@@ -18,6 +17,7 @@ from typing import Any
 
 from aiohttp import web
 
+from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.web.api import MAX_PENDING_WRITES, classified_write, refusal, routes
 from plcstack.north.web.events import EventClient, EventHub
 from plcstack.north.web.pages import esc, overview_page, plc_page
@@ -56,10 +56,15 @@ class WebConsole:
         #: the write token, read from the environment at start (None: writes are off)
         self.token: str | None = None
         self._runner: web.AppRunner | None = None
-        self._pusher: asyncio.Task[None] | None = None
+        #: runs the push to the browsers; North sets its run's supervisor before ``start``
+        self.supervisor: Supervisor | None = None
+        self._pusher: Supervised | None = None
         self._writes: set[asyncio.Task[Any]] = set()
         files = resources.files(__package__ or "plcstack.north.web")
         self._static = {name: (files / name).read_bytes() for name in _STATIC}
+
+    #: how logs, metrics and ``/healthz`` name it
+    name = "web console"
 
     @property
     def url(self) -> str:
@@ -97,8 +102,9 @@ class WebConsole:
             ) from None
         self._runner = runner
         self.port = runner.addresses[0][1]  # the port taken when [web] port = 0
-        self._pusher = asyncio.create_task(self.hub.run(), name="web console push")
-        self._pusher.add_done_callback(_observe)
+        if self.supervisor is None:
+            self.supervisor = Supervisor()
+        self._pusher = self.supervisor.start(self.name, self.hub.run)
         # where to point the browser, on stderr as the simulators say where they listen
         print(
             f"plcstack: web console on {self.url} (writes {'on' if self.token else 'off'})",
@@ -108,9 +114,7 @@ class WebConsole:
 
     async def aclose(self) -> None:
         if self._pusher is not None:
-            self._pusher.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._pusher
+            await self._pusher.stop()
             self._pusher = None
         for client in list(self.hub.clients):
             client.close()
@@ -231,8 +235,3 @@ def _html(text: str, status: int = 200) -> web.Response:
 
 async def _secure(request: web.Request, response: web.StreamResponse) -> None:
     response.headers.update(_HEADERS)
-
-
-def _observe(task: asyncio.Task[None]) -> None:
-    if not task.cancelled() and task.exception() is not None:
-        log.error("web console: the push to the browsers stopped", exc_info=task.exception())
