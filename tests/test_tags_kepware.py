@@ -82,7 +82,7 @@ GOOD = "a,D100,Word,1,RO,1000,,,,,,,,,,first"
 REFUSALS = [
     # (rows after the header, row, column, words of the reason)
     ("b,D99999,Word,1,RO,1000,,,,,,,,,,", 3, "Address", "out of range"),
-    ("b,DB10:DW5,Word,1,RO,1000,,,,,,,,,,", 3, "Address", "DB10:DW5"),
+    ("b,DB10:DW5,Word,1,RO,1000,,,,,,,,,,", 3, "Address", "an S5 address, but e71+tcp"),
     ("b,M0,Short,1,RO,1000,,,,,,,,,,", 3, "Address", "bit area"),
     ("b,D101,QWord,1,RO,1000,,,,,,,,,,", 3, "Data Type", "unknown type 'QWord'"),
     ("a,D101,Word,1,RO,1000,,,,,,,,,,", 3, "Tag Name", "also the name of row 2"),
@@ -143,7 +143,13 @@ def test_file_level_refusals(text: str, why: str) -> None:
     assert str(err.value).startswith("t.csv")
 
 
-def test_bad_url_and_unreadable_file(tmp_path: Path) -> None:
+def test_melsec_address_on_an_s5_url_says_so() -> None:
+    text = f"{HEADER}\r\na,D100,Word,1,RO,1000,,,,,,,,,,\r\n"
+    with pytest.raises(TagListError, match="a MELSEC address, but s5lan://"):
+        read_kepware(text.encode(), "t.csv", plc="p", url=S5)
+
+
+def test_bad_url_is_refused() -> None:
     with pytest.raises(TagListError, match="--url"):
         read_kepware(PRESS.read_bytes(), "t.csv", plc="p", url="modbus://x:1")
 

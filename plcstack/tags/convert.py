@@ -27,6 +27,7 @@ from plcstack.poll.config import (
 from plcstack.poll.engine import default_client_factory
 from plcstack.poll.plan import build_plan
 from plcstack.tags.table import TagListError
+from plcstack.url import parse_url
 from plcstack.values import RAW
 
 __all__ = ["ImportedTags", "check_tags", "group_name", "interval_ms", "to_toml"]
@@ -70,12 +71,26 @@ def check_tags(imported: ImportedTags, column: str = "Address") -> None:
             try:
                 build_plan(client, [tag])
             except AddressError as exc:
-                why = _PREFIX.sub("", exc.message)
+                why = _PREFIX.sub("", exc.message) + _hint(tag.address, imported.url)
                 raise TagListError.at(
                     imported.source, line, column, f"{tag.address} ({tag.type.name}): {why}"
                 ) from None
     finally:
         client.transport.abort()
+
+
+def _hint(address: str, url: str) -> str:
+    """The likely cause when an address is of the other family than the URL."""
+    melsec = parse_url(url).scheme.startswith("e71")
+    if melsec and _S5_LIKE.match(address):
+        return f" (an S5 address, but {url} is a MELSEC PLC)"
+    if not melsec and _MELSEC_LIKE.match(address):
+        return f" (a MELSEC address, but {url} is an S5 PLC)"
+    return ""
+
+
+_S5_LIKE = re.compile(r"^\s*(D[BX]\d+[.:]|[MEAIQF][BWY]\d+\s*$)", re.IGNORECASE)
+_MELSEC_LIKE = re.compile(r"^\s*(D|W|R|X|Y|TN|CN)[0-9A-F]+\s*$", re.IGNORECASE)
 
 
 # -- TOML ---------------------------------------------------------------------------------------
