@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from plcstack.cli import plain_text
+from plcstack.cli import plain_text, serve_modbus
 from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
 from plcstack.north.config import NorthConfig, parse_north
 from plcstack.north.metrics import MetricsSettings
@@ -37,7 +37,7 @@ from plcstack.poll.engine import Poller, format_stats
 def register(subparsers: Any) -> None:
     serve = subparsers.add_parser(
         "serve",
-        help="serve the polled PLCs to other systems (opcua)",
+        help="serve the polled PLCs to other systems (opcua, modbus)",
         description="Serve the PLCs of a poll config to other systems.",
     )
     servers = serve.add_subparsers(dest="server", required=True, metavar="SERVER")
@@ -65,6 +65,7 @@ def register(subparsers: Any) -> None:
         help="read a password from stdin, print its password_hash for [opcua.users.NAME]",
     )
     opcua.set_defaults(func=run_opcua)
+    serve_modbus.register(servers)
 
 
 async def run_opcua(args: argparse.Namespace) -> int:

@@ -1,5 +1,5 @@
 """The north-side tables of the poll TOML: ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``,
-``[opcua]``, ``[web]``.
+``[opcua]``, ``[web]``, ``[modbus]``.
 
 They sit next to ``[poll]`` and ``[[plc]]`` in the same file; the poll loader keeps them as raw
 tables (``PollConfig.north``) and checks them here at load time, so a typo is a
@@ -22,6 +22,7 @@ from typing import Any
 from plcstack.errors import unknown_names
 from plcstack.north.influx import DEFAULT_MEASUREMENT
 from plcstack.north.metrics import MetricsSettings, parse_metrics
+from plcstack.north.modbus.config import ModbusSettings, parse_modbus
 from plcstack.north.mqtt import MqttSettings, parse_mqtt
 from plcstack.north.opcua_config import OpcUaConfig, parse_opcua_config
 from plcstack.north.rbe import PASS_ALL, parse_report
@@ -31,7 +32,7 @@ from plcstack.poll.config import ConfigError
 __all__ = ["NORTH_TABLES", "NorthConfig", "parse_north"]
 
 #: top-level TOML tables that belong to the north side
-NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua", "web")
+NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua", "web", "modbus")
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,8 @@ class NorthConfig:
     opcua: OpcUaConfig | None = None
     #: the web console and REST API (plcstack.north.web)
     web: WebSettings | None = None
+    #: ``[modbus]``: the settings of ``plcstack serve modbus``
+    modbus: ModbusSettings | None = None
 
     @property
     def reports_by_exception(self) -> bool:
@@ -71,4 +74,5 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
         influx_measurement=measurement,
         opcua=parse_opcua_config(tables["opcua"], base=base) if "opcua" in tables else None,
         web=parse_web(tables["web"]) if "web" in tables else None,
+        modbus=parse_modbus(tables["modbus"]) if "modbus" in tables else None,
     )

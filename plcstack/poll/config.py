@@ -100,7 +100,7 @@ DEFAULT_BATCH_WAIT = 0.01
 MAX_BATCH_WAIT = 1.0
 DEFAULT_MAX_GAP = 8
 #: top-level tables read by north-side servers from the same file (plcstack.north)
-NORTH_SECTIONS = ("opcua", "mqtt", "metrics", "report", "influx", "web")
+NORTH_SECTIONS = ("opcua", "mqtt", "metrics", "report", "influx", "web", "modbus")
 
 
 class ConfigError(AddressError):
@@ -135,6 +135,9 @@ class TagConfig:
     #: (OPC UA Description, a Sparkplug metric property, the web console); tag lists imported
     #: from engineering tools carry it; the poller itself does not use it
     description: str | None = None
+    #: where the Modbus server serves the tag (``"hr:100"``, ``"ir:0"``, ``"co:5"``, ``"di:0"``;
+    #: see plcstack.north.modbus); the poller itself does not use it
+    modbus: str | None = None
 
 
 @dataclass(frozen=True)
@@ -566,7 +569,17 @@ class _Loader:
             )
         self._check_keys(
             spec,
-            {"address", "type", "count", "group", "scale", "writable", "unit", "description"},
+            {
+                "address",
+                "type",
+                "count",
+                "group",
+                "scale",
+                "writable",
+                "unit",
+                "description",
+                "modbus",
+            },
             f"{where}: ",
             name,
         )
@@ -615,6 +628,14 @@ class _Loader:
         problem = text_problem("description", description)
         if problem:
             raise self.error(f"{where}: {problem}", name)
+        modbus = spec.get("modbus")
+        if modbus is not None:
+            from plcstack.north.modbus.config import parse_address
+
+            try:
+                parse_address(modbus)
+            except ValueError as exc:
+                raise self.error(f"{where}: {exc}", name) from None
         return TagConfig(
             name,
             address.strip(),
@@ -625,4 +646,5 @@ class _Loader:
             writable=writable,
             unit=unit,
             description=description,
+            modbus=modbus,
         )

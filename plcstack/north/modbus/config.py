@@ -1,0 +1,162 @@
+"""The Modbus server's settings (``[modbus]``) and its register map (each tag's ``modbus`` key).
+
+```toml
+[modbus]
+endpoint = "127.0.0.1:5020"   # the default: loopback only ("0.0.0.0:502" for the plant network)
+unit_id = 1                   # the unit identifier answered; requests to another get 0x0A
+word_order = "big"            # two-register values: high word first ("little": low word first)
+
+[[plc]]
+name = "press1"
+url = "e71+tcp://10.0.0.5:5000"
+[plc.tags]
+strokes = { address = "D100", type = "uint16", modbus = "hr:0" }
+temp = { address = "D102", type = "float32", modbus = "ir:0" }      # ir:0 and ir:1
+alarms = { address = "M0", type = "bool", count = 16, modbus = "di:0" }
+```
+
+``modbus = "TABLE:ADDRESS"``: ``hr`` holding register, ``ir`` input register, ``co`` coil, ``di``
+discrete input; ADDRESS is the 0-based protocol address (0..65535), as sent on the wire. How many
+registers a tag takes is in :mod:`plcstack.north.modbus.registers`. Two tags whose registers
+overlap are refused when the file is loaded, naming both with their lines.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from plcstack.north.modbus.registers import TABLES, Layout, layout_for
+from plcstack.poll.config import ConfigError, TagConfig
+from plcstack.values import WordOrder
+
+__all__ = [
+    "DEFAULT_ENDPOINT",
+    "MapEntry",
+    "ModbusSettings",
+    "build_map",
+    "parse_address",
+    "parse_modbus",
+]
+
+DEFAULT_ENDPOINT = "127.0.0.1:5020"
+_ADDRESS = re.compile(r"^\s*(hr|ir|co|di)\s*:\s*(\d{1,5})\s*$", re.IGNORECASE)
+_ENDPOINT = re.compile(r"^(?:\[([^\]]+)\]|([^:\[\]]+)):(\d{1,5})$")
+
+
+@dataclass(frozen=True)
+class ModbusSettings:
+    """Everything ``[modbus]`` sets."""
+
+    host: str = "127.0.0.1"
+    port: int = 5020
+    unit_id: int = 1
+    word_order: WordOrder = WordOrder.BIG
+
+    @property
+    def endpoint(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{host}:{self.port}"
+
+
+def parse_address(text: object) -> tuple[str, int]:
+    """``"hr:100"`` -> ``("hr", 100)``; ValueError with the grammar otherwise."""
+    m = _ADDRESS.match(text) if isinstance(text, str) else None
+    if m is None or int(m.group(2)) > 0xFFFF:
+        raise ValueError(
+            f'modbus must be "hr:N", "ir:N", "co:N" or "di:N" with N 0..65535, not {text!r}'
+        )
+    return m.group(1).lower(), int(m.group(2))
+
+
+def parse_modbus(table: Any) -> ModbusSettings:
+    """``[modbus]``: endpoint, unit_id, word_order; ConfigError naming the key otherwise."""
+    if not isinstance(table, dict):
+        raise ConfigError("[modbus] must be a table")
+    unknown = sorted(set(table) - {"endpoint", "unit_id", "word_order"})
+    if unknown:
+        raise ConfigError(f"[modbus]: unknown key(s) {', '.join(unknown)}")
+    endpoint = table.get("endpoint", DEFAULT_ENDPOINT)
+    m = _ENDPOINT.match(endpoint) if isinstance(endpoint, str) else None
+    if m is None or int(m.group(3)) > 65535:
+        raise ConfigError(
+            f'[modbus] endpoint must be "HOST:PORT" (port 0..65535), not {endpoint!r}'
+        )
+    unit_id = table.get("unit_id", 1)
+    if isinstance(unit_id, bool) or not isinstance(unit_id, int) or not 0 <= unit_id <= 255:
+        raise ConfigError(f"[modbus] unit_id must be 0..255, not {unit_id!r}")
+    order = table.get("word_order", "big")
+    try:
+        word_order = WordOrder(order)
+    except ValueError:
+        raise ConfigError(f'[modbus] word_order must be "big" or "little", not {order!r}') from None
+    return ModbusSettings(m.group(1) or m.group(2), int(m.group(3)), unit_id, word_order)
+
+
+@dataclass(frozen=True, slots=True)
+class MapEntry:
+    """One mapped tag: the PLC, the tag and its registers."""
+
+    plc: str
+    tag: TagConfig
+    layout: Layout
+
+    def describe(self) -> str:
+        last = self.layout.end - 1
+        start = self.layout.start
+        span = str(start) if last == start else f"{start}..{last}"
+        return f"tag {self.tag.name!r} of PLC {self.plc!r} ({self.layout.table}:{span})"
+
+
+def _tag_line(lines: list[str], plc_index: int, tag: str) -> int | None:
+    """The 1-based line of ``tag`` inside the ``plc_index``-th ``[[plc]]`` (tomllib keeps no
+    positions; the tag's key is searched for, as the poll loader does for its errors)."""
+    starts = [i for i, line in enumerate(lines) if re.match(r"\s*\[\[\s*plc\s*\]\]", line)]
+    if plc_index >= len(starts):
+        return None
+    hi = starts[plc_index + 1] if plc_index + 1 < len(starts) else len(lines)
+    pattern = re.compile(r'\s*["\']?' + re.escape(tag) + r'["\']?\s*=')
+    for i in range(starts[plc_index], hi):
+        if pattern.match(lines[i]):
+            return i + 1
+    return None
+
+
+def build_map(
+    plcs: Mapping[str, Mapping[str, tuple[TagConfig, int]]],
+    *,
+    source: str = "<config>",
+    text: str | None = None,
+) -> list[MapEntry]:
+    """Every tag with a ``modbus`` key, in address order; ConfigError for a bad key or overlap.
+
+    ``plcs`` is PLC name -> tag name -> (tag, point bits), in the file's order (what
+    ``Poller.tags`` gives); ``text`` the TOML text, for the line numbers in errors.
+    """
+    lines = text.splitlines() if text is not None else []
+
+    def where(plc_index: int, tag: str) -> str:
+        line = _tag_line(lines, plc_index, tag) if lines else None
+        return f"{source}:{line}" if line else source
+
+    entries: list[tuple[MapEntry, str]] = []
+    for index, (plc, tags) in enumerate(plcs.items()):
+        for name, (tag, bits) in tags.items():
+            if tag.modbus is None:
+                continue
+            try:
+                table, start = parse_address(tag.modbus)
+                layout = layout_for(tag, bits, table, start)
+            except ValueError as exc:
+                raise ConfigError(f"tag {name!r}: {exc} ({where(index, name)})", plc=plc) from None
+            entries.append((MapEntry(plc, tag, layout), where(index, name)))
+    entries.sort(key=lambda e: (TABLES.index(e[0].layout.table), e[0].layout.start))
+    for (a, a_at), (b, b_at) in itertools.pairwise(entries):
+        if a.layout.table == b.layout.table and b.layout.start < a.layout.end:
+            raise ConfigError(
+                f"modbus map: {b.describe()} ({b_at}) overlaps {a.describe()} ({a_at})"
+            )
+    return [entry for entry, _ in entries]

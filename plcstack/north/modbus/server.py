@@ -1,0 +1,335 @@
+"""The Modbus TCP server in front of the poller: HMI panels and SCADA see the old PLCs as Modbus.
+
+```python
+from plcstack.north.modbus import ModbusServer
+from plcstack.poll import Poller, load_config
+
+config = load_config("plant.toml")
+async with Poller(config) as poller, ModbusServer.from_config(poller, "plant.toml") as server:
+    print(server.endpoint)   # the address actually bound (port 0 picks a free one)
+    await server.run()       # feeds the poller's samples into the register image
+```
+
+or ``plcstack serve modbus plant.toml``. What is answered is in
+:mod:`plcstack.north.modbus.service`, how values become registers in
+:mod:`plcstack.north.modbus.registers`, the wire format in :mod:`plcstack.north.modbus.frames`
+(which says why this is not pymodbus's server).
+
+Each connection answers its requests in the order they came. A read is answered at once, from
+the image, inside the data callback; a write runs in a task (the PLC's answer is awaited) and
+the requests behind it wait for it. A client that disconnects does not cut a PLC write short:
+the write finishes and its outcome is logged. At most :data:`MAX_PENDING` requests wait per
+connection; beyond that the server stops reading from that client until it caught up.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+from plcstack.errors import PlcError, RemoteProtocolError
+from plcstack.north.modbus.config import MapEntry, ModbusSettings, build_map, parse_modbus
+from plcstack.north.modbus.frames import (
+    ModbusServerConnection,
+    Request,
+    exception_frame,
+    response_frame,
+)
+from plcstack.north.modbus.service import Refused, RegisterImage, Writer, describe_code
+from plcstack.poll.config import ConfigError
+from plcstack.poll.engine import Poller
+from plcstack.poll.samples import Sample
+
+__all__ = ["MAX_PENDING", "ModbusCollector", "ModbusServer"]
+
+log = logging.getLogger("plcstack.north.modbus")
+
+#: requests one connection may have waiting behind a write before reading from it pauses
+MAX_PENDING = 64
+
+
+class _Connection(asyncio.Protocol):
+    def __init__(self, server: ModbusServer) -> None:
+        self.server = server
+        self.codec = ModbusServerConnection()
+        self.transport: asyncio.Transport | None = None
+        self.pending: deque[Request] = deque()
+        self.writing: asyncio.Task[None] | None = None
+        self.peer = "?"
+        self.paused = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        peer = transport.get_extra_info("peername")
+        self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+        self.server._connections.add(self)
+        log.info("Modbus client %s connected", self.peer)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.server._connections.discard(self)
+        self.transport = None
+        self.pending.clear()
+        log.info("Modbus client %s disconnected", self.peer)
+
+    def data_received(self, data: bytes) -> None:
+        self.codec.receive_data(data)
+        try:
+            while (request := self.codec.next_request()) is not None:
+                self.pending.append(request)
+        except RemoteProtocolError as exc:
+            log.warning("Modbus client %s: %s; closing the connection", self.peer, exc.message)
+            self.server.protocol_errors += 1
+            if self.transport is not None:
+                self.transport.close()
+            return
+        if self.writing is None:
+            self._drain()
+        if len(self.pending) > MAX_PENDING and self.transport is not None and not self.paused:
+            self.paused = True
+            self.transport.pause_reading()
+
+    def _drain(self) -> None:
+        """Answer waiting requests in order until one is a write (that one runs in a task)."""
+        server = self.server
+        while self.pending:
+            request = self.pending.popleft()
+            if request.error == 0 and request.is_write and server.for_us(request):
+                task = asyncio.create_task(self._write(request), name="modbus write")
+                server._writes.add(task)
+                task.add_done_callback(self._write_done)
+                self.writing = task
+                return
+            self._send(server.answer_read(request))
+        if self.paused and self.transport is not None:
+            self.paused = False
+            self.transport.resume_reading()
+
+    async def _write(self, request: Request) -> None:
+        self._send(await self.server.answer_write(request))
+
+    def _write_done(self, task: asyncio.Task[None]) -> None:
+        self.server._writes.discard(task)
+        self.writing = None
+        if not task.cancelled() and task.exception() is not None:
+            # answer_write turns every failure into an answer; this is a bug, not a PLC's fault
+            log.error("Modbus write task failed", exc_info=task.exception())
+            if self.transport is not None:
+                self.transport.close()
+            return
+        if self.transport is not None:
+            self._drain()
+
+    def _send(self, frame: bytes) -> None:
+        if self.transport is not None:
+            self.transport.write(frame)
+
+
+class ModbusServer:
+    """A Modbus TCP server answering from the poller's latest values (see the module)."""
+
+    def __init__(
+        self,
+        poller: Poller,
+        settings: ModbusSettings | None = None,
+        entries: list[MapEntry] | None = None,
+        *,
+        writer: Writer | None = None,
+    ) -> None:
+        self.poller = poller
+        self.settings = settings if settings is not None else ModbusSettings()
+        if entries is None:
+            entries = build_map({plc: poller.tags(plc) for plc in poller.plcs})
+        if not entries:
+            raise ConfigError('no tag has a modbus key: map tags with modbus = "hr:N" (ir, co, di)')
+        self.image = RegisterImage(entries, self.settings.word_order)
+        self.writer: Writer = writer if writer is not None else poller.write_tag
+        self.port = self.settings.port
+        self.protocol_errors = 0
+        self._server: asyncio.Server | None = None
+        self._connections: set[_Connection] = set()
+        self._writes: set[asyncio.Task[None]] = set()
+
+    @classmethod
+    def from_config(cls, poller: Poller, path: str | Path) -> ModbusServer:
+        """The server of a TOML file's ``[modbus]`` table and ``modbus`` keys, with line numbers
+        in its errors (the poller must come from the same file)."""
+        path = Path(path)
+        text = path.read_text(encoding="utf-8")
+        table = poller.config.north.get("modbus", {})
+        try:
+            settings = parse_modbus(table)
+        except ConfigError as exc:
+            raise ConfigError(f"{exc.message} ({path})") from None
+        tags = {plc: poller.tags(plc) for plc in poller.plcs}
+        return cls(poller, settings, build_map(tags, source=str(path), text=text))
+
+    @property
+    def endpoint(self) -> str:
+        """``host:port`` as bound (after :meth:`start`)."""
+        host = self.settings.host
+        return f"[{host}]:{self.port}" if ":" in host else f"{host}:{self.port}"
+
+    @property
+    def clients(self) -> int:
+        return len(self._connections)
+
+    def for_us(self, request: Request) -> bool:
+        """Whether a request names this server: its ``unit_id``, or 0 or 255, which Modbus TCP
+        clients send to a device they address by IP alone."""
+        return request.unit in (self.settings.unit_id, 0, 255)
+
+    # -- answers --------------------------------------------------------------------------------
+    def _refused(self, request: Request, refused: Refused) -> bytes:
+        self.image.exceptions[refused.code] += 1
+        level = logging.WARNING if request.function in (5, 6, 15, 16) else logging.DEBUG
+        where = f" {request.table}:{request.address} x{request.count}" if request.known else ""
+        log.log(
+            level,
+            "Modbus FC %d%s answered %s: %s",
+            request.function,
+            where,
+            describe_code(refused.code),
+            refused.reason,
+        )
+        return exception_frame(request, refused.code)
+
+    def answer_read(self, request: Request) -> bytes:
+        """The frame answering a read, or any request refused before anything is sent."""
+        image = self.image
+        image.requests[request.function] += 1
+        try:
+            if request.error:
+                raise Refused(request.error, "malformed or unsupported request")
+            if not self.for_us(request):
+                raise image.wrong_unit(request, self.settings.unit_id)
+            return response_frame(request, image.read(request))
+        except Refused as refused:
+            return self._refused(request, refused)
+
+    async def answer_write(self, request: Request) -> bytes:
+        """The frame answering a write, after the PLC confirmed it (or the refusal)."""
+        image = self.image
+        image.requests[request.function] += 1
+        try:
+            await image.write(request, self.writer)
+        except Refused as refused:
+            return self._refused(request, refused)
+        return response_frame(request)
+
+    # -- life cycle -----------------------------------------------------------------------------
+    async def start(self) -> None:
+        if self._server is not None:
+            return
+        loop = asyncio.get_running_loop()
+        host, port = self.settings.host, self.settings.port
+        try:
+            self._server = await loop.create_server(lambda: _Connection(self), host, port)
+        except OSError as exc:
+            raise PlcError(
+                f"Modbus server cannot listen on {self.settings.endpoint}: {exc.strerror or exc}"
+                " (another process on that port? set [modbus] endpoint)"
+            ) from None
+        self.port = self._server.sockets[0].getsockname()[1]
+
+    async def aclose(self) -> None:
+        """Stop listening and drop the clients; PLC writes in flight finish (and are logged)."""
+        server, self._server = self._server, None
+        if server is not None:
+            server.close()
+        for connection in list(self._connections):
+            if connection.transport is not None:
+                connection.transport.close()
+        if self._writes:
+            await asyncio.gather(*self._writes, return_exceptions=True)
+        if server is not None:
+            await server.wait_closed()
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.aclose()
+
+    # -- samples in -----------------------------------------------------------------------------
+    def submit(self, samples: Iterable[Sample]) -> None:
+        """The sinks' common interface: take samples into the image (never blocks)."""
+        self.image.update(samples)
+
+    async def run(self, observe: Callable[[list[Sample]], object] | None = None) -> None:
+        """Consume the poller's samples until it is closed (or this task is cancelled);
+        ``observe`` sees every batch first (the metrics collector)."""
+        poller = self.poller
+        async for batch in poller.batches(wait=poller.config.batch_wait):
+            if observe is not None:
+                observe(batch)
+            self.image.update(batch)
+
+    def collector(self) -> ModbusCollector:
+        return ModbusCollector(self)
+
+
+class ModbusCollector:
+    """prometheus-client collector of the server's own figures (register it next to the
+    poller's collector): requests by function code, exception answers by code, clients."""
+
+    def __init__(self, server: ModbusServer) -> None:
+        self.server = server
+
+    def collect(self) -> Iterator[Any]:
+        from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
+
+        image = self.server.image
+        requests = CounterMetricFamily(
+            "plcstack_modbus_requests", "Modbus requests by function code", labels=["function"]
+        )
+        for function, n in sorted(image.requests.items()):
+            requests.add_metric([str(function)], float(n))
+        yield requests
+        exceptions = CounterMetricFamily(
+            "plcstack_modbus_exceptions",
+            "Modbus exception answers by exception code",
+            labels=["code"],
+        )
+        for code, n in sorted(image.exceptions.items()):
+            exceptions.add_metric([f"0x{code:02X}"], float(n))
+        yield exceptions
+        yield GaugeMetricFamily(
+            "plcstack_modbus_clients", "Modbus clients connected", value=float(self.server.clients)
+        )
+        yield CounterMetricFamily(
+            "plcstack_modbus_writes_confirmed",
+            "tag writes from Modbus confirmed by the PLC",
+            value=float(image.writes_confirmed),
+        )
+
+
+async def run_until(
+    server: ModbusServer,
+    stop: asyncio.Event,
+    timeout: float | None = None,
+    observe: Callable[[list[Sample]], object] | None = None,
+) -> None:
+    """Feed a started server from its poller until ``stop`` is set or ``timeout`` seconds
+    passed; a failure of the feed itself (a bug) is raised, not swallowed with the cancel."""
+    feeder = asyncio.create_task(server.run(observe), name="modbus feed")
+    stopper = asyncio.create_task(stop.wait(), name="modbus stop")
+    try:
+        await asyncio.wait({feeder, stopper}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in (feeder, stopper):
+            task.cancel()
+        await asyncio.gather(feeder, stopper, return_exceptions=True)
+    if not feeder.cancelled() and (error := feeder.exception()) is not None:
+        raise error
