@@ -27,6 +27,8 @@ class Subscriber:
     def __init__(self, host: str, port: int, topic: str, client_id: str = "test-sub") -> None:
         self.host, self.port, self.topic, self.client_id = host, port, topic, client_id
         self.messages: list[tuple[str, bytes]] = []
+        #: the QoS each message arrived with (the lower of the publisher's and ours, 1)
+        self.qos: list[int] = []
         self.subscribed = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
 
@@ -40,6 +42,7 @@ class Subscriber:
                     self.subscribed.set()
                     async for m in client.messages:
                         assert isinstance(m.payload, bytes)
+                        self.qos.append(m.qos)
                         self.messages.append((str(m.topic), m.payload))
             except aiomqtt.MqttError:
                 await asyncio.sleep(0.05)

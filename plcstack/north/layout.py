@@ -31,8 +31,11 @@ A data message::
 after report-by-exception a message holds only the tags that changed. A non-finite float is
 reported in ``errors`` (``"non-finite value nan"``), since JSON has no NaN.
 
-A PLC is ``online`` while its latest scan delivered at least one good value and ``offline`` when
-a whole scan came back bad (unreachable, timed out); the status is published when it changes.
+A PLC is ``offline`` when it cannot be reached: a scan failed for want of the PLC (timeout,
+refused or dropped connection), or the latest scan of every scan group came back all bad. A group
+that fails on its own (a value its type cannot decode) while another group reads fine makes only
+its tags bad (in ``errors``); the PLC stays ``online``. The status is published when it changes
+(:class:`Reachability`, the same rule as Sparkplug's DDEATH/DBIRTH).
 
 Write error codes: ``bad_request`` (not JSON, no ``tag`` or ``value``), ``unknown_plc``,
 ``unknown_tag``, ``not_writable`` (the tag lacks ``writable = true``: north-side clients may write
@@ -50,9 +53,11 @@ import re
 from collections.abc import Iterable, Sequence
 from typing import Any
 
+from plcstack.errors import ConnectionLost, PlcTimeout
 from plcstack.poll.samples import Quality, Sample
 
 __all__ = [
+    "Reachability",
     "data_payload",
     "data_topic",
     "poller_status_topic",
@@ -166,6 +171,49 @@ def split_scans(
     return out
 
 
+#: the failures that say the PLC itself cannot be reached (not a bad value in one group)
+_UNREACHABLE = (PlcTimeout, ConnectionLost)
+
+
+class Reachability:
+    """Whether each PLC is reachable, by one rule for every north side (JSON status, Sparkplug
+    DBIRTH/DDEATH).
+
+    A PLC is unreachable when a scan failed for want of the PLC (a timeout, a refused or
+    dropped connection) or when the latest scan of every scan group seen so far came back all
+    bad. A group that keeps failing on its own (a BCD tag on a word holding 00AFH, an address the
+    PLC refuses) while another group reads fine only makes its own values bad: the PLC stays
+    reachable, so a host does not see it die and be born again every scan.
+    """
+
+    def __init__(self) -> None:
+        self._groups: dict[str, dict[str, bool]] = {}
+        self._state: dict[str, bool] = {}
+
+    def update(self, plc: str, group: str, samples: Sequence[Sample]) -> bool | None:
+        """Record one scan; the PLC's new state if it changed (True reachable), else None."""
+        groups = self._groups.setdefault(plc, {})
+        good = any(s.quality is Quality.GOOD for s in samples)
+        groups[group] = good
+        if good:
+            reachable = True
+        elif any(s.error_type is not None and issubclass(s.error_type, _UNREACHABLE)
+                 for s in samples):  # fmt: skip
+            reachable = False
+            for name in groups:  # every group's next scan has to show the PLC back
+                groups[name] = False
+        else:
+            reachable = any(groups.values())
+        if self._state.get(plc) is reachable:
+            return None
+        self._state[plc] = reachable
+        return reachable
+
+    def get(self, plc: str) -> bool | None:
+        """The PLC's state: None before its first scan."""
+        return self._state.get(plc)
+
+
 class JsonLayout:
     """The plain mode: turns samples into data and status messages, parses write requests."""
 
@@ -173,7 +221,7 @@ class JsonLayout:
         self.prefix = prefix
         self.client_id = client_id
         self.qos = qos
-        self._online: dict[str, bool] = {}
+        self.reachability = Reachability()
 
     # what the sink asks of a layout
     def will(self) -> tuple[str, bytes]:
@@ -199,9 +247,8 @@ class JsonLayout:
     ) -> list[tuple[str, bytes, int, bool]]:
         out: list[tuple[str, bytes, int, bool]] = []
         for plc, group, samples in batch:
-            online = any(s.quality is Quality.GOOD for s in samples)
-            if self._online.get(plc) is not online:
-                self._online[plc] = online
+            online = self.reachability.update(plc, group, samples)
+            if online is not None:
                 when = max(s.receive_time for s in samples)
                 out.append((status_topic(self.prefix, plc), status_payload(online, when), 1, True))
             out.append(

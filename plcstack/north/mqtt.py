@@ -42,10 +42,7 @@ from typing import Any, Protocol
 from urllib.parse import urlsplit
 
 from plcstack.errors import (
-    AddressError,
-    ConnectFailed,
     PlcError,
-    PlcErrorResponse,
     unknown_names,
 )
 from plcstack.north.buffer import Message, StoreAndForward
@@ -59,7 +56,12 @@ from plcstack.north.layout import (
 )
 from plcstack.north.mqtt_errors import PahoLog, connect_error
 from plcstack.north.supervise import Supervised, Supervisor
-from plcstack.north.write_values import parse_write_value, result_code
+from plcstack.north.write_values import (
+    classify_write_error,
+    parse_write_value,
+    split_element,
+    write_element,
+)
 from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Sample
 from plcstack.transports.backoff import Backoff
@@ -91,6 +93,10 @@ class MqttSettings:
     client_id: str = "plcstack"
     prefix: str = "plcstack"
     qos: int = 1
+    #: QoS of Sparkplug births, data and deaths: 0 as Sparkplug 3.0 requires, 1 a deviation
+    #: that has the broker acknowledge each (the store-and-forward queue then re-sends what a
+    #: dropped connection left unacknowledged)
+    sparkplug_qos: int = 0
     mode: str = "json"
     group_id: str = "plcstack"
     #: literal credentials (Python API); a TOML file names environment variables instead
@@ -158,6 +164,8 @@ def parse_mqtt(table: Any, *, base: Path | None = None) -> MqttSettings:
     prefix = "plcstack"             # first topic level (JSON mode)
     qos = 1                         # data messages; status and responses always 1
     mode = "json"                   # or "sparkplug" (Sparkplug B, spBv1.0 topics)
+    sparkplug_qos = 0               # Sparkplug births, data, deaths: 0 as Sparkplug 3.0 says;
+                                    # 1 (a deviation) has the broker acknowledge each message
     group_id = "plant1"             # Sparkplug group id; the edge node id is client_id
     username_env = "MQTT_USER"      # credentials come from the environment, never the file;
     password_env = "MQTT_PASSWORD"  # read when the sink connects (MqttSettings.credentials)
@@ -175,7 +183,7 @@ def parse_mqtt(table: Any, *, base: Path | None = None) -> MqttSettings:
     allowed = {
         "url", "client_id", "prefix", "qos", "mode", "group_id", "username_env", "password_env",
         "ca_file", "cert_file", "key_file", "keepalive", "buffer_path", "buffer_memory",
-        "buffer_max", "inflight", "reconnect_max", "state_path", "timeout",
+        "buffer_max", "inflight", "reconnect_max", "state_path", "timeout", "sparkplug_qos",
     }  # fmt: skip
     unknown = sorted(set(table) - allowed)
     if unknown:
@@ -232,6 +240,7 @@ def parse_mqtt(table: Any, *, base: Path | None = None) -> MqttSettings:
         client_id=text("client_id", "plcstack") or "plcstack",
         prefix=prefix,
         qos=integer("qos", 1, 0, 2),
+        sparkplug_qos=integer("sparkplug_qos", 0, 0, 1),
         mode=mode or "json",
         group_id=text("group_id", "plcstack") or "plcstack",
         username_env=text("username_env", None),
@@ -624,28 +633,34 @@ class MqttSink:
         """Run one write; None if confirmed, else ``(code, message, may_have_executed)``."""
         assert self.writer is not None
         if self.writable is not None and self.writable.get((plc, tag)) is False:
-            return (
-                "not_writable",
-                f"{plc}: write {tag}: the tag is read-only for north-side clients"
-                " (set writable = true in its configuration); not attempted",
-                False,
-            )
+            return self._read_only(plc, tag)
         try:
             tags = getattr(self.writer, "tags", None)
-            config = tags(plc).get(tag) if tags is not None else None
+            known = tags(plc) if tags is not None else {}
+            config = known.get(tag)
+            element = split_element(tag) if config is None else None
+            if element is not None and element[0] in known and known[element[0]][0].count > 1:
+                # one value of an array tag (Sparkplug announces them as "alarms/3")
+                base, bits = known[element[0]]
+                if self.writable is not None and self.writable.get((plc, base.name)) is False:
+                    return self._read_only(plc, tag)
+                await write_element(self.writer, plc, base, bits, element[1], value)
+                return None
             if config is not None:  # the one value grammar of every north side
                 value = parse_write_value(config[0], value, plc=plc)
             await self.writer.write_tag(plc, tag, value)
-        except AddressError as exc:
-            return result_code(exc), str(exc), False
-        except (PlcErrorResponse, ConnectFailed) as exc:
-            return "plc_error", str(exc), False
-        except PlcError as exc:
-            # a timeout or a dropped connection after sending: the PLC may have done it
-            return "plc_error", str(exc), True
         except Exception as exc:  # a writer bug must still get an answer, never silence
-            return "plc_error", f"{type(exc).__name__}: {exc}", True
+            return classify_write_error(exc)
         return None
+
+    @staticmethod
+    def _read_only(plc: str, tag: str) -> tuple[str, str, bool]:
+        return (
+            "not_writable",
+            f"{plc}: write {tag}: the tag is read-only for north-side clients"
+            " (set writable = true in its configuration); not attempted",
+            False,
+        )
 
     async def _write(self, plc: str, request_id: Any, tag: str, value: Any) -> None:
         result = await self.write_and_classify(plc, tag, value)

@@ -94,7 +94,7 @@ class North:
             if config.mqtt.mode == "sparkplug":
                 from plcstack.north.sparkplug import SparkplugLayout
 
-                layout = SparkplugLayout.for_config(config.mqtt, poller.config)
+                layout = SparkplugLayout.for_config(config.mqtt, poller.config, poller)
             writable = {
                 (plc.name, tag.name): bool(getattr(tag, "writable", True))
                 for plc in poller.config.plcs

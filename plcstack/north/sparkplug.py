@@ -7,7 +7,8 @@ name; ``/``, ``+``, ``#`` in names become ``_``)::
     spBv1.0/G/NDEATH/E      the Last Will: bdSeq of the session it ends
     spBv1.0/G/DBIRTH/E/D    every tag of the PLC with its last value (is_null before the first)
     spBv1.0/G/DDATA/E/D     the tags of a scan (after report-by-exception)
-    spBv1.0/G/DDEATH/E/D    when a whole scan of the PLC came back bad (unreachable)
+    spBv1.0/G/DDEATH/E/D    when the PLC is unreachable (layout.Reachability: a scan failed for
+                            want of the PLC, or every scan group's latest scan was all bad)
     spBv1.0/G/NCMD/E        subscribed: "Node Control/Rebirth" = true -> NBIRTH + all DBIRTHs
     spBv1.0/G/DCMD/E/D      subscribed: metric name = tag, value -> the poller's write_tag
 
@@ -20,17 +21,22 @@ the sequence instead of starting at 0 again. The Will (NDEATH) is not retained, 
 requires: a retained death would tell every host that subscribes later that a live node is dead.
 
 Metrics: one per tag, named as the tag; a tag with ``count > 1`` becomes ``tag/0``, ``tag/1``,
-... (a folder in Ignition), which avoids the packed array encodings. Data types follow the tag
-type where it names a width (int16 -> Int16, uint32 -> UInt32, float32 -> Float, bool ->
-Boolean), else the value (int -> Int64, float -> Double, str -> String). Negative integers are
-two's complement in ``int_value``/``long_value`` as the specification says. A bad sample is
-``is_null`` (its error text stays in the poller's statistics and the JSON mode).
+... (a folder in Ignition), which avoids the packed array encodings. The datatype comes from the
+tag's declared type and scaling (:func:`declared_datatype`), never from a value, so the DBIRTH of
+a cold start declares what every DDATA carries. Negative integers are two's complement in
+``int_value``/``long_value`` as the specification says. A bad value is ``is_null`` with the
+``Quality`` property 0 (BAD); a birth carries ``engUnit`` and ``documentation`` properties from the
+tag's unit and description.
+
+QoS: births, data and deaths at QoS 0, as Sparkplug 3.0 requires (the Will at QoS 1, as it
+requires); ``[mqtt] sparkplug_qos = 1`` is a documented deviation (broker acknowledgements).
 
 Store-and-forward: data queued while the broker was away is published after the new session's
 NBIRTH and DBIRTHs, in order, each metric flagged ``is_historical``; births and deaths queued in
 an old session are not replayed (the new session's births say the present state).
 
-Writes: a DCMD is written through ``write_tag``. Sparkplug has no reply message, so a refused
+Writes: a DCMD is written through the sink's write path (the one value grammar; ``tag/3`` writes
+one element of an array tag alone). Sparkplug has no reply message, so a refused
 write is answered on the JSON mode's ``P/PLC/write/resp`` topic (``id`` = ``"dcmd:<metric>"``)
 and counted; a confirmed one shows up in the next DDATA.
 """
@@ -41,13 +47,15 @@ import asyncio
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
-from plcstack.north.layout import topic_level
+from plcstack.north.layout import Reachability, topic_level
 from plcstack.north.sparkplug_pb import DATATYPES, Payload
 from plcstack.north.sparkplug_state import BdSeqStore, default_state_path
+from plcstack.poll.config import TagConfig
 from plcstack.poll.samples import Quality, Sample
+from plcstack.values import value_type
 
 __all__ = ["NAMESPACE", "SparkplugLayout"]
 
@@ -56,7 +64,9 @@ log = logging.getLogger("plcstack.north.sparkplug")
 NAMESPACE = "spBv1.0"
 REBIRTH = "Node Control/Rebirth"
 
-_BY_TYPE = {
+#: the tag's declared type -> Sparkplug datatype of each of its values (section "Data Types" of
+#: the specification; the same widths as the OPC UA server's DataTypes)
+_DECLARED = {
     "bool": "Boolean",
     "int8": "Int8",
     "uint8": "UInt8",
@@ -65,27 +75,50 @@ _BY_TYPE = {
     "int32": "Int32",
     "uint32": "UInt32",
     "float32": "Float",
+    "kf": "Int16",
+    "kh": "UInt16",
+    "km": "UInt16",
+    "kz": "UInt16",
+    "bcd16": "UInt16",
+    "bcd32": "UInt32",
+    "kt": "Double",  # seconds
+    "kg": "Double",  # the KG range reaches below float32's normal range
+    "ky": "String",  # two bytes as STEP 5 shows them: "12,255"
+    "kc": "String",
 }
+#: a ``raw`` tag is one point: a bit, a byte (S5 byte areas) or a word
+_RAW = {1: "Boolean", 8: "UInt8", 16: "UInt16"}
 _INT32 = {1, 2, 3, 5, 6, 7}
 _INT64 = {4, 8, 13}
+#: Sparkplug's metric quality property (section "Quality Codes"): an Int32, 0 = BAD
+QUALITY, QUALITY_BAD = "Quality", 0
+#: the metric properties Ignition's MQTT Engine turns into the tag properties of these names
+UNIT_PROPERTY, DESCRIPTION_PROPERTY = "engUnit", "documentation"
 
 
-def _datatype(type_name: str, value: Any) -> int:
-    if isinstance(value, bool):
-        return DATATYPES["Boolean"]
-    if isinstance(value, int):
-        named = _BY_TYPE.get(type_name)
-        code = DATATYPES[named] if named is not None else DATATYPES["Int64"]
-        return code if code in _INT32 or code in _INT64 else DATATYPES["Int64"]
-    if isinstance(value, float):
-        return DATATYPES["Float"] if type_name == "float32" else DATATYPES["Double"]
-    if isinstance(value, str):
+#: the error text of a metric in a birth before its tag's first scan
+_NOT_YET = "no value yet"
+
+
+def _tag_of(name: str, type_name: str, count: int) -> TagConfig:
+    return TagConfig(name, "", value_type(type_name), count)
+
+
+def declared_datatype(tag: TagConfig, point_bits: int = 16) -> int:
+    """The Sparkplug datatype of one value of ``tag``, from its declared type and scaling alone
+    (never from a value), so DBIRTH before the first scan says what every DDATA carries."""
+    if tag.scale is not None:
+        return DATATYPES["Double"]  # engineering units
+    name = tag.type.name
+    if name == "raw":
+        return DATATYPES[_RAW.get(point_bits, "UInt16")]
+    if tag.type.kind == "text":
         return DATATYPES["String"]
-    named = _BY_TYPE.get(type_name)
-    return DATATYPES[named] if named is not None else DATATYPES["Int64"]
+    return DATATYPES[_DECLARED.get(name, "Double")]
 
 
 def _set_value(metric: Any, datatype: int, value: Any) -> None:
+    """``value`` in the field ``datatype`` uses; is_null for None or a non-finite float."""
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         metric.is_null = True
     elif datatype == DATATYPES["Boolean"]:
@@ -98,8 +131,21 @@ def _set_value(metric: Any, datatype: int, value: Any) -> None:
         metric.float_value = float(value)
     elif datatype == DATATYPES["Double"]:
         metric.double_value = float(value)
+    elif isinstance(value, tuple):  # KY: two bytes as read and written ("12,255")
+        metric.string_value = ",".join(str(b) for b in value)
     else:
         metric.string_value = str(value)
+
+
+def _property(metric: Any, key: str, datatype: int, value: Any) -> None:
+    props = metric.properties
+    props.keys.append(key)
+    pv = props.values.add()
+    pv.type = datatype
+    if datatype == DATATYPES["String"]:
+        pv.string_value = str(value)
+    else:
+        pv.int_value = int(value) & 0xFFFFFFFF
 
 
 def metric_value(metric: Any) -> Any:
@@ -126,19 +172,26 @@ class SparkplugLayout:
         self,
         group_id: str,
         edge_node: str,
-        tags: dict[str, list[tuple[str, str, int]]],
+        tags: Mapping[str, Sequence[TagConfig | tuple[str, str, int]]],
         *,
         prefix: str = "plcstack",
-        qos: int = 1,
+        qos: int = 0,
         state: BdSeqStore | None = None,
+        point_bits: Mapping[tuple[str, str], int] | None = None,
     ) -> None:
-        """``tags``: PLC -> [(tag, type name, count)] in configuration order; ``state``: where
-        the bdSeq survives a restart (None: every start begins at 0)."""
+        """``tags``: PLC -> its tags in configuration order (:class:`TagConfig`, or
+        ``(name, type name, count)``); ``qos``: of births, data and deaths (Sparkplug 3.0 says
+        0; 1 is ``[mqtt] sparkplug_qos = 1``); ``state``: where the bdSeq survives a restart
+        (None: every start begins at 0); ``point_bits``: (PLC, tag) -> the width of a ``raw``
+        tag's point (1, 8 or 16; the poller knows it), for its datatype."""
         self.group = topic_level(group_id)
         self.node = topic_level(edge_node)
         self.prefix = prefix
         self.qos = qos
-        self.tags = tags
+        self.tags: dict[str, list[TagConfig]] = {
+            plc: [t if isinstance(t, TagConfig) else _tag_of(*t) for t in specs]
+            for plc, specs in tags.items()
+        }
         self.state = state
         last = state.load() if state is not None else None
         # incremented by will() at the start of each session: the first CONNECT of a node that
@@ -146,19 +199,30 @@ class SparkplugLayout:
         self.bd_seq = -1 if last is None else last
         self.seq = 0
         self._last: dict[str, dict[str, Sample]] = {plc: {} for plc in tags}
-        self._online: dict[str, bool] = {}
-        self._types = {
-            (plc, name): type_name for plc, specs in tags.items() for name, type_name, _ in specs
+        self.reachability = Reachability()
+        self._dead: set[str] = set()  # PLCs whose last birth/death message was a DDEATH
+        bits = point_bits or {}
+        self._datatypes = {
+            (plc, t.name): declared_datatype(t, bits.get((plc, t.name), 16))
+            for plc, specs in self.tags.items()
+            for t in specs
         }
+        self._configs = {(plc, t.name): t for plc, specs in self.tags.items() for t in specs}
         self._plc_by_level = {topic_level(p): p for p in tags}
         self.rebirths = 0
         self.writes_refused = 0
 
     @classmethod
-    def for_config(cls, settings: Any, poll_config: Any) -> SparkplugLayout:
-        tags = {
-            plc.name: [(t.name, t.type.name, t.count) for t in plc.tags] for plc in poll_config.plcs
-        }
+    def for_config(cls, settings: Any, poll_config: Any, poller: Any = None) -> SparkplugLayout:
+        """The layout of ``[mqtt]`` ``settings`` for ``poll_config``'s PLCs; ``poller`` (if it
+        can tell) gives ``raw`` tags the width of their points."""
+        tags = {plc.name: list(plc.tags) for plc in poll_config.plcs}
+        point_bits: dict[tuple[str, str], int] = {}
+        tags_of = getattr(poller, "tags", None)
+        if tags_of is not None:
+            for plc in tags:
+                for name, (_, bits) in tags_of(plc).items():
+                    point_bits[(plc, name)] = bits
         path = getattr(settings, "state_path", None) or default_state_path(settings.buffer_path)
         if path is None:
             log.warning(
@@ -171,8 +235,9 @@ class SparkplugLayout:
             settings.client_id,
             tags,
             prefix=settings.prefix,
-            qos=settings.qos,
+            qos=getattr(settings, "sparkplug_qos", 0),
             state=state,
+            point_bits=point_bits,
         )
 
     # -- topics ---------------------------------------------------------------------------------
@@ -199,28 +264,36 @@ class SparkplugLayout:
         return p
 
     def _add_metrics(self, p: Any, plc: str, samples: Sequence[Sample], *, birth: bool) -> None:
+        """One metric per value: ``tag`` or ``tag/0``, ``tag/1``... with the tag's declared
+        datatype; a bad value is is_null (with Quality BAD once the tag has been scanned); a
+        birth carries the unit and description as properties."""
         for s in samples:
-            type_name = self._types.get((plc, s.tag), "raw")
+            config = self._configs.get((plc, s.tag))
+            datatype = self._datatypes.get((plc, s.tag), DATATYPES["Double"])
+            count = config.count if config is not None else 1
             ts = int(s.source_time * 1000)
-            value = s.value if s.quality is Quality.GOOD else None
-            if isinstance(value, list):
-                for i, item in enumerate(value):
-                    m = p.metrics.add()
-                    m.name, m.timestamp = f"{s.tag}/{i}", ts
-                    m.datatype = _datatype(type_name, item)
-                    _set_value(m, m.datatype, item)
-                continue
-            count = next((c for n, _, c in self.tags.get(plc, []) if n == s.tag), 1)
-            if value is None and count > 1:
-                for i in range(count):
-                    m = p.metrics.add()
-                    m.name, m.timestamp, m.is_null = f"{s.tag}/{i}", ts, True
-                    m.datatype = _datatype(type_name, None)
-                continue
-            m = p.metrics.add()
-            m.name, m.timestamp = s.tag, ts
-            m.datatype = _datatype(type_name, value)
-            _set_value(m, m.datatype, value)
+            good = s.quality is Quality.GOOD
+            value = s.value if good else None
+            scanned = s.error != _NOT_YET
+            items: list[Any]
+            if count > 1 or isinstance(value, list):
+                items = value if isinstance(value, list) else [None] * count
+                names = [f"{s.tag}/{i}" for i in range(len(items))]
+            else:
+                items, names = [value], [s.tag]
+            for name, item in zip(names, items, strict=True):
+                m = p.metrics.add()
+                m.name, m.timestamp, m.datatype = name, ts, datatype
+                _set_value(m, datatype, item)
+                if birth and config is not None:
+                    unit = config.unit
+                    description = config.description
+                    if unit:
+                        _property(m, UNIT_PROPERTY, DATATYPES["String"], unit)
+                    if description:
+                        _property(m, DESCRIPTION_PROPERTY, DATATYPES["String"], description)
+                if not good and scanned:
+                    _property(m, QUALITY, DATATYPES["Int32"], QUALITY_BAD)
 
     def probe(self, sample: Sample) -> None:
         """Raise if ``sample`` cannot be encoded as a metric; no state changes (the sink's
@@ -232,10 +305,10 @@ class SparkplugLayout:
         p.timestamp = int(now * 1000)
         last = self._last.get(plc, {})
         samples = []
-        for name, _type_name, _count in self.tags.get(plc, []):
-            sample = last.get(name)
+        for tag in self.tags.get(plc, []):
+            sample = last.get(tag.name)
             if sample is None:
-                sample = Sample(plc, name, None, Quality.BAD, now, now, "no value yet")
+                sample = Sample(plc, tag.name, None, Quality.BAD, now, now, _NOT_YET)
             samples.append(sample)
         self._add_metrics(p, plc, samples, birth=True)
         return bytes(p.SerializeToString())
@@ -256,13 +329,15 @@ class SparkplugLayout:
         out: list[tuple[str, bytes, int, bool]] = []
         p = self._bd_seq_payload(now, rebirth_metric=True)
         p.seq = self._next_seq()
-        out.append((self.topic("NBIRTH"), bytes(p.SerializeToString()), 1, False))
+        out.append((self.topic("NBIRTH"), bytes(p.SerializeToString()), self.qos, False))
         for plc in self.tags:
-            if self._online.get(plc) is False:
+            if self.reachability.get(plc) is False:
                 continue
             birth = Payload.FromString(self._dbirth(plc, now))
             birth.seq = self._next_seq()
-            out.append((self.topic("DBIRTH", plc), bytes(birth.SerializeToString()), 1, False))
+            out.append(
+                (self.topic("DBIRTH", plc), bytes(birth.SerializeToString()), self.qos, False)
+            )
         return out
 
     def on_connect(self, now: float) -> list[tuple[str, bytes, int, bool]]:
@@ -279,30 +354,41 @@ class SparkplugLayout:
     def messages(
         self, batch: Sequence[tuple[str, str, list[Sample]]]
     ) -> list[tuple[str, bytes, int, bool]]:
-        """DDATA per PLC and scan; DDEATH/DBIRTH when a PLC goes offline/online (seq later)."""
+        """DDATA per PLC and scan; DDEATH/DBIRTH when a PLC becomes unreachable/reachable
+        (:class:`~plcstack.north.layout.Reachability`: a group failing on its own only makes
+        its metrics null with Quality BAD); ``seq`` is set when published."""
         out: list[tuple[str, bytes, int, bool]] = []
-        for plc, _group, samples in batch:
+        for plc, group, samples in batch:
             last = self._last.setdefault(plc, {})
             for s in samples:
                 last[s.tag] = s
-            online = any(s.quality is Quality.GOOD for s in samples)
-            was = self._online.get(plc)
-            self._online[plc] = online
+            changed = self.reachability.update(plc, group, samples)
             when = max(s.receive_time for s in samples)
-            if not online:
-                if was is not False:
-                    p = Payload()
-                    p.timestamp = int(when * 1000)
-                    out.append((self.topic("DDEATH", plc), bytes(p.SerializeToString()), 1, False))
+            if changed is False:
+                self._dead.add(plc)
+                p = Payload()
+                p.timestamp = int(when * 1000)
+                out.append(
+                    (self.topic("DDEATH", plc), bytes(p.SerializeToString()), self.qos, False)
+                )
                 continue
-            if was is False:
-                out.append((self.topic("DBIRTH", plc), self._dbirth(plc, when), 1, False))
+            if self.reachability.get(plc) is False:
+                continue  # dead: nothing until it is reachable again
+            if changed is True and self._born_dead(plc):
+                out.append((self.topic("DBIRTH", plc), self._dbirth(plc, when), self.qos, False))
                 continue
             p = Payload()
             p.timestamp = int(min(s.source_time for s in samples) * 1000)
             self._add_metrics(p, plc, samples, birth=False)
             out.append((self.topic("DDATA", plc), bytes(p.SerializeToString()), self.qos, False))
         return out
+
+    def _born_dead(self, plc: str) -> bool:
+        """Whether the PLC's last birth/death message was a DDEATH (so it needs a DBIRTH now);
+        the births of a session already announced a PLC that was never seen unreachable."""
+        dead = plc in self._dead
+        self._dead.discard(plc)
+        return dead
 
     def prepare(self, message: Any, replayed: bool) -> bytes | None:
         """At publish time: the session's next ``seq``; queued data from before the current
@@ -355,5 +441,16 @@ class SparkplugLayout:
         if result is None:
             sink.stats.writes_ok += 1
         else:
+            # Sparkplug has no reply message: logged, counted, and answered on the JSON topic
             self.writes_refused += 1
+            code, message, may_have_executed = result
+            log.warning(
+                "sparkplug: DCMD %s/%s = %r refused (%s%s): %s",
+                plc,
+                tag,
+                value,
+                code,
+                ", may have executed" if may_have_executed else "",
+                message,
+            )
             sink._respond(topic_level(plc), f"dcmd:{tag}", *result)

@@ -12,7 +12,11 @@ uint32), ``is_historical`` (5), ``is_transient`` (6), ``is_null`` (7) and the va
 ``int_value`` (10, uint32), ``long_value`` (11, uint64), ``float_value`` (12), ``double_value``
 (13), ``boolean_value`` (14), ``string_value`` (15), ``bytes_value`` (16).
 
-Metadata (8), properties (9), data sets, templates and extensions (17-19) are left out; a payload
+``properties`` (9, PropertySet): ``keys`` (1, repeated string) and ``values`` (2, repeated
+PropertyValue: ``type`` (1, uint32), ``is_null`` (2), ``int_value`` (3, uint32), ``long_value`` (4,
+uint64), ``float_value`` (5), ``double_value`` (6), ``boolean_value`` (7), ``string_value`` (8)).
+
+Metadata (8), data sets, templates and extensions (17-19) are left out; a payload
 from another node that carries them still parses (protobuf keeps unknown fields). proto2 syntax,
 as in the specification, so ``HasField`` works for every optional field.
 
@@ -79,6 +83,31 @@ def _file() -> descriptor_pb2.FileDescriptorProto:
     payload.name = "Payload"
     metric = payload.nested_type.add()
     metric.name = "Metric"
+    pvalue = payload.nested_type.add()
+    pvalue.name = "PropertyValue"
+    _field(pvalue, "type", 1, _F.TYPE_UINT32)
+    _field(pvalue, "is_null", 2, _F.TYPE_BOOL)
+    pvalue.oneof_decl.add().name = "value"
+    for name, number, kind in [
+        ("int_value", 3, _F.TYPE_UINT32),
+        ("long_value", 4, _F.TYPE_UINT64),
+        ("float_value", 5, _F.TYPE_FLOAT),
+        ("double_value", 6, _F.TYPE_DOUBLE),
+        ("boolean_value", 7, _F.TYPE_BOOL),
+        ("string_value", 8, _F.TYPE_STRING),
+    ]:
+        _field(pvalue, name, number, kind, oneof=0)
+    pset = payload.nested_type.add()
+    pset.name = "PropertySet"
+    _field(pset, "keys", 1, _F.TYPE_STRING, label=_REPEATED)
+    _field(
+        pset,
+        "values",
+        2,
+        _F.TYPE_MESSAGE,
+        label=_REPEATED,
+        type_name=".plcstack.sparkplug_b.Payload.PropertyValue",
+    )
     _field(payload, "timestamp", 1, _F.TYPE_UINT64)
     _field(
         payload,
@@ -100,6 +129,8 @@ def _file() -> descriptor_pb2.FileDescriptorProto:
     _field(metric, "is_historical", 5, _F.TYPE_BOOL)
     _field(metric, "is_transient", 6, _F.TYPE_BOOL)
     _field(metric, "is_null", 7, _F.TYPE_BOOL)
+    props = ".plcstack.sparkplug_b.Payload.PropertySet"
+    _field(metric, "properties", 9, _F.TYPE_MESSAGE, type_name=props)
     metric.oneof_decl.add().name = "value"
     for name, number, kind in [
         ("int_value", 10, _F.TYPE_UINT32),

@@ -27,9 +27,12 @@ gets :data:`WRONG_TYPE` from :func:`result_code`.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any, Final
 
-from plcstack.errors import AddressError, PlcError
+from plcstack.errors import AddressError, ConnectFailed, PlcError, PlcErrorResponse
+from plcstack.poll.config import TagConfig
+from plcstack.poll.plan import encode_tag
 
 __all__ = [
     "NOT_WRITABLE",
@@ -37,9 +40,12 @@ __all__ = [
     "WRONG_TYPE",
     "WriteValueError",
     "bit_of_word_refusal",
+    "classify_write_error",
     "expected_value",
     "parse_write_value",
     "result_code",
+    "split_element",
+    "write_element",
 ]
 
 #: result codes (the words MQTT write responses carry in ``error``; the web and Modbus sides map
@@ -227,3 +233,70 @@ def result_code(error: PlcError) -> str:
     if "bit of a word" in error.message:
         return NOT_WRITABLE
     return WRONG_TYPE
+
+
+def classify_write_error(exc: BaseException) -> tuple[str, str, bool]:
+    """``(result code, message, may_have_executed)`` of a write that raised ``exc``.
+
+    Refused before sending (:class:`AddressError`): :func:`result_code`, not executed. The PLC
+    refused it or could not be connected: ``plc_error``, not executed. Any other failure (a
+    timeout, a dropped connection after sending, a bug): ``plc_error``, may have executed.
+    """
+    if isinstance(exc, AddressError):
+        return result_code(exc), str(exc), False
+    if isinstance(exc, PlcErrorResponse | ConnectFailed):
+        return "plc_error", str(exc), False
+    if isinstance(exc, PlcError):
+        return "plc_error", str(exc), True
+    return "plc_error", f"{type(exc).__name__}: {exc}", True
+
+
+def split_element(name: str) -> tuple[str, int] | None:
+    """``("alarms", 3)`` for the element name ``alarms/3`` (as Sparkplug announces the values
+    of a tag with ``count > 1``), else None."""
+    base, slash, index = name.rpartition("/")
+    if not slash or not base or not index.isdigit() or (len(index) > 1 and index[0] == "0"):
+        return None
+    return base, int(index)
+
+
+async def write_element(
+    poller: Any, plc: str, tag: TagConfig, point_bits: int, index: int, value: object
+) -> None:
+    """Write element ``index`` of ``tag`` (``count > 1``) alone: the points of that one value,
+    at its own address, through the poller's single-flight ``write`` (never a read-modify-write
+    of the whole array, which would race the PLC program over the other elements)."""
+    request = f"write {tag.name}/{index}"
+    if not 0 <= index < tag.count:
+        raise WriteValueError(
+            f"tag {tag.name!r} has elements 0..{tag.count - 1}, not {index}",
+            code=UNKNOWN_TAG,
+            plc=plc,
+            request=request,
+        )
+    client = poller.client(plc)
+    base, bit = client.split_bit(tag.address)
+    if bit is not None:
+        raise bit_of_word_refusal(tag.name, tag.address, plc=plc)
+    try:
+        area, start = client.locate(base, tag.count)
+        address = client.address_at(area, start + index * tag.type.points_per_value(point_bits))
+    except NotImplementedError:
+        raise WriteValueError(
+            f"tag {tag.name!r}: this PLC's client cannot address one element; write the whole tag",
+            plc=plc,
+            request=request,
+        ) from None
+    element = replace(tag, name=f"{tag.name}/{index}", address=address, count=1)
+    item = parse_write_value(element, value, plc=plc)
+    order = {p.name: p.order for p in poller.config.plcs}[plc]
+    try:
+        points = encode_tag(element, [item], point_bits, order, client.byte_order)
+    except AddressError as exc:
+        raise WriteValueError(
+            f"tag {element.name!r}: {exc.message}", plc=plc, request=request
+        ) from None
+    if all(isinstance(p, bool) for p in points):
+        await poller.write(plc, address, [bool(p) for p in points])
+    else:
+        await poller.write(plc, address, [int(p) for p in points])
