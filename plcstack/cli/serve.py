@@ -99,13 +99,15 @@ async def run_opcua(args: argparse.Namespace) -> int:
     opcua_config = load_opcua_config(args.config)
     from plcstack.north.opcua import OpcUaServer, run_until  # asyncua: only when serving
 
-    metrics = parse_north(config.north, base=Path(args.config).parent).metrics
+    north_config = parse_north(config.north, base=Path(args.config).parent)
+    metrics = north_config.metrics
     if metrics_port is not None:
         metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", metrics_port)
     poller = Poller(config)  # every URL and address checked before anything is sent
     server = OpcUaServer(poller, opcua_config)
     # the north side of `plcstack poll`, metrics only: the same collector and HTTP server
-    north = North(poller, NorthConfig(metrics=metrics))
+    north = North(poller, NorthConfig(metrics=metrics, audit=north_config.audit))
+    server.writes = north.writes  # OPC UA writes share the run's write path and its audit
     stop = StopEvent()
     installed = install_stop_signals(stop)
     try:

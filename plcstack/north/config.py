@@ -1,5 +1,5 @@
 """The north-side tables of the poll TOML: ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``,
-``[opcua]``, ``[web]``, ``[modbus]``.
+``[opcua]``, ``[web]``, ``[modbus]``, ``[audit]``.
 
 They sit next to ``[poll]`` and ``[[plc]]`` in the same file; the poll loader keeps them as raw
 tables (``PollConfig.north``) and checks them here at load time, so a typo is a
@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from plcstack.errors import unknown_names
+from plcstack.north.audit import AuditSettings, parse_audit
 from plcstack.north.influx import DEFAULT_MEASUREMENT
 from plcstack.north.metrics import MetricsSettings, parse_metrics
 from plcstack.north.modbus.config import ModbusSettings, parse_modbus
@@ -32,7 +33,7 @@ from plcstack.poll.config import ConfigError
 __all__ = ["NORTH_TABLES", "NorthConfig", "parse_north"]
 
 #: top-level TOML tables that belong to the north side
-NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua", "web", "modbus")
+NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua", "web", "modbus", "audit")
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,8 @@ class NorthConfig:
     web: WebSettings | None = None
     #: ``[modbus]``: the settings of ``plcstack serve modbus``
     modbus: ModbusSettings | None = None
+    #: ``[audit]``: one JSON line per write attempt from any north side (north/audit.py)
+    audit: AuditSettings | None = None
 
     @property
     def reports_by_exception(self) -> bool:
@@ -75,4 +78,5 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
         opcua=parse_opcua_config(tables["opcua"], base=base) if "opcua" in tables else None,
         web=parse_web(tables["web"]) if "web" in tables else None,
         modbus=parse_modbus(tables["modbus"]) if "modbus" in tables else None,
+        audit=parse_audit(tables["audit"], base=base) if "audit" in tables else None,
     )

@@ -41,10 +41,7 @@ from pathlib import Path
 from typing import Any, Protocol
 from urllib.parse import urlsplit
 
-from plcstack.errors import (
-    PlcError,
-    unknown_names,
-)
+from plcstack.errors import PlcError, unknown_names
 from plcstack.north.buffer import Message, StoreAndForward
 from plcstack.north.layout import (
     JsonLayout,
@@ -56,12 +53,8 @@ from plcstack.north.layout import (
 )
 from plcstack.north.mqtt_errors import PahoLog, connect_error
 from plcstack.north.supervise import Supervised, Supervisor
-from plcstack.north.write_values import (
-    classify_write_error,
-    parse_write_value,
-    split_element,
-    write_element,
-)
+from plcstack.north.write_values import split_element
+from plcstack.north.writes import BAD_REQUEST, BUSY, UNKNOWN_PLC, WritePath
 from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Sample
 from plcstack.transports.backoff import Backoff
@@ -288,11 +281,13 @@ class MqttSink:
         writable: dict[tuple[str, str], bool] | None = None,
         plcs: Sequence[str] | None = None,
         env: Mapping[str, str] | None = None,
+        writes: WritePath | None = None,
     ) -> None:
         """``writable``: (plc, tag) -> may MQTT clients write it (the tag's ``writable = true``);
         a tag marked false is refused with ``not_writable``. None: every tag is writable.
         ``env``: where ``username_env``/``password_env`` are looked up (default ``os.environ``),
-        when the sink starts."""
+        when the sink starts. ``writes``: the run's write path (default: one on ``writer``
+        without an audit)."""
         self.settings = settings
         self.env = env
         #: credentials and TLS context, resolved by :meth:`prepare` (at start, not at load)
@@ -303,6 +298,7 @@ class MqttSink:
         self._paho_log = PahoLog()
         self.writer = writer
         self.writable = writable
+        self.writes = writes if writes is not None else WritePath(writer)
         self.group_of = group_of or {}
         self.layout = (
             layout
@@ -614,44 +610,45 @@ class MqttSink:
             return
         level, request_id, tag, value, error = self.layout.parse_write(topic, payload)
         plc = self._plc_by_level.get(level)
+        refusal: tuple[str, str] | None = None
         if error is not None or tag is None:
-            self._respond(level, request_id, "bad_request", error or "bad request")
+            refusal = BAD_REQUEST, error or "bad request"
         elif plc is None:
-            self._respond(level, request_id, "unknown_plc", f"no PLC named {level!r} here")
+            refusal = UNKNOWN_PLC, f"no PLC named {level!r} here"
         elif self.writer is None:
-            self._respond(level, request_id, "not_writable", "this poller takes no writes")
+            refusal = "not_writable", "this poller takes no writes"
         elif len(self._writes) >= MAX_PENDING_WRITES:
-            self._respond(level, request_id, "busy", "too many writes waiting; not attempted")
-        else:
-            task = asyncio.create_task(self._write(plc, request_id, tag, value))
-            self._writes.add(task)
-            task.add_done_callback(self._writes.discard)
+            refusal = BUSY, "too many writes waiting; not attempted"
+        if refusal is not None:
+            # logged and audited as every refused write is, then answered
+            self.writes.refuse(self.name, None, plc or level, str(tag or ""), value, *refusal)
+            self._respond(level, request_id, *refusal)
+            return
+        assert plc is not None and tag is not None
+        task = asyncio.create_task(self._write(plc, request_id, tag, value))
+        self._writes.add(task)
+        task.add_done_callback(self._writes.discard)
 
     async def write_and_classify(
         self, plc: str, tag: str, value: Any
     ) -> tuple[str, str, bool] | None:
-        """Run one write; None if confirmed, else ``(code, message, may_have_executed)``."""
-        assert self.writer is not None
-        if self.writable is not None and self.writable.get((plc, tag)) is False:
-            return self._read_only(plc, tag)
-        try:
-            tags = getattr(self.writer, "tags", None)
-            known = tags(plc) if tags is not None else {}
-            config = known.get(tag)
-            element = split_element(tag) if config is None else None
-            if element is not None and element[0] in known and known[element[0]][0].count > 1:
-                # one value of an array tag (Sparkplug announces them as "alarms/3")
-                base, bits = known[element[0]]
-                if self.writable is not None and self.writable.get((plc, base.name)) is False:
-                    return self._read_only(plc, tag)
-                await write_element(self.writer, plc, base, bits, element[1], value)
-                return None
-            if config is not None:  # the one value grammar of every north side
-                value = parse_write_value(config[0], value, plc=plc)
-            await self.writer.write_tag(plc, tag, value)
-        except Exception as exc:  # a writer bug must still get an answer, never silence
-            return classify_write_error(exc)
-        return None
+        """Run one write through the write path (:mod:`plcstack.north.writes`: allow-list,
+        value grammar, ``write_tag``, audit, log); None if confirmed, else ``(code, message,
+        may_have_executed)``. The source is the sink's name (``mqtt`` or ``sparkplug``)."""
+        writable = self.writable
+        element = split_element(tag)
+        base = element[0] if element is not None and (plc, tag) not in (writable or {}) else tag
+        if writable is not None and False in (writable.get((plc, tag)), writable.get((plc, base))):
+            code, message, _ = self._read_only(plc, tag)
+            result = self.writes.refuse(self.name, None, plc, tag, value, code, message)
+        else:
+            # writable None (the Python API): every tag is writable through this sink
+            result = await self.writes.write(
+                self.name, None, plc, tag, value, allow_list=self.writable is not None
+            )
+        if result.ok:
+            return None
+        return result.code, result.message, result.may_have_executed
 
     @staticmethod
     def _read_only(plc: str, tag: str) -> tuple[str, str, bool]:

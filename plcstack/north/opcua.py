@@ -88,6 +88,7 @@ from plcstack.north.opcua_config import (
     parse_opcua_config,
 )
 from plcstack.north.write_values import parse_write_value
+from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample
@@ -572,6 +573,8 @@ class OpcUaServer:
         self._bindings: dict[ua.NodeId, _Binding] = {}
         self._by_tag: dict[tuple[str, str], _Binding] = {}
         self._writes: set[asyncio.Future[Any]] = set()
+        #: the run's write path (``plcstack serve opcua`` hands in the one with the audit)
+        self.writes = WritePath(poller)
         self.namespace_index = 0
         self.url = self.config.endpoint
         #: samples put into the address space / skipped as unchanged (for statistics)
@@ -801,19 +804,16 @@ class OpcUaServer:
         return out
 
     async def _write_tag(self, binding: _Binding, value: Any) -> int:
-        where = f"{binding.plc}.{binding.tag.name}"
-        try:
-            await self.poller.write_tag(binding.plc, binding.tag.name, value)
-        except Exception as exc:
-            code = write_status(exc)
-            name = _status(code).name
-            if isinstance(exc, PlcError):
-                log.warning("OPC UA write of %s = %r failed (%s): %s", where, value, name, exc)
-            else:
-                log.exception("OPC UA write of %s = %r failed (%s)", where, value, name)
-            return code
-        log.info("OPC UA write of %s = %r confirmed by the PLC", where, value)
-        return _S.Good
+        # the one write path of every north side: allow-list, value grammar, write_tag, the
+        # audit line and one log line (plcstack.north.writes)
+        result = await self.writes.write(
+            "opcua", None, binding.plc, binding.tag.name, value, previous=binding.last[1]
+        )
+        if result.ok:
+            return _S.Good
+        if result.error is None:  # refused before the PLC (not writable, unknown tag)
+            return _S.BadNotWritable
+        return write_status(result.error)
 
 
 async def run_until(

@@ -26,11 +26,13 @@ from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import Any, Self
 
+from plcstack.north.audit import Audit
 from plcstack.north.config import NorthConfig
 from plcstack.north.metrics import MetricsServer, PlcstackCollector
 from plcstack.north.mqtt import MqttSink
 from plcstack.north.rbe import ReportByException
 from plcstack.north.supervise import Supervisor
+from plcstack.north.writes import WritePath
 from plcstack.poll.samples import Sample
 
 __all__ = ["North", "missing", "needs_of", "sink_name"]
@@ -84,6 +86,12 @@ class North:
         self.config = config
         self.rbe = ReportByException(config.report)
         self.supervisor = Supervisor()
+        self.audit: Audit | None = None
+        if config.audit is not None:
+            self.audit = Audit(config.audit, on_error=lambda: self.supervisor.count("audit"))
+        # the one write path of every north side of this run (a scale-out Worker has no
+        # write_tag yet: every write is refused with the reason)
+        self.writes = WritePath(poller if hasattr(poller, "write_tag") else None, audit=self.audit)
         self.sinks: list[Any] = list(sinks)
         self.mqtt: MqttSink | None = None
         if config.mqtt is not None:
@@ -109,6 +117,7 @@ class North:
                 layout=layout,
                 writable=writable,
                 plcs=[plc.name for plc in poller.config.plcs],
+                writes=self.writes,
             )
             self.sinks.append(self.mqtt)
         self.web: Any = None
@@ -138,6 +147,8 @@ class North:
 
     async def __aenter__(self) -> Self:
         try:
+            if self.audit is not None:
+                self.audit.open()  # a file that cannot be written stops the start (exit 2)
             for sink in self.sinks:
                 start = getattr(sink, "start", None)
                 if start is not None:
@@ -173,6 +184,8 @@ class North:
         await self.supervisor.aclose()
         if self.metrics is not None:
             await self.metrics.aclose()
+        if self.audit is not None:
+            self.audit.close()
 
     def summary(self) -> list[str]:
         """One line per sink for stderr at the end of a run: sent, not delivered (and where
@@ -193,6 +206,7 @@ class North:
     ) -> list[Sample]:
         """One batch through metrics, RBE and every sink; returns what was reported."""
         self.collector.observe(batch)
+        self.writes.observe(batch)  # the audit's "previous" (nothing without an audit)
         reported = self.rbe.filter(batch) if self.config.reports_by_exception else list(batch)
         if reported:
             submit = self.supervisor.submit

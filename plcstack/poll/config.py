@@ -100,7 +100,7 @@ DEFAULT_BATCH_WAIT = 0.01
 MAX_BATCH_WAIT = 1.0
 DEFAULT_MAX_GAP = 8
 #: top-level tables read by north-side servers from the same file (plcstack.north)
-NORTH_SECTIONS = ("opcua", "mqtt", "metrics", "report", "influx", "web", "modbus")
+NORTH_SECTIONS = ("opcua", "mqtt", "metrics", "report", "influx", "web", "modbus", "audit")
 
 
 class ConfigError(AddressError):

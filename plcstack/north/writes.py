@@ -1,0 +1,232 @@
+"""The one write path of every north side: MQTT JSON, Sparkplug DCMD, OPC UA, web, Modbus, ...
+
+```python
+writes = WritePath(poller, audit=audit)          # one per run (North makes it)
+result = await writes.write("mqtt", None, "press1", "setpoint", 1201)
+if not result.ok:
+    answer(result.code, result.message, result.may_have_executed)
+```
+
+:meth:`WritePath.write` takes ``(source, user, plc, tag, value)`` and does, in this order:
+
+1. the allow-list: the PLC and the tag must exist, and the tag must say ``writable = true``;
+2. the value grammar every north side shares
+   (:func:`~plcstack.north.write_values.parse_write_value`);
+3. the poller's single-flight ``write_tag`` (never retried);
+4. the result: a frozen :class:`WriteResult` with ``ok``, ``code``, ``message`` and
+   ``may_have_executed``;
+5. the audit line (:mod:`plcstack.north.audit`), written and flushed before it returns, so
+   before the caller answers its client;
+6. the log: a refused or failed write is one WARNING (the first of a run of equal refusals of
+   one tag from one source; the repeats at DEBUG), a confirmed one is INFO.
+
+Result codes (the words MQTT write responses carry in ``error``; other sides map them onto their
+own statuses): ``ok``, ``bad_request``, ``unknown_plc``, ``unknown_tag``, ``not_writable``,
+``wrong_type``, ``busy``, ``plc_error``. ``may_have_executed`` is false only when the PLC
+certainly did not execute the write: refused before sending, or answered with an error code.
+
+A refusal the caller decides itself (a request it cannot parse, too many pending, a login that
+may not write) goes through :meth:`WritePath.refuse`, so it is logged and audited the same way.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, Final
+
+from plcstack.errors import PlcError
+from plcstack.north.audit import Audit
+from plcstack.north.write_values import (
+    classify_write_error,
+    parse_write_value,
+    split_element,
+    write_element,
+)
+
+__all__ = [
+    "BAD_REQUEST",
+    "BUSY",
+    "OK",
+    "PLC_ERROR",
+    "UNKNOWN_PLC",
+    "WritePath",
+    "WriteResult",
+]
+
+log = logging.getLogger("plcstack.north.writes")
+
+OK: Final = "ok"
+BAD_REQUEST: Final = "bad_request"
+BUSY: Final = "busy"
+UNKNOWN_PLC: Final = "unknown_plc"
+PLC_ERROR: Final = "plc_error"
+#: a value that was never given (``previous`` unknown to the caller)
+_UNSET: Final[Any] = object()
+
+
+@dataclass(frozen=True, slots=True)
+class WriteResult:
+    """The outcome of one write attempt, as every north side answers it.
+
+    ``code`` is ``"ok"`` or the result code; ``message`` says what happened in words (naming the
+    PLC, the tag and the reason); ``error`` is the exception behind a failure, for a side that
+    maps exception types onto its own status codes (OPC UA).
+    """
+
+    ok: bool
+    code: str
+    message: str
+    may_have_executed: bool
+    error: BaseException | None = None
+
+
+class WritePath:
+    """The write path of one run; see the module docstring.
+
+    ``poller``: anything with ``plcs``, ``tags(plc)`` and ``write_tag`` (None: a poller that
+    takes no writes, such as a scale-out worker; every write is refused ``not_writable``).
+    ``audit``: where each attempt is recorded (None: no audit configured).
+    """
+
+    def __init__(self, poller: Any, *, audit: Audit | None = None) -> None:
+        self.poller = poller
+        self.audit = audit
+        #: (plc, tag) -> last polled value, kept only while an audit needs ``previous``
+        self.latest: dict[tuple[str, str], Any] = {}
+        self.ok = 0
+        self.refused = 0
+        self._last_code: dict[tuple[str, str, str], str] = {}
+
+    def observe(self, samples: Iterable[Any]) -> None:
+        """Note the polled values (the audit's ``previous``); a no-op without an audit."""
+        if self.audit is None:
+            return
+        latest = self.latest
+        for s in samples:
+            latest[(s.plc, s.tag)] = s.value
+
+    async def write(
+        self,
+        source: str,
+        user: str | None,
+        plc: str,
+        tag: str,
+        value: Any,
+        *,
+        previous: Any = _UNSET,
+        allow_list: bool = True,
+    ) -> WriteResult:
+        """One write attempt from a north-side client; never raises for the write's outcome.
+
+        ``previous``: the value the caller last showed its client (default: the last polled
+        one this path saw). ``allow_list=False``: the caller's own allow-list admitted the write
+        (a sink built in Python with ``writable=None``, "every tag"); the tag's ``writable``
+        is then not asked.
+        """
+        if previous is _UNSET:
+            previous = self.latest.get((plc, tag))
+        result = await self._attempt(plc, tag, value, allow_list)
+        self._finish(source, user, plc, tag, value, previous, result)
+        return result
+
+    def refuse(
+        self,
+        source: str,
+        user: str | None,
+        plc: str,
+        tag: str,
+        value: Any,
+        code: str,
+        message: str,
+    ) -> WriteResult:
+        """A refusal the caller decided before the write path (nothing was sent): logged and
+        audited like any other."""
+        result = WriteResult(False, code, message, False)
+        self._finish(source, user, plc, tag, value, self.latest.get((plc, tag)), result)
+        return result
+
+    async def _attempt(self, plc: str, tag: str, value: Any, allow_list: bool) -> WriteResult:
+        poller = self.poller
+        where = f"{plc}: write {tag}"
+        if poller is None or not hasattr(poller, "write_tag"):
+            return WriteResult(
+                False, "not_writable", f"{where}: this poller takes no writes; not attempted", False
+            )
+        tags = getattr(poller, "tags", None)
+        try:
+            # a writer without tag configurations (a Python object handed to a sink) is its own
+            # allow-list: write_tag decides
+            known = tags(plc) if tags is not None else None
+            config = known.get(tag) if known is not None else None
+            if known is not None and config is None:
+                element = split_element(tag)
+                if element is None or element[0] not in known or known[element[0]][0].count < 2:
+                    return WriteResult(
+                        False, "unknown_tag", f"{where}: no tag named {tag!r}; not attempted", False
+                    )
+                # one value of an array tag (Sparkplug announces them as "alarms/3")
+                base, bits = known[element[0]]
+                if allow_list and not getattr(base, "writable", False):
+                    return self._read_only(where)
+                await write_element(poller, plc, base, bits, element[1], value)
+            else:
+                if allow_list and config is not None and not getattr(config[0], "writable", False):
+                    return self._read_only(where)
+                parsed = value if config is None else parse_write_value(config[0], value, plc=plc)
+                await poller.write_tag(plc, tag, parsed)
+        except Exception as exc:  # every failure gets its answer, never silence
+            code, message, may_have_executed = classify_write_error(exc)
+            if not isinstance(exc, PlcError):
+                log.error("%s: the write failed unexpectedly", where, exc_info=exc)
+            return WriteResult(False, code, message, may_have_executed, exc)
+        return WriteResult(True, OK, f"{where} = {value!r}: confirmed by the PLC", True)
+
+    @staticmethod
+    def _read_only(where: str) -> WriteResult:
+        return WriteResult(
+            False,
+            "not_writable",
+            f"{where}: the tag is read-only for north-side clients (set writable = true in its"
+            " configuration); not attempted",
+            False,
+        )
+
+    def _finish(
+        self,
+        source: str,
+        user: str | None,
+        plc: str,
+        tag: str,
+        value: Any,
+        previous: Any,
+        result: WriteResult,
+    ) -> None:
+        if self.audit is not None:
+            self.audit.record(
+                source=source,
+                user=user,
+                plc=plc,
+                tag=tag,
+                value=value,
+                previous=previous,
+                result=result.code,
+                may_have_executed=result.may_have_executed,
+                now=time.time(),
+            )
+        who = f"{source}" + (f" user {user}" if user else "")
+        key = (source, plc, tag)
+        if result.ok:
+            self.ok += 1
+            self._last_code.pop(key, None)
+            log.info("write from %s: %s", who, result.message)
+            return
+        self.refused += 1
+        # one WARNING per change: a client repeating the same refused write is not a log flood
+        level = logging.DEBUG if self._last_code.get(key) == result.code else logging.WARNING
+        if len(self._last_code) >= 4096:  # bounded, whatever names clients send
+            self._last_code.clear()
+        self._last_code[key] = result.code
+        log.log(level, "write from %s refused (%s): %s", who, result.code, result.message)
