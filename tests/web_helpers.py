@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import struct
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 
@@ -24,7 +25,7 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim.melsec_memory import MelsecMemory
 from tests.servers import free_port
 
-__all__ = ["HOSTILE", "TOKEN", "TOKEN_ENV", "Console", "running_console"]
+__all__ = ["HOSTILE", "TOKEN", "TOKEN_ENV", "Console", "float_words", "running_console"]
 
 TOKEN_ENV = "PLCSTACK_TEST_WEB_TOKEN"
 TOKEN = "s3cret-token"
@@ -40,6 +41,12 @@ class Console:
     @property
     def base(self) -> str:
         return f"http://127.0.0.1:{self.web.port}"
+
+
+def float_words(value: float) -> list[int]:
+    """A float32 as the two words of an E71 (low word first)."""
+    low, high = struct.unpack("<HH", struct.pack("<f", value))
+    return [low, high]
 
 
 def plcs(url: str) -> tuple[PlcConfig, ...]:
@@ -65,11 +72,14 @@ def plcs(url: str) -> tuple[PlcConfig, ...]:
 
 
 @contextlib.asynccontextmanager
-async def running_console(*, token: str | None = TOKEN) -> AsyncIterator[Console]:
+async def running_console(
+    *, token: str | None = TOKEN, trend_seconds: int = 300
+) -> AsyncIterator[Console]:
     """The simulator, the poller, the north side with the console on a free port."""
     memory = MelsecMemory()
     memory.write_words("D", 100, [1500])
     memory.write_words("D", 200, [7])
+    memory.write_words("D", 102, float_words(61.5))
     sim = await e71_sim.start(memory)
     before = os.environ.get(TOKEN_ENV)
     if token is None:
@@ -78,7 +88,7 @@ async def running_console(*, token: str | None = TOKEN) -> AsyncIterator[Console
         os.environ[TOKEN_ENV] = token
     try:
         config = PollConfig(plcs(sim.url), {"default": 0.1})
-        settings = WebSettings(port=0, write_token_env=TOKEN_ENV)
+        settings = WebSettings(port=0, write_token_env=TOKEN_ENV, trend_seconds=trend_seconds)
         async with Poller(config) as poller, North(poller, NorthConfig(web=settings)) as north:
             consumer = asyncio.create_task(north.run())
             try:

@@ -91,7 +91,9 @@ def routes(console: WebConsole) -> list[web.RouteDef]:
         plc = request.query.get("plc")
         if plc is not None and plc not in state.plcs:
             return refusal("unknown_plc", f"no PLC named {plc!r} here")
-        return _json([tag_row(s) for s in state.latest.values() if plc is None or s.plc == plc])
+        return _json(
+            [tag_row(state, s) for s in state.latest.values() if plc is None or s.plc == plc]
+        )
 
     async def trend(request: web.Request) -> web.Response:
         plc, tag = request.match_info["plc"], request.match_info["tag"]

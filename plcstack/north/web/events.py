@@ -29,7 +29,6 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from plcstack.north.web.state import ConsoleState
-from plcstack.output import json_safe
 from plcstack.poll.samples import Sample
 
 __all__ = ["MAX_CLIENTS", "PUSH_EVERY", "QUEUE_LIMIT", "EventClient", "EventHub", "sse"]
@@ -47,10 +46,9 @@ def sse(event: str, data: Any) -> bytes:
     return f"event: {event}\ndata: {json.dumps(data, separators=(',', ':'))}\n\n".encode()
 
 
-def tag_rows(samples: Iterable[Sample]) -> list[list[Any]]:
-    return [
-        [s.plc, s.tag, json_safe(s.value), s.quality.value, s.source_time, s.error] for s in samples
-    ]
+def tag_rows(state: ConsoleState, samples: Iterable[Sample]) -> list[list[Any]]:
+    shown = state.shown
+    return [[s.plc, s.tag, shown(s), s.quality.value, s.source_time, s.error] for s in samples]
 
 
 class EventClient:
@@ -135,7 +133,7 @@ class EventHub:
         client = EventClient(plc)
         latest = self.state.latest.values()
         samples = latest if plc is None else (s for s in latest if s.plc == plc)
-        client.offer(sse("tags", tag_rows(samples)))
+        client.offer(sse("tags", tag_rows(self.state, samples)))
         client.offer(sse("plcs", self.plc_rows(plc)))
         self.clients.add(client)
         return client
@@ -164,7 +162,9 @@ class EventHub:
             self._last_plcs.clear()  # a client that comes gets a snapshot anyway
             return
         if changes:
-            self._fan_out(clients, "tags", changes, lambda s: s.plc, tag_rows)
+            self._fan_out(
+                clients, "tags", changes, lambda s: s.plc, lambda c: tag_rows(self.state, c)
+            )
         if plcs_due:
             rows = self.plc_rows(None)
             last = self._last_plcs

@@ -20,7 +20,7 @@ from collections.abc import Iterable
 from typing import Any
 from urllib.parse import quote
 
-from plcstack.north.web.state import ConsoleState, tag_row
+from plcstack.north.web.state import ConsoleState
 from plcstack.output import json_safe
 from plcstack.poll.config import TagConfig
 from plcstack.poll.samples import Sample
@@ -96,16 +96,16 @@ def _plc_rows(rows: Iterable[dict[str, Any]], *, link: bool) -> str:
     return "".join(out)
 
 
-def _tag_cells(s: Sample | None) -> str:
+def _tag_cells(state: ConsoleState, s: Sample | None) -> str:
     if s is None:
         return (
             '<td class="value num"></td><td class="quality"></td>'
             '<td class="source_time"></td><td class="error"></td>'
         )
-    row = tag_row(s)
+    quality = esc(s.quality.value)
     return (
-        f'<td class="value num">{esc(format_value(s.value))}</td>'
-        f'<td class="quality {esc(row["quality"])}">{esc(row["quality"])}</td>'
+        f'<td class="value num">{esc(format_value(state.shown(s)))}</td>'
+        f'<td class="quality {quality}">{quality}</td>'
         f'<td class="source_time">{esc(format_time(s.source_time))}</td>'
         f'<td class="error">{esc(s.error or "")}</td>'
     )
@@ -122,7 +122,7 @@ def overview_page(
             f'<tr data-plc="{esc(plc)}" data-tag="{esc(tag)}">'
             f'<td><a href="/plc/{esc(quote(plc, safe=""))}">{esc(plc)}</a></td>'
             f'<td title="{esc(_description(config))}">{esc(tag)}</td>'
-            f"{_tag_cells(sample)}<td>{esc(config.unit or '')}</td></tr>"
+            f"{_tag_cells(state, sample)}<td>{esc(config.unit or '')}</td></tr>"
         )
     body = (
         f'<h2>PLCs</h2><table id="plcs"><thead>{_PLC_HEAD}</thead><tbody>'
@@ -166,7 +166,7 @@ def plc_page(
         rows.append(
             f'<tr data-plc="{esc(plc)}" data-tag="{esc(tag.name)}">'
             f"<td>{esc(tag.name)}</td><td>{esc(_description(tag))}</td>"
-            f"<td>{esc(tag.address)}</td>{_tag_cells(sample)}<td>{esc(tag.unit or '')}</td>"
+            f"<td>{esc(tag.address)}</td>{_tag_cells(state, sample)}<td>{esc(tag.unit or '')}</td>"
             f"<td>{trend}</td><td>{form}</td></tr>"
         )
     token = ""

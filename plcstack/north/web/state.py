@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from plcstack.output import json_safe
+from plcstack.output import float32_short, json_safe
 from plcstack.poll.config import PlcConfig, TagConfig
 from plcstack.poll.samples import Quality, Sample
 from plcstack.poll.stats import LatencyWindow, PlcStats
@@ -80,6 +80,13 @@ class ConsoleState:
         self.tags: dict[tuple[str, str], TagConfig] = {
             (p.name, t.name): t for p in plcs for t in p.tags
         }
+        #: tags whose values are float32 (shown at float32 precision: 59.4669, not the
+        #: 59.46688461303711 its bits widen to)
+        self.float32 = frozenset(
+            key
+            for key, t in self.tags.items()
+            if t.type.kind == "float" and t.type.bits == 32 and t.scale is None
+        )
         self.latest: dict[tuple[str, str], Sample] = {}
         self.health: dict[str, PlcHealth] = {name: PlcHealth() for name in self.plcs}
         self.trends: dict[tuple[str, str], Trend] = {}
@@ -126,17 +133,26 @@ class ConsoleState:
         self.changed.clear()
         return changes
 
+    def shown(self, s: Sample) -> Any:
+        """The sample's value for JSON: non-finite floats as strings, float32 at its precision."""
+        value = s.value
+        if type(value) is float and (s.plc, s.tag) in self.float32:
+            return json_safe(float32_short(value))
+        if isinstance(value, list) and (s.plc, s.tag) in self.float32:
+            return json_safe([float32_short(v) if type(v) is float else v for v in value])
+        return json_safe(value)
+
     def trend(self, plc: str, tag: str) -> list[tuple[float, float]]:
         t = self.trends.get((plc, tag))
         return [] if t is None else t.points()
 
 
-def tag_row(s: Sample) -> dict[str, Any]:
-    """One tag as the REST API and the browsers get it."""
+def tag_row(state: ConsoleState, s: Sample) -> dict[str, Any]:
+    """One tag as the REST API gets it."""
     return {
         "plc": s.plc,
         "tag": s.tag,
-        "value": json_safe(s.value),
+        "value": state.shown(s),
         "quality": s.quality.value,
         "source_time": s.source_time,
         "error": s.error,
