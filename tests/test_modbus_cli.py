@@ -1,10 +1,12 @@
 """``plcstack serve modbus``: the command, its /metrics (requests, exceptions by code, clients),
+the write audit (source ``modbus``),
 requests pipelined on one connection, a broken frame closing the connection, overlaps exit 2."""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import json
 import os
 import signal
 import struct
@@ -25,11 +27,13 @@ CONFIG = """
 interval = 0.05
 [modbus]
 endpoint = "127.0.0.1:0"
+[audit]
+path = "writes.jsonl"
 [[plc]]
 name = "press1"
 url = "{url}"
 [plc.tags]
-strokes = {{ address = "D100", type = "uint16", modbus = "hr:0" }}
+strokes = {{ address = "D100", type = "uint16", modbus = "hr:0", writable = true }}
 [[plc]]
 name = "dead"
 url = "e71+tcp://127.0.0.1:{dead}?timeout=0.2"
@@ -79,6 +83,16 @@ async def test_serve_modbus_answers_and_counts(
             == ["exc 0x0B"] + ["exc 0x02"] * 2
         )
 
+        # writes: one confirmed, one refused (read-only); both in the audit with source modbus
+        assert await modbus(endpoint, "wh", 0, 9, "wh", 1, 3) == ["ok", "exc 0x02"]
+        assert memory.read_words("D", 100, 1) == [9]
+        audit = [json.loads(line) for line in (tmp_path / "writes.jsonl").read_text().splitlines()]
+        assert [(a["source"], a["plc"], a["tag"], a["value"], a["result"]) for a in audit] == [
+            ("modbus", "press1", "strokes", 9, "ok"),
+            ("modbus", "dead", "level", 3, "not_writable"),
+        ]
+        assert audit[0]["previous"] == 5
+
         host, port = endpoint.rsplit(":", 1)
         reader, writer = await asyncio.open_connection(host, int(port))
         # two requests in one segment: two answers, in order, on the same connection
@@ -99,7 +113,7 @@ async def test_serve_modbus_answers_and_counts(
             s.labels["code"]: s.value for s in families["plcstack_modbus_exceptions"].samples
         }
         # 0x0B also answered the reads made before the first poll arrived
-        assert exceptions["0x01"] == 1 and exceptions["0x02"] == 2 and exceptions["0x0B"] >= 1
+        assert exceptions["0x01"] == 1 and exceptions["0x02"] == 3 and exceptions["0x0B"] >= 1
         assert "plcstack_plc_up" in families  # the poller's own metrics, as for plcstack poll
 
         # a frame that is not Modbus TCP (protocol id 1) ends the connection

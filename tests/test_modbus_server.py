@@ -220,6 +220,10 @@ async def test_writes_refused_before_anything_is_sent(
     assert before == [1234]
     assert p.memory.read_bits("M", 30, 1) == [True]
     assert "read-only" in caplog.text and "whole tags" in caplog.text
+    # one WARNING per refusal: the write path's (with the audit), or here when no tag is there
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 6
+    assert [r.name for r in warnings].count("plcstack.north.modbus") == 1
 
 
 async def test_a_write_to_a_dead_plc_is_refused_with_0x0b(tmp_path: Path) -> None:

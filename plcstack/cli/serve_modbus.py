@@ -27,6 +27,7 @@ from plcstack.north.modbus.server import ModbusServer, run_until
 from plcstack.north.pipeline import North
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
+from plcstack.poll.samples import Sample
 
 
 def register(servers: Any) -> None:
@@ -60,12 +61,21 @@ async def run_modbus(args: argparse.Namespace) -> int:
         print("plcstack serve modbus: error: --metrics-port must be 0..65535", file=sys.stderr)
         return 2
     config = load_config(args.config)
-    metrics = parse_north(config.north, base=Path(args.config).parent).metrics
+    north_config = parse_north(config.north, base=Path(args.config).parent)
+    metrics = north_config.metrics
     if metrics_port is not None:
         metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", metrics_port)
     poller = Poller(config)  # every URL and address checked before anything is sent
     server = ModbusServer.from_config(poller, args.config)  # overlaps refused here
-    north = North(poller, NorthConfig(metrics=metrics))
+    # the north side of `plcstack poll`, metrics and the audit: the same collector, HTTP server
+    # and write path (every Modbus write is an [audit] line with source "modbus")
+    north = North(poller, NorthConfig(metrics=metrics, audit=north_config.audit))
+    server.writes = north.writes
+
+    def observe(batch: list[Sample]) -> None:
+        north.collector.observe(batch)
+        north.writes.observe(batch)  # the audit's "previous" value of a written tag
+
     if north.metrics is not None:
         north.metrics.registry.register(server.collector())
     stop = StopEvent()
@@ -76,7 +86,7 @@ async def run_modbus(args: argparse.Namespace) -> int:
             if north.metrics is not None:
                 host, port = north.metrics.settings.host, north.metrics.port
                 print(f"metrics on http://{host}:{port}/metrics", file=sys.stderr, flush=True)
-            await run_until(server, stop, args.duration, observe=north.collector.observe)
+            await run_until(server, stop, args.duration, observe=observe)
     finally:
         remove_stop_signals(installed)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)

@@ -44,6 +44,7 @@ ILLEGAL_FUNCTION = 0x01
 ILLEGAL_ADDRESS = 0x02
 ILLEGAL_VALUE = 0x03
 DEVICE_FAILURE = 0x04
+DEVICE_BUSY = 0x06
 GATEWAY_PATH_UNAVAILABLE = 0x0A
 GATEWAY_NO_RESPONSE = 0x0B
 EXCEPTION_NAMES = {
@@ -51,6 +52,7 @@ EXCEPTION_NAMES = {
     ILLEGAL_ADDRESS: "illegal data address",
     ILLEGAL_VALUE: "illegal data value",
     DEVICE_FAILURE: "server device failure",
+    DEVICE_BUSY: "server device busy",
     GATEWAY_PATH_UNAVAILABLE: "gateway path unavailable",
     GATEWAY_NO_RESPONSE: "gateway target device failed to respond",
 }

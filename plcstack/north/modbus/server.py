@@ -40,7 +40,8 @@ from plcstack.north.modbus.frames import (
     exception_frame,
     response_frame,
 )
-from plcstack.north.modbus.service import Refused, RegisterImage, Writer, describe_code
+from plcstack.north.modbus.service import Refused, RegisterImage, describe_code
+from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Sample
@@ -139,7 +140,7 @@ class ModbusServer:
         settings: ModbusSettings | None = None,
         entries: list[MapEntry] | None = None,
         *,
-        writer: Writer | None = None,
+        writes: WritePath | None = None,
     ) -> None:
         self.poller = poller
         self.settings = settings if settings is not None else ModbusSettings()
@@ -148,7 +149,8 @@ class ModbusServer:
         if not entries:
             raise ConfigError('no tag has a modbus key: map tags with modbus = "hr:N" (ir, co, di)')
         self.image = RegisterImage(entries, self.settings.word_order)
-        self.writer: Writer = writer if writer is not None else poller.write_tag
+        #: the run's write path (``plcstack serve modbus`` hands in the one with the audit)
+        self.writes = writes if writes is not None else WritePath(poller)
         self.port = self.settings.port
         self.protocol_errors = 0
         self._server: asyncio.Server | None = None
@@ -187,7 +189,10 @@ class ModbusServer:
     # -- answers --------------------------------------------------------------------------------
     def _refused(self, request: Request, refused: Refused) -> bytes:
         self.image.exceptions[refused.code] += 1
-        level = logging.WARNING if request.function in (5, 6, 15, 16) else logging.DEBUG
+        # a refused read is DEBUG: a panel polling a dead PLC would flood the log (the poller
+        # logs the PLC's failure); refused writes are WARNINGs of the write path or of here
+        write = request.function in (5, 6, 15, 16)
+        level = logging.WARNING if write and not refused.logged else logging.DEBUG
         where = f" {request.table}:{request.address} x{request.count}" if request.known else ""
         log.log(
             level,
@@ -217,7 +222,7 @@ class ModbusServer:
         image = self.image
         image.requests[request.function] += 1
         try:
-            await image.write(request, self.writer)
+            await image.write(request, self.writes)
         except Refused as refused:
             return self._refused(request, refused)
         return response_frame(request)

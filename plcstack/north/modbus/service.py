@@ -13,34 +13,30 @@ whole request (Modbus has no partial answers):
    points are no valid value of the tag's type.
 3. Otherwise the registers (or bits).
 
-Writes (FC 5, 6, 15, 16) go to the PLC through the writer (the poller's single-flight
-``write_tag``), one tag after another in address order, and are answered only when the PLC has
-confirmed every one. Refusals before anything is sent: 0x02 when an address is unmapped, the tag
-is not ``writable = true``, or the span does not cover whole tags (a write of one word of a
-float32 or of one element of an array would be a read-modify-write racing the PLC); 0x03 when the
-value does not fit the tag's type. Failures: 0x0B when the PLC cannot be reached or did not
-answer in time (after a send the outcome is unknown: the PLC may have executed it, and the log
-says so), 0x04 when it answered with an error. A write over several tags that fails part way has
-written the tags before the failing one; the log names them.
+Writes (FC 5, 6, 15, 16) go through the run's one write path (:mod:`plcstack.north.writes`:
+allow-list, value grammar, the poller's single-flight ``write_tag``, result codes, the audit with
+source ``modbus``), one tag after another in address order, and are answered only when the PLC
+has confirmed every one. Refusals before anything is sent: 0x02 when an address is unmapped, the
+tag is not ``writable = true``, or the span does not cover whole tags (a write of one word of a
+float32 or of one element of an array would be a read-modify-write racing the PLC). Then per
+tag, from the write path's result: 0x03 when the value does not fit the tag's type, 0x06 when the
+path is busy, 0x0B when the PLC cannot be reached or did not answer in time (after a send the
+outcome is unknown: the PLC may have executed it, and the log says so), 0x04 when it answered
+with an error. A write over several tags that fails part way has written the tags before the
+failing one; the log names them.
 """
 
 from __future__ import annotations
 
 import logging
 from collections import Counter
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
-from plcstack.errors import (
-    AddressError,
-    ConnectFailed,
-    ConnectionLost,
-    PlcError,
-    PlcTimeout,
-    RemoteProtocolError,
-)
+from plcstack.errors import AddressError, ConnectionLost, PlcTimeout, RemoteProtocolError
 from plcstack.north.modbus.config import MapEntry
 from plcstack.north.modbus.frames import (
+    DEVICE_BUSY,
     DEVICE_FAILURE,
     EXCEPTION_NAMES,
     GATEWAY_NO_RESPONSE,
@@ -50,24 +46,35 @@ from plcstack.north.modbus.frames import (
     Request,
 )
 from plcstack.north.modbus.registers import EncodeError
+from plcstack.north.write_values import NOT_WRITABLE, UNKNOWN_TAG, WRONG_TYPE
+from plcstack.north.writes import BAD_REQUEST, BUSY, UNKNOWN_PLC, WritePath, WriteResult
 from plcstack.poll.samples import Quality, Sample
 from plcstack.values import WordOrder
 
-__all__ = ["Refused", "RegisterImage", "Writer", "exception_for"]
+__all__ = ["Refused", "RegisterImage", "exception_for", "write_exception"]
 
 log = logging.getLogger("plcstack.north.modbus")
 
-#: how a write reaches a PLC: (plc, tag, value), returns when the PLC confirmed it
-Writer = Callable[[str, str, object], Awaitable[None]]
-
 
 class Refused(Exception):
-    """A request answered with Modbus exception ``code``; ``reason`` is for the log."""
+    """A request answered with Modbus exception ``code``; ``reason`` is for the log
+    (``logged``: the write path has logged it already)."""
 
-    def __init__(self, code: int, reason: str) -> None:
+    def __init__(self, code: int, reason: str, *, logged: bool = False) -> None:
         super().__init__(reason)
         self.code = code
         self.reason = reason
+        self.logged = logged
+
+
+class _NotWritable(Refused):
+    """A write refused before anything is sent, with what the audit records of it."""
+
+    def __init__(self, entry: MapEntry, value: object, result: str, reason: str) -> None:
+        super().__init__(ILLEGAL_ADDRESS, reason, logged=True)
+        self.entry = entry
+        self.value = value
+        self.result = result
 
 
 def exception_for(error_type: type[BaseException] | None) -> int:
@@ -161,41 +168,63 @@ class RegisterImage:
             slot, offset = hits[index]
             entry = slot.entry
             size = entry.layout.size
+            words = list(request.values[index : index + size])
             if offset != 0 or index + size > len(hits):
-                raise Refused(
-                    ILLEGAL_ADDRESS,
+                raise _NotWritable(
+                    entry,
+                    words,
+                    BAD_REQUEST,
                     f"a write must cover whole tags: {entry.describe()} is only partly written",
                 )
+            value = entry.layout.decode(words, self.order)
             if not entry.tag.writable:
-                raise Refused(ILLEGAL_ADDRESS, f"{entry.describe()} is read-only (not writable)")
-            words = list(request.values[index : index + size])
-            jobs.append((entry, entry.layout.decode(words, self.order)))
+                raise _NotWritable(
+                    entry,
+                    value,
+                    NOT_WRITABLE,
+                    f"{entry.describe()} is read-only for north-side clients (set writable ="
+                    " true in its configuration)",
+                )
+            jobs.append((entry, value))
             index += size
         return jobs
 
-    async def write(self, request: Request, writer: Writer) -> None:
-        """Carry out a write request tag by tag; :class:`Refused` at the first failure."""
-        jobs = self.plan_write(request)
+    async def write(self, request: Request, writes: WritePath) -> None:
+        """Carry out a write request tag by tag through the run's write path (allow-list, value
+        grammar, the poller's write_tag, audit with source ``modbus``); :class:`Refused` at the
+        first refusal or failure."""
+        try:
+            jobs = self.plan_write(request)
+        except _NotWritable as refusal:
+            entry = refusal.entry
+            writes.refuse(
+                "modbus",
+                None,
+                entry.plc,
+                entry.tag.name,
+                refusal.value,
+                refusal.result,
+                refusal.reason,
+            )
+            raise
         done: list[str] = []
         for entry, value in jobs:
             name = f"{entry.plc}.{entry.tag.name}"
-            try:
-                await writer(entry.plc, entry.tag.name, value)
-            except Exception as exc:
-                code = write_exception(exc)
-                before = f"; written before it: {', '.join(done)}" if done else ""
-                unknown = isinstance(exc, PlcTimeout | ConnectionLost) and not isinstance(
-                    exc, ConnectFailed
+            result = await writes.write("modbus", None, entry.plc, entry.tag.name, value)
+            if result.ok:
+                self.writes_confirmed += 1
+                done.append(name)
+                continue
+            before = f"; written before it: {', '.join(done)}" if done else ""
+            if result.may_have_executed:
+                # the write path logged the failure; this says what it means for the client
+                log.warning(
+                    "Modbus write of %s = %r: outcome unknown, the PLC may have executed it%s",
+                    name,
+                    value,
+                    before,
                 )
-                outcome = " (outcome unknown: the PLC may have executed it)" if unknown else ""
-                if not isinstance(exc, PlcError):
-                    log.exception("Modbus write of %s = %r failed", name, value)
-                raise Refused(
-                    code, f"write of {name} = {value!r} failed{outcome}: {exc}{before}"
-                ) from None
-            log.info("Modbus write of %s = %r confirmed by the PLC", name, value)
-            self.writes_confirmed += 1
-            done.append(name)
+            raise Refused(write_exception(result), f"{result.message}{before}", logged=True)
 
     def wrong_unit(self, request: Request, unit: int) -> Refused:
         return Refused(
@@ -203,12 +232,26 @@ class RegisterImage:
         )
 
 
-def write_exception(exc: BaseException) -> int:
-    """The exception code of a failed write (see the module's rules)."""
-    if isinstance(exc, AddressError):
+#: write path result code -> exception code; "plc_error" is decided by the error's type
+_RESULT_CODES = {
+    NOT_WRITABLE: ILLEGAL_ADDRESS,
+    UNKNOWN_TAG: ILLEGAL_ADDRESS,
+    UNKNOWN_PLC: ILLEGAL_ADDRESS,
+    WRONG_TYPE: ILLEGAL_VALUE,
+    BAD_REQUEST: ILLEGAL_VALUE,
+    BUSY: DEVICE_BUSY,
+}
+
+
+def write_exception(result: WriteResult) -> int:
+    """The exception code of a refused or failed write (see the module's rules)."""
+    code = _RESULT_CODES.get(result.code)
+    if code is not None:
+        return code
+    if isinstance(result.error, AddressError):
         return ILLEGAL_VALUE
-    if isinstance(exc, PlcTimeout | ConnectionLost | RemoteProtocolError):
-        return GATEWAY_NO_RESPONSE
+    if isinstance(result.error, PlcTimeout | ConnectionLost | RemoteProtocolError):
+        return GATEWAY_NO_RESPONSE  # ConnectFailed included: the PLC cannot be reached
     return DEVICE_FAILURE
 
 
