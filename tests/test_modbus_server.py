@@ -304,3 +304,31 @@ def test_bad_modbus_keys_are_config_errors_with_the_line(
     with pytest.raises(ConfigError, match=message) as caught:
         ModbusServer.from_config(Poller(load_config(path)), path)
     assert f"{path}:5" in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("table", "message"),
+    [
+        ('endpoint = "localhost"', 'endpoint must be "HOST:PORT"'),
+        ("unit_id = 300", "unit_id must be 0..255"),
+        ('word_order = "middle"', 'word_order must be "big" or "little"'),
+        ("timeout = 1", r"unknown key\(s\) timeout"),
+    ],
+)
+def test_bad_modbus_tables_are_config_errors(tmp_path: Path, table: str, message: str) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(
+        f"[modbus]\n{table}\n"
+        '[[plc]]\nname = "a"\nurl = "e71+tcp://127.0.0.1:1"\n[plc.tags]\n'
+        'x = { address = "D0", modbus = "hr:0" }\n'
+    )
+    with pytest.raises(ConfigError, match=message) as caught:
+        load_config(path)
+    assert str(path) in str(caught.value)
+
+
+def test_a_config_without_modbus_keys_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "none.toml"
+    path.write_text('[[plc]]\nname = "a"\nurl = "e71+tcp://127.0.0.1:1"\n[plc.tags]\nx = "D0"\n')
+    with pytest.raises(ConfigError, match="no tag has a modbus key"):
+        ModbusServer.from_config(Poller(load_config(path)), path)

@@ -29,8 +29,7 @@ import logging
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 from plcstack.errors import PlcError, RemoteProtocolError
 from plcstack.north.modbus.config import MapEntry, ModbusSettings, build_map, parse_modbus
@@ -45,6 +44,7 @@ from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Sample
+from plcstack.resource import AsyncResource
 
 __all__ = ["MAX_PENDING", "ModbusCollector", "ModbusServer"]
 
@@ -131,7 +131,7 @@ class _Connection(asyncio.Protocol):
             self.transport.write(frame)
 
 
-class ModbusServer:
+class ModbusServer(AsyncResource):
     """A Modbus TCP server answering from the poller's latest values (see the module)."""
 
     def __init__(
@@ -255,17 +255,9 @@ class ModbusServer:
         if server is not None:
             await server.wait_closed()
 
-    async def __aenter__(self) -> Self:
+    async def aopen(self) -> None:
+        """``async with server`` listens (see :meth:`start`)."""
         await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.aclose()
 
     # -- samples in -----------------------------------------------------------------------------
     def submit(self, samples: Iterable[Sample]) -> None:
