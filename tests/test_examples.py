@@ -1,5 +1,5 @@
-"""The shipped example config: reachable from the installed package, pointed at the simulators'
-default ports, and every tag of it reads good against them."""
+"""The shipped example config: reachable from the installed package, pointed at the simulators
+(their default ports, or ports moved together with --base-port), and every tag of it reads good."""
 
 from __future__ import annotations
 
@@ -58,3 +58,72 @@ def test_write_config(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     assert "exists" in capsys.readouterr().err
     assert main(["demo", "--write-config", "-"]) == 0
     assert capsys.readouterr().out == example_config()
+
+
+def _free_base_port() -> int:
+    """A port N with N, N+1 and N+2 free right now (bound together, then released)."""
+    import socket
+
+    for _ in range(50):
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            base = probe.getsockname()[1]
+        if base > 65000:
+            continue
+        sockets = []
+        try:
+            for port in range(base, base + 3):
+                sock = socket.socket()
+                sockets.append(sock)
+                sock.bind(("127.0.0.1", port))
+            return base
+        except OSError:
+            continue
+        finally:
+            for sock in sockets:
+                sock.close()
+    raise AssertionError("no three consecutive free ports on 127.0.0.1")
+
+
+async def test_base_port_moves_the_config_and_its_sim_commands_together(tmp_path: Path) -> None:
+    # the sim commands the written file shows start simulators exactly where its URLs point
+    base = _free_base_port()
+    target = tmp_path / "plant.toml"
+    argv = ["demo", "--write-config", str(target), "--base-port", str(base)]
+    assert await asyncio.to_thread(main, argv) == 0
+    text = target.read_text()
+    for default in (5000, 5010, 4840):
+        assert f"127.0.0.1:{default}" not in text
+    assert f"opc.tcp://127.0.0.1:{base + 2}/plcstack" in text
+    commands = [
+        line[1:].split("#", 1)[0].strip().rstrip("&").split()[1:]
+        for line in text.splitlines()
+        if line.startswith("#   plcstack sim ")
+    ]
+    assert [c[:2] for c in commands] == [["sim", "e71"], ["sim", "s5lan"]]
+    ports = [build_parser().parse_args(c).port for c in commands]
+    assert ports == [base, base + 1]
+    config = parse_config(text.replace("fast = 0.2", "fast = 0.05"))
+    assert [p.url for p in config.plcs] == [
+        f"e71+tcp://127.0.0.1:{base}",
+        f"s5lan://127.0.0.1:{base + 1}",
+    ]
+    async with (
+        await e71.start(port=ports[0]),
+        await s5lan.start(port=ports[1]),
+        Poller(config) as poller,
+        asyncio.timeout(10),
+    ):
+        async for sample in poller:
+            assert sample.quality is Quality.GOOD, sample.error
+            if sample.plc == "oven2":
+                break
+
+
+def test_base_port_alone_or_out_of_range_is_a_usage_error(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["demo", "--base-port", "7000"]) == 2
+    assert "give both" in capsys.readouterr().err
+    assert main(["demo", "--write-config", "-", "--base-port", "65534"]) == 2
+    assert "1..65533" in capsys.readouterr().err

@@ -1,4 +1,4 @@
-"""The plcstack benchmark suite (``plcstack bench``, issue 8; in the package since issue 14).
+"""The plcstack benchmark suite (``plcstack bench``), shipped in the package.
 
 "Fast" must be a measured ratio, not a claim. Every stack number here is paired with a *floor*:
 the same exchange done by the thinnest hand-written asyncio code (pre-built request bytes, read the

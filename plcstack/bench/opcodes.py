@@ -2,7 +2,7 @@
 
 On a shared two-core machine the fleet's CPU per request moves by 15 % between runs minutes
 apart, and cProfile, which charges every call alike, showed the poller at call-count parity with
-the raw floor while perf still put 11 us per request more in the interpreter (issue 16). What
+the raw floor while perf still put 11 us per request more in the interpreter. What
 separated them was the number of bytecodes executed: every bytecode is counted here, the same
 number on every run, so two trees can be compared without a quiet machine.
 

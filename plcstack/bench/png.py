@@ -1,6 +1,6 @@
 """A dependency-free PNG line chart: ops/s against N (log scale) for stack, floor and peers.
 
-Decision: ``--plot`` never needs matplotlib. The issue forbids a new runtime dependency, and an
+Decision: ``--plot`` never needs matplotlib. No new runtime dependency for a chart, and an
 optional one would give two code paths of which CI tests one; a 24-bit RGB canvas, Bresenham
 lines, a 3x5 pixel font and ``zlib`` + ``struct`` for the PNG container are about 200 lines and
 give the same picture on every machine, byte for byte (so the test can check the file).

@@ -1,6 +1,6 @@
 """Output of a run: a table on stdout, ``--json FILE`` and ``--plot FILE.png``.
 
-JSON schema (issue 8): ``{"results": [{"case", "loop", "n", "ops_per_s", "floor_ops_per_s",
+JSON schema: ``{"results": [{"case", "loop", "n", "ops_per_s", "floor_ops_per_s",
 "ratio", "p99_ms", ...extras}], "meta": {...}}``. ``ops_per_s`` is the median over repeats; a
 skipped case has ``null`` numbers and says why in ``note``. Codec rows are per operation
 (``us_per_op``; ``ops_per_s`` = 1e6 / us_per_op) with ``loop`` = ``"-"``.

@@ -34,7 +34,7 @@ __all__ = [
     "read_rss_kib",
 ]
 
-#: the keys every JSON result row has (issue 8); further keys are extras
+#: the keys every JSON result row has; further keys are extras
 JSON_KEYS = ("case", "loop", "n", "ops_per_s", "floor_ops_per_s", "ratio", "p99_ms")
 
 

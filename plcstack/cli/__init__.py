@@ -42,6 +42,7 @@ COMMAND_MODULES = [
     "plcstack.cli.gateway",
     "plcstack.cli.bench",
     "plcstack.cli.tags",
+    "plcstack.cli.docs",
 ]
 
 EXIT_OK = 0
@@ -131,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = CommandParser(
         prog="plcstack",
         description="Read, write, poll and simulate legacy PLCs (MELSEC E71, Siemens S5).",
-        epilog=EXIT_CODES + ". Documentation: the docs/ folder of the source distribution; "
+        epilog=EXIT_CODES + ". Documentation: plcstack docs (lists the pages, also in the wheel); "
         "examples: plcstack demo --write-config FILE.",
     )
     parser.add_argument("--version", action="version", version=f"plcstack {__version__}")

@@ -55,6 +55,14 @@ def register(subparsers: Any) -> None:
         "('-' for stdout) and exit; then: plcstack sim e71 & plcstack sim s5lan & "
         "plcstack poll FILE",
     )
+    demo.add_argument(
+        "--base-port",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --write-config: the E71 simulator at port N, S5-LAN at N+1, OPC UA at N+2 "
+        "instead of 5000, 5010, 4840; the config's comments show the matching sim commands",
+    )
     demo.set_defaults(func=run_demo)
 
 
@@ -62,13 +70,49 @@ def register(subparsers: Any) -> None:
 EXAMPLE_CONFIG = "plant.toml"
 
 
-def example_config() -> str:
-    """The text of the shipped example poll configuration."""
-    return (resources.files("plcstack.examples") / EXAMPLE_CONFIG).read_text(encoding="utf-8")
+#: the ports the shipped example uses: the simulators' and the OPC UA server's defaults
+EXAMPLE_PORTS: dict[str, int] = {"e71": 5000, "s5lan": 5010, "opcua": 4840}
 
 
-def write_config(target: str, out: TextIO) -> int:
-    text = example_config()
+def example_ports(base_port: int | None) -> dict[str, int]:
+    """The example's ports: the defaults, or ``base_port``, +1, +2 (E71, S5-LAN, OPC UA), so
+    the config and the simulators started for it move together (a second copy beside the
+    first, a test on free ports, a machine where 5000 is taken)."""
+    if base_port is None:
+        return dict(EXAMPLE_PORTS)
+    if not 1 <= base_port <= 65533:
+        raise UsageError(f"--base-port {base_port}: must be 1..65533 (three ports from N on)")
+    return {name: base_port + k for k, name in enumerate(EXAMPLE_PORTS)}
+
+
+def example_config(base_port: int | None = None) -> str:
+    """The text of the shipped example poll configuration, its ports moved to ``base_port``."""
+    text = (resources.files("plcstack.examples") / EXAMPLE_CONFIG).read_text(encoding="utf-8")
+    if base_port is None:
+        return text
+    ports = example_ports(base_port)
+    for name, default in EXAMPLE_PORTS.items():
+        text = text.replace(f"127.0.0.1:{default}", f"127.0.0.1:{ports[name]}")
+        if name != "opcua":  # the comment's sim commands start the simulators on the new ports
+            text = text.replace(
+                f"plcstack sim {name} ", f"plcstack sim {name} --port {ports[name]} "
+            )
+    return text.replace(
+        "plcstack demo --write-config plant.toml",
+        f"plcstack demo --write-config plant.toml --base-port {base_port}",
+    )
+
+
+def sim_commands(base_port: int | None) -> str:
+    """The shell line that starts the example's simulators where its config points."""
+    if base_port is None:
+        return "plcstack sim e71 & plcstack sim s5lan &"
+    ports = example_ports(base_port)
+    return f"plcstack sim e71 --port {ports['e71']} & plcstack sim s5lan --port {ports['s5lan']} &"
+
+
+def write_config(target: str, out: TextIO, base_port: int | None = None) -> int:
+    text = example_config(base_port)
     if target == "-":
         out.write(text)
         return 0
@@ -79,10 +123,7 @@ def write_config(target: str, out: TextIO) -> int:
         path.write_text(text, encoding="utf-8")
     except OSError as exc:
         raise UsageError(f"--write-config {target}: {exc.strerror or exc}") from None
-    print(
-        f"wrote {target}; run: plcstack sim e71 & plcstack sim s5lan & plcstack poll {target}",
-        file=sys.stderr,
-    )
+    print(f"wrote {target}; run: {sim_commands(base_port)} plcstack poll {target}", file=sys.stderr)
     return 0
 
 
@@ -113,8 +154,11 @@ def plain_line(sample: Sample) -> str:
 
 async def run_demo(args: argparse.Namespace, out: TextIO | None = None) -> int:
     out = out if out is not None else sys.stdout
+    base_port = getattr(args, "base_port", None)
     if getattr(args, "write_config", None) is not None:
-        return write_config(args.write_config, out)
+        return write_config(args.write_config, out, base_port)
+    if base_port is not None:
+        raise UsageError("--base-port moves the ports of --write-config; give both")
     if args.plcs is not None and args.plcs < 1:
         print("plcstack demo: error: --plcs must be at least 1", file=sys.stderr)
         return 2

@@ -130,7 +130,7 @@ class E71Client(E71CommandsMixin):
         if not 0 <= timer <= 0xFFFF:
             raise AddressError(f"monitoring_timer {timer} outside 0..65535", plc=name)
         self.monitoring_timer = timer
-        if rab_ascii_sub_chars not in (2, 4):  # issue 3: §13 A2, see clients/e71_commands.py
+        if rab_ascii_sub_chars not in (2, 4):  # §13 A2, see clients/e71_commands.py
             raise AddressError("rab_ascii_sub_chars must be 2 or 4", plc=name)
         self.rab_ascii_sub_chars = rab_ascii_sub_chars
         self._udp = isinstance(transport, UdpTransport)

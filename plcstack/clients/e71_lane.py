@@ -7,7 +7,7 @@ through five layers (``start_read``, ``start_exchange``, ``_send_request``, ``_t
 (for the diagnosis of a failure), whether the request left the host, whether its answer may be
 taken whole. At a thousand PLCs those bytecodes were what separated the poller from a raw
 asyncio loop: perf put 19.1 against 9.7 us per request in the interpreter loop, against a
-fused prototype that did only what the plain case needs (issue 16).
+fused prototype that did only what the plain case needs.
 
 A :class:`WordReadLane` is that plain case, kept with the client's cache of checked word reads
 (one lane per address and count). :meth:`~WordReadLane.start` sends only when that needs no

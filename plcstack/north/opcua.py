@@ -772,7 +772,7 @@ class OpcUaServer:
         """
         poller = self.poller
         # gathered for poll.batch_wait, as the north pipeline takes them: one wake-up per
-        # event-loop pass would cost more than the requests with many PLCs (issue 16)
+        # event-loop pass would cost more than the requests with many PLCs
         async for batch in poller.batches(wait=poller.config.batch_wait):
             if observe is not None:
                 observe(batch)

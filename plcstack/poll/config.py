@@ -93,7 +93,7 @@ DEFAULT_CONCURRENCY: int | None = None
 DEFAULT_QUEUE = 10_000
 #: how long the north side's batch gathers after its first sample (``Poller.batches(wait=)``):
 #: with a thousand PLCs a wake-up per loop pass cost the consumer more than the requests did
-#: (issue 16: about 9 us per request); 10 ms is nothing against a historian's or a broker's
+#: (about 9 us per request); 10 ms is nothing against a historian's or a broker's
 #: pace, and each sample keeps its own times
 DEFAULT_BATCH_WAIT = 0.01
 #: the longest batch_wait taken: more only fills the buffer (and delays every sample)

@@ -36,7 +36,7 @@ How it behaves, and why:
   data block) is not retried in that scan; from the next scan on, its tags are read separately so
   one bad address does not blank its neighbours.
 
-Cost (``plcstack bench``, the fleet case; issue 16): with a thousand E71 PLCs at 10 Hz the poller
+Cost (``plcstack bench``, the fleet case): with a thousand E71 PLCs at 10 Hz the poller
 spends about what a raw asyncio loop spends on the same requests once that loop also turns each
 reply into its words as Python ints; the rest of the difference to a loop that keeps the bytes is
 allocating those ints. The north side takes samples in batches gathered for ``poll.batch_wait``

@@ -2,7 +2,7 @@
 
 A PLC task spends, per scan of one request, two task steps (woken by its timer, then by the
 answer) and two futures, on top of what the request itself costs; with a thousand PLCs at 10 Hz
-that was the largest share of the poller's excess over a raw asyncio loop (issue 16). A
+that was the largest share of the poller's excess over a raw asyncio loop. A
 :class:`Scanner` instead starts the request in the ticker's timer callback
 (``Client.start_read``) and receives the result in a callback from the transport's
 ``buffer_updated``: the sample is queued and the next scan put on the ticker in the same loop

@@ -92,14 +92,14 @@ def execute(
 ) -> Response | ExtensionResponse:
     """What the E71 answers to one decoded request (shared by TCP and UDP)."""
     if isinstance(event, ExtensionRequest):
-        # 0AH-21H, 39H-3CH, 60H-62H: plcstack.sim.e71_module (issue 3)
+        # 0AH-21H, 39H-3CH, 60H-62H: plcstack.sim.e71_module
         return execute_extension(memory, event, code)
     if isinstance(event, BadRequest):
         if event.pc is not None and event.pc != 0xFF:
             return ErrorResponse(event.command, 0x5B, 0x10)
         return ErrorResponse(event.command, event.end_code)
     if isinstance(event, OpaqueRequest):
-        # Defined but not implemented in this version (next issue): framed, answered 50H.
+        # Defined but not implemented in this version: framed, answered 50H.
         return ErrorResponse(event.command, 0x50)
     cmd = event.COMMAND
     if event.pc != 0xFF:

@@ -136,7 +136,7 @@ MAX_QUEUED = 64 * 1024
 
 @dataclass
 class ReceiveCounters:
-    """What a transport's receive queue holds and has held: the bound of item 1 of issue 11 is
+    """What a transport's receive queue holds and has held: the receive-queue bound is
     asserted on these, not on the process's memory."""
 
     #: bytes received and not yet read now

@@ -3,7 +3,7 @@
 Each connection keeps one deadline timer, re-armed rarely (see ``QueueProtocolMixin._arm``).
 With a thousand connections that is still a thousand ``TimerHandle`` objects in asyncio's timer
 heap, which orders them with a Python-level ``__lt__``: every arm and every expiry costs 10-20
-Python calls there (the fleet profile of issue 16). :class:`Deadlines` keeps the connections'
+Python calls there (the fleet profile). :class:`Deadlines` keeps the connections'
 timers in its own heap of plain tuples, compared in C, and arms a single loop timer for the
 earliest. The poller's :class:`~plcstack.poll.ticker.Ticker` does the same for scan times.
 

@@ -21,7 +21,7 @@ from plcstack.bench.frames import FloorJob, ScriptJob
 
 __all__ = ["WORDS", "CodecOps", "ProtocolCase", "Unavailable", "sample_words"]
 
-#: points per job: "a typical read (64 words)" (issue 8)
+#: points per job: "a typical read (64 words)"
 WORDS = 64
 
 

@@ -66,7 +66,7 @@ def fw_codec(*, mk: bool) -> CodecOps:
     write_data = _WORDS_BE.pack(*sample_words(seed=0x3003))
     write_reply = frames.fw_ack(0x04)
     # One telegram is replayed, its SeqNo staying 0: the benchmark turns the sequence check off
-    # (on by default since issue 11), which costs the same either way.
+    # (on by default), which costs the same either way.
     codec = (
         fw.ClientConnection("mk", mk=_module("plcstack.codecs.mk").MkConnection(check_seq=False))
         if mk
