@@ -16,19 +16,25 @@ calls meet on the one loop, where the client's single-flight lock orders them, a
 tasks. Each facade owns its loop thread; :meth:`SyncClient.close` (or leaving ``with``) closes
 the connection and stops the thread.
 
+The loop thread never holds the interpreter: it is a daemon thread with nothing that waits for it
+at exit, so a script that forgets ``close()``, or ends with an exception, exits as it would
+without plcstack (the operating system closes the connection).
+
 Methods beyond ``read``/``write``/``read_as``/``write_as`` (``read_int32``, ``block_info``, ...)
 are reached through :attr:`SyncClient.call`: ``plc.call(plc.client.read_int32, "D0", 2)``.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import threading
 from collections.abc import Awaitable, Callable
 from types import TracebackType
 from typing import Any, Generic, Self, TypeVar, overload
 
-from anyio.from_thread import BlockingPortal, start_blocking_portal
+import anyio
+from anyio.from_thread import BlockingPortal
 
 from plcstack.clients import connect as async_connect
 from plcstack.clients.base import Client, Points
@@ -44,10 +50,10 @@ C = TypeVar("C", bound=Client)
 class SyncClient(Generic[C]):
     """Blocking view of one async client ``client``, which runs on a helper thread's loop."""
 
-    def __init__(self, client: C, portal: BlockingPortal, stack: contextlib.ExitStack) -> None:
+    def __init__(self, client: C, portal: BlockingPortal, stop: Callable[[], None]) -> None:
         self.client = client
         self._portal = portal
-        self._stack = stack
+        self._stop = stop
         self._closed = False
         self._close_lock = threading.Lock()
 
@@ -134,7 +140,7 @@ class SyncClient(Generic[C]):
         try:
             self._portal.call(self.client.aclose)
         finally:
-            self._stack.close()
+            self._stop()
 
     def __enter__(self) -> Self:
         try:
@@ -161,6 +167,40 @@ def connect(url: str, **options: Any) -> SyncClient[Client]:
     connects and :meth:`SyncClient.close` must be called.
     """
     client = async_connect(url, **options)
-    stack = contextlib.ExitStack()
-    portal = stack.enter_context(start_blocking_portal("asyncio"))
-    return SyncClient(client, portal, stack)
+    portal, stop = start_portal()
+    return SyncClient(client, portal, stop)
+
+
+def start_portal() -> tuple[BlockingPortal, Callable[[], None]]:
+    """A portal on a new event loop in a daemon thread, and the function that stops both.
+
+    Not anyio's ``start_blocking_portal``: that is a generator context manager, and one left
+    open (a script that never called ``close()``) is finalized at interpreter exit by calling into
+    its loop thread and joining it, which never returns there: the script hung after its last
+    line. Here nothing runs at exit; an unclosed portal's daemon thread simply ends with the
+    process.
+    """
+    ready: concurrent.futures.Future[BlockingPortal] = concurrent.futures.Future()
+
+    async def serve() -> None:
+        async with BlockingPortal() as portal:
+            ready.set_result(portal)
+            await portal.sleep_until_stopped()
+
+    def run() -> None:
+        try:
+            anyio.run(serve, backend="asyncio")
+        except BaseException as exc:  # reported to the caller, or it has its portal already
+            if not ready.done():
+                ready.set_exception(exc)
+
+    thread = threading.Thread(target=run, name="plcstack-sync", daemon=True)
+    thread.start()
+    portal = ready.result()
+
+    def stop() -> None:
+        with contextlib.suppress(RuntimeError):  # already stopped
+            portal.call(portal.stop, True)
+        thread.join()
+
+    return portal, stop

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
 import pydoc
+import sys
 import threading
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -16,7 +19,10 @@ import plcstack
 import plcstack.sync
 from plcstack.errors import AddressError, ConnectFailed, OptionError, ValueEncodeError
 from plcstack.sim import e71 as sim_e71
+from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.values import FLOAT32, INT16, KG
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture
@@ -90,3 +96,41 @@ def test_help_shows_clients_connect_value_types_and_the_poller() -> None:
         "KT = <value type kt>",
     ):
         assert item in text, item
+
+
+@pytest.mark.parametrize(
+    ("ending", "code"),
+    [("print('done')", 0), ("raise ValueError('the script failed')", 1)],
+    ids=["forgets-close", "raises"],
+)
+async def test_a_script_that_forgets_close_exits_as_without_plcstack(
+    ending: str, code: int
+) -> None:
+    """Before: the script printed its last line and never exited (the portal's finalizer at
+    interpreter exit waited for its own loop thread). Now it ends with its own exit status."""
+    memory = MelsecMemory()
+    memory.write_words("D", 0, [42])
+    sim = await sim_e71.start(memory)
+    script = (
+        "import plcstack.sync\n"
+        f"plc = plcstack.sync.connect({sim.url!r}, timeout=2)\n"
+        "print(plc.read('D0', 1))\n"
+        f"{ending}\n"
+    )
+    try:
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-c", script, cwd=ROOT,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        try:
+            out, err = await asyncio.wait_for(proc.communicate(), 20)
+        except TimeoutError:
+            proc.kill()
+            await proc.wait()
+            raise AssertionError("the script did not exit within 20 s") from None
+    finally:
+        await sim.aclose()
+    assert proc.returncode == code, err.decode()
+    assert out.decode().startswith("[42]\n")
+    if code:
+        assert err.decode().rstrip().endswith("ValueError: the script failed")
