@@ -47,6 +47,8 @@ from plcstack.north.layout import (
     JsonLayout,
     data_payload,
     split_scans,
+    status_payload,
+    status_topic,
     topic_level,
     write_response_payload,
     write_response_topic,
@@ -425,7 +427,7 @@ class MqttSink:
         if client is not None and self.connected:
             with contextlib.suppress(Exception):
                 async with asyncio.timeout(2):
-                    for topic, payload, qos, retain in self.layout.on_close(time.time()):
+                    for topic, payload, qos, retain in self._closing_messages(time.time()):
                         await client.publish(topic, payload, qos=qos, retain=retain)
         if self._task is not None:
             # cancels until the task has really ended (aiomqtt awaits PUBACK/SUBACK through
@@ -434,6 +436,28 @@ class MqttSink:
         for task in list(self._writes):
             task.cancel()
         self.buffer.close()
+
+    def _closing_messages(self, now: float) -> list[tuple[str, bytes, int, bool]]:
+        """What a clean stop publishes: in JSON mode every PLC's retained status ``offline``
+        first (nobody polls them any more: a retained ``online`` would stay true for
+        ever), then the layout's own (the poller's ``offline``)."""
+        out: list[tuple[str, bytes, int, bool]] = []
+        if isinstance(self.layout, JsonLayout):
+            prefix = self.settings.prefix
+            out = [
+                (status_topic(prefix, plc), status_payload(False, now), 1, True)
+                for plc in self._plc_by_level.values()
+            ]
+        return out + list(self.layout.on_close(now))
+
+    def _will(self) -> tuple[str, bytes]:
+        """The Last Will of a new connection. In JSON mode its timestamp is when that
+        connection was opened (the broker sends the Will later, when it loses the connection,
+        and cannot stamp it): a real time, never 0."""
+        topic, payload = self.layout.will()
+        if isinstance(self.layout, JsonLayout):
+            payload = status_payload(False, time.time())
+        return topic, payload
 
     async def run(self) -> None:
         """Connect, serve, reconnect with backoff; until cancelled."""
@@ -501,7 +525,7 @@ class MqttSink:
         s = self.settings
         assert self._prepared is not None
         username, password, tls_context = self._prepared
-        will_topic, will_payload = self.layout.will()
+        will_topic, will_payload = self._will()
         client = aiomqtt.Client(
             s.host,
             s.port,
