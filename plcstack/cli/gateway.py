@@ -8,21 +8,25 @@ that waits longer than --max-wait is answered with the protocol's timeout error,
 Safe by default: a bare port binds 127.0.0.1 only (give 0.0.0.0:PORT to serve the network), and
 nothing is writable until --writable names it, e.g. --writable "DB10-20, M" (see docs/gateway.md).
 Prints one "... listening on HOST:PORT (TCP)" line per server once it accepts clients.
-Ctrl-C exits 130, SIGTERM 0; a start-up failure is one line on stderr with exit 2.
+Ctrl-C exits 130, SIGTERM 0 (and --duration 0 once it ran out); a start-up failure is one line
+on stderr with exit 2; a run that ends because the gateway failed exits 1 with one line saying
+what. A refused write is one WARNING on stderr; --audit FILE appends one JSON line per write
+attempt (docs/gateway.md).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import sys
 from typing import Any
 
 from plcstack import gateway
 from plcstack.cli import UsageError, plain_text
-from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
+from plcstack.cli.poll import StopEvent, ended_early, install_stop_signals, remove_stop_signals
 from plcstack.errors import AddressError
+from plcstack.north.audit import Audit, AuditSettings
+from plcstack.north.writes import WritePath, WriteResult
 
 
 def register(subparsers: Any) -> None:
@@ -72,6 +76,12 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
     )
+    parser.add_argument(
+        "--audit",
+        metavar="FILE",
+        default=None,
+        help="append one JSON line per write attempt to FILE (rotated at 10 MiB, 5 kept)",
+    )
     parser.set_defaults(func=run)
 
 
@@ -113,8 +123,23 @@ async def run(args: argparse.Namespace) -> int:
         raise UsageError(f"gateway: {exc}") from None
     except OSError as exc:
         raise UsageError(f"gateway cannot start: {exc.strerror or exc}") from None
+    audit = Audit(AuditSettings(args.audit)) if args.audit else None
+    if audit is not None:
+        try:
+            audit.open()
+        except AddressError:
+            await gw.aclose()
+            raise
+    writes = WritePath(None, audit=audit)
+
+    def written(where: str, data: bytes, code: str, may: bool, message: str) -> None:
+        result = WriteResult(code == "ok", code, message, may)
+        writes.record("gateway", None, args.plc, where, list(data), result)
+
+    gw.store.on_write = written
     stop = StopEvent()
     installed = install_stop_signals(stop)
+    failure: str | None = None
     try:
         if gw.s5lan is not None:
             print(f"s5lan listening on {gw.s5lan.host}:{gw.s5lan.port} (TCP)", flush=True)
@@ -122,11 +147,20 @@ async def run(args: argparse.Namespace) -> int:
             fw = gw.fetchwrite
             print(f"fetchwrite listening on {fw.host}:{fw.port} (TCP)", flush=True)
         print(f"writable: {gw.store.writable}", flush=True)
-        with contextlib.suppress(TimeoutError):  # --duration ran out
-            await asyncio.wait_for(stop.wait(), args.duration)
+        stopper = asyncio.create_task(stop.wait())
+        watched: set[asyncio.Task[Any]] = {stopper}
+        if gw.store.worker is not None:
+            watched.add(gw.store.worker)  # the AS511 side: its failure ends the run, said
+        done, _ = await asyncio.wait(
+            watched, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
+        )
+        failure = ended_early(done - {stopper}, stop)
+        stopper.cancel()
     finally:
         remove_stop_signals(installed)
         await gw.aclose()
+        if audit is not None:
+            audit.close()
         s = gw.stats
         print(
             f"gateway: {s.reads} reads, {s.writes} writes; AS511 {s.line_reads} reads, "
@@ -134,4 +168,7 @@ async def run(args: argparse.Namespace) -> int:
             f"expired {s.expired}, denied {s.denied}, failed {s.failed}",
             file=sys.stderr,
         )
+    if failure is not None:
+        print(f"plcstack gateway: error: {failure}", file=sys.stderr, flush=True)
+        return 1
     return stop.exit_code()

@@ -26,6 +26,7 @@ import asyncio
 import collections
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -119,6 +120,17 @@ class As511Store:
         self._wakeup = asyncio.Event()
         self._worker: asyncio.Task[None] | None = None
         self._cache: dict[Target, list[_Span]] = {}
+        #: told of every write attempt once its outcome is known, before the client is
+        #: answered: ``(address, data, result, may_have_executed, message)`` with ``result``
+        #: ``ok`` or the fault kind (``write_denied``, ``plc_timeout``, ...); the command line
+        #: logs refusals and writes the audit line from it
+        self.on_write: Callable[[str, bytes, str, bool, str], None] | None = None
+
+    @property
+    def worker(self) -> asyncio.Task[None] | None:
+        """The one task that talks to the PLC (None before ``aopen``): a caller that runs the
+        gateway watches it, so its failure ends the run instead of leaving requests waiting."""
+        return self._worker
 
     # -- life cycle ---------------------------------------------------------------------------
     async def aopen(self) -> None:
@@ -148,13 +160,45 @@ class As511Store:
 
     async def write(self, target: Target, offset: int, data: bytes) -> None:
         self.stats.writes += 1
+        where = f"{describe_target(target)}+{offset}"
         if not self.writable.allows(target):
             self.stats.denied += 1
-            raise S5Fault(
+            fault = S5Fault(
                 FaultKind.WRITE_DENIED,
                 f"writing {describe_target(target)} is not allowed (writable: {self.writable})",
             )
-        await self._submit(target, offset, len(data), bytes(data))
+            self._written(where, data, fault)
+            raise fault
+        try:
+            await self._submit(target, offset, len(data), bytes(data))
+        except S5Fault as fault:
+            self._written(where, data, fault)
+            raise
+        except asyncio.CancelledError:
+            # the client went away: a queued write is skipped, a running one completes
+            self._written(where, data, None, "cancelled")
+            raise
+        self._written(where, data, None)
+
+    def _written(
+        self, where: str, data: bytes, fault: S5Fault | None, result: str | None = None
+    ) -> None:
+        hook = self.on_write
+        if hook is None:
+            return
+        if fault is None:
+            code = result or "ok"
+            message = f"write {where} ({len(data)} bytes): " + (
+                "confirmed by the PLC" if code == "ok" else "the client went away"
+            )
+            hook(where, bytes(data), code, True, message)
+            return
+        text = str(fault)
+        # only a timeout after the request went out may have executed; one that waited in the
+        # queue past its deadline or met a stopped gateway was never sent
+        sent = fault.kind is FaultKind.PLC_TIMEOUT and "not executed" not in text
+        sent = sent and "gateway" not in text
+        hook(where, bytes(data), fault.kind.value, sent, f"write {where}: {text}")
 
     # -- queue --------------------------------------------------------------------------------
     async def _submit(self, target: Target, offset: int, size: int, data: bytes | None) -> bytes:

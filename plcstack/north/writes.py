@@ -26,7 +26,9 @@ own statuses): ``ok``, ``bad_request``, ``unknown_plc``, ``unknown_tag``, ``not_
 certainly did not execute the write: refused before sending, or answered with an error code.
 
 A refusal the caller decides itself (a request it cannot parse, too many pending, a login that
-may not write) goes through :meth:`WritePath.refuse`, so it is logged and audited the same way.
+may not write) goes through :meth:`WritePath.refuse`, and a write done on a path of its own (the
+gateway's AS511 writes of addresses) through :meth:`WritePath.record`, so both are logged and
+audited the same way.
 """
 
 from __future__ import annotations
@@ -145,8 +147,25 @@ class WritePath:
         """A refusal the caller decided before the write path (nothing was sent): logged and
         audited like any other."""
         result = WriteResult(False, code, message, False)
-        self._finish(source, user, plc, tag, value, self.latest.get((plc, tag)), result)
+        self.record(source, user, plc, tag, value, result)
         return result
+
+    def record(
+        self,
+        source: str,
+        user: str | None,
+        plc: str,
+        tag: str,
+        value: Any,
+        result: WriteResult,
+        *,
+        previous: Any = _UNSET,
+    ) -> None:
+        """Log and audit a write that a north side carried out on a path of its own (the
+        gateway writes addresses over AS511, not tags through the poller)."""
+        if previous is _UNSET:
+            previous = self.latest.get((plc, tag))
+        self._finish(source, user, plc, tag, value, previous, result)
 
     async def _attempt(self, plc: str, tag: str, value: Any, allow_list: bool) -> WriteResult:
         poller = self.poller
