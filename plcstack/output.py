@@ -14,9 +14,12 @@ import math
 import struct
 from typing import Any
 
-__all__ = ["NON_FINITE", "float32_short", "json_safe"]
+__all__ = ["FLOAT32_TYPES", "NON_FINITE", "float32_short", "float32_tags", "json_safe", "shorten"]
 
 _F32 = struct.Struct("<f")
+
+#: the value types whose values are printed at float32 precision (their bits are 32-bit reals)
+FLOAT32_TYPES = frozenset({"float32", "kg"})
 
 #: the JSON stand-ins for the floats JSON cannot hold
 NON_FINITE = {"nan": "NaN", "inf": "Infinity", "-inf": "-Infinity"}
@@ -51,3 +54,23 @@ def json_safe(value: Any) -> Any:
     if isinstance(value, list | tuple):
         return [json_safe(v) for v in value]
     return value
+
+
+def shorten(value: Any) -> Any:
+    """``value`` (a float or a list of them) at float32 precision, as :func:`float32_short`."""
+    if isinstance(value, float):
+        return float32_short(value)
+    if isinstance(value, list):
+        return [float32_short(v) if isinstance(v, float) else v for v in value]
+    return value
+
+
+def float32_tags(plcs: Any) -> frozenset[tuple[str, str]]:
+    """``(plc, tag)`` of every tag of ``plcs`` (poll ``PlcConfig``s) whose values are float32
+    reals (``float32``, ``kg``) and not scaled: the ones an output prints at float32 precision."""
+    return frozenset(
+        (plc.name, tag.name)
+        for plc in plcs
+        for tag in plc.tags
+        if tag.scale is None and tag.type.name in FLOAT32_TYPES
+    )

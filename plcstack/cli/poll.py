@@ -26,13 +26,13 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from plcstack.cli import plain_text
 from plcstack.north.config import parse_north
-from plcstack.north.influx import influx_line
+from plcstack.north.influx import InfluxFormat
 from plcstack.north.pipeline import North, missing, needs_of
 from plcstack.north.web.settings import with_port
 from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Sample
-from plcstack.poll.sinks import FORMATS
+from plcstack.poll.sinks import FORMATS, jsonl_text
 from plcstack.scale import cli as scale_cli
 
 if TYPE_CHECKING:
@@ -151,12 +151,18 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return 2
     # every URL and address checked here, before anything is sent
     poller: Poller | Worker = worker if worker is not None else Poller(config)
-    line: Callable[[Sample], str] | None = None
+    text: Callable[[list[Sample]], str] | None = None
     if args.format == "influx":
-        line = functools.partial(influx_line, measurement=north_config.influx_measurement)
+        text = InfluxFormat(
+            config.plcs,
+            layout=north_config.influx_layout,
+            measurement=north_config.influx_measurement,
+        ).text
+    elif args.format == "jsonl":
+        text = jsonl_text(config.plcs)
     elif args.format != "none":
-        line = FORMATS[args.format]
-    emit = _emitter(line, out)
+        text = functools.partial(_each_line, FORMATS[args.format])
+    emit = _emitter(text, out)
     stop = StopEvent()
     installed = install_stop_signals(stop)
     north = North(poller, north_config)
@@ -235,14 +241,18 @@ def _flush(out: TextIO) -> None:
         out.flush()
 
 
+def _each_line(line: Callable[[Sample], str], batch: list[Sample]) -> str:
+    return "".join([line(s) + "\n" for s in batch])
+
+
 def _emitter(
-    line: Callable[[Sample], str] | None, out: TextIO
+    text: Callable[[list[Sample]], str] | None, out: TextIO
 ) -> Callable[[list[Sample]], None] | None:
-    if line is None:
+    if text is None:
         return None
 
     def emit(batch: list[Sample]) -> None:
-        out.write("".join([line(s) + "\n" for s in batch]))
+        out.write(text(batch))
         _flush(out)  # a batch is written: hand it on before waiting for the next scan
 
     return emit

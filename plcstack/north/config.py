@@ -9,6 +9,7 @@ no MQTT sink, without ``[metrics]`` no HTTP server, without ``[report]`` every s
 ```toml
 [influx]
 measurement = "plc"        # measurement name of --format influx (default "plc")
+layout = "fields"          # a field per tag (default); "typed": a field per value type
 ```
 """
 
@@ -21,7 +22,7 @@ from typing import Any
 
 from plcstack.errors import unknown_names
 from plcstack.north.audit import AuditSettings, parse_audit
-from plcstack.north.influx import DEFAULT_MEASUREMENT
+from plcstack.north.influx import DEFAULT_LAYOUT, DEFAULT_MEASUREMENT, LAYOUTS
 from plcstack.north.metrics import MetricsSettings, parse_metrics
 from plcstack.north.modbus.config import ModbusSettings, parse_modbus
 from plcstack.north.mqtt import MqttSettings, parse_mqtt
@@ -42,6 +43,8 @@ class NorthConfig:
     metrics: MetricsSettings | None = None
     report: Any = PASS_ALL
     influx_measurement: str = DEFAULT_MEASUREMENT
+    #: ``[influx] layout``: "fields" (a field per tag) or "typed" (a field per value type)
+    influx_layout: str = DEFAULT_LAYOUT
     #: checked here; ``plcstack serve opcua`` reads it again with load_opcua_config, which
     #: takes relative certificate paths relative to the TOML file
     opcua: OpcUaConfig | None = None
@@ -64,17 +67,25 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
     influx = tables.get("influx", {})
     if not isinstance(influx, dict):
         raise ConfigError("[influx] must be a table")
-    unknown = sorted(set(influx) - {"measurement"})
+    unknown = sorted(set(influx) - {"measurement", "layout"})
     if unknown:
-        raise ConfigError(f"[influx]: unknown key(s) {unknown_names(unknown, ['measurement'])}")
+        names = unknown_names(unknown, ["measurement", "layout"])
+        raise ConfigError(f"[influx]: unknown key(s) {names}")
     measurement = influx.get("measurement", DEFAULT_MEASUREMENT)
     if not isinstance(measurement, str) or not measurement.strip():
         raise ConfigError("[influx] measurement must be a non-empty string")
+    influx_layout = influx.get("layout", DEFAULT_LAYOUT)
+    if influx_layout not in LAYOUTS:
+        raise ConfigError(
+            f"[influx] layout must be {' or '.join(repr(x) for x in LAYOUTS)},"
+            f" not {influx_layout!r}"
+        )
     return NorthConfig(
         mqtt=parse_mqtt(tables["mqtt"], base=base) if "mqtt" in tables else None,
         metrics=parse_metrics(tables["metrics"]) if "metrics" in tables else None,
         report=parse_report(tables.get("report")),
         influx_measurement=measurement,
+        influx_layout=influx_layout,
         opcua=parse_opcua_config(tables["opcua"], base=base) if "opcua" in tables else None,
         web=parse_web(tables["web"]) if "web" in tables else None,
         modbus=parse_modbus(tables["modbus"]) if "modbus" in tables else None,

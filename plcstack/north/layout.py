@@ -50,10 +50,11 @@ from __future__ import annotations
 import json
 import math
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from typing import Any
 
 from plcstack.errors import ConnectionLost, PlcTimeout
+from plcstack.output import shorten
 from plcstack.poll.samples import Quality, Sample
 
 __all__ = [
@@ -106,13 +107,19 @@ def _finite(value: Any) -> bool:
     return True
 
 
-def data_payload(plc: str, group: str, samples: Sequence[Sample]) -> bytes:
-    """One data message from the samples of one PLC and scan group."""
+def data_payload(
+    plc: str,
+    group: str,
+    samples: Sequence[Sample],
+    float32: Collection[tuple[str, str]] = (),
+) -> bytes:
+    """One data message from the samples of one PLC and scan group; tags in ``float32`` (PLC,
+    tag) are printed at float32 precision (``-0.1``, not ``-0.10000000149011612``)."""
     values: dict[str, Any] = {}
     errors: dict[str, str] = {}
     for s in samples:
         if s.quality is Quality.GOOD and _finite(s.value):
-            values[s.tag] = s.value
+            values[s.tag] = shorten(s.value) if (plc, s.tag) in float32 else s.value
         elif s.quality is Quality.GOOD:
             errors[s.tag] = f"non-finite value {s.value!r}"
         else:
@@ -217,10 +224,18 @@ class Reachability:
 class JsonLayout:
     """The plain mode: turns samples into data and status messages, parses write requests."""
 
-    def __init__(self, prefix: str, client_id: str, qos: int = 1) -> None:
+    def __init__(
+        self,
+        prefix: str,
+        client_id: str,
+        qos: int = 1,
+        float32: Collection[tuple[str, str]] = (),
+    ) -> None:
+        """``float32``: (PLC, tag) of the float32 tags (:func:`plcstack.output.float32_tags`)."""
         self.prefix = prefix
         self.client_id = client_id
         self.qos = qos
+        self.float32 = float32
         self.reachability = Reachability()
 
     # what the sink asks of a layout
@@ -254,7 +269,7 @@ class JsonLayout:
             out.append(
                 (
                     data_topic(self.prefix, plc, group),
-                    data_payload(plc, group, samples),
+                    data_payload(plc, group, samples, self.float32),
                     self.qos,
                     False,
                 )

@@ -28,11 +28,13 @@ from typing import Any, Self
 
 from plcstack.north.audit import Audit
 from plcstack.north.config import NorthConfig
+from plcstack.north.layout import JsonLayout
 from plcstack.north.metrics import MetricsServer, PlcstackCollector
 from plcstack.north.mqtt import MqttSink
 from plcstack.north.rbe import ReportByException
 from plcstack.north.supervise import Supervisor
 from plcstack.north.writes import WritePath
+from plcstack.output import float32_tags
 from plcstack.poll.samples import Sample
 
 __all__ = ["North", "missing", "needs_of", "sink_name"]
@@ -103,6 +105,11 @@ class North:
                 from plcstack.north.sparkplug import SparkplugLayout
 
                 layout = SparkplugLayout.for_config(config.mqtt, poller.config, poller)
+            else:
+                mqtt = config.mqtt
+                layout = JsonLayout(
+                    mqtt.prefix, mqtt.client_id, mqtt.qos, float32_tags(poller.config.plcs)
+                )
             writable = {
                 (plc.name, tag.name): bool(getattr(tag, "writable", True))
                 for plc in poller.config.plcs

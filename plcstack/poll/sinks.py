@@ -18,15 +18,15 @@ loads a config that mixes ints, floats and bools; a non-finite float is a bad-qu
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from datetime import UTC, datetime
 from typing import Any
 
 from plcstack.north.influx import influx_line
-from plcstack.output import json_safe
+from plcstack.output import float32_tags, json_safe, shorten
 from plcstack.poll.engine import Sample
 
-__all__ = ["FORMATS", "influx_line", "iso_time", "jsonl_line"]
+__all__ = ["FORMATS", "influx_line", "iso_time", "jsonl_line", "jsonl_text"]
 
 
 def iso_time(t: float) -> str:
@@ -34,11 +34,14 @@ def iso_time(t: float) -> str:
     return datetime.fromtimestamp(t, UTC).isoformat(timespec="microseconds").replace("+00:00", "Z")
 
 
-def jsonl_line(sample: Sample) -> str:
+def jsonl_line(sample: Sample, *, float32: bool = False) -> str:
+    """One sample as a JSON line; ``float32``: the tag is a float32 (or KG), printed at float32
+    precision (``-0.1``, not ``-0.10000000149011612``)."""
+    value = shorten(sample.value) if float32 else sample.value
     record: dict[str, Any] = {
         "plc": sample.plc,
         "tag": sample.tag,
-        "value": json_safe(sample.value),  # NaN/inf as strings: plcstack.output
+        "value": json_safe(value),  # NaN/inf as strings: plcstack.output
         "quality": sample.quality.value,
         "source_time": iso_time(sample.source_time),
         "receive_time": iso_time(sample.receive_time),
@@ -46,6 +49,16 @@ def jsonl_line(sample: Sample) -> str:
     if sample.error is not None:
         record["error"] = sample.error
     return json.dumps(record, ensure_ascii=False, allow_nan=False)
+
+
+def jsonl_text(plcs: Iterable[Any]) -> Callable[[list[Sample]], str]:
+    """The JSON lines of a batch, float32 tags of ``plcs`` at float32 precision."""
+    float32 = float32_tags(plcs)
+
+    def text(batch: list[Sample]) -> str:
+        return "".join([jsonl_line(s, float32=(s.plc, s.tag) in float32) + "\n" for s in batch])
+
+    return text
 
 
 #: ``--format`` name -> line formatter
