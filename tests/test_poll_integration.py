@@ -361,8 +361,10 @@ async def test_cli_poll_influx_and_config_error_exit_codes(tmp_path: Path) -> No
         await sim.aclose()
     assert proc.returncode == 0, stderr.decode()
     lines = stdout.decode().splitlines()
+    # the default fields layout: one line per PLC and scan group, a field per tag
     assert any(
-        line.startswith('plc,plc=plc000,tag=counter value_int=9i,quality="good" ') for line in lines
+        line.startswith("plc,plc=plc000,group=default ") and "counter=9i" in line.split(" ")[1]
+        for line in lines
     )
     assert "plc000" in stderr.decode() and "requests" in stderr.decode()
     assert stderr.decode().count("p99 ms") >= 2  # --stats-every, then the final statistics
