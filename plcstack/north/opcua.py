@@ -87,7 +87,8 @@ from plcstack.north.opcua_config import (
     load_opcua_config,
     parse_opcua_config,
 )
-from plcstack.north.write_values import parse_write_value
+from plcstack.north.opcua_services import by_node, install, set_build_info
+from plcstack.north.write_values import NOT_WRITABLE, parse_write_value, result_code
 from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError, TagConfig
 from plcstack.poll.engine import Poller
@@ -157,7 +158,8 @@ def write_status(error: BaseException) -> int:
     A timeout (BadTimeout) means the write may have been executed.
     """
     if isinstance(error, AddressError):
-        return _S.BadOutOfRange
+        # a bit of a word is never written (the refusal every north side gives)
+        return _S.BadNotWritable if result_code(error) == NOT_WRITABLE else _S.BadOutOfRange
     if isinstance(error, PlcError):
         return read_status(type(error))
     return _S.BadInternalError
@@ -409,13 +411,22 @@ def _property_item(
     return item
 
 
+def _eu_span(tag: TagConfig) -> tuple[float, float] | None:
+    """The EURange (low, high) of a tag: its engineering span, if it has ``scale``."""
+    if tag.scale is None:
+        return None
+    lo, hi = sorted((float(tag.scale.eng_lo), float(tag.scale.eng_hi)))
+    return lo, hi
+
+
 def _eu_items(binding: _Binding, idx: int) -> list[ua.AddNodesItem]:
     """EURange (from ``scale``) and EngineeringUnits (from ``unit``) of an analog tag."""
     tag = binding.tag
     text = f"{binding.plc}.{tag.name}"
     items = []
-    if tag.scale is not None:
-        lo, hi = sorted((float(tag.scale.eng_lo), float(tag.scale.eng_hi)))
+    span = _eu_span(tag)
+    if span is not None:
+        lo, hi = span
         items.append(
             _property_item(binding.nodeid, text, "EURange", ua.Range(lo, hi), ObjectIds.Range, idx)
         )
@@ -646,6 +657,13 @@ class OpcUaServer:
         await self._build(server, idx)
         iserver = server.iserver
         iserver.attribute_service = _WriteService(iserver.aspace, self)
+        # per-session UserAccessLevel, IndexRange on Read, PercentDeadband, BuildInfo
+        await set_build_info(server)
+        install(
+            server,
+            by_node(self._bindings, lambda b: b.tag.writable),
+            by_node(self._bindings, lambda b: _eu_span(b.tag)),
+        )
         try:
             await server.start()
         except OSError as exc:

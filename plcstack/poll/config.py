@@ -543,6 +543,7 @@ class _Loader:
         tags = tuple(
             self._tag(tag_name, spec, group, groups) for tag_name, spec in raw_tags.items()
         )
+        self._refuse_writable_bits(url, tags)
         return PlcConfig(
             name=name,
             url=url,
@@ -555,6 +556,33 @@ class _Loader:
                 self._number(raw, "backoff_max", 0, "") if "backoff_max" in raw else backoff_max
             ),
         )
+
+    def _refuse_writable_bits(self, url: str, tags: tuple[TagConfig, ...]) -> None:
+        """A bit of a word (``D100.3``) is never written (a read-modify-write of the word would
+        race the PLC program), so ``writable = true`` on one is refused here, naming the tag,
+        rather than announced to north-side clients and refused at every write."""
+        writable = [t for t in tags if t.writable]
+        if not writable:
+            return
+        from plcstack.clients.connect import connect  # the family's bit notation
+
+        try:
+            client = connect(url)
+        except AddressError:
+            return  # the poller reports a URL it cannot use, with the reason
+        for tag in writable:
+            try:
+                _, bit = client.split_bit(tag.address)
+            except AddressError:
+                continue  # the poller reports the address, with the reason
+            if bit is not None:
+                raise self.error(
+                    f"tag {tag.name!r}: writable = true on a bit of a word ({tag.address}):"
+                    " a bit of a word is read-only, since writing one bit of a word would be a"
+                    " read-modify-write racing the PLC program; remove writable or write the"
+                    " whole word through a tag of its own",
+                    tag.name,
+                )
 
     def _tag(self, name: str, spec: Any, group: str, groups: Mapping[str, float]) -> TagConfig:
         where = f"tag {name!r}"
