@@ -65,7 +65,8 @@ def melsec_tag(draw: st.DrawFn, name: str, group: str) -> TagConfig:
         device = draw(st.sampled_from(["M", "X", "Y", "B"]))
         address = f"{device}{n:X}" if device in "XYB" else f"{device}{n}"
         return TagConfig(name, address, vt.BOOL, draw(st.integers(1, 32)), **common)
-    if kind == "bit_of_word":
+    if kind == "bit_of_word":  # read-only: a writable bit of a word is refused at load
+        common["writable"] = False
         return TagConfig(name, f"D{n}.{draw(st.integers(0, 15)):X}", vt.BOOL, **common)
     if kind == "string":
         return TagConfig(name, f"D{n}", vt.string(draw(st.integers(1, 40))), **common)
