@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import json
+from pathlib import Path
 from typing import Any
 
 import aiohttp
@@ -79,12 +80,20 @@ async def test_tags_and_plcs_follow_the_simulator() -> None:
         assert trend and trend[-1][1] == 1234
 
 
-async def test_write_with_token_reaches_the_plc() -> None:
-    async with running_console() as console:
+async def test_write_with_token_reaches_the_plc_and_the_audit(tmp_path: Path) -> None:
+    audit = tmp_path / "writes.jsonl"
+    async with running_console(audit=audit) as console:
         await wait_value(console, "press1", "setpoint", 1500)
         assert await post(console, "press1", "setpoint", {"value": 42}) == (200, {"ok": True})
         assert console.memory.read_words("D", 100, 1) == [42]
         await wait_value(console, "press1", "setpoint", 42)
+        status, _ = await post(console, "press1", "setpoint", {"value": 1}, "wrong")
+        assert status == 401
+    lines = [json.loads(line) for line in audit.read_text(encoding="utf-8").splitlines()]
+    assert [(r["source"], r["tag"], r["value"], r["previous"], r["result"]) for r in lines] == [
+        ("web", "setpoint", 42, 1500, "ok"),
+        ("web", "setpoint", None, 42, "unauthorized"),
+    ]
 
 
 async def test_write_refusals() -> None:

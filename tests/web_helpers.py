@@ -13,8 +13,10 @@ import os
 import struct
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
+from pathlib import Path
 
 from plcstack import values as vt
+from plcstack.north.audit import AuditSettings
 from plcstack.north.config import NorthConfig
 from plcstack.north.pipeline import North
 from plcstack.north.web.server import WebConsole
@@ -73,7 +75,7 @@ def plcs(url: str) -> tuple[PlcConfig, ...]:
 
 @contextlib.asynccontextmanager
 async def running_console(
-    *, token: str | None = TOKEN, trend_seconds: int = 300
+    *, token: str | None = TOKEN, trend_seconds: int = 300, audit: Path | None = None
 ) -> AsyncIterator[Console]:
     """The simulator, the poller, the north side with the console on a free port."""
     memory = MelsecMemory()
@@ -89,7 +91,10 @@ async def running_console(
     try:
         config = PollConfig(plcs(sim.url), {"default": 0.1})
         settings = WebSettings(port=0, write_token_env=TOKEN_ENV, trend_seconds=trend_seconds)
-        async with Poller(config) as poller, North(poller, NorthConfig(web=settings)) as north:
+        north_config = NorthConfig(
+            web=settings, audit=None if audit is None else AuditSettings(str(audit))
+        )
+        async with Poller(config) as poller, North(poller, north_config) as north:
             consumer = asyncio.create_task(north.run())
             try:
                 assert north.web is not None

@@ -24,21 +24,16 @@ from __future__ import annotations
 
 import hmac
 import json
-import logging
 from typing import TYPE_CHECKING, Any
 
 from aiohttp import web
 
-from plcstack.errors import AddressError, ConnectFailed, PlcError, PlcErrorResponse
 from plcstack.north.web.state import tag_row
-from plcstack.north.write_values import parse_write_value, result_code
 
 if TYPE_CHECKING:
     from plcstack.north.web.server import WebConsole
 
 __all__ = ["MAX_PENDING_WRITES", "routes"]
-
-log = logging.getLogger("plcstack.web")
 
 #: writes in flight at once from the web; more are refused with ``busy``
 MAX_PENDING_WRITES = 16
@@ -106,22 +101,31 @@ def routes(console: WebConsole) -> list[web.RouteDef]:
         plc, tag = request.match_info["plc"], request.match_info["tag"]
         token = console.token
         if token is None:
-            return refusal(
+            return console.refuse(
+                plc,
+                tag,
+                None,
                 "not_writable",
                 "writes are off: the console was started without a write token"
                 " ([web] write_token_env names an environment variable that is not set)",
             )
         if not token_matches(request.headers.get("Authorization"), token):
-            log.warning(
-                "web write %s/%s refused: no or wrong token from %s", plc, tag, request.remote
+            return console.refuse(
+                plc,
+                tag,
+                None,
+                "unauthorized",
+                f"a valid 'Authorization: Bearer TOKEN' is required (request from"
+                f" {request.remote}); not attempted",
             )
-            return refusal("unauthorized", "a valid 'Authorization: Bearer TOKEN' is required")
         try:
             body = await request.json()
         except (ValueError, UnicodeDecodeError):
-            return refusal("bad_request", 'the body must be JSON: {"value": ...}')
+            body = None
         if not isinstance(body, dict) or "value" not in body:
-            return refusal("bad_request", 'the body must be a JSON object {"value": ...}')
+            return console.refuse(
+                plc, tag, None, "bad_request", 'the body must be a JSON object {"value": ...}'
+            )
         return await console.write(plc, tag, body["value"])
 
     return [
@@ -130,26 +134,3 @@ def routes(console: WebConsole) -> list[web.RouteDef]:
         web.get("/api/plcs/{plc}/tags/{tag}/trend", trend),
         web.post("/api/plcs/{plc}/tags/{tag}", write),
     ]
-
-
-async def classified_write(
-    writer: Any, plc: str, tag: str, value: Any
-) -> tuple[str, str, bool] | None:
-    """Run one write through the value grammar and ``writer.write_tag``; None if confirmed,
-    else ``(code, message, may_have_executed)`` with the MQTT write codes."""
-    try:
-        tags = getattr(writer, "tags", None)
-        config = tags(plc).get(tag) if tags is not None else None
-        if config is not None:  # the one value grammar of every north side
-            value = parse_write_value(config[0], value, plc=plc)
-        await writer.write_tag(plc, tag, value)
-    except AddressError as exc:
-        return result_code(exc), str(exc), False
-    except (PlcErrorResponse, ConnectFailed) as exc:
-        return "plc_error", str(exc), False
-    except PlcError as exc:  # a timeout or a lost connection after sending
-        return "plc_error", str(exc), True
-    except Exception as exc:  # a writer bug still gets an answer
-        log.exception("web write %s/%s failed", plc, tag)
-        return "plc_error", f"{type(exc).__name__}: {exc}", True
-    return None

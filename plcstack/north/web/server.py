@@ -18,11 +18,12 @@ from typing import Any
 from aiohttp import web
 
 from plcstack.north.supervise import Supervised, Supervisor
-from plcstack.north.web.api import MAX_PENDING_WRITES, classified_write, refusal, routes
+from plcstack.north.web.api import MAX_PENDING_WRITES, refusal, routes
 from plcstack.north.web.events import EventClient, EventHub
 from plcstack.north.web.pages import esc, overview_page, plc_page
 from plcstack.north.web.settings import WebSettings
 from plcstack.north.web.state import ConsoleState, plc_row
+from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Sample
 
@@ -31,6 +32,8 @@ __all__ = ["WebConsole"]
 log = logging.getLogger("plcstack.web")
 
 MAX_BODY = 64 * 1024
+#: the write audit's ``source`` of writes from the console and the REST API
+SOURCE = "web"
 #: a stream with nothing to say sends a comment this often (finds peers that went away)
 KEEPALIVE = 15.0
 _HEADERS = {
@@ -47,8 +50,12 @@ _STATIC = {"console.js": "text/javascript", "console.css": "text/css"}
 class WebConsole:
     """The web console and REST API of one poller (see the package docstring)."""
 
-    def __init__(self, poller: Any, settings: WebSettings | None = None) -> None:
+    def __init__(
+        self, poller: Any, settings: WebSettings | None = None, *, writes: WritePath | None = None
+    ) -> None:
         self.poller = poller
+        #: the run's one write path (North passes its own, which audits)
+        self.writes = writes or WritePath(poller if hasattr(poller, "write_tag") else None)
         self.settings = settings or WebSettings()
         self.state = ConsoleState(poller.config.plcs, trend_seconds=self.settings.trend_seconds)
         self.hub = EventHub(self.state, self.plc_rows)
@@ -134,33 +141,23 @@ class WebConsole:
         return [plc_row(name, health[name], stats.get(name)) for name in names]
 
     async def write(self, plc: str, tag: str, value: Any) -> web.Response:
-        """One write from the web, after the token was checked (see :mod:`.api`)."""
-        config = self.state.tags.get((plc, tag))
-        if config is None:
-            if plc not in self.state.plcs:
-                return refusal("unknown_plc", f"no PLC named {plc!r} here")
-            return refusal("unknown_tag", f"{plc}: no tag named {tag!r}")
-        if not config.writable:
-            return refusal(
-                "not_writable",
-                f"{plc}: write {tag}: the tag is read-only for north-side clients"
-                " (set writable = true in its configuration); not attempted",
-            )
-        if not hasattr(self.poller, "write_tag"):
-            return refusal("not_writable", "this poller takes no writes")
+        """One write from the web, after the token was checked (see :mod:`.api`): through the
+        north side's one write path (allow-list, value grammar, ``write_tag``, audit)."""
         if len(self._writes) >= MAX_PENDING_WRITES:
-            return refusal("busy", "too many writes waiting; not attempted")
-        task = asyncio.create_task(classified_write(self.poller, plc, tag, value))
+            return self.refuse(plc, tag, value, "busy", "too many writes waiting; not attempted")
+        task = asyncio.create_task(self.writes.write(SOURCE, None, plc, tag, value))
         self._writes.add(task)
         task.add_done_callback(self._writes.discard)
         # shielded: a browser that goes away does not cancel a write half done
         result = await asyncio.shield(task)
-        if result is None:
-            log.info("web write %s/%s = %r done", plc, tag, value)
+        if result.ok:
             return web.json_response({"ok": True})
-        code, message, may_have_executed = result
-        log.warning("web write %s/%s refused: %s %s", plc, tag, code, message)
-        return refusal(code, message, may_have_executed)
+        return refusal(result.code, result.message, result.may_have_executed)
+
+    def refuse(self, plc: str, tag: str, value: Any, code: str, message: str) -> web.Response:
+        """A refusal decided here (token, body, too many): logged and audited as every other."""
+        self.writes.refuse(SOURCE, None, plc, tag, value, code, message)
+        return refusal(code, message)
 
     # -- pages ----------------------------------------------------------------------------------
     async def _overview(self, request: web.Request) -> web.Response:
