@@ -38,6 +38,7 @@
   };
 
   function onTags(rows) {
+    const moved = new Set();
     for (const [plc, tag, value, quality, time, error] of rows) {
       const k = key(plc, tag);
       const tr = tagRows.get(k);
@@ -51,8 +52,11 @@
       if (chart && quality === "good" && numeric) {
         const last = chart.points[chart.points.length - 1];
         if (!last || time > last[0]) chart.points.push([time, Number(value)]);
+        moved.add(chart);
       }
     }
+    const now = Date.now() / 1000;
+    for (const chart of moved) draw(chart, Math.max(now, chart.points[chart.points.length - 1][0]));
   }
 
   function onPlcs(rows) {
