@@ -93,7 +93,9 @@ async def test_plc_page_draws_the_trend(page: Any, console: Console) -> None:
     svg = '#tags tr[data-tag="setpoint"] svg.trend'
     points = await page.get_attribute(svg + " polyline", "points")
     assert points is not None
-    levels = []  # the step line's levels, in order (each step is two points at one height)
+    levels: list[
+        float
+    ] = []  # the step line's levels, in order (each step is two points at one height)
     for point in points.split():
         y = float(point.split(",")[1])
         if not levels or levels[-1] != y:
