@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import pydoc
+import re
 from pathlib import Path
 
 import pytest
@@ -193,3 +194,19 @@ def test_every_option_and_argument_has_a_help_text() -> None:
     assert missing == []
     write = next(p for p in _all_parsers(build_parser()) if p.prog == "plcstack write")
     assert "COUNT" not in write.format_help()  # write takes values, not a count
+
+
+def test_every_error_line_of_the_cli_has_the_one_prefix(capsys: pytest.CaptureFixture[str]) -> None:
+    from plcstack.cli import main
+
+    assert main(["demo", "--plcs", "0"]) == 2
+    assert capsys.readouterr().err == "plcstack: error: demo: --plcs must be at least 1\n"
+    # no command prints a prefix of its own ("plcstack poll: error:"): they all go through one
+    sources = Path(__file__).resolve().parents[1] / "plcstack" / "cli"
+    own = [
+        f"{path.name}: {line.strip()}"
+        for path in sorted(sources.glob("*.py"))
+        for line in path.read_text(encoding="utf-8").splitlines()
+        if re.search(r"plcstack [a-z][a-z ]*: (error|internal error):", line)
+    ]
+    assert own == []

@@ -190,7 +190,7 @@ async def test_poll_exits_1_naming_what_failed_when_the_consumer_dies(
     err = capsys.readouterr().err
     assert code == 1  # main: 0, as if the run had ended normally
     assert err.splitlines()[-1] == (
-        "plcstack poll: error: the sample consumer failed: RuntimeError: the consumer broke"
+        "plcstack: error: poll: the sample consumer failed: RuntimeError: the consumer broke"
     )
 
 
@@ -211,7 +211,7 @@ def test_poll_with_mqtt_but_without_its_library_exits_2_naming_the_extra(tmp_pat
     assert done.returncode == 2, done.stderr  # main: 0 after 5 s of JSON lines, nothing sent
     assert done.stdout == ""
     assert done.stderr.splitlines() == [
-        "plcstack poll: error: [mqtt] needs the Python package aiomqtt, which is not installed:"
+        "plcstack: error: poll: [mqtt] needs the Python package aiomqtt, which is not installed:"
         " pip install 'plcstack[mqtt]'"
     ]
 

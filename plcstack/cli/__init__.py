@@ -158,6 +158,12 @@ def _fail(kind: str, message: object) -> None:
     print(f"plcstack: {kind}: {text}", file=sys.stderr, flush=True)
 
 
+def print_error(message: object) -> None:
+    """``plcstack: error: MESSAGE`` as one line on stderr: for a command that reports a failure
+    and returns its exit code itself (the one prefix every error line of the CLI has)."""
+    _fail("error", message)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     try:

@@ -19,7 +19,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, TextIO
 
-from plcstack.cli import UsageError, plain_text
+from plcstack.cli import UsageError, plain_text, print_error
 from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
 from plcstack.poll.demo import DemoPlant, start_plant
 from plcstack.poll.engine import Poller, Quality, Sample, format_stats
@@ -160,19 +160,19 @@ async def run_demo(args: argparse.Namespace, out: TextIO | None = None) -> int:
     if base_port is not None:
         raise UsageError("--base-port moves the ports of --write-config; give both")
     if args.plcs is not None and args.plcs < 1:
-        print("plcstack demo: error: --plcs must be at least 1", file=sys.stderr)
+        print_error("demo: --plcs must be at least 1")
         return 2
     for name in ("duration", "interval"):
         value = getattr(args, name)
         if value is not None and not value > 0:
-            print(f"plcstack demo: error: --{name} must be greater than 0", file=sys.stderr)
+            print_error(f"demo: --{name} must be greater than 0")
             return 2
     plant = await start_plant(args.plcs, interval=args.interval)
     try:
         for note in plant.notes:
             print(f"note: {note}", file=sys.stderr)
         if not plant.plcs:
-            print("plcstack demo: no simulator is available", file=sys.stderr)
+            print_error("demo: no simulator is available")
             return 1
         poller = Poller(plant.config)
         stop = StopEvent()

@@ -22,7 +22,7 @@ import sys
 from typing import Any
 
 from plcstack import gateway
-from plcstack.cli import UsageError, plain_text
+from plcstack.cli import UsageError, plain_text, print_error
 from plcstack.cli.poll import StopEvent, ended_early, install_stop_signals, remove_stop_signals
 from plcstack.errors import AddressError
 from plcstack.north.audit import Audit, AuditSettings
@@ -169,6 +169,6 @@ async def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     if failure is not None:
-        print(f"plcstack gateway: error: {failure}", file=sys.stderr, flush=True)
+        print_error(f"gateway: {failure}")
         return 1
     return stop.exit_code()

@@ -24,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from plcstack.cli import plain_text
+from plcstack.cli import plain_text, print_error
 from plcstack.north.config import parse_north
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.pipeline import North, missing, needs_of
@@ -123,7 +123,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         value = getattr(args, option, None)
         if value is not None and not value > 0:
             name = option.replace("_", "-")
-            print(f"plcstack poll: error: --{name} must be greater than 0", file=sys.stderr)
+            print_error(f"poll: --{name} must be greater than 0")
             return 2
     config = load_config(args.config)
     # relative file paths in [mqtt] are taken relative to the TOML file, as [opcua] does
@@ -131,7 +131,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     try:
         web = with_port(north_config.web, getattr(args, "web_port", None))
     except ValueError as exc:
-        print(f"plcstack poll: error: {exc}", file=sys.stderr)
+        print_error(f"poll: {exc}")
         return 2
     north_config = dataclasses.replace(north_config, web=web)
     needs = needs_of(north_config)
@@ -141,13 +141,13 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         needs.append(("--nats (scale-out)", "nats", "scale"))
     problem = missing(needs)
     if problem is not None:
-        print(f"plcstack poll: error: {problem}", file=sys.stderr)
+        print_error(f"poll: {problem}")
         return 2
     try:
         config = scale_cli.select(config, args)
         worker = scale_cli.make_worker(config, args)  # --mqtt: one worker of a cluster
     except ValueError as exc:
-        print(f"plcstack poll: error: {exc}", file=sys.stderr)
+        print_error(f"poll: {exc}")
         return 2
     # every URL and address checked here, before anything is sent
     poller: Poller | Worker = worker if worker is not None else Poller(config)
@@ -198,7 +198,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     for summary in north.summary():
         print(summary, file=sys.stderr)
     if failure is not None:
-        print(f"plcstack poll: error: {failure}", file=sys.stderr, flush=True)
+        print_error(f"poll: {failure}")
         return 1
     return stop.exit_code()
 

@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from plcstack.cli import plain_text, serve_modbus
+from plcstack.cli import plain_text, print_error, serve_modbus
 from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
 from plcstack.north.config import NorthConfig, parse_north
 from plcstack.north.metrics import MetricsSettings
@@ -74,25 +74,22 @@ async def run_opcua(args: argparse.Namespace) -> int:
             getpass.getpass("password: ") if sys.stdin.isatty() else sys.stdin.readline()
         ).rstrip("\n")
         if not password:
-            print("plcstack serve opcua: error: empty password", file=sys.stderr)
+            print_error("serve opcua: empty password")
             return 2
         print(hash_password(password))
         return 0
     if args.config is None:
-        print("plcstack serve opcua: error: CONFIG is required", file=sys.stderr)
+        print_error("serve opcua: CONFIG is required")
         return 2
     if args.duration is not None and not args.duration > 0:
-        print("plcstack serve opcua: error: --duration must be greater than 0", file=sys.stderr)
+        print_error("serve opcua: --duration must be greater than 0")
         return 2
     metrics_port = getattr(args, "metrics_port", None)
     if metrics_port is not None and not 0 <= metrics_port <= 65535:
-        print("plcstack serve opcua: error: --metrics-port must be 0..65535", file=sys.stderr)
+        print_error("serve opcua: --metrics-port must be 0..65535")
         return 2
     if importlib.util.find_spec("asyncua") is None:
-        print(
-            "plcstack serve opcua: error: asyncua is not installed; pip install 'plcstack[opcua]'",
-            file=sys.stderr,
-        )
+        print_error("serve opcua: asyncua is not installed; pip install 'plcstack[opcua]'")
         return 2
     # -v (INFO) logs every write; the log options are the ones every subcommand has
     config = load_config(args.config)

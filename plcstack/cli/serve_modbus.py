@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from plcstack.cli import plain_text
+from plcstack.cli import plain_text, print_error
 from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
 from plcstack.north.config import NorthConfig, parse_north
 from plcstack.north.metrics import MetricsSettings
@@ -54,11 +54,11 @@ def register(servers: Any) -> None:
 
 async def run_modbus(args: argparse.Namespace) -> int:
     if args.duration is not None and not args.duration > 0:
-        print("plcstack serve modbus: error: --duration must be greater than 0", file=sys.stderr)
+        print_error("serve modbus: --duration must be greater than 0")
         return 2
     metrics_port = args.metrics_port
     if metrics_port is not None and not 0 <= metrics_port <= 65535:
-        print("plcstack serve modbus: error: --metrics-port must be 0..65535", file=sys.stderr)
+        print_error("serve modbus: --metrics-port must be 0..65535")
         return 2
     config = load_config(args.config)
     north_config = parse_north(config.north, base=Path(args.config).parent)
