@@ -53,42 +53,39 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from pathlib import Path
 from types import TracebackType
 from typing import Any, Self, cast
 from urllib.parse import urlsplit, urlunsplit
 
 from asyncua import ua
 from asyncua.crypto.permission_rules import User, UserRole
-from asyncua.crypto.truststore import TrustStore
-from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 from asyncua.server.address_space import AddressSpace, AttributeService
-from asyncua.server.internal_server import InternalServer
 from asyncua.server.server import Server
-from asyncua.server.user_managers import UserManager
 from asyncua.ua.attribute_ids import AttributeIds
 from asyncua.ua.object_ids import ObjectIds
 from asyncua.ua.status_codes import StatusCodes as _S
 
 from plcstack.errors import (
-    AddressError,
-    ConnectFailed,
-    ConnectionLost,
-    LocalProtocolError,
     PlcError,
-    PlcErrorResponse,
-    PlcTimeout,
-    RemoteProtocolError,
-    ValueDecodeError,
 )
 from plcstack.north.opcua_config import (
     OpcUaConfig,
-    check_password,
     load_opcua_config,
     parse_opcua_config,
 )
 from plcstack.north.opcua_services import by_node, install, set_build_info
-from plcstack.north.write_values import NOT_WRITABLE, parse_write_value, result_code
+from plcstack.north.opcua_types import (
+    INITIAL_STATUS,
+    STATUS_MAP,
+    UNECE_NAMESPACE,
+    read_status,
+    unit_id,
+    variant_type,
+    write_status,
+)
+from plcstack.north.opcua_types import status as _status
+from plcstack.north.opcua_users import PlcUser, UserManagerOfConfig, trust_list
+from plcstack.north.write_values import parse_write_value
 from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError, TagConfig
 from plcstack.poll.engine import Poller
@@ -110,138 +107,12 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-def _status(code: int) -> ua.StatusCode:
-    # asyncua types its integer fields with int subclasses (ua.UInt32 ...); plain ints are what
-    # it stores and encodes, so the casts only tell mypy so
-    return ua.StatusCode(cast(ua.UInt32, code))
-
-
 def _node(identifier: str | int, namespace: int = 0) -> ua.NodeId:
     return ua.NodeId(cast(ua.String, identifier), cast(ua.Int16, namespace))
 
 
 def _utc(t: float) -> ua.DateTime:
     return cast(ua.DateTime, datetime.fromtimestamp(t, UTC))
-
-
-#: plcstack error type -> OPC UA status of a tag's value, most specific first (the first row whose
-#: type the error is an instance of wins). Documented in docs/opcua.md.
-STATUS_MAP: tuple[tuple[type[PlcError], int, str], ...] = (
-    (PlcTimeout, _S.BadTimeout, "no (complete) answer within the deadline"),
-    (ConnectFailed, _S.BadNoCommunication, "the PLC cannot be connected (refused, unreachable)"),
-    (ConnectionLost, _S.BadCommunicationError, "the connection dropped during the request"),
-    (RemoteProtocolError, _S.BadCommunicationError, "the PLC's reply broke the protocol"),
-    (PlcErrorResponse, _S.BadDeviceFailure, "the PLC answered with an error code"),
-    (ValueDecodeError, _S.BadOutOfRange, "the points are no valid value of the type (BCD > 9)"),
-    (AddressError, _S.BadConfigurationError, "address, count or type does not fit the PLC"),
-    (LocalProtocolError, _S.BadInternalError, "plcstack misused its own codec (a bug)"),
-    (PlcError, _S.BadUnexpectedError, "any other failure"),
-)
-#: a tag not polled yet
-INITIAL_STATUS = _S.BadWaitingForInitialData
-
-
-def read_status(error_type: type[PlcError] | None) -> int:
-    """The StatusCode of a bad sample whose error had this type (see :data:`STATUS_MAP`)."""
-    if error_type is not None:
-        for kind, code, _ in STATUS_MAP:
-            if issubclass(error_type, kind):
-                return code
-    return _S.BadUnexpectedError
-
-
-def write_status(error: BaseException) -> int:
-    """The StatusCode a refused or failed write returns.
-
-    As for reads, except that an :class:`AddressError` from a write is a value the tag's type
-    cannot hold (``write_tag`` checks the value before anything is sent): BadOutOfRange.
-    A timeout (BadTimeout) means the write may have been executed.
-    """
-    if isinstance(error, AddressError):
-        # a bit of a word is never written (the refusal every north side gives)
-        return _S.BadNotWritable if result_code(error) == NOT_WRITABLE else _S.BadOutOfRange
-    if isinstance(error, PlcError):
-        return read_status(type(error))
-    return _S.BadInternalError
-
-
-# -- data types ---------------------------------------------------------------------------------
-
-#: tag type name -> OPC UA built-in type (the DataType NodeId has the same number)
-_VARIANT_TYPES: dict[str, ua.VariantType] = {
-    "bool": ua.VariantType.Boolean,
-    "int8": ua.VariantType.SByte,
-    "uint8": ua.VariantType.Byte,
-    "int16": ua.VariantType.Int16,
-    "uint16": ua.VariantType.UInt16,
-    "int32": ua.VariantType.Int32,
-    "uint32": ua.VariantType.UInt32,
-    "float32": ua.VariantType.Float,
-    # plcstack.values types beyond the plain integers (by name; strings "string:N" by kind)
-    "kf": ua.VariantType.Int16,
-    "kh": ua.VariantType.UInt16,
-    "km": ua.VariantType.UInt16,
-    "kz": ua.VariantType.UInt16,
-    "bcd16": ua.VariantType.UInt16,
-    "bcd32": ua.VariantType.UInt32,
-    "kc": ua.VariantType.String,
-    "ky": ua.VariantType.String,  # two bytes, shown as STEP 5 does: "12,255"
-    "kt": ua.VariantType.Double,  # seconds
-    "kg": ua.VariantType.Double,  # the KG range reaches below float32's normal range
-}
-#: a ``raw`` tag is one point: a bit, a byte (S5 byte areas) or a word
-_RAW_TYPES = {1: ua.VariantType.Boolean, 8: ua.VariantType.Byte, 16: ua.VariantType.UInt16}
-
-
-def variant_type(tag: TagConfig, point_bits: int) -> ua.VariantType:
-    """The OPC UA type of one value of ``tag``; a type without its own mapping is a Double."""
-    name = tag.type.name
-    if tag.scale is not None:
-        return ua.VariantType.Double  # engineering units
-    if name == "raw":
-        return _RAW_TYPES.get(point_bits, ua.VariantType.UInt32)
-    if tag.type.kind == "text":
-        return ua.VariantType.String
-    return _VARIANT_TYPES.get(name, ua.VariantType.Double)
-
-
-# -- users ------------------------------------------------------------------------------------
-
-
-@dataclass
-class PlcUser(User):
-    """A session's login as this server knows it: asyncua's ``User`` plus the right to write.
-
-    Never ``UserRole.Admin`` (asyncua lets admins skip access-level checks and edit the address
-    space); only sessions carrying a PlcUser may write to a PLC.
-    """
-
-    may_write: bool = False
-
-
-class _UserManager(UserManager):
-    """asyncua user manager: anonymous per ``anonymous``, user names by PBKDF2 password hash."""
-
-    def __init__(self, config: OpcUaConfig) -> None:
-        self._anonymous = config.anonymous
-        self._users = {u.name: u for u in config.users}
-
-    def get_user(
-        self,
-        iserver: InternalServer,
-        username: str | None = None,
-        password: str | None = None,
-        certificate: Any = None,
-    ) -> User | None:
-        if username is None:
-            if self._anonymous == "none":
-                return None
-            return PlcUser(role=UserRole.User, may_write=self._anonymous == "write")
-        user = self._users.get(username)
-        if user is None or password is None or not check_password(password, user.password_hash):
-            log.warning("OPC UA login refused for user %r", username)
-            return None
-        return PlcUser(role=UserRole.User, name=username, may_write=user.write)
 
 
 # -- the address space --------------------------------------------------------------------------
@@ -342,52 +213,6 @@ def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -
     attrs.UserWriteMask = 0
     item.NodeAttributes = attrs
     return item
-
-
-#: UNECE Recommendation 20 common codes of frequent units (OPC UA Part 8, 5.6.3: UnitId is the
-#: code's three characters packed into an Int32); other units get UnitId -1 ("unknown")
-_UNECE = {
-    "°C": "CEL",
-    "degC": "CEL",
-    "°F": "FAH",
-    "K": "KEL",
-    "%": "P1",
-    "bar": "BAR",
-    "mbar": "MBR",
-    "Pa": "PAL",
-    "kPa": "KPA",
-    "MPa": "MPA",
-    "m": "MTR",
-    "cm": "CMT",
-    "mm": "MMT",
-    "m/s": "MTS",
-    "A": "AMP",
-    "mA": "4K",
-    "V": "VLT",
-    "W": "WTT",
-    "kW": "KWT",
-    "Hz": "HTZ",
-    "s": "SEC",
-    "min": "MIN",
-    "h": "HUR",
-    "kg": "KGM",
-    "t": "TNE",
-    "N": "NEW",
-    "l": "LTR",
-    "rpm": "RPM",
-}
-UNECE_NAMESPACE = "http://www.opcfoundation.org/UA/units/un/cefact"
-
-
-def unit_id(unit: str) -> int:
-    """The OPC UA UnitId of a unit symbol (UNECE common code), -1 if not in the table."""
-    code = _UNECE.get(unit)
-    if code is None:
-        return -1
-    value = 0
-    for char in code:
-        value = (value << 8) | ord(char)
-    return value
 
 
 def _property_item(
@@ -547,26 +372,6 @@ def _check_write(binding: _Binding, item: ua.WriteValue, user: User) -> ua.Statu
 # -- the server -----------------------------------------------------------------------------------
 
 
-def _check_directory(directory: Path) -> None:
-    if not directory.is_dir():
-        raise ConfigError(f"opcua.trusted_client_certificates: {directory} is not a directory")
-
-
-async def _trust_list(directory: Path) -> CertificateValidator:
-    """asyncua's validator accepting only client certificates found in (or issued by a CA in)
-    ``directory``, also checking validity time, application URI and key usage."""
-    _check_directory(directory)  # before asyncua's loader, which would just find nothing
-    store = TrustStore([directory], [])
-    try:
-        await store.load()
-    except (OSError, ValueError) as exc:
-        raise ConfigError(f"opcua.trusted_client_certificates: {exc}") from None
-    options = (
-        CertificateValidatorOptions.TRUSTED_VALIDATION | CertificateValidatorOptions.PEER_CLIENT
-    )
-    return CertificateValidator(options, store)
-
-
 class OpcUaServer:
     """An asyncua server whose address space mirrors the poller's PLCs and tags.
 
@@ -633,7 +438,7 @@ class OpcUaServer:
         if self._server is not None:
             return
         config = self.config
-        server = Server(user_manager=_UserManager(config))
+        server = Server(user_manager=UserManagerOfConfig(config))
         await server.init()
         server.set_endpoint(config.endpoint)
         server.set_server_name(config.server_name)
@@ -652,7 +457,7 @@ class OpcUaServer:
             except (OSError, ValueError) as exc:
                 raise ConfigError(f"opcua: cannot load certificate or private key: {exc}") from None
         if config.trusted_client_certificates is not None:
-            server.set_certificate_validator(await _trust_list(config.trusted_client_certificates))
+            server.set_certificate_validator(await trust_list(config.trusted_client_certificates))
         self.namespace_index = idx = await server.register_namespace(config.namespace)
         await self._build(server, idx)
         iserver = server.iserver

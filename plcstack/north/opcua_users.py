@@ -1,0 +1,78 @@
+"""Who may do what on the OPC UA server: sessions' logins (anonymous per ``anonymous``, user
+names by PBKDF2 password hash) and the trust list of client certificates."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from asyncua.crypto.permission_rules import User, UserRole
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+from asyncua.server.internal_server import InternalServer
+from asyncua.server.user_managers import UserManager
+
+from plcstack.north.opcua_config import OpcUaConfig, check_password
+from plcstack.poll.config import ConfigError
+
+__all__ = ["PlcUser", "UserManagerOfConfig", "trust_list"]
+
+log = logging.getLogger("plcstack.north.opcua")
+
+
+@dataclass
+class PlcUser(User):
+    """A session's login as this server knows it: asyncua's ``User`` plus the right to write.
+
+    Never ``UserRole.Admin`` (asyncua lets admins skip access-level checks and edit the address
+    space); only sessions carrying a PlcUser may write to a PLC.
+    """
+
+    may_write: bool = False
+
+
+class UserManagerOfConfig(UserManager):
+    """asyncua user manager: anonymous per ``anonymous``, user names by PBKDF2 password hash."""
+
+    def __init__(self, config: OpcUaConfig) -> None:
+        self._anonymous = config.anonymous
+        self._users = {u.name: u for u in config.users}
+
+    def get_user(
+        self,
+        iserver: InternalServer,
+        username: str | None = None,
+        password: str | None = None,
+        certificate: Any = None,
+    ) -> User | None:
+        if username is None:
+            if self._anonymous == "none":
+                return None
+            return PlcUser(role=UserRole.User, may_write=self._anonymous == "write")
+        user = self._users.get(username)
+        if user is None or password is None or not check_password(password, user.password_hash):
+            log.warning("OPC UA login refused for user %r", username)
+            return None
+        return PlcUser(role=UserRole.User, name=username, may_write=user.write)
+
+
+def _check_directory(directory: Path) -> None:
+    if not directory.is_dir():
+        raise ConfigError(f"opcua.trusted_client_certificates: {directory} is not a directory")
+
+
+async def trust_list(directory: Path) -> CertificateValidator:
+    """asyncua's validator accepting only client certificates found in (or issued by a CA in)
+    ``directory``, also checking validity time, application URI and key usage."""
+    _check_directory(directory)  # before asyncua's loader, which would just find nothing
+    store = TrustStore([directory], [])
+    try:
+        await store.load()
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"opcua.trusted_client_certificates: {exc}") from None
+    options = (
+        CertificateValidatorOptions.TRUSTED_VALIDATION | CertificateValidatorOptions.PEER_CLIENT
+    )
+    return CertificateValidator(options, store)
