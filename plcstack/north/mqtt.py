@@ -551,6 +551,14 @@ class MqttSink:
             self._client = client
             self.connected = True
             self.stats.connects += 1
+            if self.last_error is not None:  # it was lost: say it is back, once
+                log.warning(
+                    "%s: connected to %s again; %d messages waiting are sent first",
+                    self.name,
+                    s.url,
+                    len(self.buffer),
+                )
+                self.last_error = None  # the next failure is a change again, logged
             backoff.reset()
             # everything queued before this point waited for the connection
             self._replay_until = self.buffer.next_seq - 1

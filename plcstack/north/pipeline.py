@@ -28,7 +28,7 @@ from typing import Any, Self
 
 from plcstack.north.audit import Audit
 from plcstack.north.config import NorthConfig
-from plcstack.north.layout import JsonLayout
+from plcstack.north.layout import JsonLayout, Reachability, split_scans
 from plcstack.north.metrics import MetricsServer, PlcstackCollector
 from plcstack.north.mqtt import MqttSink
 from plcstack.north.rbe import ReportByException
@@ -96,10 +96,13 @@ class North:
         self.writes = WritePath(poller if hasattr(poller, "write_tag") else None, audit=self.audit)
         self.sinks: list[Any] = list(sinks)
         self.mqtt: MqttSink | None = None
+        plcs = getattr(getattr(poller, "config", None), "plcs", ())
+        group_of = {(plc.name, tag.name): tag.group for plc in plcs for tag in plc.tags}
+        self._group_of = group_of
+        #: whether each PLC is reachable, by the rule the MQTT status uses: changes are logged
+        self.reachability = Reachability()
+        self._offline: set[str] = set()
         if config.mqtt is not None:
-            group_of = {
-                (plc.name, tag.name): tag.group for plc in poller.config.plcs for tag in plc.tags
-            }
             layout: Any = None
             if config.mqtt.mode == "sparkplug":
                 from plcstack.north.sparkplug import SparkplugLayout
@@ -214,6 +217,7 @@ class North:
         """One batch through metrics, RBE and every sink; returns what was reported."""
         self.collector.observe(batch)
         self.writes.observe(batch)  # the audit's "previous" (nothing without an audit)
+        self._log_reachability(batch)
         reported = self.rbe.filter(batch) if self.config.reports_by_exception else list(batch)
         if reported:
             submit = self.supervisor.submit
@@ -222,6 +226,24 @@ class North:
             if emit is not None:
                 submit("stdout", emit, reported)
         return reported
+
+    def _log_reachability(self, batch: Sequence[Sample]) -> None:
+        """A PLC going offline (with the reason) and coming back: one WARNING per change, so
+        an operator sees it at the default log level, not once per scan."""
+        update = self.reachability.update
+        for plc, group, samples in split_scans(batch, self._group_of):
+            state = update(plc, group, samples)
+            if state is None:
+                continue
+            if not state:
+                reason = next((s.error for s in samples if s.error), None) or "no good value"
+                log.warning("PLC %s is offline: %s", plc, reason)
+                self._offline.add(plc)
+            elif plc in self._offline:
+                self._offline.discard(plc)
+                log.warning("PLC %s is back online", plc)
+            else:
+                log.info("PLC %s is online", plc)
 
     async def run(self, emit: Callable[[list[Sample]], None] | None = None) -> None:
         """Consume the poller until cancelled."""

@@ -1,0 +1,67 @@
+"""What an operator sees at the default log level: each change once, not each scan."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from types import SimpleNamespace
+
+import pytest
+
+from plcstack.errors import ConnectFailed
+from plcstack.north.buffer import StoreAndForward
+from plcstack.north.config import NorthConfig
+from plcstack.north.mqtt import MqttSettings, MqttSink
+from plcstack.north.pipeline import North
+from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.poll.samples import Quality, Sample
+from tests.servers import Mosquitto
+
+
+def _scan(ok: bool, t: float) -> list[Sample]:
+    if ok:
+        return [Sample("press1", "x", 1, Quality.GOOD, t, t)]
+    error = "press1: connect: connection refused"
+    return [Sample("press1", "x", None, Quality.BAD, t, t + 0.1, error, ConnectFailed)]
+
+
+def test_a_plc_going_offline_and_back_is_one_warning_each(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    plc = PlcConfig("press1", "e71+tcp://127.0.0.1:1", (TagConfig("x", "D0"),))
+    poller = SimpleNamespace(config=PollConfig((plc,), {"default": 1}))
+    north = North(poller, NorthConfig())
+    pattern = [True] * 3 + [False] * 20 + [True] * 5 + [False] * 2
+    with caplog.at_level(logging.WARNING):
+        for i, ok in enumerate(pattern):
+            north.deliver(_scan(ok, 1_800_000_000.0 + i))
+    # main: nothing at all; a poll --format none run showed a dead PLC only in its final table
+    assert [r.getMessage() for r in caplog.records] == [
+        "PLC press1 is offline: press1: connect: connection refused",
+        "PLC press1 is back online",
+        "PLC press1 is offline: press1: connect: connection refused",
+    ]
+
+
+async def test_a_sink_losing_and_regaining_its_broker_says_so_once_each(
+    mosquitto: Mosquitto, caplog: pytest.LogCaptureFixture
+) -> None:
+    settings = MqttSettings(host=mosquitto.host, port=mosquitto.port, reconnect_max=0.1)
+    sink = MqttSink(settings, buffer=StoreAndForward(None))
+    with caplog.at_level(logging.WARNING, "plcstack.north.mqtt"):
+        await sink.start()
+        try:
+            await sink.wait_connected(5)
+            mosquitto.stop()
+            async with asyncio.timeout(10):
+                while sink.connected or sink.stats.failures < 5:  # noqa: ASYNC110
+                    await asyncio.sleep(0.02)  # several retries while the broker is away
+            mosquitto.start()
+            await sink.wait_connected(10)
+        finally:
+            await sink.aclose(drain=0)
+    messages = [r.getMessage() for r in caplog.records]
+    lost = [m for m in messages if "retrying with backoff" in m]
+    back = [m for m in messages if "again" in m]
+    assert 1 <= len(lost) <= 2 < sink.stats.failures  # the change, not every retry
+    assert back == [f"mqtt: connected to {settings.url} again; 0 messages waiting are sent first"]
