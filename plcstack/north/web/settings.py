@@ -19,6 +19,7 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
+from plcstack.errors import unknown_names
 from plcstack.poll.config import ConfigError
 
 __all__ = ["DEFAULT_PORT", "WebSettings", "parse_web", "with_port"]
@@ -51,9 +52,7 @@ def parse_web(table: Any) -> WebSettings:
         raise ConfigError("[web] must be a table")
     unknown = sorted(set(table) - _KEYS)
     if unknown:
-        raise ConfigError(
-            f"[web]: unknown key(s) {', '.join(unknown)}; expected {', '.join(sorted(_KEYS))}"
-        )
+        raise ConfigError(f"[web]: unknown key(s) {unknown_names(unknown, _KEYS)}")
     host = table.get("host", "127.0.0.1")
     port = table.get("port", DEFAULT_PORT)
     env = table.get("write_token_env")
