@@ -100,10 +100,20 @@ class SyncClient(Generic[C]):
         word_order: WordOrder,
     ) -> T | list[T]: ...
 
+    @overload
     def read_as(
         self,
         address: str,
-        vtype: ValueType[Any],
+        vtype: str,
+        count: int | None = None,
+        *,
+        word_order: WordOrder | None = None,
+    ) -> Any: ...
+
+    def read_as(
+        self,
+        address: str,
+        vtype: ValueType[Any] | str,
         count: int | None = None,
         *,
         word_order: WordOrder | None = None,
@@ -118,7 +128,7 @@ class SyncClient(Generic[C]):
     def write_as(
         self,
         address: str,
-        vtype: ValueType[T],
+        vtype: ValueType[T] | str,
         value: T | list[T],
         *,
         word_order: WordOrder | None = None,

@@ -8,6 +8,7 @@ the answer says what the notation is, what was probably meant, and how to go on,
 from __future__ import annotations
 
 import argparse
+import asyncio
 import pydoc
 import re
 from pathlib import Path
@@ -210,3 +211,17 @@ def test_every_error_line_of_the_cli_has_the_one_prefix(capsys: pytest.CaptureFi
         if re.search(r"plcstack [a-z][a-z ]*: (error|internal error):", line)
     ]
     assert own == []
+
+
+async def test_the_blocking_facade_takes_type_names_too() -> None:
+    import plcstack.sync
+
+    def blocking(url: str) -> tuple[float, int]:
+        with plcstack.sync.connect(url) as plc:
+            plc.write_as("D20", "float32", 1.25)
+            value: float = plc.read_as("D20", "float32")  # Any to mypy: no cast needed
+            return value, plc.read_as("D20", "uint16", 2)[1]
+
+    async with await e71.start() as sim:
+        value, high = await asyncio.to_thread(blocking, sim.url)
+    assert value == 1.25 and high == 0x3FA0
