@@ -83,7 +83,9 @@ def config(press: str, oven: str, flaky: str) -> PollConfig:
                 "press1",
                 press,
                 (
-                    TagConfig("strokes", "D100", vt.UINT16, writable=True),
+                    TagConfig(
+                        "strokes", "D100", vt.UINT16, writable=True, description="Press strokes"
+                    ),
                     TagConfig("force", "D102", vt.FLOAT32),
                     TagConfig("raw", "D110"),
                     TagConfig("alarms", "M0", vt.BOOL, 4),
@@ -219,6 +221,7 @@ async def test_browse_one_folder_per_plc_and_one_variable_per_tag(plant: Plant) 
     assert await alarms.read_array_dimensions() == [4]
     assert (await alarms.read_description()).Text == "M0 bool x4"
     strokes = plant.node(client, "press1", "strokes")
+    assert (await strokes.read_description()).Text == "Press strokes (D100 uint16)"
     assert await strokes.read_value_rank() == ua.ValueRank.Scalar
     read_write = {ua.AccessLevel.CurrentRead, ua.AccessLevel.CurrentWrite}
     assert set(await strokes.get_access_level()) == read_write

@@ -180,6 +180,15 @@ def _text(value: Any) -> str:
     return str(value)
 
 
+def variable_description(tag: TagConfig) -> str:
+    """A variable's Description: the engineer's text from the config first (what UaExpert shows
+    as the tag's meaning), then where it lives (``M0 bool x4``), so a client without the config
+    still sees the address and type."""
+    count = f" x{tag.count}" if tag.count > 1 else ""
+    where = f"{tag.address} {tag.type.name}{count}"
+    return f"{tag.description} ({where})" if tag.description else where
+
+
 def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -> ua.AddNodesItem:
     tag = binding.tag
     item = ua.AddNodesItem()
@@ -191,9 +200,7 @@ def _tag_item(binding: _Binding, parent: ua.NodeId, idx: int, interval: float) -
     item.TypeDefinition = _node(_type_definition(tag))
     attrs = ua.VariableAttributes()
     attrs.DisplayName = ua.LocalizedText(tag.name)
-    type_name = tag.type.name
-    count = f" x{tag.count}" if tag.count > 1 else ""
-    attrs.Description = ua.LocalizedText(f"{tag.address} {type_name}{count}")
+    attrs.Description = ua.LocalizedText(variable_description(tag))
     attrs.DataType = _node(binding.vtype.value)
     if tag.count == 1:
         attrs.ValueRank = ua.ValueRank.Scalar
