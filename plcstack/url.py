@@ -93,14 +93,3 @@ def parse_url(url: str) -> PlcUrl:
             raise AddressError("missing device path (e.g. as511:///dev/ttyS0)", plc=url)
         return PlcUrl(url, scheme, None, None, parts.path, options)
     raise AssertionError("scheme table entry needs host or path")  # pragma: no cover
-
-
-def __getattr__(name: str) -> object:
-    """``plcstack.url.connect`` is the old home of :func:`plcstack.clients.connect`; kept as a
-    lazy alias (resolved on first use, so this module still imports no client at load time)
-    for code written before the move. Import it from ``plcstack`` or ``plcstack.clients``."""
-    if name == "connect":
-        from plcstack.clients.connect import connect
-
-        return connect
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -124,7 +124,8 @@ def golden_memory_responder(fn: int, params: bytes) -> bytes | bool | None:
     return False
 
 
-def run_pg(job: Job, steps: list[tuple[str, bytes]]) -> Response | Nak:
+def run_pg(job: Job, steps: list[tuple[str, bytes]], *, by_byte: bool = False) -> Response | Nak:
+    """Run ``steps`` on a PG; ``by_byte``: each AG answer one byte per ``receive_data`` call."""
     pg = PGConnection()
     now = 0.0
     pg.submit(job, now)
@@ -137,7 +138,8 @@ def run_pg(job: Job, steps: list[tuple[str, bytes]]) -> Response | Nak:
         assert sent == expected, f"PG sent {sent.hex(' ')}, spec says {expected.hex(' ')}"
         sent, expected = b"", b""
         now += 0.01
-        pg.receive_data(data, now)
+        for chunk in [bytes([b]) for b in data] if by_byte else [data]:
+            pg.receive_data(chunk, now)
         sent = pg.data_to_send()
     assert sent == expected
     event = pg.next_event()

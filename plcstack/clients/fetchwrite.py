@@ -295,11 +295,16 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         self._pending_error = ConnectionLost(message, plc=self.name)
         self._drop()
 
+    def take_pending_error(self) -> PlcError | None:
+        """The error a broken connection left for the next request (once), or None."""
+        pending, self._pending_error = self._pending_error, None
+        return pending
+
     # -- jobs ---------------------------------------------------------------------------------
     async def _job(self, request: FetchRequest | WriteRequest, what: str) -> Response:
         is_write = isinstance(request, WriteRequest)
         client = self._writer if is_write and self._writer is not None else self
-        pending, client._pending_error = client._pending_error, None
+        pending = client.take_pending_error()
         if pending is not None:
             raise pending.bind(plc=client.name, request=what)
         response = await client.exchange(request, what, is_write=is_write)

@@ -238,10 +238,6 @@ class ClientConnection:
     request (DLE ACK after the parameters and the STX of the data frame; D.B6).
     """
 
-    #: take a whole expected answer (DLE ACK, STX, accept/terminate frame, a data frame in one
-    #: chunk) as one step instead of byte by byte; tests switch it off to compare both paths
-    fast_paths = True
-
     def __init__(
         self,
         *,
@@ -311,7 +307,6 @@ class ClientConnection:
         if type(data) is not bytes:
             data = bytes(data)
         i, n = 0, len(data)
-        fast = self.fast_paths
         while i < n:
             state = self.state
             deadline = self.deadline
@@ -324,68 +319,34 @@ class ClientConnection:
                 # byte by byte (the same checks; every byte of one chunk shares ``now``).
                 i = self._receive_run(data, i, now)
                 continue
-            if fast and not self._dle:
-                # The fast path of _receive_byte: ``data[i:]`` starts with the whole answer the
-                # AG normally gives in this state (DLE ACK, STX, the accept frame, the terminate
-                # frame 12 10 03): one step, leaving the machine exactly as feeding its bytes one
-                # by one with the same ``now`` does (``_enter`` inlined; compared with the byte
-                # path in tests/test_codec_fast_paths.py). Anything else (NAK, garbage, another
-                # terminate byte, an answer split across chunks) goes byte by byte below.
+            if not self._dle:
+                # ``data[i:]`` starts with the whole answer the AG normally gives in this state
+                # (DLE ACK, STX, the accept frame, the terminate frame 12 10 03): recognised in
+                # one step, and the same transition taken as when its last byte arrives alone.
+                # Anything else (NAK, garbage, another terminate byte, an answer split across
+                # chunks) goes byte by byte below.
                 job = self.job
                 assert job is not None
                 if state is _W_ACK1 or state is _W_ACK2:
                     if data.startswith(DLE_ACK, i):
                         i += 2
-                        if state is _W_ACK1:
-                            self._out += _BYTE[job.fn]
-                            self.state = _W_STX1
-                            self.deadline = now + self.char_timeout + self.tx_byte_time
-                        else:
-                            self.delivery = _ACKNOWLEDGED
-                            self.state = _W_STX2 if job.has_response else _W_STX3
-                            self.deadline = now + self.response_timeout + 0 * self.tx_byte_time
+                        self._acked(state, job, now)
                         continue
                 elif state is _W_STX1 or state is _W_STX2 or state is _W_STX3:
                     if data[i] == STX:
                         i += 1
-                        self._out += DLE_ACK
-                        if state is _W_STX2:
-                            limit = job.response_length
-                            self._rx = Unstuffer(
-                                ETX, _UNKNOWN_LENGTH_CAP if limit is None else limit + _SLACK
-                            )
-                            self.state = _RX_DATA
-                        else:
-                            self._got_byte = False
-                            self.state = _W_ACCEPT if state is _W_STX1 else _W_END
-                        self.deadline = now + self.char_timeout + 2 * self.tx_byte_time
+                        self._stx_seen(state, job, now)
                         continue
                 elif self._got_byte:
                     pass
                 elif state is _W_ACCEPT:
                     if data.startswith(ACCEPT_FRAME, i):
                         i += 3
-                        params = job.params
-                        self._out += DLE_ACK
-                        self._out += stuff(params) + _DLE_EOT
-                        self.delivery = _SENT
-                        sent = 4 + len(params) + params.count(DLE)
-                        self.state = _W_ACK2
-                        self.deadline = now + self.response_timeout + sent * self.tx_byte_time
-                        self._got_byte = True  # as the byte path leaves it (it saw the 16h)
+                        self._accepted(job, now)
                         continue
                 elif state is _W_END and data.startswith(TERMINATE_FRAME, i):
                     i += 3
-                    self._out += DLE_ACK
-                    self.state = _IDLE
-                    self.deadline = None
-                    self._events.append(
-                        Response(job.fn, self._payload if job.has_response else b"")
-                    )
-                    self._payload = b""
-                    # the byte path leaves these set (it saw 12h and the DLE of DLE ETX); IDLE
-                    # ignores them and the next job clears them: the same state either way
-                    self._got_byte = self._dle = True
+                    self._terminated(job)
                     continue
             self._receive_byte(data[i], now)
             i += 1
@@ -458,6 +419,47 @@ class ClientConnection:
         self._abort(now)
         self._events.append(Nak(job.fn, step))
 
+    # -- the transitions of the dialogue, each written once: taken when the last byte of an
+    # expected answer arrives, alone (``_receive_byte``) or with the whole answer in one chunk
+    # (``receive_data``)
+    def _acked(self, state: PGState, job: Job, now: float) -> None:
+        """DLE ACK in W_ACK1 (send the function code) or W_ACK2 (the AG executes the job)."""
+        if state is _W_ACK1:
+            self._send(_BYTE[job.fn])
+            self._enter(_W_STX1, now, sent=1)
+        else:
+            self.delivery = _ACKNOWLEDGED
+            self._enter(_W_STX2 if job.has_response else _W_STX3, now, slow=True)
+
+    def _stx_seen(self, state: PGState, job: Job, now: float) -> None:
+        """STX in W_STX1 (accept frame follows), W_STX2 (data frame) or W_STX3 (terminate)."""
+        self._send(DLE_ACK)
+        if state is _W_STX2:
+            limit = job.response_length
+            self._rx = Unstuffer(ETX, _UNKNOWN_LENGTH_CAP if limit is None else limit + _SLACK)
+            self._enter(_RX_DATA, now, sent=2)
+        else:
+            self._got_byte = False
+            self._enter(_W_ACCEPT if state is _W_STX1 else _W_END, now, sent=2)
+
+    def _accepted(self, job: Job, now: float) -> None:
+        """The accept frame is complete: acknowledge it and send the parameter frame."""
+        params = job.params
+        self._send(DLE_ACK)
+        self._send(stuff(params) + _DLE_EOT)
+        self.delivery = _SENT
+        self._got_byte = False
+        self._enter(_W_ACK2, now, sent=4 + len(params) + params.count(DLE), slow=True)
+
+    def _terminated(self, job: Job) -> None:
+        """The terminate frame is complete: acknowledge it; the job's event is ready."""
+        self._send(DLE_ACK)
+        self.state = _IDLE
+        self.deadline = None
+        self._dle = self._got_byte = False
+        self._events.append(Response(job.fn, self._payload if job.has_response else b""))
+        self._payload = b""
+
     def _receive_byte(self, byte: int, now: float) -> None:
         state = self.state
         if state is _IDLE:
@@ -483,13 +485,8 @@ class ClientConnection:
                 self._nak(now)
             elif byte != ACK:
                 self._fail(now, f"expected DLE ACK in {state.value}, got DLE {byte:02X}h")
-            elif state is _W_ACK1:
-                self._send(bytes([job.fn]))
-                self._enter(_W_STX1, now, sent=1)
             else:
-                self.delivery = _ACKNOWLEDGED
-                next_state = _W_STX2 if job.has_response else _W_STX3
-                self._enter(next_state, now, slow=True)
+                self._acked(state, job, now)
             return
         if state is _W_STX1:
             if self._dle:
@@ -500,9 +497,7 @@ class ClientConnection:
             elif byte == DLE:
                 self._dle = True
             elif byte == STX:
-                self._send(DLE_ACK)
-                self._enter(_W_ACCEPT, now, sent=2)
-                self._got_byte = False
+                self._stx_seen(state, job, now)
             else:
                 self._fail(now, f"expected STX after the function code, got {byte:02X}h")
             return
@@ -512,19 +507,8 @@ class ClientConnection:
         if state in (_W_STX2, _W_STX3):
             if byte != STX:
                 self._fail(now, f"expected STX in {state.value}, got {byte:02X}h")
-                return
-            self._send(DLE_ACK)
-            if state is _W_STX2:
-                limit = (
-                    job.response_length + _SLACK
-                    if job.response_length is not None
-                    else _UNKNOWN_LENGTH_CAP
-                )
-                self._rx = Unstuffer(ETX, limit)
-                self._enter(_RX_DATA, now, sent=2)
             else:
-                self._got_byte = False
-                self._enter(_W_END, now, sent=2)
+                self._stx_seen(state, job, now)
             return
         # RX_DATA never gets here: receive_data hands the data frame to _receive_run, and a
         # byte that came too late was dealt with above.
@@ -540,17 +524,10 @@ class ClientConnection:
             if accept and not self._got_byte:
                 self._fail(now, "accept frame without the AG answer byte (16h)")
                 return
-            self._send(DLE_ACK)
             if accept:
-                self._send(stuff(job.params) + bytes([DLE, EOT]))
-                self.delivery = _SENT
-                sent = 4 + len(job.params) + job.params.count(DLE)
-                self._enter(_W_ACK2, now, sent=sent, slow=True)
+                self._accepted(job, now)
             else:
-                self.state = _IDLE
-                self.deadline = None
-                self._events.append(Response(job.fn, self._payload if job.has_response else b""))
-                self._payload = b""
+                self._terminated(job)
             return
         if byte == DLE:
             self._dle = True

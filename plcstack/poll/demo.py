@@ -210,7 +210,8 @@ class DemoPlant:
     plcs: list[DemoPlc]
     notes: list[str]
     interval: float
-    _tasks: list[asyncio.Task[None]] = field(default_factory=list)
+    #: what runs beside the simulators (the PLC programs); ``aclose`` cancels and awaits it
+    tasks: list[asyncio.Task[None]] = field(default_factory=list)
 
     @property
     def config(self) -> PollConfig:
@@ -224,9 +225,9 @@ class DemoPlant:
         )
 
     async def aclose(self) -> None:
-        for task in self._tasks:
+        for task in self.tasks:
             task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await asyncio.gather(*self.tasks, return_exceptions=True)
         await asyncio.gather(*(p.sim.aclose() for p in self.plcs), return_exceptions=True)
 
 
@@ -275,5 +276,5 @@ async def start_plant(plcs: int | None = None, *, interval: float = 0.25) -> Dem
     except BaseException:
         await plant.aclose()
         raise
-    plant._tasks.append(asyncio.create_task(_run_program(started), name="demo PLC programs"))
+    plant.tasks.append(asyncio.create_task(_run_program(started), name="demo PLC programs"))
     return plant

@@ -173,7 +173,7 @@ class ValueType(ABC, Generic[T]):
 # -- numbers: a raw unsigned integer of ``bits`` bits, split over points by word order ----------
 
 
-class _Numeric(ValueType[T]):
+class NumericType(ValueType[T]):
     """A type whose value is a function of one unsigned ``bits``-bit integer."""
 
     __slots__ = ()
@@ -223,20 +223,23 @@ class _Numeric(ValueType[T]):
         return out
 
 
-def _refuse(value: object, type_name: str, why: str) -> ValueEncodeError:
+def refuse(value: object, type_name: str, why: str) -> ValueEncodeError:
+    """The error for a value a type cannot encode, worded the same by every type."""
     return ValueEncodeError(f"{value!r} cannot be written as {type_name}: {why}")
 
 
-def _integer(value: object, type_name: str) -> int:
+def as_integer(value: object, type_name: str) -> int:
+    """``value`` as an integer for ``type_name``; a bool or a non-integer is refused."""
     if isinstance(value, bool) or not isinstance(value, int):
-        raise _refuse(value, type_name, "not an integer")
+        raise refuse(value, type_name, "not an integer")
     return value
 
 
-def _number(value: object, type_name: str) -> float:
+def as_number(value: object, type_name: str) -> float:
+    """``value`` as a float for ``type_name``; a bool, a non-number or an overflow is refused."""
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise _refuse(value, type_name, "not a number")
+        raise refuse(value, type_name, "not a number")
     try:
         return float(value)
     except OverflowError:
-        raise _refuse(value, type_name, "too large") from None
+        raise refuse(value, type_name, "too large") from None

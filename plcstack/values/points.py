@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Any, Final, Literal
 
 from plcstack.errors import AddressError
-from plcstack.values.core import Point, ValueType, _number, _refuse
+from plcstack.values.core import Point, ValueType, as_number, refuse
 
 __all__ = ["Scale", "bits_of_points", "pack_ints", "plain_words"]
 
@@ -58,9 +58,9 @@ class Scale:
     def to_raw(self, eng: object, vtype: ValueType[Any]) -> int | float:
         """The raw value for engineering value ``eng``: rounded to an integer for integer and
         BCD types, so the type then checks its range."""
-        x = _number(eng, f"{vtype.name} scaled")
+        x = as_number(eng, f"{vtype.name} scaled")
         if not math.isfinite(x):
-            raise _refuse(eng, f"{vtype.name} scaled", "not a finite number")
+            raise refuse(eng, f"{vtype.name} scaled", "not a finite number")
         span = (self.raw_hi - self.raw_lo) / (self.eng_hi - self.eng_lo)
         raw = self.raw_lo + (x - self.eng_lo) * span
         return round(raw) if vtype.kind == "int" else raw

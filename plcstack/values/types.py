@@ -13,13 +13,13 @@ from plcstack.errors import AddressError, ValueDecodeError
 from plcstack.values.core import (
     ByteOrder,
     Endian,
+    NumericType,
     Point,
     ValueType,
     WordOrder,
-    _integer,
-    _number,
-    _Numeric,
-    _refuse,
+    as_integer,
+    as_number,
+    refuse,
 )
 
 __all__ = [
@@ -49,7 +49,7 @@ __all__ = [
 ]
 
 
-class _Int(_Numeric[int]):
+class _Int(NumericType[int]):
     __slots__ = ("_hi", "_lo")
 
     def __init__(self, name: str, bits: int, signed: bool, summary: str) -> None:
@@ -63,13 +63,13 @@ class _Int(_Numeric[int]):
         return raw
 
     def to_raw(self, value: object) -> int:
-        v = _integer(value, self.name)
+        v = as_integer(value, self.name)
         if not self._lo <= v <= self._hi:
-            raise _refuse(value, self.name, f"outside {self._lo}..{self._hi}")
+            raise refuse(value, self.name, f"outside {self._lo}..{self._hi}")
         return v & ((1 << self.bits) - 1)
 
 
-class _Float32(_Numeric[float]):
+class _Float32(NumericType[float]):
     __slots__ = ()
 
     def from_raw(self, raw: int) -> float:
@@ -77,18 +77,18 @@ class _Float32(_Numeric[float]):
         return value
 
     def to_raw(self, value: object) -> int:
-        f = _number(value, self.name)
+        f = as_number(value, self.name)
         try:
             return int.from_bytes(struct.pack(">f", f), "big")
         except OverflowError:
-            raise _refuse(value, self.name, "beyond +-3.4e38") from None
+            raise refuse(value, self.name, "beyond +-3.4e38") from None
 
 
 #: smallest normalised KG magnitude: mantissa 0.5, exponent -128
 _KG_MIN: Final = math.ldexp(0.5, -128)
 
 
-class _KG(_Numeric[float]):
+class _KG(NumericType[float]):
     """S5 KG real (spec F): byte 0 exponent (two's complement), bytes 1-3 mantissa (24-bit two's
     complement), value = m / 2^23 * 2^e. No NaN, no infinity."""
 
@@ -104,9 +104,9 @@ class _KG(_Numeric[float]):
         return math.ldexp(m, e - 23)
 
     def to_raw(self, value: object) -> int:
-        x = _number(value, self.name)
+        x = as_number(value, self.name)
         if not math.isfinite(x):
-            raise _refuse(value, self.name, "KG has no NaN or infinity")
+            raise refuse(value, self.name, "KG has no NaN or infinity")
         if x == 0.0:
             return 0
         if abs(x) < _KG_MIN:
@@ -120,7 +120,7 @@ class _KG(_Numeric[float]):
             m //= 2
             e += 1
         if e > 127:
-            raise _refuse(value, self.name, "beyond the KG range (about +-1.7e38)")
+            raise refuse(value, self.name, "beyond the KG range (about +-1.7e38)")
         return ((e & 0xFF) << 24) | (m & 0xFFFFFF)
 
 
@@ -144,7 +144,7 @@ def _to_bcd(value: int, digits: int) -> int:
     return raw
 
 
-class _BCD(_Numeric[int]):
+class _BCD(NumericType[int]):
     """Unsigned BCD, 4 digits per word (MELSEC BCD16/BCD32, S5 KZ with 3 digits)."""
 
     __slots__ = ("_digits",)
@@ -158,10 +158,10 @@ class _BCD(_Numeric[int]):
         return _bcd_digits(raw, self._digits, self.name)
 
     def to_raw(self, value: object) -> int:
-        v = _integer(value, self.name)
+        v = as_integer(value, self.name)
         hi = 10**self._digits - 1
         if not 0 <= v <= hi:
-            raise _refuse(value, self.name, f"outside 0..{hi}")
+            raise refuse(value, self.name, f"outside 0..{hi}")
         return _to_bcd(v, self._digits)
 
 
@@ -171,7 +171,7 @@ _KT_BASES: Final = ((1, 100), (1, 10), (1, 1), (10, 1))
 KT_MAX_SECONDS: Final = 9990.0
 
 
-class _KT(_Numeric[float]):
+class _KT(NumericType[float]):
     """S5 KT timer value in seconds (spec F): 3 BCD digits and a time base 0.01/0.1/1/10 s.
     Encoding picks the finest base that holds the value and rounds to it."""
 
@@ -183,11 +183,11 @@ class _KT(_Numeric[float]):
         return count * num / den  # division keeps 0.1-steps at their nearest double
 
     def to_raw(self, value: object) -> int:
-        seconds = _number(value, self.name)
+        seconds = as_number(value, self.name)
         if not math.isfinite(seconds) or seconds < 0:
-            raise _refuse(value, self.name, "a time must be a finite number >= 0 seconds")
+            raise refuse(value, self.name, "a time must be a finite number >= 0 seconds")
         if seconds > KT_MAX_SECONDS:
-            raise _refuse(value, self.name, "beyond 999 x 10 s, the longest S5 time")
+            raise refuse(value, self.name, "beyond 999 x 10 s, the longest S5 time")
         for base, (num, den) in enumerate(_KT_BASES):
             count = round(seconds * den / num)
             if count <= 999:
@@ -195,7 +195,7 @@ class _KT(_Numeric[float]):
         raise AssertionError("unreachable: 9990 s fits base 3")  # pragma: no cover
 
 
-class _Bool(_Numeric[bool]):
+class _Bool(NumericType[bool]):
     __slots__ = ()
 
     def from_raw(self, raw: int) -> bool:
@@ -203,7 +203,7 @@ class _Bool(_Numeric[bool]):
 
     def to_raw(self, value: object) -> int:
         if not isinstance(value, int) or value not in (0, 1):
-            raise _refuse(value, self.name, "not a bit (true/false or 1/0)")
+            raise refuse(value, self.name, "not a bit (true/false or 1/0)")
         return int(value)
 
     def decode(
@@ -250,14 +250,14 @@ class _Raw(ValueType[int | bool]):
     ) -> list[Point]:
         if point_bits <= 1:
             return BOOL.encode(value, 1)
-        v = _integer(value, f"a {point_bits}-bit point")
+        v = as_integer(value, f"a {point_bits}-bit point")
         lo, hi = -(1 << (point_bits - 1)), (1 << point_bits) - 1
         if not lo <= v <= hi:
-            raise _refuse(value, f"a {point_bits}-bit point", f"outside {lo}..{hi}")
+            raise refuse(value, f"a {point_bits}-bit point", f"outside {lo}..{hi}")
         return [v & hi]
 
 
-class _KY(_Numeric[tuple[int, int]]):
+class _KY(NumericType[tuple[int, int]]):
     """S5 KY: the two bytes of a word, high byte first (spec F: displayed "12,255")."""
 
     __slots__ = ()
@@ -271,7 +271,7 @@ class _KY(_Numeric[tuple[int, int]]):
             or len(value) != 2
             or not all(type(b) is int and 0 <= b <= 255 for b in value)
         ):
-            raise _refuse(value, self.name, "not a pair of bytes (0..255, 0..255)")
+            raise refuse(value, self.name, "not a pair of bytes (0..255, 0..255)")
         high, low = int(value[0]), int(value[1])
         return (high << 8) | low
 
@@ -329,13 +329,13 @@ class _Text(ValueType[str]):
         byte_order: ByteOrder = Endian.BIG,
     ) -> list[Point]:
         if not isinstance(value, str):
-            raise _refuse(value, self.name, "not a string")
+            raise refuse(value, self.name, "not a string")
         try:
             data = value.encode("latin-1")
         except UnicodeEncodeError:
-            raise _refuse(value, self.name, "has characters outside Latin-1") from None
+            raise refuse(value, self.name, "has characters outside Latin-1") from None
         if len(data) > self.length or (not self.strip and len(data) != self.length):
-            raise _refuse(value, self.name, f"needs exactly {self.length} characters or fewer"
+            raise refuse(value, self.name, f"needs exactly {self.length} characters or fewer"
                           if self.strip else f"needs exactly {self.length} characters")  # fmt: skip
         size = self.points_per_value(point_bits) * (point_bits // 8)
         data = data.ljust(size, self.pad.encode("latin-1"))
