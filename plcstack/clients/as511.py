@@ -64,7 +64,14 @@ def _as_user_request(exc: PlcError, what: str) -> PlcError:
 
 
 class AS511Client(As511Blocks, S5Access):
-    """Read and write an S5 CPU through its programming port (spec part B)."""
+    """Read and write an S5 CPU through its programming port (spec part B).
+
+    The PG services come first in the bases: their block and area reads and writes replace
+    :class:`S5Access`'s generic ones; from :class:`S5Access` the client takes the STEP 5 bit
+    notation, which :class:`Client`'s default (no bit notation) would otherwise shadow.
+    """
+
+    split_bit = S5Access.split_bit
 
     OPTIONS = (
         *COMMON,
