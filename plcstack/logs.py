@@ -97,6 +97,27 @@ def install_trace(transport: Any, name: str, protocol: str) -> bool:
         log.debug("%s <- %s", name, hex_frame(data))
         return data
 
+    send_delivering = getattr(transport, "send_delivering", None)
+
+    class TracedReceiver:
+        """Logs each delivered chunk, then hands it to the exchange's receiver."""
+
+        def __init__(self, receiver: Any) -> None:
+            self.receiver = receiver
+
+        def chunk_received(self, data: bytes) -> None:
+            log.debug("%s <- %s", name, hex_frame(data))
+            self.receiver.chunk_received(data)
+
+        def receive_failed(self, exc: Exception) -> None:
+            self.receiver.receive_failed(exc)
+
+    def traced_send_delivering(data: bytes, receiver: Any, timeout: float) -> None:
+        assert send_delivering is not None
+        send_delivering(data, TracedReceiver(receiver), timeout)
+
     transport.write = traced_write
     transport.read = traced_read
+    if send_delivering is not None:
+        transport.send_delivering = traced_send_delivering
     return True

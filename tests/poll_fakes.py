@@ -141,7 +141,7 @@ class FakeClient(Client):
                     await asyncio.sleep(0)
         except TimeoutError:
             self.stats.errors += 1
-            self._drop()
+            self.drop()
             raise PlcTimeout(
                 f"no answer within {self.timeout:g} s", plc=self.name, request=what
             ) from None
@@ -149,7 +149,7 @@ class FakeClient(Client):
             self.in_flight -= 1
         if not self.up or not self.transport.is_open:
             self.stats.errors += 1
-            self._drop()
+            self.drop()
             raise ConnectionLost("connection reset by peer", plc=self.name, request=what)
 
     async def read(self, address: str, count: int = 1) -> list[int] | list[bool]:

@@ -82,5 +82,5 @@ def test_fleet_opcodes_counts_the_measured_window(tmp_path: Path) -> None:
     assert data["requests"] > 0
     names = {(file, name) for file, name, _ in data["functions"]}
     # the callback scan path ran in the window, and the counting around it did not
-    assert ("scanner.py", "_fire") in names and ("e71_lane.py", "start") in names
+    assert ("scanner.py", "_fire") in names and ("exchange.py", "start") in names
     assert ("engine.py", "_update_connection_stats") not in names

@@ -1,4 +1,4 @@
-"""The callback exchange (``Client.start_read``: E71's ``WordReadLane``) decides
+"""The callback exchange (``Client.start_read``: the exchange driver with a callback) decides
 exactly as the awaited one (``await client.read``), over real loopback sockets.
 
 Every case plays one script through a twin peer for each path: a warm-up read the general way
@@ -256,7 +256,7 @@ async def play(
         stats = dataclasses.asdict(client.stats)
         # and whether the connection has proven itself (an answer) and how often fresh ones
         # failed before one did: the failure policy's backoff depends on them
-        proof = (client._unproven, client._unproven_failures)
+        proof = (client.unproven, client._unproven_failures)
         record.append(
             (outcome, stats, client.transport.is_open, peer.connections, len(chunks), proof)
         )
@@ -476,7 +476,7 @@ async def test_refused_while_stale_bytes_wait(where: str) -> None:
 async def test_refused_while_the_codec_is_not_settled(sim: Any) -> None:
     async with make_client(sim, "tcp") as client:
         assert await client.read("D0", 4) == WORDS
-        client._settled = False  # as after an exchange that left bytes in the codec
+        client.exchange_driver.settled = False  # as after an exchange that left bytes in the codec
         _refuses(client, sim)
         assert await client.read("D0", 4) == WORDS  # the general path settles it
         assert await read_callback(client, sim.port) == ("ok", WORDS)

@@ -156,13 +156,9 @@ async def test_quiet_and_input_waiting_see_what_the_loop_has_not_read(stale_peer
     assert not transport.quiet() and transport.input_waiting()
 
 
-@pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
 @pytest.mark.parametrize("where", ["delivered", "in-kernel"])
-async def test_stale_bytes_are_found_on_both_paths(
-    stale_peer: Any, general: bool, where: str
-) -> None:
+async def test_stale_bytes_are_found(stale_peer: Any, where: str) -> None:
     client = LineClient(f"line://127.0.0.1:{stale_peer.port}", stale_peer.transport())
-    client.stale_check_needs_loop_pass = general
     async with client:
         assert await client.read("ASK 1") == [1]
         stale_peer.extra = b"77\n"  # a second answer to "ASK 2", 20 ms late
@@ -182,17 +178,13 @@ async def test_stale_bytes_are_found_on_both_paths(
         assert stale_peer.connections == 2
 
 
-@pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
 @pytest.mark.parametrize("where", ["delivered", "in-kernel"])
-async def test_peer_close_between_requests_reconnects_on_both_paths(
-    stale_server: Any, general: bool, where: str
-) -> None:
+async def test_peer_close_between_requests_reconnects(stale_server: Any, where: str) -> None:
     """The PLC closed the connection after an answer: the next request reconnects at once, as
     it must when the end of stream waits in the kernel (the fast path's poll reports it)."""
     client = LineClient(
         f"line://127.0.0.1:{stale_server.port}", TcpTransport("127.0.0.1", stale_server.port)
     )
-    client.stale_check_needs_loop_pass = general
     stale_server.close_after = b"5"
     async with client:
         assert await client.read("ASK 5") == [5]
@@ -206,12 +198,10 @@ async def test_peer_close_between_requests_reconnects_on_both_paths(
         assert client.stats.errors == 0
 
 
-@pytest.mark.parametrize("general", [False, True], ids=["fast", "general"])
-async def test_clean_requests_are_the_same_on_both_paths(stale_server: Any, general: bool) -> None:
+async def test_clean_requests_need_one_connection(stale_server: Any) -> None:
     client = LineClient(
         f"line://127.0.0.1:{stale_server.port}", TcpTransport("127.0.0.1", stale_server.port)
     )
-    client.stale_check_needs_loop_pass = general
     async with client:
         assert [await client.read(f"ASK {i}") for i in range(20)] == [[i] for i in range(20)]
         assert client.stats.errors == 0 and client.stats.requests == 20

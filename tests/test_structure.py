@@ -149,17 +149,8 @@ PENDING_CYCLES = {
     "plcstack.north.config <-> plcstack.north.metrics <-> plcstack.north.mqtt <-> "
     "plcstack.north.opcua_config <-> plcstack.north.rbe <-> plcstack.poll.config",
     "plcstack.poll.engine <-> plcstack.poll.scanner",
-    "plcstack.clients.e71 <-> plcstack.clients.e71_lane",
 }
 PENDING_PRIVATES = {
-    "plcstack/clients/e71_lane.py: client._x_done",
-    "plcstack/clients/e71_lane.py: client._settled",
-    "plcstack/clients/e71_lane.py: client._answer_taken",
-    "plcstack/clients/e71_lane.py: client._x_end",
-    "plcstack/clients/e71_lane.py: client._x_adopt",
-    "plcstack/clients/e71_lane.py: client._finish",
-    "plcstack/clients/e71_lane.py: client._x_failed",
-    "plcstack/clients/e71_lane.py: client._lock",
     "plcstack/poll/scanner.py: poller._slots",
     "plcstack/poll/scanner.py: self._poller._whole_reply",
     "plcstack/poll/scanner.py: self._poller._single_done",

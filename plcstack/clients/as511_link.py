@@ -182,7 +182,7 @@ class As511Link(Client):
                 # "already in progress".
                 pg.reset(asyncio.get_running_loop().time())
                 if self._drop_on_error:
-                    self._drop()
+                    self.drop()
                 raise
             except (PlcTimeout, ConnectionLost, RemoteProtocolError) as exc:
                 failure: Failure = (
@@ -223,8 +223,8 @@ class As511Link(Client):
                     drop=self._drop_on_error,
                     outcome=pg.delivery.value,
                 )
-            if self._unproven:
-                self._answered()
+            if self.unproven:
+                self.answered()
         if isinstance(event, Response):
             return event.data
         self.stats.errors += 1

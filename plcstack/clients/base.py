@@ -155,7 +155,7 @@ class Client(AsyncResource):
         #: the current connection has not yet produced one valid answer. Backoff is reset by
         #: the first valid answer, not by TCP getting in: a peer that accepts and then garbles
         #: or closes every time would otherwise be reconnected at full speed.
-        self._unproven = True
+        self.unproven = True
         #: connections in a row that closed or garbled before one valid answer
         self._unproven_failures = 0
         #: why requests fail fast until ``_next_attempt`` ("PLC unreachable", ...)
@@ -215,7 +215,7 @@ class Client(AsyncResource):
         _log.info("%s: connected to %s", self.name, self.transport.peer)
         self.stats.connects += 1
         self._requests_at_connect = self.stats.requests
-        self._unproven = True
+        self.unproven = True
         self._backoff_detail = ""
         self.connection_made()
 
@@ -227,10 +227,10 @@ class Client(AsyncResource):
         self._backoff_detail = detail
         self._backoff_reason = reason
 
-    def _answered(self) -> None:
+    def answered(self) -> None:
         """The connection produced a valid answer: it works, so the backoff starts over.
-        Callers test ``_unproven`` first, keeping the hot path at one attribute read."""
-        self._unproven = False
+        Callers test :attr:`unproven` first, keeping the hot path at one attribute read."""
+        self.unproven = False
         self._unproven_failures = 0
         self.backoff.reset()
 
@@ -275,8 +275,9 @@ class Client(AsyncResource):
             return ""
         return f". Hint: {hint}" if hint else ""
 
-    def _drop(self) -> None:
-        # failure and reconnect paths only (deadline, bad or stale bytes, cancel, peer gone)
+    def drop(self) -> None:
+        """Close the connection after a failure; the next request reconnects (failure and
+        reconnect paths only: deadline, bad or stale bytes, cancel, peer gone)."""
         _log.info("%s: connection closed; the next request reconnects", self.name)
         self.transport.abort()
         self.connection_dropped()
@@ -307,9 +308,9 @@ class Client(AsyncResource):
         if failure == "timeout":
             self.stats.timeouts += 1
         if drop:
-            self._drop()
+            self.drop()
         hint = self._hint(failure, reply)
-        if sent and failure != "timeout" and self._unproven and drop:
+        if sent and failure != "timeout" and self.unproven and drop:
             # Closed or garbled before one valid answer on this connection. Once is a glitch
             # (the next request reconnects at once); again on the next fresh connection, and
             # the one after would most likely meet the same, so reconnects back off as after a
@@ -362,7 +363,7 @@ class Client(AsyncResource):
         ``True``, and ``done`` is later called once with what ``await read(...)`` returns or
         the exception it raises; else ``False`` and nothing happened (await :meth:`read`).
 
-        The poller's path for thousands of reads a second (see ``clients/e71_lane.py``). The
+        The poller's path for thousands of reads a second (``RequestClient.start_exchange``). The
         default always says ``False``; a client says ``True`` only for reads it has already
         done once the general way.
         """

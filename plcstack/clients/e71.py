@@ -19,6 +19,7 @@ MELSEC CPUs store them (D0 = 0000H, D1 = 3F40H is 0.75, spec §3 rule 10).
 from __future__ import annotations
 
 from collections.abc import Callable, Coroutine, Hashable, Sequence
+from dataclasses import dataclass
 from typing import Any, Self, TypeVar
 
 from plcstack.clients.base import (
@@ -28,7 +29,6 @@ from plcstack.clients.base import (
     as_points,
 )
 from plcstack.clients.e71_commands import E71CommandsMixin
-from plcstack.clients.e71_lane import WordReadLane
 from plcstack.clients.options import COMMON, choice, integer
 from plcstack.codecs.e71 import (
     DEFAULT_PC,
@@ -89,6 +89,16 @@ def _default_timer(timeout: float) -> int:
     return max(1, min(0xFFFF, int(timeout * 4) - 1))
 
 
+@dataclass(frozen=True, slots=True)
+class PreparedRead:
+    """A word read checked once (address parsed, range checked): its 01H request, which the
+    codec's send encodes once per connection and whose answer size and word layout it notes,
+    and its text for messages. A plain record: the client's exchange driver runs it."""
+
+    request: ReadWords
+    what: str
+
+
 class E71Client(E71CommandsMixin):
     """Async client for one E71 connection. Use ``async with plcstack.connect(url) as plc``."""
 
@@ -134,14 +144,14 @@ class E71Client(E71CommandsMixin):
             raise AddressError("rab_ascii_sub_chars must be 2 or 4", plc=name)
         self.rab_ascii_sub_chars = rab_ascii_sub_chars
         self._udp = isinstance(transport, UdpTransport)
-        #: binary over TCP: the codec takes a whole normal 01H answer in one step (exchange)
+        #: binary over TCP: the codec takes a whole normal 01H answer in one step (Exchange)
         self.quick_answers = not self._udp and self.code is Code.BINARY
         # The monitor registration lives in the PLC, not in the connection: keep what we
         # registered across reconnects so 88H/89H can still be sized.
         self._monitor: tuple[int | None, int | None] = (None, None)
-        #: (address, count) -> (01H request, its "what" text) of word reads already checked;
-        #: a poller reads the same few addresses every scan (see ``read``)
-        self._word_reads: dict[tuple[str, int], WordReadLane] = {}
+        #: (address, count) -> the word reads already checked; a poller reads the same few
+        #: addresses every scan (see ``read``)
+        self._word_reads: dict[tuple[str, int], PreparedRead] = {}
         #: bound once: a bound method made per read would be one more object per request
         self._finish: Callable[[Response, str], list[int]] = self._finish_words
         self.codec: E71ClientConnection = self.new_codec()
@@ -261,20 +271,27 @@ class E71Client(E71CommandsMixin):
         itself: no coroutine of its own on the polling hot path. Not ``async`` for that reason;
         every error still comes from awaiting the result, as from any ``async def``.
         """
-        lane = self._word_reads.get((address, count))
-        if lane is not None:
-            request = lane.request
+        prepared = self._word_reads.get((address, count))
+        if prepared is not None:
+            request = prepared.request
             if request.pc == self.pc and request.timer == self.monitoring_timer:
-                return self.exchange(request, lane.what, is_write=False, finish=self._finish)
+                return self.exchange(
+                    request, prepared.what, is_write=False, finish=self._finish, words=True
+                )
         return self._read(address, count)
 
     callback_reads = True
 
     def start_read(self, address: str, count: int, done: Callable[[Any], None]) -> bool:
-        """:meth:`read` as a callback exchange, for word reads already checked once: the
-        read's :class:`~plcstack.clients.e71_lane.WordReadLane` from ``read``'s cache."""
-        lane = self._word_reads.get((address, count))
-        return lane is not None and lane.start(done)
+        """:meth:`read` as a callback exchange (:meth:`RequestClient.start_exchange`), for
+        word reads already checked once (``read``'s cache of :class:`PreparedRead`)."""
+        prepared = self._word_reads.get((address, count))
+        if prepared is None:
+            return False
+        request = prepared.request
+        if request.pc != self.pc or request.timer != self.monitoring_timer:
+            return False
+        return self.start_exchange(request, prepared.what, done, finish=self._finish, words=True)
 
     def _finish_words(self, event: Response, what: str) -> list[int]:
         if type(event) is WordsResponse:
@@ -293,8 +310,8 @@ class E71Client(E71CommandsMixin):
         if type(address) is str and type(count) is int:
             if len(self._word_reads) >= _READ_CACHE:
                 self._word_reads.clear()
-            self._word_reads[(address, count)] = WordReadLane(self, request, what)
-        return await self._read_words(request, what)
+            self._word_reads[(address, count)] = PreparedRead(request, what)
+        return await self.exchange(request, what, is_write=False, finish=self._finish, words=True)
 
     async def write(self, address: str, values: Points) -> None:
         """Bits to a bit device (02H) or words to a word device (03H); <= 256 points."""

@@ -147,8 +147,8 @@ class E71FixedBufferClient(Client):
                 self._broken(exc)
 
     def _dispatch(self, event: FixedBufferData | FixedBufferAck | FixedBufferError | bytes) -> None:
-        if self._unproven:
-            self._answered()  # the PLC talks: the reconnect backoff starts over
+        if self.unproven:
+            self.answered()  # the PLC talks: the reconnect backoff starts over
         if isinstance(event, FixedBufferAck):
             if self._ack is not None and not self._ack.done():
                 self._ack.set_result(event.end_code)

@@ -1,21 +1,24 @@
-"""Request/response clients (E71, S5-LAN, FETCH/WRITE): one exchange at a time, two drivers.
+"""Request/response clients (E71, S5-LAN, FETCH/WRITE): one exchange at a time, one driver.
 
 A :class:`RequestClient` sends a request and decodes its answer with a Sans-IO codec
-(``send``/``receive_data``/``next_event``), under the failure policy of :class:`Client`. The
-exchange has two drivers over the same steps (``_take_chunk``, ``_answer_complete``,
-``_exchange_failed``):
+(``send``/``receive_data``/``next_event``), under the failure policy of :class:`Client`.
 
-* :meth:`RequestClient.exchange` awaits the answer's chunks (every request of the API);
-* a prepared read (E71's :class:`~plcstack.clients.e71_lane.WordReadLane`, behind
-  ``Client.start_read``) is handed them by the transport as they arrive
-  (``Transport.send_delivering``) and calls back: no coroutine, no task step and no future per
-  request, for the poller's scans of thousands of PLCs (``poll/scanner.py``). It takes the
-  plain answer with the codec's own quick step and hands anything else to the callback steps
-  here (``_x_adopt``, ``chunk_received``, ``receive_failed``), which decide with the steps
-  ``exchange`` uses.
+Every request runs through one :class:`Exchange`: the object that owns the state of the
+request in flight (the answer's chunks so far, whether the request left this host, the codec's
+quick step) and is the transport's :class:`~plcstack.transports.base.Receiver` for its answer
+(``Transport.send_delivering``). It decodes, settles and fails through one set of steps, and
+calls ``done`` once with the result or the bound error. Its two callers differ only in how they
+wait:
 
-The two cannot decide differently because they share every decision; tests/test_callback_exchange.py
-compares them on the same peers.
+* :meth:`RequestClient.exchange` (every request of the API) takes the lock, checks the
+  connection, starts the exchange and awaits a future that ``done`` resolves;
+* :meth:`RequestClient.start_exchange` (the poller's scans, through ``Client.start_read``)
+  starts it only when nothing needs waiting (lock free, connection quiet, codec settled) and
+  hands it the scan's callback: no coroutine, no task step and no future per request.
+
+The codec's quick step (``take_words``/``take_answer``: the whole normal answer from one chunk,
+or nothing taken) is the exchange's first step on a settled connection; anything else goes
+through ``receive_data``/``next_event``.
 """
 
 from __future__ import annotations
@@ -27,11 +30,12 @@ from collections.abc import Callable
 from typing import Any, Generic, Protocol, TypeVar, overload
 
 from plcstack.clients.base import Client
+from plcstack.clients.flight import SingleFlight
 from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
 from plcstack.errors import ConnectionLost, PlcError, PlcTimeout, RemoteProtocolError
 
-__all__ = ["ClientCodec", "RequestClient"]
+__all__ = ["ClientCodec", "Exchange", "RequestClient"]
 
 _log = logging.getLogger(__name__)
 
@@ -51,36 +55,306 @@ class ClientCodec(Protocol):
 
 E = TypeVar("E")
 
+#: what ``done`` receives: the result, or the exception the request ends with
+Done = Callable[[Any], None]
+
+
+def _nothing(result: Any) -> None:
+    """The ``done`` of an exchange that has none in flight."""
+
+
+class Exchange:
+    """The request in flight on one connection of a :class:`RequestClient`, and its answer's
+    :class:`~plcstack.transports.base.Receiver`. One per client, reused by each request (the
+    client's lock lets one be in flight), so a request allocates nothing here.
+
+    :meth:`start` sends; the transport hands each chunk to :meth:`chunk_received` and a
+    deadline or a lost connection to :meth:`receive_failed`; the exchange then calls its
+    ``done`` exactly once, unless :meth:`abandon` ends it first.
+    """
+
+    __slots__ = (
+        "_chunks",
+        "_client",
+        "_deadline",
+        "_done",
+        "_finish",
+        "_first",
+        "_is_write",
+        "_lock",
+        "_quick",
+        "_sent",
+        "_take_answer",
+        "_take_words",
+        "_waiter",
+        "_what",
+        "_words",
+        "resolve",
+        "settled",
+    )
+
+    def __init__(self, client: RequestClient[Any], lock: SingleFlight) -> None:
+        self._client = client
+        self._lock = lock
+        #: the codec holds nothing undecoded: a fresh one, or the last answer was taken whole
+        #: with nothing after it
+        self.settled = False
+        self._done: Done | None = None
+        self._finish: Callable[[Any, str], Any] | None = None
+        self._what = ""
+        self._is_write = False
+        self._deadline = 0.0
+        #: the answer so far: its first chunk alone, then every chunk in a list (kept for the
+        #: failure path's diagnosis)
+        self._first = b""
+        self._chunks: list[bytes] | None = None
+        #: whether a byte of the request left this host
+        self._sent = False
+        #: whether the next chunk may be taken whole by the codec's quick step, and whether
+        #: the result is the words alone (``take_words``) or the answer event (``take_answer``)
+        self._quick = False
+        self._words = False
+        self._take_answer: Callable[[bytes], Any] | None = None
+        self._take_words: Callable[[bytes], Any] | None = None
+        #: the future an awaited exchange waits on (:meth:`RequestClient.exchange`)
+        self._waiter: asyncio.Future[Any] | None = None
+        #: bound once: the ``done`` of an awaited exchange
+        self.resolve: Done = self._resolve
+
+    def connected(self, codec: ClientCodec, quick: bool) -> None:
+        """A fresh codec for a new connection; ``quick``: it has the one-step decoding of a
+        whole normal answer (``take_answer``, ``take_words``)."""
+        self.settled = True
+        self._take_answer = getattr(codec, "take_answer", None) if quick else None
+        self._take_words = getattr(codec, "take_words", None) if quick else None
+
+    @property
+    def in_flight(self) -> bool:
+        return self._done is not None
+
+    # -- the steps ------------------------------------------------------------------------------
+    def start(
+        self,
+        request: Any,
+        what: str,
+        finish: Callable[[Any, str], Any] | None,
+        done: Done,
+        *,
+        is_write: bool,
+        timeout: float,
+        words: bool = False,
+    ) -> None:
+        """Send ``request`` (the client's lock held, the connection checked for stale input)
+        and take its answer as it arrives; ``done`` is called once with ``finish(event,
+        what)`` (or the event), or with the bound error. ``words``: ``finish`` is the words of
+        a read, which the quick step hands out without the event."""
+        client = self._client
+        self._done = done
+        self._finish = finish
+        self._what = what
+        self._is_write = is_write
+        self._deadline = timeout
+        self._first = b""
+        self._chunks = None
+        self._sent = False
+        self._words = words
+        client.stats.requests += 1
+        # A settled codec holds no bytes, so right after ``send`` it can only need data.
+        settled, self.settled = self.settled, False
+        self._quick = settled and self._take_answer is not None
+        codec = client.codec
+        try:
+            client.transport.send_delivering(codec.send(request), self, timeout)
+            self._sent = True
+            if settled:
+                return
+            # an unsettled codec may already hold the answer
+            event = codec.next_event()
+            if event is not NEED_DATA:
+                self._answered(self._complete(event))
+        except Exception as exc:
+            self._failed(exc)
+
+    def chunk_received(self, data: bytes) -> None:
+        """A chunk of the answer (:class:`~plcstack.transports.base.Receiver`)."""
+        try:
+            if self._quick:
+                # The usual case of a poll: the whole normal answer in this one chunk and
+                # nothing more. The codec decides exactly as feeding the chunk, decoding and
+                # finding nothing after it would, or takes nothing (the general step below).
+                self._quick = False
+                if self._words:
+                    words = self._take_words(data)  # type: ignore[misc]  # quick: set
+                    if words is not None:
+                        self._taken()
+                        self._end()(list(words))
+                        return
+                else:
+                    event = self._take_answer(data)  # type: ignore[misc]  # quick: set
+                    if event is not None:
+                        self._taken()
+                        self._answered(event)
+                        return
+            event = self._take(data)
+        except Exception as exc:
+            self._failed(exc)
+            return
+        if event is not NEED_DATA:
+            self._answered(event)
+
+    def receive_failed(self, exc: Exception) -> None:
+        """The deadline passed or the connection ended (:class:`Receiver`)."""
+        self._failed(exc)
+
+    def abandon(self) -> None:
+        """End the exchange in flight, if any, without its ``done``; the connection is closed,
+        since its answer may still come."""
+        if self._done is not None:
+            self._end()
+            self._client.drop()
+
+    def _take(self, chunk: bytes) -> Any:
+        """Feed one chunk: the answer event once it is complete, else ``NEED_DATA``."""
+        chunks = self._chunks
+        if chunks is not None:
+            chunks.append(chunk)
+        elif self._first:
+            self._chunks = [self._first, chunk]
+        else:
+            self._first = chunk
+        codec = self._client.codec
+        codec.receive_data(chunk)
+        event = codec.next_event()
+        return event if event is NEED_DATA else self._complete(event)
+
+    def _complete(self, event: Any) -> Any:
+        _check_nothing_follows(self._client.codec)
+        self._taken()
+        return event
+
+    def _taken(self) -> None:
+        """The codec gave the whole answer and holds nothing after it: it is settled, and the
+        connection has proven itself (the backoff starts over)."""
+        self.settled = True
+        client = self._client
+        if client.unproven:
+            client.answered()
+
+    def _end(self) -> Done:
+        """No longer in flight: the receiver detached, the lock released (a waiter it is handed
+        to runs in a later loop pass). Returns the ``done``."""
+        done = self._done
+        self._done = None
+        self._client.transport.stop_delivery()
+        self._lock.release()
+        return done or _nothing
+
+    def _answered(self, event: Any) -> None:
+        done = self._end()
+        finish = self._finish
+        if finish is None:
+            done(event)
+            return
+        try:
+            result = finish(event, self._what)
+        except Exception as exc:  # the PLC's error code, bound
+            result = exc
+        done(result)
+
+    def _failed(self, exc: Exception) -> None:
+        if self._done is None:
+            return  # abandoned meanwhile
+        done = self._end()
+        error: Exception
+        if isinstance(exc, TimeoutError | PlcError):
+            error = self._error(exc)
+        else:  # a bug in a codec: what it left behind cannot be trusted
+            self._client.drop()
+            error = exc
+        done(error)
+
+    def _error(self, exc: TimeoutError | PlcError) -> PlcError:
+        """The bound error for a failure of this exchange, under the failure policy
+        (:meth:`Client.request_failed`) where the connection can no longer be trusted."""
+        client = self._client
+        if isinstance(exc, TimeoutError | ConnectionLost | RemoteProtocolError):
+            reply = b"".join(self._chunks or (self._first,))
+            failure: Failure
+            if isinstance(exc, TimeoutError):
+                failure = "timeout"
+                exc = PlcTimeout(
+                    f"no complete answer within {self._deadline:g} s, connection closed"
+                )
+            else:
+                failure = "closed" if isinstance(exc, ConnectionLost) else "malformed"
+            return client.request_failed(
+                exc, failure, reply, self._what, is_write=self._is_write, sent=self._sent
+            )
+        client.stats.errors += 1
+        return exc.bind(plc=client.name, request=self._what)
+
+    # -- the awaited exchange's future ----------------------------------------------------------
+    def wait(self) -> asyncio.Future[Any]:
+        """A future for the next exchange's result (its ``done`` is :attr:`resolve`)."""
+        self._waiter = waiter = asyncio.get_running_loop().create_future()
+        return waiter
+
+    def _resolve(self, result: Any) -> None:
+        waiter = self._waiter
+        self._waiter = None
+        if waiter is not None and not waiter.done():  # its task may have been cancelled
+            waiter.set_result(result)
+
+
+def _check_nothing_follows(codec: ClientCodec) -> None:
+    """An answer that arrived together with more bytes (a second answer, or one longer than the
+    request allows) cannot be trusted: without a transaction id there is no telling which part
+    belongs to this request. Raises :class:`RemoteProtocolError`."""
+    try:
+        extra = codec.next_event()
+    except RemoteProtocolError as exc:
+        raise RemoteProtocolError(
+            f"the answer came with more bytes than the request asks for ({exc.message}); "
+            "not trusted, connection closed"
+        ) from None
+    if extra is not NEED_DATA:
+        raise RemoteProtocolError(
+            f"the answer was followed by a second one ({type(extra).__name__}); "
+            "not trusted, connection closed"
+        )
+
 
 class RequestClient(Client, Generic[E]):
     """A client whose codec is request/response with ``send``/``receive_data``/``next_event``."""
 
     codec: ClientCodec
 
-    #: the codec has ``take_answer(chunk)``: the whole answer to the one pending request from
-    #: one chunk in one step, or None with nothing taken (see ``exchange``; E71 binary TCP)
+    #: the codec has ``take_answer(chunk)`` (and ``take_words``): the whole answer to the one
+    #: pending request from one chunk in one step, or None with nothing taken (E71 binary TCP)
     quick_answers = False
 
-    #: True: always let the event loop run once before a request (the general path of the
-    #: check for unsolicited bytes), even where the transport could ask the OS instead. Tests
-    #: set it to compare both paths; nothing else needs to.
-    stale_check_needs_loop_pass = False
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        #: the one exchange driver of this connection
+        self.exchange_driver = Exchange(self, self._lock)
 
     @abstractmethod
     def new_codec(self) -> ClientCodec:
         """A fresh client-role codec for a new connection."""
 
     def connection_made(self) -> None:
-        self.codec = self.new_codec()
-        self._settled = True
-
-    #: the codec holds nothing undecoded: a fresh one, or the last exchange ended with
-    #: ``_check_nothing_follows`` passing
-    _settled = False
+        self.codec = codec = self.new_codec()
+        self.exchange_driver.connected(codec, self.quick_answers)
 
     @overload
     async def exchange(
-        self, request: Any, what: str, *, is_write: bool, timeout: float | None = None
+        self,
+        request: Any,
+        what: str,
+        *,
+        is_write: bool,
+        timeout: float | None = None,
+        words: bool = False,
     ) -> E: ...
 
     @overload
@@ -92,6 +366,7 @@ class RequestClient(Client, Generic[E]):
         is_write: bool,
         timeout: float | None = None,
         finish: Callable[[E, str], T],
+        words: bool = False,
     ) -> T: ...
 
     async def exchange(
@@ -102,20 +377,19 @@ class RequestClient(Client, Generic[E]):
         is_write: bool,
         timeout: float | None = None,
         finish: Callable[[E, str], Any] | None = None,
+        words: bool = False,
     ) -> Any:
         """Send one request and return the codec's reply event (or ``finish(event, what)``).
 
         Holds the single-flight lock, (re)connects when needed, and turns every failure into a
         bound :class:`PlcError`. On a deadline or malformed reply the connection is closed so
-        nothing stale can be read later. A write is never retried here.
-
-        ``finish`` turns the event into the caller's result after the lock is released (it
-        must not await): a client's ``read`` can then hand out this coroutine itself instead
-        of awaiting it in one of its own, one coroutine fewer per request on the polling path.
+        nothing stale can be read later. A write is never retried here. ``finish`` must not
+        await; ``words``: see :meth:`Exchange.start`.
         """
         flight = self._lock
         if not flight.try_acquire():  # taken at once when free: no coroutine
             await flight.acquire()
+        x = self.exchange_driver
         try:
             transport = self.transport
             # Anything that arrived since the last answer (a duplicated answer, the rest of a
@@ -125,13 +399,12 @@ class RequestClient(Client, Generic[E]):
             # need two loop passes: in the first, asyncio's selector finds them and queues the
             # reader *behind* this task; in the second, the reader has run. A transport that can
             # ask the OS (TCP: one ``poll``) and hears "open, nothing queued, nothing waits"
-            # (``quiet``), with a codec that holds nothing, spares the request all of it (fast
-            # path; tests/test_fleet_paths.py compares the two).
-            if self.stale_check_needs_loop_pass or not self._settled or not transport.quiet():
+            # (``quiet``), with a codec that holds nothing, spares the request all of it.
+            if not x.settled or not transport.quiet():
                 if not transport.is_open:
                     await self._ensure_open(what)
                     transport = self.transport
-                if self.stale_check_needs_loop_pass or transport.input_waiting():
+                if transport.input_waiting():
                     await asyncio.sleep(0)
                     await asyncio.sleep(0)
                 stale = self._unsolicited_input()
@@ -139,226 +412,62 @@ class RequestClient(Client, Generic[E]):
                     if stale is not None:
                         _log.warning("%s: %s; reconnecting before %s", self.name, stale, what)
                         self.stats.errors += 1
-                    self._drop()
+                    self.drop()
                     await self._ensure_open(what)
-                    transport = self.transport
-            deadline = self.timeout if timeout is None else timeout
-            try:
-                event = self._send_request(request)
-                if event is NEED_DATA:
-                    expires = asyncio.get_running_loop().time() + deadline
-                    read, take = transport.read, self._take_chunk
-                    while event is NEED_DATA:
-                        event = take(await read(expires))
-            except asyncio.CancelledError:
-                # The caller gave up (wait_for, a cancelled task) with the answer maybe still on
-                # its way: it must die with the connection, or the codec (still expecting it)
-                # would refuse or mis-assign the next request.
-                self._drop()
-                raise
-            except (TimeoutError, PlcError) as exc:
-                raise self._exchange_failed(exc, what, is_write, deadline) from None
-        finally:
+            waiter = x.wait()
+        except BaseException:
             flight.release()
-
-        # every failure above raised: ``event`` is the answer
-        return event if finish is None else finish(event, what)
-
-    # -- the steps of one exchange, shared by both drivers ---------------------------------
-    #
-    # ``exchange`` awaits the chunks of an answer; the callback driver is handed them by the
-    # transport (``send_delivering``). Both decode, settle and fail through the same steps
-    # below, so the two paths cannot decide differently (tests/test_callback_exchange.py
-    # compares them).
-
-    #: the exchange in progress: what every chunk of its answer is and was (the first alone,
-    #: then all in a list: the failure path's diagnosis), whether a byte of it left this host,
-    #: and whether its first chunk may be taken whole (``take_answer``)
-    _x_first = b""
-    _x_chunks: list[bytes] | None = None
-    _x_sent = False
-    _x_quick = False
-
-    def _send_request(self, request: Any) -> Any:
-        """Count and send ``request`` on a connection checked for stale input: ``NEED_DATA``,
-        or the answer an unsettled codec already holds (settled, as :meth:`_take_chunk`
-        leaves it). Raises the transport's and the codec's errors."""
-        self.stats.requests += 1
-        self._x_first = b""
-        self._x_chunks = None
-        # A settled codec holds no bytes, so right after ``send`` it can only need data:
-        # asking it (as an unsettled one must be asked) would cost a decode attempt.
-        settled, self._settled = self._settled, False
-        self._x_sent = False
-        codec = self.codec
-        self.transport.write(codec.send(request))
-        self._x_sent = True
-        # The usual case of a poll: the whole answer in one chunk and nothing more (see
-        # ``_take_chunk``).
-        self._x_quick = settled and self.quick_answers
-        if settled:
-            return NEED_DATA
-        event = codec.next_event()
-        return event if event is NEED_DATA else self._answer_complete(event)
-
-    def _take_chunk(self, chunk: bytes) -> Any:
-        """Feed one chunk of the answer: the answer event once it is complete (the codec then
-        settled), else ``NEED_DATA``. Raises what the codec raises."""
-        codec = self.codec
-        if self._x_quick:
-            self._x_quick = False
-            # ``take_answer`` decides exactly as feeding the chunk, decoding and finding
-            # nothing after it would, or takes nothing and says None (the general decoding
-            # below then runs as before). Only codecs with the method set ``quick_answers``.
-            quick = codec.take_answer(chunk)  # type: ignore[attr-defined]
-            if quick is not None:
-                self._answer_taken()
-                return quick
-        chunks = self._x_chunks
-        if chunks is not None:
-            chunks.append(chunk)
-        elif self._x_first:
-            self._x_chunks = [self._x_first, chunk]
-        else:
-            self._x_first = chunk
-        codec.receive_data(chunk)
-        event = codec.next_event()
-        return event if event is NEED_DATA else self._answer_complete(event)
-
-    def _answer_complete(self, event: Any) -> Any:
-        self._check_nothing_follows(self.codec)
-        self._answer_taken()
-        return event
-
-    def _answer_taken(self) -> None:
-        """The codec gave the whole answer and holds nothing after it: it is settled, and the
-        connection has proven itself (the backoff starts over)."""
-        self._settled = True
-        if self._unproven:
-            self._answered()
-
-    def _exchange_failed(
-        self, exc: TimeoutError | PlcError, what: str, is_write: bool, deadline: float
-    ) -> PlcError:
-        """The bound error for a failure of the exchange in progress, under the failure policy
-        (:meth:`request_failed`) where the connection can no longer be trusted."""
-        if isinstance(exc, TimeoutError | ConnectionLost | RemoteProtocolError):
-            reply = b"".join(self._x_chunks or (self._x_first,))
-            failure: Failure
-            if isinstance(exc, TimeoutError):
-                failure = "timeout"
-                exc = PlcTimeout(f"no complete answer within {deadline:g} s, connection closed")
-            else:
-                failure = "closed" if isinstance(exc, ConnectionLost) else "malformed"
-            return self.request_failed(
-                exc, failure, reply, what, is_write=is_write, sent=self._x_sent
-            )
-        self.stats.errors += 1
-        return exc.bind(plc=self.name, request=what)
-
-    # -- the callback driver ------------------------------------------------------------------
-    # A prepared read (E71's ``WordReadLane``, ``clients/e71_lane.py``) starts an exchange
-    # without awaiting (the transport hands the answer's chunks to it: ``send_delivering``)
-    # and takes a plain answer itself. Anything else it hands to the steps below (``_x_adopt``),
-    # which decide with the steps ``exchange`` uses and call its ``done`` exactly once.
-
-    #: the callback exchange in progress (always a read: ``Client.start_read``): its
-    #: ``done``, ``finish``, text and deadline; ``_x_done`` is None when none is
-    _x_done: Callable[[Any], None] | None = None
-    _x_finish: Callable[[Any, str], Any] | None = None
-    _x_what = ""
-    _x_deadline = 0.0
-
-    def _x_adopt(self, finish: Callable[[Any, str], Any], what: str, *, sent: bool) -> None:
-        """Take over a callback exchange that a prepared read started (``_x_done`` set, the
-        request counted as ``_send_request`` counts it, the codec unsettled), in the state
-        ``_send_request`` would have left: from here on the steps below decide. ``sent``:
-        whether the request was handed to the transport. Its quick step (``take_answer``) is
-        spent: the prepared read tried it on the first chunk, if one came."""
-        self._x_finish, self._x_what = finish, what
-        self._x_deadline = self.timeout
-        self._x_first = b""
-        self._x_chunks = None
-        self._x_sent = sent
-        self._x_quick = False
-
-    def chunk_received(self, data: bytes) -> None:
-        """A chunk of the answer to the callback exchange, from the prepared read that
-        started it (the transport's :class:`~plcstack.transports.base.Receiver`)."""
+            raise
+        x.start(
+            request,
+            what,
+            finish,
+            x.resolve,
+            is_write=is_write,
+            timeout=self.timeout if timeout is None else timeout,
+            words=words,
+        )
         try:
-            event = self._take_chunk(data)
-        except Exception as exc:
-            self._x_failed(exc)
-            return
-        if event is not NEED_DATA:
-            self._x_answered(event)
+            result = await waiter
+        except asyncio.CancelledError:
+            # The caller gave up (wait_for, a cancelled task) with the answer maybe still on its
+            # way: it must die with the connection, or the codec (still expecting it) would
+            # refuse or mis-assign the next request.
+            x.abandon()
+            raise
+        if isinstance(result, Exception):
+            raise result
+        return result
 
-    def receive_failed(self, exc: Exception) -> None:
-        """The callback exchange's deadline passed or its connection ended (from the prepared
-        read that started it)."""
-        self._x_failed(exc)
-
-    def _x_end(self) -> Callable[[Any], None]:
-        """End the callback exchange in flight: no longer in flight, its receiver detached,
-        the lock released (a waiter it is handed to runs in a later loop pass). Its ``done``.
-        """
-        done = self._x_done
-        self._x_done = None
-        self.transport.stop_delivery()
-        self._lock.release()
-        return done  # type: ignore[return-value]  # callers check or know it is in flight
-
-    def _x_answered(self, event: Any) -> None:
-        done = self._x_end()
-        try:
-            result = self._x_finish(event, self._x_what)  # type: ignore[misc]  # set with done
-        except Exception as exc:  # the PLC's error code, bound (as ``exchange`` raises it)
-            result = exc
-        done(result)
-
-    def _x_failed(self, exc: Exception) -> None:
-        if self._x_done is None:
-            return  # abandoned meanwhile
-        done = self._x_end()
-        error: Exception
-        if isinstance(exc, TimeoutError | PlcError):
-            is_write = False  # a callback exchange is a read
-            error = self._exchange_failed(exc, self._x_what, is_write, self._x_deadline)
-        else:  # a bug in a codec: what it left behind cannot be trusted
-            self._drop()
-            error = exc
-        done(error)
+    def start_exchange(
+        self,
+        request: Any,
+        what: str,
+        done: Done,
+        *,
+        finish: Callable[[E, str], Any] | None = None,
+        words: bool = False,
+    ) -> bool:
+        """:meth:`exchange` of a read without awaiting, when that needs no waiting (codec
+        settled, connection quiet, lock free): ``True``, and ``done`` is later called once with
+        the result or the error ``exchange`` would raise (it may run before this returns: a
+        send that fails at once); else ``False`` with nothing sent or changed."""
+        x = self.exchange_driver
+        if not x.settled or not self.transport.quiet() or not self._lock.try_acquire():
+            return False
+        x.start(request, what, finish, done, is_write=False, timeout=self.timeout, words=words)
+        return True
 
     def abandon_exchange(self) -> None:
-        if self._x_done is not None:
-            self._x_end()
-            self._drop()
-
-    @staticmethod
-    def _check_nothing_follows(codec: ClientCodec) -> None:
-        """An answer that arrived together with more bytes (a second answer, or one longer than
-        the request allows) cannot be trusted: without a transaction id there is no telling
-        which part belongs to this request. Raises :class:`RemoteProtocolError`."""
-        try:
-            extra = codec.next_event()
-        except RemoteProtocolError as exc:
-            raise RemoteProtocolError(
-                f"the answer came with more bytes than the request asks for ({exc.message}); "
-                "not trusted, connection closed"
-            ) from None
-        if extra is not NEED_DATA:
-            raise RemoteProtocolError(
-                f"the answer was followed by a second one ({type(extra).__name__}); "
-                "not trusted, connection closed"
-            )
+        self.exchange_driver.abandon()
 
     def _unsolicited_input(self) -> str | None:
         """Feed bytes received between requests to the idle codec: ``None`` if they were only
         what the protocol allows there (e.g. MK life acks), else what was wrong with them."""
         received = self.transport.take_received()
-        if not received and self._settled:
-            # The last exchange left the codec with nothing to say (``_check_nothing_follows``)
-            # and nothing came since: asking it again would answer NEED_DATA.
+        if not received and self.exchange_driver.settled:
+            # The last exchange left the codec with nothing to say and nothing came since:
+            # asking it again would answer NEED_DATA.
             return None
         codec = self.codec
         try:

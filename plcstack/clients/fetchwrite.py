@@ -57,6 +57,7 @@ from plcstack.errors import (
 )
 from plcstack.s5address import FETCHWRITE_ORG, S5Address, S5Area, S5Unit, parse_s5_address
 from plcstack.transports.backoff import Backoff
+from plcstack.transports.base import Receiver
 from plcstack.transports.tcp import TcpTransport
 from plcstack.url import PlcUrl
 from plcstack.values import pack_ints
@@ -80,6 +81,23 @@ _WritePlan = tuple[S5Unit, int, int, int, int]
 _PLAN_CACHE: Final = 1024
 
 
+class _Traffic:
+    """A receiver that tells the life-ack timer about every chunk, then hands it on."""
+
+    __slots__ = ("receiver", "timer")
+
+    def __init__(self, timer: LifeAckTimer, receiver: Receiver) -> None:
+        self.timer = timer
+        self.receiver = receiver
+
+    def chunk_received(self, data: bytes) -> None:
+        self.timer.received(asyncio.get_running_loop().time())
+        self.receiver.chunk_received(data)
+
+    def receive_failed(self, exc: Exception) -> None:
+        self.receiver.receive_failed(exc)
+
+
 class _MkTcpTransport(TcpTransport):
     """TCP that tells a life-ack timer about every byte of traffic, including the life acks
     the client takes between jobs (``take_received``), which the MK codec then consumes."""
@@ -98,6 +116,12 @@ class _MkTcpTransport(TcpTransport):
         if self.timer is not None:
             self.timer.received(asyncio.get_running_loop().time())
         return data
+
+    def send_delivering(self, data: bytes, receiver: Receiver, timeout: float) -> None:
+        if self.timer is None:
+            super().send_delivering(data, receiver, timeout)
+        else:
+            super().send_delivering(data, _Traffic(self.timer, receiver), timeout)
 
     def take_received(self) -> list[bytes]:
         chunks = super().take_received()
@@ -261,7 +285,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
                 except ConnectionLost:
                     # The peer closed the idle connection (e.g. its own life-ack supervision):
                     # nothing was lost, the next job reconnects as it would without keep-alive.
-                    self._drop()
+                    self.drop()
                     return
                 except PlcError as exc:
                     self._declare_broken(f"protocol error between jobs: {exc.message}")
@@ -293,7 +317,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         log.warning("%s: %s", self.name, message)
         self.stats.errors += 1
         self._pending_error = ConnectionLost(message, plc=self.name)
-        self._drop()
+        self.drop()
 
     def take_pending_error(self) -> PlcError | None:
         """The error a broken connection left for the next request (once), or None."""

@@ -111,12 +111,12 @@ class Transport(ABC):
         """:meth:`write` ``data``, then hand every chunk that arrives to ``receiver`` as it
         arrives, until :meth:`stop_delivery` or until ``timeout`` seconds have passed or the
         connection ends (then ``receiver.receive_failed``). Raises as ``write`` does, and
-        then attaches nothing. Only called after :meth:`quiet` said ``True``: a transport
-        that never says so need not implement it.
+        then attaches nothing.
 
-        The callback-driven exchange (``clients/e71_lane.py``): no future and no
-        task step per answer, where ``read`` costs both; and one call where ``write`` and
-        attaching the receiver were two, on every polled request. The timeout is relative,
+        How every request of a request/response client is sent (the exchange driver,
+        ``clients/exchange.py``): a polled read then costs no future and no task step per
+        answer, where ``read`` costs both; and one call where ``write`` and attaching the
+        receiver were two. ``read`` serves the byte-by-byte AS511 dialogue. The timeout is relative,
         unlike ``read``'s deadline: the transport knows its loop, and asking for the running
         loop costs a system call (``getpid``).
         """
