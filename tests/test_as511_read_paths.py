@@ -1,9 +1,10 @@
 """Issue 16: the AS511 client's one-await word read decides exactly as the general path.
 
 ``AS511Client.read`` of a DB/DX word range whose block address is cached and whose header +
-data fit one transaction runs as a single awaited transaction (``fast_paths``); everything else,
+data fit one transaction runs as a single awaited transaction (``read_prepared``); everything else,
 and every failure after which the general path drops the cached address and asks B_INFO again,
-goes through ``read_block_bytes``. Two clients, one with the fast path and one without, each
+goes through ``read_block_bytes``. Two clients, one as shipped and one whose prepared read
+always declines (the general path, :class:`GeneralPath`), each
 against its own simulator holding the same memory, get the same sequence of reads and memory
 changes (blocks moved by compress, deleted, re-created longer, an answer one byte short): the
 same results or errors, the same bytes on the wire, the same address cache and counters.
@@ -51,6 +52,13 @@ def _memory() -> S5Memory:
     return mem
 
 
+class GeneralPath(AS511Client):
+    """The reference: every read takes the general path (``read_block_bytes``)."""
+
+    async def read_prepared(self, address: str, count: int) -> list[int] | None:
+        return None
+
+
 class _Side:
     """One client against its own simulator; records what it sends."""
 
@@ -75,7 +83,8 @@ class _Side:
         machine.execute = maybe_short  # type: ignore[method-assign]
         plc = connect(self.sim.url, nak_backoff=0.01)  # the B5.1 pause, short for tests
         assert isinstance(plc, AS511Client)
-        plc.fast_paths = self.fast
+        if not self.fast:
+            plc = GeneralPath(plc.name, plc.transport, nak_backoff=0.01)
         self.plc = plc
         await plc.open()
         write = plc.transport.write

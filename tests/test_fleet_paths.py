@@ -295,14 +295,14 @@ async def test_poller_batches_give_the_samples_iteration_gives() -> None:
     assert all(s.quality.name == "GOOD" for s in seen)
     await asyncio.sleep(0.05)  # more samples wait in the buffer
     await poller.aclose()
-    buffered = list(poller._queue)
+    buffered = list(poller.queue.items)
     assert buffered, "the test needs samples left in the buffer"
     rest = [s async for batch in poller.batches() for s in batch]  # ends: the poller is closed
     assert rest == buffered
 
     # the same buffer through the sample iterator
     again, _ = make({"p0": [tag("w", "D0", count=4)]}, interval=0.005)
-    again._queue.extend(buffered)
+    again.queue.items.extend(buffered)
     await again.aclose()
     assert [s async for s in again] == buffered
 
@@ -407,12 +407,10 @@ def test_ticker_wakes_in_due_order_never_early(offsets: list[int], cancel: set[i
     asyncio.run(run())
 
 
-@pytest.mark.parametrize("shared", [True, False], ids=["ticker", "asyncio.sleep"])
-async def test_poller_schedule_is_the_same_with_the_shared_timer(shared: bool) -> None:
+async def test_poller_schedule_follows_the_clock() -> None:
     from tests.test_poll_engine import make, tag
 
     poller, _ = make({f"p{i}": [tag("w", "D0", count=4)] for i in range(20)}, interval=0.02)
-    poller.shared_timer = shared
     loop = asyncio.get_running_loop()
     began = loop.time()
     await poller.start()

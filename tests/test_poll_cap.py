@@ -137,13 +137,11 @@ def _holding(poller: Poller) -> int:
     return sum(s._holding for name in poller.plcs for s in poller._plc(name).scanners)
 
 
-@pytest.mark.parametrize("callback", [True, False], ids=["callback", "tasks"])
 async def test_never_more_requests_in_flight_than_the_cap(
-    callback: bool, caplog: pytest.LogCaptureFixture
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     meter = Meter()
     peers, poller = await _fleet(meter, delay=0.002)
-    poller.callback_scans = callback
     counting = Counting(poller)
     per_plc: dict[str, list[Sample]] = {}
     try:
@@ -153,7 +151,7 @@ async def test_never_more_requests_in_flight_than_the_cap(
                 async for sample in poller:
                     per_plc.setdefault(sample.plc, []).append(sample)
                     enough = len(per_plc) == PLCS and all(len(s) >= 8 for s in per_plc.values())
-                    if enough and (not callback or sum(counting.started.values()) >= 3 * PLCS):
+                    if enough and sum(counting.started.values()) >= 3 * PLCS:
                         break
             await poller.aclose()
         assert [r for r in caplog.records if r.levelno >= logging.ERROR] == []
@@ -163,11 +161,8 @@ async def test_never_more_requests_in_flight_than_the_cap(
             await peer.aclose()
     assert meter.most == CAP, meter.most  # reached, never passed
     assert all(s.quality is Quality.GOOD and s.value == WORDS for v in per_plc.values() for s in v)
-    if callback:
-        # not vacuous: under the cap, most PLCs' plain scans were started as callbacks
-        assert sum(n >= 1 for n in counting.started.values()) >= PLCS // 2, counting.started
-    else:
-        assert counting.started == {} and counting.refused == {}
+    # not vacuous: under the cap, most PLCs' plain scans were started as callbacks
+    assert sum(n >= 1 for n in counting.started.values()) >= PLCS // 2, counting.started
     assert _free(_slots(poller)) == CAP
 
 

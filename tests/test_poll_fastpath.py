@@ -1,10 +1,8 @@
-"""The poller's inline single-request scan and ``_scan`` give the same samples and counters.
+"""Scripted replies and failures through the poller: the samples and counters they must give.
 
-``Poller._run`` runs a scan of one request inline (no coroutine, list or tuple per scan: the
-garbage collector's load with a thousand PLCs); scans of several requests go through
-``_scan``. Both must behave alike. These tests play one scripted sequence of replies and
-failures through a poller with the inline path and through one with it switched off, and
-compare what comes out.
+A merged request of two tags and a tag that is its request's whole reply each play one scripted
+sequence (good replies, a timeout, a client bug, a lost connection, a refused merged request, a
+short reply); what comes out is checked against the script, sample by sample.
 """
 
 from __future__ import annotations
@@ -49,9 +47,7 @@ TWO_TAGS = (
 
 
 async def _run(
-    inline: bool,
     *,
-    whole: bool = True,
     tags: tuple[TagConfig, ...] = TWO_TAGS,
     script_of: list[Outcome] = SCRIPT,
     expected: int = EXPECTED_SAMPLES,
@@ -78,8 +74,6 @@ async def _run(
 
     config = PollConfig((PlcConfig("p", "e71+tcp://127.0.0.1:1", tags),), {"default": 0.001})
     poller = Poller(config, client_factory=factory)
-    poller.inline_single_request = inline
-    poller.whole_reply_samples = whole
     samples: list[Sample] = []
     async with asyncio.timeout(10):
         async with poller:
@@ -104,9 +98,8 @@ async def _run(
     return [(*astuple(s)[:4], s.error) for s in samples], counters, requests
 
 
-@pytest.mark.parametrize("inline", [True, False])
-async def test_script_gives_the_expected_samples(inline: bool) -> None:
-    samples, counters, requests = await _run(inline)
+async def test_script_gives_the_expected_samples() -> None:
+    samples, counters, requests = await _run()
     values = [(tag, value) for _, tag, value, quality, _ in samples if quality is Quality.GOOD]
     assert [value for _, value in values] == [1, 2, 3, 4, 5, 6, 7, 8]
     assert [tag for tag, _ in values] == ["a", "b"] * 4
@@ -123,10 +116,6 @@ async def test_script_gives_the_expected_samples(inline: bool) -> None:
     assert requests == 2
 
 
-async def test_inline_and_scan_paths_agree() -> None:
-    assert await _run(inline=True) == await _run(inline=False)
-
-
 #: one tag that is the whole reply of its request: the path that hands the reply out as the
 #: sample's value (``ScanPlan.whole_reply_tag``); a short reply and failures in between
 WHOLE_SCRIPT: list[Outcome] = [
@@ -140,15 +129,8 @@ WHOLE_SCRIPT: list[Outcome] = [
 WHOLE_TAG = (TagConfig("w", "D0", vt.RAW, 3, "default"),)
 
 
-async def test_whole_reply_samples_agree_with_the_general_delivery() -> None:
-    runs = {
-        (inline, whole): await _run(
-            inline, whole=whole, tags=WHOLE_TAG, script_of=WHOLE_SCRIPT, expected=6
-        )
-        for inline, whole in [(True, True), (True, False), (False, True)]
-    }
-    assert runs[(True, True)] == runs[(True, False)] == runs[(False, True)]
-    samples, counters, _ = runs[(True, True)]
+async def test_whole_reply_samples_follow_the_script() -> None:
+    samples, counters, _ = await _run(tags=WHOLE_TAG, script_of=WHOLE_SCRIPT, expected=6)
     assert [value for _, _, value, _, _ in samples] == [
         [1, 2, 3],
         None,

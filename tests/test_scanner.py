@@ -1,12 +1,12 @@
-"""The poller's callback-driven scans (poll/scanner.py) give what its PLC tasks give.
+"""The scan driver (poll/scanner.py) over a fleet of simulated E71s.
 
-One fleet of simulated E71s (steady PLCs over TCP and UDP with two scan groups, a plan of
-several requests, a PLC that is down, one that stops answering, one that starts refusing a
-merged read, a consumer write in between) is polled with ``callback_scans`` on and off, each
-time against fresh twin simulators. The samples per tag (runs of equal samples collapsed, so
-that how many scans fit in the run does not matter) must be the same, and each PLC's counters
-must agree with the samples it produced the same way on both paths. The callback path must
-really have been taken (``start_read`` said True), or the comparison proves nothing.
+One fleet (steady PLCs over TCP and UDP with two scan groups, a plan of several requests, a PLC
+that is down, one that stops answering, one that starts refusing a merged read, a consumer
+write in between) is polled; the samples per tag (runs of equal samples collapsed, so that how
+many scans fit in the run does not matter) must be what each simulator's script makes them,
+and each PLC's counters must agree with the samples it produced. Both ways of running a scan
+must really have been taken: callbacks (``start_read`` said True) for the plain scans, awaited
+reads for the rest.
 
 Also: ``aclose`` while a callback request is in flight, and ``Ticker.call_at``.
 """
@@ -138,26 +138,25 @@ def _collapsed(samples: list[tuple[object, ...]]) -> list[tuple[object, ...]]:
 
 
 class Counting:
-    """Wraps each client's ``start_read`` (how often it said True / False) and the poller's
-    ``_scan_group`` (scans that took the task path), per PLC."""
+    """Wraps each client's ``start_read`` (how often it said True / False) and ``read`` (the
+    awaited reads of scans that did not run as callbacks), per PLC."""
 
     def __init__(self, poller: Poller) -> None:
         self.started: dict[str, int] = {}
         self.refused: dict[str, int] = {}
-        self.task_scans: dict[str, int] = {}
+        self.awaited: dict[str, int] = {}
         for name in poller.plcs:
             self._wrap(name, poller.client(name))
-        scan_group = poller._scan_group
-
-        async def counted(plc: Any, group: Any) -> bool:
-            name = plc.config.name
-            self.task_scans[name] = self.task_scans.get(name, 0) + 1
-            return await scan_group(plc, group)
-
-        poller._scan_group = counted  # type: ignore[method-assign]
 
     def _wrap(self, name: str, client: Client) -> None:
         start_read = client.start_read
+        read = client.read
+
+        async def awaited(address: str, count: int = 1) -> list[int] | list[bool]:
+            self.awaited[name] = self.awaited.get(name, 0) + 1
+            return await read(address, count)
+
+        client.read = awaited  # type: ignore[method-assign]
 
         def counted(address: str, count: int, done: Callable[[Any], None]) -> bool:
             started = start_read(address, count, done)
@@ -173,12 +172,11 @@ ENOUGH = 6
 
 
 async def _run(
-    callback: bool, concurrency: int | None = None
+    concurrency: int | None = None,
 ) -> tuple[dict[tuple[str, str], Any], dict[str, Any], Counting]:
     fleet = Fleet()
     config = await fleet.start(concurrency)
     poller = Poller(config)
-    poller.callback_scans = callback
     counting = Counting(poller)
     seen: list[Sample] = []
     per_tag: dict[tuple[str, str], list[Sample]] = {}
@@ -226,7 +224,7 @@ async def _run(
 
 
 def _counters(poller: Poller, name: str, samples: list[Sample]) -> dict[str, Any]:
-    """The PLC's counters checked against its samples; returns what must agree between paths."""
+    """The PLC's counters checked against its samples; returns their proportions."""
     stats = poller.stats[name]
     plc = poller._plc(name)
     completed = 0
@@ -251,21 +249,18 @@ def _counters(poller: Poller, name: str, samples: list[Sample]) -> dict[str, Any
 
 
 @pytest.mark.parametrize("concurrency", [None, 2], ids=["no-cap", "cap-2"])
-async def test_callback_scans_give_what_the_plc_tasks_give(concurrency: int | None) -> None:
-    """Also under a concurrency cap smaller than the fleet (issue 16: a cap used to turn the
-    callback scans off): scans that find no slot free wait on the task path."""
-    tasks_tags, tasks_counters, tasks_count = await _run(False, concurrency)
-    cb_tags, cb_counters, cb_count = await _run(True, concurrency)
-    assert cb_tags == tasks_tags
-    assert cb_counters == tasks_counters
-    # not vacuous: the callback path ran the plain scans, the task path the rest
-    assert tasks_count.started == {} and tasks_count.refused == {}
+async def test_every_scan_gives_what_the_plcs_hold(concurrency: int | None) -> None:
+    """Also under a concurrency cap smaller than the fleet: scans that find no slot free run
+    awaited, queued for one."""
+    tasks_tags, counters, cb_count = await _run(concurrency)
+    assert counters["steady1"]["writes"] == 1 and counters["steady2"]["bad_share"] == 0.0
+    assert counters["multi"]["requests_per_scan"] == 2 and counters["down"]["errors"]
+    # both ways of running a scan ran: callbacks for the plain scans, awaited reads the rest
     for name in ("steady1", "steady2", "mute", "isolate"):
         assert cb_count.started.get(name, 0) >= 2, (name, cb_count.started)
     assert "multi" not in cb_count.started and "multi" not in cb_count.refused
-    assert cb_count.task_scans["multi"] >= ENOUGH  # several requests: always the task path
+    assert cb_count.awaited["multi"] >= ENOUGH  # several requests: always awaited
     assert "down" not in cb_count.started  # never connected: never quiet
-    # what the runs saw (the same on both paths, as just checked)
     steady = [s[2] for s in tasks_tags["steady1", "a"]]
     assert steady == [WORDS, WRITTEN]
     assert [s[2] for s in tasks_tags["steady1", "b"]] == [42]

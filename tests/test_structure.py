@@ -142,31 +142,12 @@ def foreign_privates(text: str) -> list[str]:
     return found
 
 
-#: what the restructuring of the request path and of the config ownership still has to
-#: remove; each entry goes in the commit that removes it (the tests fail on any other finding,
-#: and on an entry that is no longer found)
+#: what the restructuring of the config ownership still has to remove (the test fails on any
+#: other cycle, and on this one once it is gone)
 PENDING_CYCLES = {
     "plcstack.north.config <-> plcstack.north.metrics <-> plcstack.north.mqtt <-> "
     "plcstack.north.opcua_config <-> plcstack.north.rbe <-> plcstack.poll.config",
-    "plcstack.poll.engine <-> plcstack.poll.scanner",
 }
-PENDING_PRIVATES = {
-    "plcstack/poll/scanner.py: poller._slots",
-    "plcstack/poll/scanner.py: self._poller._whole_reply",
-    "plcstack/poll/scanner.py: self._poller._single_done",
-    "plcstack/poll/scanner.py: self._poller._scan_group",
-    "plcstack/poll/scanner.py: from plcstack.poll.engine import _Group",
-    "plcstack/poll/scanner.py: from plcstack.poll.engine import _Plc",
-}
-
-
-def _unlined(hits: Iterable[str]) -> set[str]:
-    """``path:line: what`` -> ``path: what`` (lines move with every edit)."""
-    out = set()
-    for hit in hits:
-        where, _, what = hit.partition(": ")
-        out.add(f"{where.rpartition(':')[0]}: {what}")
-    return out
 
 
 # -- the package ---------------------------------------------------------------------------------
@@ -201,8 +182,7 @@ def test_no_private_name_imported_from_another_module() -> None:
         for path, text in MODULES.values()
         for hit in private_imports(text)
     ]
-    new = _unlined(found) - PENDING_PRIVATES
-    assert not new, "\n".join(sorted(new))
+    assert not found, "\n".join(found)
 
 
 def test_no_private_attribute_of_another_object_in_clients_and_poll() -> None:
@@ -212,18 +192,7 @@ def test_no_private_attribute_of_another_object_in_clients_and_poll() -> None:
         if name.startswith(NO_FOREIGN_PRIVATES)
         for hit in foreign_privates(text)
     ]
-    new = _unlined(found) - PENDING_PRIVATES
-    assert not new, "\n".join(sorted(new))
-
-
-def test_every_pending_private_use_is_still_there() -> None:
-    """An entry of PENDING_PRIVATES that was removed from the code is removed from the list."""
-    found = _unlined(
-        f"{path.relative_to(ROOT)}:{hit}"
-        for path, text in MODULES.values()
-        for hit in [*private_imports(text), *foreign_privates(text)]
-    )
-    assert not PENDING_PRIVATES - found, f"gone: {PENDING_PRIVATES - found}"
+    assert not found, "\n".join(found)
 
 
 # -- the checks themselves must be able to fail --------------------------------------------------

@@ -82,9 +82,6 @@ class AS511Client(As511Blocks, S5Access):
         flag("cache", True, "cache block addresses from B_INFO"),
         flag("strict", False, "check the 5 leading zero bytes of read answers (D.B2)"),
     )
-    #: the cached-address word read in one await (see :meth:`read`); tests switch it off to
-    #: compare it with the general path
-    fast_paths = True
     #: a serial line adds its character format
     SERIAL_OPTIONS = (
         *OPTIONS,
@@ -156,7 +153,7 @@ class AS511Client(As511Blocks, S5Access):
         """Read in S5 notation: words (DBn.DWk, MW, IW, QW, T, C) or bytes (MB, IB, DL/DR)."""
         try:
             # exact int: 2.0 or True would find the plan of 2 or 1 (equal keys) and skip _parse
-            if self.fast_paths and type(count) is int:
+            if type(count) is int:
                 # the polling hot path: a DB/DX word read checked before, its block address
                 # cached (see As511Blocks.read_prepared); anything else continues below from
                 # exactly the point where the general path would

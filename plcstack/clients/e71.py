@@ -144,8 +144,6 @@ class E71Client(E71CommandsMixin):
             raise AddressError("rab_ascii_sub_chars must be 2 or 4", plc=name)
         self.rab_ascii_sub_chars = rab_ascii_sub_chars
         self._udp = isinstance(transport, UdpTransport)
-        #: binary over TCP: the codec takes a whole normal 01H answer in one step (Exchange)
-        self.quick_answers = not self._udp and self.code is Code.BINARY
         # The monitor registration lives in the PLC, not in the connection: keep what we
         # registered across reconnects so 88H/89H can still be sized.
         self._monitor: tuple[int | None, int | None] = (None, None)

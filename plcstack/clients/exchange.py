@@ -121,12 +121,13 @@ class Exchange:
         #: bound once: the ``done`` of an awaited exchange
         self.resolve: Done = self._resolve
 
-    def connected(self, codec: ClientCodec, quick: bool) -> None:
-        """A fresh codec for a new connection; ``quick``: it has the one-step decoding of a
-        whole normal answer (``take_answer``, ``take_words``)."""
+    def connected(self, codec: ClientCodec) -> None:
+        """A fresh codec for a new connection, with or without the one-step decoding of a
+        whole normal answer (``take_answer``, ``take_words``: E71; they take nothing where
+        the answer cannot be taken whole, over UDP or in ASCII)."""
         self.settled = True
-        self._take_answer = getattr(codec, "take_answer", None) if quick else None
-        self._take_words = getattr(codec, "take_words", None) if quick else None
+        self._take_answer = getattr(codec, "take_answer", None)
+        self._take_words = getattr(codec, "take_words", None)
 
     @property
     def in_flight(self) -> bool:
@@ -329,10 +330,6 @@ class RequestClient(Client, Generic[E]):
 
     codec: ClientCodec
 
-    #: the codec has ``take_answer(chunk)`` (and ``take_words``): the whole answer to the one
-    #: pending request from one chunk in one step, or None with nothing taken (E71 binary TCP)
-    quick_answers = False
-
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         #: the one exchange driver of this connection
@@ -344,7 +341,7 @@ class RequestClient(Client, Generic[E]):
 
     def connection_made(self) -> None:
         self.codec = codec = self.new_codec()
-        self.exchange_driver.connected(codec, self.quick_answers)
+        self.exchange_driver.connected(codec)
 
     @overload
     async def exchange(

@@ -1,27 +1,25 @@
-"""Callback-driven scans: one scan group of one PLC without a task.
+"""The scan driver: every scan group of every PLC is scheduled and completed here, one way.
 
-A PLC task spends, per scan of one request, two task steps (woken by its timer, then by the
-answer) and two futures, on top of what the request itself costs; with a thousand PLCs at 10 Hz
-that was the largest share of the poller's excess over a raw asyncio loop. A
-:class:`Scanner` instead starts the request in the ticker's timer callback
-(``Client.start_read``) and receives the result in a callback from the transport's
-``buffer_updated``: the sample is queued and the next scan put on the ticker in the same loop
-pass that received the answer.
+One :class:`Scanner` per group puts its next scan on the poller's :class:`Ticker` (one loop
+timer for every PLC). When the scan is due:
 
-Only the plain case runs this way: a group whose plan is one request, which the client can send
-at once (lock free, connection open and quiet, codec settled, the read done once before).
-Everything else (connecting, a stale-input check, a request queued behind a write, a plan of
-several requests) runs that scan through the task path's own code (``Poller._scan_group``) in a
-task of its own, and the next scan is tried the quick way again. Both paths deliver through
-``Poller._single_done`` and schedule through :func:`advance`: tests/test_scanner.py compares
-them sample for sample.
+* a plan of one request, on a client that can start it without waiting
+  (``Client.start_read``: E71 with the lock free, the connection quiet, the read checked once
+  before), starts it in the timer callback and gets the result in a callback from the
+  transport: no task, no coroutine and no future per scan. At a thousand PLCs at 10 Hz that is
+  what keeps the poller near a raw asyncio loop (the fleet case of ``plcstack bench``);
+* anything else (connecting, a request queued behind a write, a plan of several requests, a
+  client that only awaits) runs that scan's requests awaited, in a task of its own.
 
-Under a concurrency cap (``poll.concurrency``) a callback scan takes one of the poller's slots
-with :meth:`~plcstack.clients.flight.Slots.try_acquire` before it starts its request and gives
-it back when the answer (or the failure) arrives. When no slot is free, the scan runs on the
-task path, which awaits a slot behind the scans already waiting: ``try_acquire`` never succeeds
-while anyone waits, so the callback scans cannot overtake that queue, and the cap holds across
-both paths.
+Either way the scan ends in the same steps: its samples go to the :class:`SampleQueue`, a
+failed request is accounted once (:func:`account_failure`, which also isolates the tags of a
+merged request the PLC refused), and the next scan goes on the ticker (:func:`advance`: missed
+ticks are counted as overruns, never queued up).
+
+Under a concurrency cap (``poll.concurrency``) a callback scan takes a slot without waiting
+(``Slots.try_acquire``, which never succeeds while anyone waits, so it cannot overtake the
+queue) and gives it back when its answer arrives; with no slot free the scan runs awaited and
+queues for one.
 """
 
 from __future__ import annotations
@@ -30,30 +28,58 @@ import asyncio
 import logging
 import time
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Protocol
+from dataclasses import dataclass, field
 
+from plcstack.clients.base import Client
 from plcstack.clients.flight import Slots
+from plcstack.errors import AddressError, ConnectionLost, PlcError, PlcErrorResponse, PlcTimeout
+from plcstack.poll.config import PlcConfig, TagConfig
+from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, describe
+from plcstack.poll.samples import Quality, SampleQueue, make_sample
 from plcstack.poll.stats import PlcStats
 from plcstack.poll.ticker import Ticker
+from plcstack.values import ByteOrder, Endian, WordOrder
 
-if TYPE_CHECKING:
-    from plcstack.poll.engine import Poller, _Group, _Plc
-    from plcstack.poll.plan import ScanPlan
-
-__all__ = ["Scanner", "advance"]
+__all__ = ["GroupState", "PlcState", "Scanner", "account_failure", "advance"]
 
 _log = logging.getLogger(__name__)
-#: the schedule's clock and the samples' wall clock (see Poller: one time.time() per scan)
+#: the schedule's clock and the samples' wall clock: one ``time.time()`` per scan; each request
+#: is timed with ``perf_counter`` (its latency), and its Unix send/receive times are that
+#: ``time.time()`` plus ``perf_counter`` offsets, so ``receive_time >= source_time`` even if
+#: the wall clock steps
 _clock = time.perf_counter
 _wall_clock = time.time
+_GOOD, _BAD = Quality.GOOD, Quality.BAD
 
 
-class _Scheduled(Protocol):
+@dataclass(slots=True)
+class GroupState:
+    """One scan group of one PLC: its tags, its current read plan and its schedule."""
+
+    name: str
     interval: float
-    next_due: float
+    tags: tuple[TagConfig, ...]
+    plan: ScanPlan
+    next_due: float = 0.0
+    #: tags read separately since the PLC refused a merged request of theirs
+    isolate: frozenset[str] = frozenset()
 
 
-def advance(stats: PlcStats, group: _Scheduled, end: float) -> None:
+@dataclass(slots=True)
+class PlcState:
+    """One PLC of a poller: its client, groups, statistics and tag plans."""
+
+    config: PlcConfig
+    client: Client
+    groups: list[GroupState]
+    stats: PlcStats
+    tags: dict[str, TagPlan]  # name -> the tag's plan (point bits, bit of a word)
+    order: WordOrder = Endian.BIG
+    byte_order: ByteOrder = Endian.BIG
+    scanners: list[Scanner] = field(default_factory=list)
+
+
+def advance(stats: PlcStats, group: GroupState, end: float) -> None:
     """Move ``group``'s schedule past a scan that ended at ``end``: to its next tick, or, when
     the scan ran past that, to the first tick in the future, counting the missed ones as
     overruns (missed scans are never queued up)."""
@@ -66,15 +92,46 @@ def advance(stats: PlcStats, group: _Scheduled, end: float) -> None:
     group.next_due = next_due
 
 
+def account_failure(
+    plc: PlcState, group: GroupState, plan: ScanPlan, index: int, exc: Exception
+) -> PlcError:
+    """Account for a failed request of a scan; returns the error bound to PLC and request.
+
+    A merged request that the PLC rejects with an error code has its tags read separately
+    from the next scan on, so one bad address does not blank its neighbours.
+    """
+    stats = plc.stats
+    stats.requests += 1
+    stats.errors += 1
+    request = plan.requests[index]
+    if isinstance(exc, PlcError):
+        error = exc.bind(plc=plc.config.name, request=describe(request))
+    else:  # a client bug must not end this PLC's polling
+        error = PlcError(
+            f"unexpected {type(exc).__name__}: {exc}",
+            plc=plc.config.name,
+            request=describe(request),
+        )
+    _log.debug("scan request failed: %s", error)  # the tags carry it too, as bad samples
+    if isinstance(error, PlcErrorResponse | AddressError):
+        names = {t.name for t in plan.tags_of(index)}
+        if len(names) > 1 and not names <= group.isolate:
+            group.isolate = group.isolate | names
+            group.plan = build_plan(
+                plc.client, group.tags, max_gap=plc.config.max_gap, isolate=group.isolate
+            )
+    return error
+
+
 class Scanner:
     """The scans of one group of one PLC, on the poller's :class:`Ticker`.
 
     ``start`` puts the first scan on the ticker; from then on every scan puts the next one there
     when it has ended, so a group never has two scans at once. ``close`` stops it: a scan
-    waiting on the ticker never runs, a task-path scan in progress is cancelled (the caller
-    awaits what ``close`` returns), and the poller abandons a callback request in flight;
-    that request's slot of the concurrency cap is given back at once, since its ``done`` will
-    never come.
+    waiting on the ticker never runs, an awaited scan in progress is cancelled (the caller
+    awaits what ``close`` returns), and the poller abandons a callback request in flight; that
+    request's slot of the concurrency cap is given back at once, since its ``done`` will never
+    come.
     """
 
     __slots__ = (
@@ -85,31 +142,40 @@ class Scanner:
         "_fire_cb",
         "_group",
         "_holding",
+        "_items",
         "_name",
         "_offset",
         "_plan",
         "_plc",
-        "_poller",
-        "_single",
+        "_queue",
         "_slots",
         "_start",
         "_start_read",
         "_stats",
         "_task",
         "_ticker",
+        "_wake",
         "_whole",
     )
 
-    def __init__(self, poller: Poller, plc: _Plc, group: _Group, ticker: Ticker) -> None:
-        self._poller = poller
+    def __init__(
+        self,
+        plc: PlcState,
+        group: GroupState,
+        ticker: Ticker,
+        queue: SampleQueue,
+        slots: Slots | None,
+    ) -> None:
         self._plc = plc
         self._group = group
         self._ticker = ticker
+        self._queue = queue
+        self._items = queue.items
+        self._wake = queue.wake
         self._stats = plc.stats
         self._name = plc.config.name
-        #: the poller's switch, read when scanning starts (as its tasks read it)
-        self._single = poller.inline_single_request
-        self._start_read = plc.client.start_read
+        client = plc.client
+        self._start_read = client.start_read if client.callback_reads else None
         self._use(group.plan)
         self._start = 0.0  # its perf_counter send time, and the offset to Unix time
         self._offset = 0.0
@@ -118,7 +184,7 @@ class Scanner:
         #: the concurrency cap's slots, and whether this scanner's callback request holds one
         #: (so that ``done``, a refusal, a raising ``start_read`` and ``close`` give it back
         #: exactly once between them)
-        self._slots = poller._slots
+        self._slots = slots
         self._holding = False
         # bound once: a bound method made per scan would be one more object per request
         self._fire_cb = self._fire
@@ -128,7 +194,7 @@ class Scanner:
         self._ticker.call_at(self._group.next_due, self._fire_cb)
 
     def close(self) -> asyncio.Task[None] | None:
-        """Stop scanning; returns the task-path scan in progress (cancelled), if any."""
+        """Stop scanning; returns the awaited scan in progress (cancelled), if any."""
         self._closed = True
         self._give_back()
         task = self._task
@@ -138,20 +204,21 @@ class Scanner:
 
     def _use(self, plan: ScanPlan) -> None:
         """Take what ``_fire`` and ``_done`` need of ``plan`` once, not on every scan: the
-        plan changes only when the poller isolates a tag after a PLC error."""
+        plan changes only when a tag is isolated after a PLC error."""
         #: the plan of the callback request in flight (the group's may change meanwhile)
         self._plan = plan
         requests = plan.requests
         #: the one request's address and count; count 0: not a plan for a callback scan
-        if len(requests) == 1 and self._single:
+        if len(requests) == 1 and self._start_read is not None:
             self._address, self._count = requests[0].address, requests[0].count
         else:
             self._address, self._count = "", 0
-        #: the tag whose sample is the whole reply (``Poller._whole_reply``), or None
-        self._whole = plan.whole_tag if self._poller.whole_reply_samples else None
+        #: the tag whose sample is the whole reply (``ScanPlan.whole_tag``), or None
+        self._whole = plan.whole_tag
 
+    # -- the callback scan ----------------------------------------------------------------------
     def _fire(self) -> None:
-        """The scan is due (the ticker's callback): start its request, or its task."""
+        """The scan is due (the ticker's callback): start its request, or its awaited scan."""
         if self._closed:
             return
         plan = self._group.plan
@@ -163,7 +230,7 @@ class Scanner:
             self._start = start = _clock()
             self._offset = wall - start
             try:
-                started = self._start_read(self._address, self._count, self._done_cb)
+                started = self._start_read(self._address, self._count, self._done_cb)  # type: ignore[misc]  # count: set
             except Exception as exc:  # a client bug: this scan's failure, as a read's would be
                 self._stats.scans += 1
                 self._done(exc)
@@ -171,35 +238,54 @@ class Scanner:
             if started:
                 self._stats.scans += 1
                 return
-            self._give_back()  # nothing was sent: the task path awaits a slot of its own
+            self._give_back()  # nothing was sent: the awaited scan waits for a slot itself
         self._task = asyncio.get_running_loop().create_task(self._scan_task())
 
     def _done(self, reply: Sequence[int | bool] | Exception) -> None:
         """The callback request's result (``start_read``'s ``done``)."""
         end = _clock()
-        # The request is over: its slot goes back before the sample is delivered, as on the
-        # task path (released in _scan_group before _single_done), so a scan waiting for a
-        # slot is not held up by delivery, and a delivery that fails cannot keep the slot.
+        # The request is over: its slot goes back before the samples are delivered, as in an
+        # awaited scan, so a scan waiting for a slot is not held up by delivery, and a
+        # delivery that fails cannot keep the slot.
         if self._holding:  # tested here: no call per request without a cap
             self._give_back()
         if self._closed:
             return
-        group = self._group
+        stats = self._stats
+        start = self._start
+        offset = self._offset
         try:
             whole = self._whole
             if whole is not None and type(reply) is list and len(reply) == self._count:
-                # what _single_done decides for this reply, its checks done once in _use
-                self._poller._whole_reply(
-                    self._stats, self._name, whole, reply, self._start, end, self._offset
+                # the usual poll: the one tag is the whole reply, handed out as it is
+                stats.latencies.append(end - start)
+                stats.requests += 1
+                items = self._items
+                items.append(
+                    make_sample(self._name, whole, reply, _GOOD, start + offset, end + offset, None)
                 )
+                stats.samples += 1
+                if len(items) > self._queue.limit:
+                    self._queue.trim()
+                self._wake()
+            elif isinstance(reply, Exception):
+                error = account_failure(self._plc, self._group, self._plan, 0, reply)
+                self._deliver(self._plan, (error,), start + offset, end + offset, None, None)
             else:
-                self._poller._single_done(
-                    self._plc, group, self._plan, reply, self._start, end, self._offset
-                )
+                stats.latencies.append(end - start)
+                stats.requests += 1
+                self._deliver(self._plan, (reply,), start + offset, end + offset, None, None)
         except Exception:  # a bug must not end this group's scans
-            _log.exception("%s: delivering a scan failed", self._plc.config.name)
-        advance(self._stats, group, end)
-        self._ticker.call_at(group.next_due, self._fire_cb)
+            _log.exception("%s: delivering a scan failed", self._name)
+        group = self._group
+        interval = group.interval
+        next_due = group.next_due + interval
+        if next_due <= end:  # ``advance``, spelled out on the polling path
+            missed = int((end - next_due) // interval) + 1
+            stats.overruns += missed
+            next_due += missed * interval
+        group.next_due = next_due
+        self._ticker.call_at(next_due, self._fire_cb)
 
     def _take_slot(self, slots: Slots) -> bool:
         """Take a slot for a callback request if one is free without waiting."""
@@ -215,15 +301,109 @@ class Scanner:
             self._holding = False
             slots.release()
 
+    # -- the awaited scan -----------------------------------------------------------------------
     async def _scan_task(self) -> None:
-        """One scan the general way (connect, stale-input check, a queued request, several
-        requests), then back to the callback path for the next."""
+        """One scan with its requests awaited, then the next on the ticker."""
         try:
-            await self._poller._scan_group(self._plc, self._group)
-        except Exception:  # _scan_group turns read failures into samples: this is a bug
-            _log.exception("%s: a scan failed", self._plc.config.name)
+            await self.scan()
+        except Exception:  # scan turns read failures into samples: this is a bug
+            _log.exception("%s: a scan failed", self._name)
         self._task = None
         if not self._closed:
             group = self._group
             advance(self._stats, group, _clock())
             self._ticker.call_at(group.next_due, self._fire_cb)
+
+    async def scan(self) -> bool:
+        """One scan of the group, each request of its plan awaited; returns whether one
+        failed. When a request fails on the connection (timeout, connection lost), the rest of
+        the scan is not attempted: those tags get the same error, and a slow PLC costs one
+        deadline per scan instead of one per request."""
+        plc, group = self._plc, self._group
+        plan = group.plan
+        stats = plc.stats
+        client = plc.client
+        slots = self._slots
+        count = len(plan.requests)
+        replies: list[Sequence[int | bool] | PlcError] = []
+        sent: list[float] = []
+        received: list[float] = []
+        give_up: PlcError | None = None
+        failed = False
+        stats.scans += 1
+        offset = _wall_clock() - _clock()
+        for index, request in enumerate(plan.requests):
+            if give_up is not None:
+                now = _clock() + offset
+                replies.extend([give_up] * (count - index))
+                sent.extend([now] * (count - index))
+                received.extend([now] * (count - index))
+                break
+            if slots is not None:
+                await slots.acquire()
+            start = _clock()
+            try:
+                points = await client.read(request.address, request.count)
+            except Exception as exc:
+                error = account_failure(plc, group, plan, index, exc)
+                failed = True
+            else:
+                end = _clock()
+                stats.latencies.append(end - start)
+                stats.requests += 1
+                replies.append(points)
+                sent.append(start + offset)
+                received.append(end + offset)
+                continue
+            finally:
+                if slots is not None:
+                    slots.release()
+            replies.append(error)
+            sent.append(start + offset)
+            received.append(_clock() + offset)
+            if isinstance(error, PlcTimeout | ConnectionLost):
+                give_up = error
+        self._deliver(plan, replies, 0.0, 0.0, sent, received)
+        return failed
+
+    # -- samples --------------------------------------------------------------------------------
+    def _deliver(
+        self,
+        plan: ScanPlan,
+        replies: Sequence[Sequence[int | bool] | PlcError],
+        source: float,
+        receive: float,
+        sent: list[float] | None,
+        received: list[float] | None,
+    ) -> None:
+        """Queue one scan's samples; times are Unix seconds, per request when several."""
+        plc = self._plc
+        name = self._name
+        order = plc.order
+        extract = plan.extract
+        items = self._items
+        bad = 0
+        for tag_plan in plan.tags:
+            if sent is not None and received is not None:
+                ids = tag_plan.request_ids
+                source = min(sent[r] for r in ids)
+                receive = max(received[r] for r in ids)
+            result = extract(tag_plan, replies, order)
+            if isinstance(result, PlcError):
+                bad += 1
+                items.append(
+                    make_sample(
+                        name, tag_plan.tag.name, None, _BAD, source, receive, str(result),
+                        type(result),
+                    )
+                )  # fmt: skip
+            else:
+                items.append(
+                    make_sample(name, tag_plan.tag.name, result, _GOOD, source, receive, None)
+                )
+        stats = plc.stats
+        stats.samples += len(plan.tags)
+        stats.bad_samples += bad
+        if len(items) > self._queue.limit:
+            self._queue.trim()
+        self._wake()

@@ -22,7 +22,6 @@ object hands out like a Poller does (``async for``, ``drain``, ``pending``, ``st
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import dataclasses
 import fnmatch
@@ -32,7 +31,7 @@ from types import TracebackType
 from typing import Any, Self
 
 from plcstack.poll.config import PlcConfig, PollConfig
-from plcstack.poll.engine import ClientFactory, PlcStats, Poller, Sample
+from plcstack.poll.engine import ClientFactory, PlcStats, Poller, Sample, SampleQueue
 from plcstack.scale.hrw import owner
 from plcstack.scale.lease import Lease, LeaseStore
 from plcstack.scale.presence import Presence
@@ -78,12 +77,11 @@ class WorkerOptions:
 
 
 class _Run:
-    """One PLC being polled: a Poller of just that PLC and the task that forwards its samples."""
+    """One PLC being polled: a Poller of just that PLC, scanning into the worker's queue."""
 
     def __init__(self, poller: Poller, name: str) -> None:
         self.poller = poller
         self.name = name
-        self.pump: asyncio.Task[None] | None = None
         self.stopping: asyncio.Task[None] | None = None
 
     def abort(self) -> None:
@@ -100,8 +98,6 @@ class _Run:
         self.abort()
         assert self.stopping is not None
         await asyncio.gather(self.stopping, return_exceptions=True)
-        if self.pump is not None:
-            await asyncio.gather(self.pump, return_exceptions=True)
 
 
 class Worker:
@@ -153,9 +149,8 @@ class Worker:
             on_change=lambda live: self._kick(),
             on_event=self._event,
         )
-        self.dropped = 0
-        self._queue: collections.deque[Sample] = collections.deque()
-        self._wakeup = asyncio.Event()
+        #: the one buffer every PLC's poller scans into (drops counted there, per PLC)
+        self.queue = SampleQueue(config.queue)
         self._runs: dict[str, _Run] = {}
         self._held: dict[str, Lease] = {}
         self._timers: dict[str, asyncio.TimerHandle] = {}
@@ -206,7 +201,7 @@ class Worker:
             await asyncio.gather(*self._cleanup, return_exceptions=True)
         if self.leases is not None:
             await self.leases.close()
-        self._wakeup.set()
+        self.queue.wake()
 
     async def __aenter__(self) -> Self:
         await self.start()
@@ -225,20 +220,21 @@ class Worker:
         return self
 
     async def __anext__(self) -> Sample:
-        while not self._queue:
-            if self._closed:
-                raise StopAsyncIteration
-            self._wakeup.clear()
-            await self._wakeup.wait()
-        return self._queue.popleft()
+        return await self.queue.next(self._ended)
+
+    def _ended(self) -> bool:
+        return self._closed
 
     def pending(self) -> int:
-        return len(self._queue)
+        return len(self.queue)
 
     def drain(self) -> list[Sample]:
-        out = list(self._queue)
-        self._queue.clear()
-        return out
+        return self.queue.drain()
+
+    @property
+    def dropped(self) -> int:
+        """Samples dropped because the buffer was full."""
+        return self.queue.dropped
 
     @property
     def stats(self) -> dict[str, PlcStats]:
@@ -337,13 +333,12 @@ class Worker:
 
     async def _start(self, plc: str, lease: Lease | None) -> None:
         config = dataclasses.replace(self.config, plcs=(self._plcs[plc],))
-        run = _Run(Poller(config, client_factory=self._factory), plc)
+        run = _Run(Poller(config, client_factory=self._factory, queue=self.queue), plc)
         if lease is not None:
             self._held[plc] = lease
             self._arm(lease)
         self._runs[plc] = run
         await run.poller.start()
-        run.pump = asyncio.get_running_loop().create_task(self._pump(run), name=f"pump {plc}")
         self.starts += 1
         rev = f" (lease revision {lease.revision})" if lease is not None else ""
         self._event(f"start {plc}{rev}")
@@ -418,22 +413,3 @@ class Worker:
                     self._arm(lease)
                 elif ok is False:
                     self._fence(lease, "lease lost (another worker holds it)")
-
-    # -- samples ----------------------------------------------------------------------------------
-    async def _pump(self, run: _Run) -> None:
-        poller = run.poller
-        queue = self._queue
-        limit = self.config.queue
-        while True:
-            try:
-                first = await anext(poller)
-            except StopAsyncIteration:
-                return
-            queue.append(first)
-            queue.extend(poller.drain())
-            excess = len(queue) - limit
-            while excess > 0:
-                queue.popleft()
-                self.dropped += 1
-                excess -= 1
-            self._wakeup.set()
