@@ -19,7 +19,6 @@ MELSEC CPUs store them (D0 = 0000H, D1 = 3F40H is 0.75, spec §3 rule 10).
 from __future__ import annotations
 
 from collections.abc import Callable, Coroutine, Hashable, Sequence
-from dataclasses import dataclass
 from typing import Any, Self, TypeVar
 
 from plcstack.clients.base import (
@@ -29,6 +28,7 @@ from plcstack.clients.base import (
     as_points,
 )
 from plcstack.clients.e71_commands import E71CommandsMixin
+from plcstack.clients.exchange import Job
 from plcstack.clients.options import COMMON, choice, integer
 from plcstack.codecs.e71 import (
     DEFAULT_PC,
@@ -89,16 +89,6 @@ def _default_timer(timeout: float) -> int:
     return max(1, min(0xFFFF, int(timeout * 4) - 1))
 
 
-@dataclass(frozen=True, slots=True)
-class PreparedRead:
-    """A word read checked once (address parsed, range checked): its 01H request, which the
-    codec's send encodes once per connection and whose answer size and word layout it notes,
-    and its text for messages. A plain record: the client's exchange driver runs it."""
-
-    request: ReadWords
-    what: str
-
-
 class E71Client(E71CommandsMixin):
     """Async client for one E71 connection. Use ``async with plcstack.connect(url) as plc``."""
 
@@ -147,9 +137,10 @@ class E71Client(E71CommandsMixin):
         # The monitor registration lives in the PLC, not in the connection: keep what we
         # registered across reconnects so 88H/89H can still be sized.
         self._monitor: tuple[int | None, int | None] = (None, None)
-        #: (address, count) -> the word reads already checked; a poller reads the same few
-        #: addresses every scan (see ``read``)
-        self._word_reads: dict[tuple[str, int], PreparedRead] = {}
+        #: (address, count) -> the exchange of a word read already checked (its 01H request,
+        #: which the codec encodes once per connection and whose answer size and word layout
+        #: it notes): a poller reads the same few addresses every scan (see ``read``)
+        self._word_reads: dict[tuple[str, int], Job] = {}
         #: bound once: a bound method made per read would be one more object per request
         self._finish: Callable[[Response, str], list[int]] = self._finish_words
         self.codec: E71ClientConnection = self.new_codec()
@@ -269,12 +260,12 @@ class E71Client(E71CommandsMixin):
         itself: no coroutine of its own on the polling hot path. Not ``async`` for that reason;
         every error still comes from awaiting the result, as from any ``async def``.
         """
-        prepared = self._word_reads.get((address, count))
-        if prepared is not None:
-            request = prepared.request
+        job = self._word_reads.get((address, count))
+        if job is not None:
+            request = job.request
             if request.pc == self.pc and request.timer == self.monitoring_timer:
                 return self.exchange(
-                    request, prepared.what, is_write=False, finish=self._finish, words=True
+                    request, job.what, is_write=False, finish=self._finish, words=True
                 )
         return self._read(address, count)
 
@@ -282,14 +273,14 @@ class E71Client(E71CommandsMixin):
 
     def start_read(self, address: str, count: int, done: Callable[[Any], None]) -> bool:
         """:meth:`read` as a callback exchange (:meth:`RequestClient.start_exchange`), for
-        word reads already checked once (``read``'s cache of :class:`PreparedRead`)."""
-        prepared = self._word_reads.get((address, count))
-        if prepared is None:
+        word reads already checked once (``read``'s cache of prepared exchanges)."""
+        job = self._word_reads.get((address, count))
+        if job is None:
             return False
-        request = prepared.request
+        request = job.request
         if request.pc != self.pc or request.timer != self.monitoring_timer:
             return False
-        return self.start_exchange(request, prepared.what, done, finish=self._finish, words=True)
+        return self.start_exchange(job, done)
 
     def _finish_words(self, event: Response, what: str) -> list[int]:
         if type(event) is WordsResponse:
@@ -308,7 +299,7 @@ class E71Client(E71CommandsMixin):
         if type(address) is str and type(count) is int:
             if len(self._word_reads) >= _READ_CACHE:
                 self._word_reads.clear()
-            self._word_reads[(address, count)] = PreparedRead(request, what)
+            self._word_reads[(address, count)] = Job(request, what, self._finish, False, True)
         return await self.exchange(request, what, is_write=False, finish=self._finish, words=True)
 
     async def write(self, address: str, values: Points) -> None:

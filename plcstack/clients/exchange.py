@@ -27,6 +27,7 @@ import asyncio
 import logging
 from abc import abstractmethod
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar, overload
 
 from plcstack.clients.base import Client
@@ -35,7 +36,7 @@ from plcstack.codecs._common import NEED_DATA
 from plcstack.diagnose import Failure
 from plcstack.errors import ConnectionLost, PlcError, PlcTimeout, RemoteProtocolError
 
-__all__ = ["ClientCodec", "Exchange", "RequestClient"]
+__all__ = ["ClientCodec", "Exchange", "Job", "RequestClient"]
 
 _log = logging.getLogger(__name__)
 
@@ -59,6 +60,22 @@ E = TypeVar("E")
 Done = Callable[[Any], None]
 
 
+@dataclass(frozen=True, slots=True)
+class Job:
+    """What one exchange sends and how its answer is finished: a plain record, built per
+    request, or once for a read a client prepares (a poller sends the same reads every scan).
+
+    ``finish(event, what)`` turns the answer event into the caller's result (it may raise the
+    PLC's error code); ``words``: the result is the words of a 01H read, which the codec's
+    quick step hands out without the event (``take_words``)."""
+
+    request: Any
+    what: str
+    finish: Callable[[Any, str], Any] | None = None
+    is_write: bool = False
+    words: bool = False
+
+
 def _nothing(result: Any) -> None:
     """The ``done`` of an exchange that has none in flight."""
 
@@ -78,17 +95,14 @@ class Exchange:
         "_client",
         "_deadline",
         "_done",
-        "_finish",
         "_first",
-        "_is_write",
+        "_job",
         "_lock",
         "_quick",
         "_sent",
         "_take_answer",
         "_take_words",
         "_waiter",
-        "_what",
-        "_words",
         "resolve",
         "settled",
     )
@@ -100,9 +114,7 @@ class Exchange:
         #: with nothing after it
         self.settled = False
         self._done: Done | None = None
-        self._finish: Callable[[Any, str], Any] | None = None
-        self._what = ""
-        self._is_write = False
+        self._job = Job(None, "")
         self._deadline = 0.0
         #: the answer so far: its first chunk alone, then every chunk in a list (kept for the
         #: failure path's diagnosis)
@@ -110,10 +122,8 @@ class Exchange:
         self._chunks: list[bytes] | None = None
         #: whether a byte of the request left this host
         self._sent = False
-        #: whether the next chunk may be taken whole by the codec's quick step, and whether
-        #: the result is the words alone (``take_words``) or the answer event (``take_answer``)
+        #: whether the next chunk may be taken whole by the codec's quick step
         self._quick = False
-        self._words = False
         self._take_answer: Callable[[bytes], Any] | None = None
         self._take_words: Callable[[bytes], Any] | None = None
         #: the future an awaited exchange waits on (:meth:`RequestClient.exchange`)
@@ -134,41 +144,33 @@ class Exchange:
         return self._done is not None
 
     # -- the steps ------------------------------------------------------------------------------
-    def start(
-        self,
-        request: Any,
-        what: str,
-        finish: Callable[[Any, str], Any] | None,
-        done: Done,
-        *,
-        is_write: bool,
-        timeout: float,
-        words: bool = False,
-    ) -> None:
-        """Send ``request`` (the client's lock held, the connection checked for stale input)
-        and take its answer as it arrives; ``done`` is called once with ``finish(event,
-        what)`` (or the event), or with the bound error. ``words``: ``finish`` is the words of
-        a read, which the quick step hands out without the event."""
+    def start(self, job: Job, done: Done, timeout: float) -> None:
+        """Send ``job.request`` (the client's lock held, the connection checked for stale
+        input) and take its answer as it arrives; ``done`` is called once with the result
+        (``job.finish(event, what)``, or the event) or with the bound error."""
         client = self._client
+        self._job = job
         self._done = done
-        self._finish = finish
-        self._what = what
-        self._is_write = is_write
         self._deadline = timeout
-        self._first = b""
-        self._chunks = None
-        self._sent = False
-        self._words = words
+        if self._first:  # the last answer's chunks, kept for a diagnosis that never came
+            self._first = b""
+            self._chunks = None
         client.stats.requests += 1
         # A settled codec holds no bytes, so right after ``send`` it can only need data.
-        settled, self.settled = self.settled, False
-        self._quick = settled and self._take_answer is not None
+        settled = self.settled
+        self.settled = False
+        self._quick = settled
         codec = client.codec
         try:
-            client.transport.send_delivering(codec.send(request), self, timeout)
-            self._sent = True
-            if settled:
-                return
+            client.transport.send_delivering(codec.send(job.request), self, timeout)
+        except Exception as exc:
+            self._sent = False  # nothing left this host
+            self._failed(exc)
+            return
+        self._sent = True
+        if settled:
+            return
+        try:
             # an unsettled codec may already hold the answer
             event = codec.next_event()
             if event is not NEED_DATA:
@@ -179,19 +181,19 @@ class Exchange:
     def chunk_received(self, data: bytes) -> None:
         """A chunk of the answer (:class:`~plcstack.transports.base.Receiver`)."""
         try:
-            if self._quick:
+            if self._quick and self._take_words is not None:
                 # The usual case of a poll: the whole normal answer in this one chunk and
                 # nothing more. The codec decides exactly as feeding the chunk, decoding and
                 # finding nothing after it would, or takes nothing (the general step below).
                 self._quick = False
-                if self._words:
-                    words = self._take_words(data)  # type: ignore[misc]  # quick: set
+                if self._job.words:
+                    words = self._take_words(data)
                     if words is not None:
                         self._taken()
                         self._end()(list(words))
                         return
                 else:
-                    event = self._take_answer(data)  # type: ignore[misc]  # quick: set
+                    event = self._take_answer(data)  # type: ignore[misc]  # set with words
                     if event is not None:
                         self._taken()
                         self._answered(event)
@@ -252,12 +254,13 @@ class Exchange:
 
     def _answered(self, event: Any) -> None:
         done = self._end()
-        finish = self._finish
+        job = self._job
+        finish = job.finish
         if finish is None:
             done(event)
             return
         try:
-            result = finish(event, self._what)
+            result = finish(event, job.what)
         except Exception as exc:  # the PLC's error code, bound
             result = exc
         done(result)
@@ -278,6 +281,7 @@ class Exchange:
         """The bound error for a failure of this exchange, under the failure policy
         (:meth:`Client.request_failed`) where the connection can no longer be trusted."""
         client = self._client
+        job = self._job
         if isinstance(exc, TimeoutError | ConnectionLost | RemoteProtocolError):
             reply = b"".join(self._chunks or (self._first,))
             failure: Failure
@@ -289,10 +293,10 @@ class Exchange:
             else:
                 failure = "closed" if isinstance(exc, ConnectionLost) else "malformed"
             return client.request_failed(
-                exc, failure, reply, self._what, is_write=self._is_write, sent=self._sent
+                exc, failure, reply, job.what, is_write=job.is_write, sent=self._sent
             )
         client.stats.errors += 1
-        return exc.bind(plc=client.name, request=self._what)
+        return exc.bind(plc=client.name, request=job.what)
 
     # -- the awaited exchange's future ----------------------------------------------------------
     def wait(self) -> asyncio.Future[Any]:
@@ -416,13 +420,9 @@ class RequestClient(Client, Generic[E]):
             flight.release()
             raise
         x.start(
-            request,
-            what,
-            finish,
+            Job(request, what, finish, is_write, words),
             x.resolve,
-            is_write=is_write,
-            timeout=self.timeout if timeout is None else timeout,
-            words=words,
+            self.timeout if timeout is None else timeout,
         )
         try:
             result = await waiter
@@ -436,23 +436,15 @@ class RequestClient(Client, Generic[E]):
             raise result
         return result
 
-    def start_exchange(
-        self,
-        request: Any,
-        what: str,
-        done: Done,
-        *,
-        finish: Callable[[E, str], Any] | None = None,
-        words: bool = False,
-    ) -> bool:
-        """:meth:`exchange` of a read without awaiting, when that needs no waiting (codec
-        settled, connection quiet, lock free): ``True``, and ``done`` is later called once with
-        the result or the error ``exchange`` would raise (it may run before this returns: a
-        send that fails at once); else ``False`` with nothing sent or changed."""
+    def start_exchange(self, job: Job, done: Done) -> bool:
+        """:meth:`exchange` of a read ``job`` without awaiting, when that needs no waiting
+        (codec settled, connection quiet, lock free): ``True``, and ``done`` is later called
+        once with the result or the error ``exchange`` would raise (it may run before this
+        returns: a send that fails at once); else ``False`` with nothing sent or changed."""
         x = self.exchange_driver
         if not x.settled or not self.transport.quiet() or not self._lock.try_acquire():
             return False
-        x.start(request, what, finish, done, is_write=False, timeout=self.timeout, words=words)
+        x.start(job, done, self.timeout)
         return True
 
     def abandon_exchange(self) -> None:

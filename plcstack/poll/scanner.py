@@ -143,6 +143,7 @@ class Scanner:
         "_group",
         "_holding",
         "_items",
+        "_limit",
         "_name",
         "_offset",
         "_plan",
@@ -171,6 +172,7 @@ class Scanner:
         self._ticker = ticker
         self._queue = queue
         self._items = queue.items
+        self._limit = queue.limit
         self._wake = queue.wake
         self._stats = plc.stats
         self._name = plc.config.name
@@ -265,7 +267,7 @@ class Scanner:
                     make_sample(self._name, whole, reply, _GOOD, start + offset, end + offset, None)
                 )
                 stats.samples += 1
-                if len(items) > self._queue.limit:
+                if len(items) > self._limit:
                     self._queue.trim()
                 self._wake()
             elif isinstance(reply, Exception):
