@@ -30,6 +30,8 @@ Errors: every failure is a :class:`PlcError` (``AddressError``, ``OptionError``,
 ``ConnectionLost``/``ConnectFailed``, ``RemoteProtocolError``, ``LocalProtocolError``).
 """
 
+from pathlib import Path
+
 from plcstack import sync
 from plcstack.clients import (
     AS511Client,
@@ -41,6 +43,7 @@ from plcstack.clients import (
 )
 from plcstack.errors import (
     AddressError,
+    ConfigError,
     ConnectFailed,
     ConnectionLost,
     LocalProtocolError,
@@ -52,7 +55,7 @@ from plcstack.errors import (
     ValueDecodeError,
     ValueEncodeError,
 )
-from plcstack.poll import PlcConfig, PollConfig, Poller, TagConfig, load_config
+from plcstack.poll import PlcConfig, PollConfig, Poller, TagConfig
 from plcstack.url import PlcUrl, parse_url
 from plcstack.values import (
     BCD16,
@@ -106,6 +109,7 @@ __all__ = [
     "AS511Client",
     "AddressError",
     "Client",
+    "ConfigError",
     "ConnectFailed",
     "ConnectionLost",
     "E71Client",
@@ -135,3 +139,13 @@ __all__ = [
     "sync",
     "value_type",
 ]
+
+
+def load_config(path: str | Path) -> PollConfig:
+    """Read a poller TOML file once and check all of it: the poll tables (parsed by
+    :mod:`plcstack.poll.config`) and the north side's (``[mqtt]``, ``[opcua]``, ...: parsed by
+    :mod:`plcstack.north.config`), so a typo anywhere stops before anything is sent. Errors are
+    :class:`ConfigError` with the file and line."""
+    from plcstack.north.config import load_config as load_both  # the north side on demand
+
+    return load_both(path)[0]

@@ -12,6 +12,7 @@ from collections.abc import Iterable, Sequence
 
 __all__ = [
     "AddressError",
+    "ConfigError",
     "ConnectFailed",
     "ConnectionLost",
     "LocalProtocolError",
@@ -55,6 +56,15 @@ class PlcError(Exception):
 
 class AddressError(PlcError, ValueError):
     """A URL, address, count or value is not valid for this protocol; nothing was sent."""
+
+
+class ConfigError(AddressError):
+    """A configuration file or table is invalid (the message names the file and line where
+    they are known); nothing was sent to any PLC.
+
+    An :class:`AddressError` so the CLI exits with the usage code 2, like any other bad input.
+    Every layer that parses a table of the configuration raises it.
+    """
 
 
 class OptionError(AddressError):

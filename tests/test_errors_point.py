@@ -16,11 +16,11 @@ from pathlib import Path
 import pytest
 
 import plcstack
+from plcstack import ConfigError, load_config
 from plcstack.cli import _all_parsers, build_parser
 from plcstack.cli.io import shown
 from plcstack.codecs.e71_devices import parse_address
 from plcstack.errors import AddressError, ValueEncodeError
-from plcstack.poll.config import ConfigError, load_config
 from plcstack.s5address import parse_s5_address
 from plcstack.sim import e71, s5lan
 from plcstack.sim.s5memory import Area

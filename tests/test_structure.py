@@ -145,8 +145,6 @@ def foreign_privates(text: str) -> list[str]:
 #: import cycles that other changes are removing: a cycle through one of these modules is
 #: tolerated, with the reason; any other cycle fails, and so does an entry no cycle passes through
 PENDING_CYCLES = {
-    # ConfigError lives in poll.config, which hands the north tables to north.config
-    "plcstack.poll.config": "config ownership: ConfigError moves to plcstack.errors",
     # the web console's API and server modules import each other
     "plcstack.north.web.api": "the web console's own change",
 }

@@ -21,15 +21,13 @@ import os
 import signal
 import sys
 from collections.abc import Callable
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from plcstack.cli import plain_text, print_error
-from plcstack.north.config import parse_north
+from plcstack.north.config import load_config
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.pipeline import North, missing, needs_of
 from plcstack.north.web.settings import with_port
-from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Sample
 from plcstack.poll.sinks import FORMATS, jsonl_text
@@ -125,9 +123,8 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
             name = option.replace("_", "-")
             print_error(f"poll: --{name} must be greater than 0")
             return 2
-    config = load_config(args.config)
-    # relative file paths in [mqtt] are taken relative to the TOML file, as [opcua] does
-    north_config = parse_north(config.north, base=Path(args.config).parent)
+    # read once; relative file paths in [mqtt] are taken relative to the TOML file
+    config, north_config = load_config(args.config)
     try:
         web = with_port(north_config.web, getattr(args, "web_port", None))
     except ValueError as exc:

@@ -26,11 +26,10 @@ from typing import Any
 
 from plcstack.cli import plain_text, print_error, serve_modbus
 from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
-from plcstack.north.config import NorthConfig, parse_north
+from plcstack.north.config import NorthConfig, load_config
 from plcstack.north.metrics import MetricsSettings
-from plcstack.north.opcua_config import hash_password, load_opcua_config
+from plcstack.north.opcua_config import hash_password, parse_opcua_config
 from plcstack.north.pipeline import North
-from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 
 
@@ -92,11 +91,10 @@ async def run_opcua(args: argparse.Namespace) -> int:
         print_error("serve opcua: asyncua is not installed; pip install 'plcstack[opcua]'")
         return 2
     # -v (INFO) logs every write; the log options are the ones every subcommand has
-    config = load_config(args.config)
-    opcua_config = load_opcua_config(args.config)
+    config, north_config = load_config(args.config)  # read once
+    opcua_config = north_config.opcua or parse_opcua_config({}, base=Path(args.config).parent)
     from plcstack.north.opcua import OpcUaServer, run_until  # asyncua: only when serving
 
-    north_config = parse_north(config.north, base=Path(args.config).parent)
     metrics = north_config.metrics
     if metrics_port is not None:
         metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", metrics_port)

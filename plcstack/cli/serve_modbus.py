@@ -16,16 +16,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
 from plcstack.cli import plain_text, print_error
 from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
-from plcstack.north.config import NorthConfig, parse_north
+from plcstack.north.config import NorthConfig, load_config
 from plcstack.north.metrics import MetricsSettings
 from plcstack.north.modbus.server import ModbusServer, run_until
 from plcstack.north.pipeline import North
-from plcstack.poll.config import load_config
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Sample
 
@@ -60,8 +58,7 @@ async def run_modbus(args: argparse.Namespace) -> int:
     if metrics_port is not None and not 0 <= metrics_port <= 65535:
         print_error("serve modbus: --metrics-port must be 0..65535")
         return 2
-    config = load_config(args.config)
-    north_config = parse_north(config.north, base=Path(args.config).parent)
+    config, north_config = load_config(args.config)  # read once
     metrics = north_config.metrics
     if metrics_port is not None:
         metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", metrics_port)

@@ -39,8 +39,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+from plcstack.errors import ConfigError
 from plcstack.output import json_safe
-from plcstack.poll.config import ConfigError
 
 __all__ = ["Audit", "AuditSettings", "parse_audit"]
 

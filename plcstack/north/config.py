@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from plcstack.errors import unknown_names
+from plcstack.errors import ConfigError, unknown_names
 from plcstack.north.audit import AuditSettings, parse_audit
 from plcstack.north.influx import DEFAULT_LAYOUT, DEFAULT_MEASUREMENT, LAYOUTS
 from plcstack.north.metrics import MetricsSettings, parse_metrics
@@ -29,9 +29,10 @@ from plcstack.north.mqtt import MqttSettings, parse_mqtt
 from plcstack.north.opcua_config import OpcUaConfig, parse_opcua_config
 from plcstack.north.rbe import PASS_ALL, parse_report
 from plcstack.north.web.settings import WebSettings, parse_web
-from plcstack.poll.config import ConfigError
+from plcstack.poll.config import PollConfig
+from plcstack.poll.config import load_config as load_poll_config
 
-__all__ = ["NORTH_TABLES", "NorthConfig", "parse_north"]
+__all__ = ["NORTH_TABLES", "NorthConfig", "load_config", "parse_north"]
 
 #: top-level TOML tables that belong to the north side
 NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua", "web", "modbus", "audit")
@@ -45,8 +46,8 @@ class NorthConfig:
     influx_measurement: str = DEFAULT_MEASUREMENT
     #: ``[influx] layout``: "fields" (a field per tag) or "typed" (a field per value type)
     influx_layout: str = DEFAULT_LAYOUT
-    #: checked here; ``plcstack serve opcua`` reads it again with load_opcua_config, which
-    #: takes relative certificate paths relative to the TOML file
+    #: ``[opcua]``: the settings of ``plcstack serve opcua`` (relative certificate paths taken
+    #: relative to the TOML file)
     opcua: OpcUaConfig | None = None
     #: the web console and REST API (plcstack.north.web)
     web: WebSettings | None = None
@@ -91,3 +92,17 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
         modbus=parse_modbus(tables["modbus"]) if "modbus" in tables else None,
         audit=parse_audit(tables["audit"], base=base) if "audit" in tables else None,
     )
+
+
+def load_config(path: str | Path) -> tuple[PollConfig, NorthConfig]:
+    """Read a poller TOML file once: the poll tables parsed by the poll layer, the north
+    tables here (relative file paths taken relative to the file). A mistake in either is a
+    :class:`ConfigError` with the file and line."""
+    path = Path(path)
+    parsed: list[NorthConfig] = []
+
+    def north_tables(tables: Mapping[str, Any]) -> None:
+        parsed.append(parse_north(tables, base=path.parent))
+
+    poll = load_poll_config(path, tables=north_tables)
+    return poll, parsed[0]

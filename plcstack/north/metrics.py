@@ -55,8 +55,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from plcstack.errors import ValueDecodeError, unknown_names
-from plcstack.poll.config import ConfigError
+from plcstack.errors import ConfigError, ValueDecodeError, unknown_names
 from plcstack.poll.samples import Quality, Sample
 
 __all__ = [

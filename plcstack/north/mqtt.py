@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any, Protocol
 from urllib.parse import urlsplit
 
-from plcstack.errors import PlcError, unknown_names
+from plcstack.errors import ConfigError, PlcError, unknown_names
 from plcstack.north.buffer import Message, StoreAndForward
 from plcstack.north.layout import (
     JsonLayout,
@@ -57,7 +57,6 @@ from plcstack.north.mqtt_errors import PahoLog, connect_error
 from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.write_values import split_element
 from plcstack.north.writes import BAD_REQUEST, BUSY, UNKNOWN_PLC, WritePath
-from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Sample
 from plcstack.transports.backoff import Backoff
 

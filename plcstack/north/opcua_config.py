@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from plcstack.poll.config import ConfigError
+from plcstack.errors import ConfigError
 
 __all__ = [
     "DEFAULT_ENDPOINT",

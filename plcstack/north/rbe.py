@@ -26,7 +26,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from plcstack.poll.config import ConfigError
+from plcstack.errors import ConfigError
 from plcstack.poll.samples import Quality, Sample
 
 __all__ = ["ReportByException", "ReportPolicy", "parse_report"]

@@ -37,9 +37,10 @@ Tag types are the value types of :mod:`plcstack.values` by name (``int16``, ``fl
 linearly onto engineering units (writes map back). ``description`` is free text for people (the
 OPC UA Description attribute, a Sparkplug metric property, the web console); the poller ignores it.
 
-Other top-level tables (``[opcua]``, ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``) belong
-to the north side (plcstack.north); the poller checks that they are tables, and the loader checks
-``[mqtt]``, ``[metrics]``, ``[report]`` and ``[influx]`` with :mod:`plcstack.north.config`.
+Other top-level tables (``[opcua]``, ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``,
+``[web]``, ``[modbus]``) belong to the north side, which parses them itself: this module checks
+that they are tables and hands them to the parser its caller gives
+(``plcstack.north.config.load_config`` reads the file once for both layers).
 
 Every problem is a :class:`ConfigError` naming the PLC, the tag and, where it can be found, the
 TOML line, so a typo in a 500-PLC file is found at once and before anything is sent.
@@ -50,12 +51,12 @@ from __future__ import annotations
 import math
 import re
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from plcstack.errors import AddressError, unknown_names
+from plcstack.errors import AddressError, ConfigError, unknown_names
 from plcstack.url import parse_url
 from plcstack.values import (
     RAW,
@@ -101,13 +102,6 @@ MAX_BATCH_WAIT = 1.0
 DEFAULT_MAX_GAP = 8
 #: top-level tables read by north-side servers from the same file (plcstack.north)
 NORTH_SECTIONS = ("opcua", "mqtt", "metrics", "report", "influx", "web", "modbus", "audit")
-
-
-class ConfigError(AddressError):
-    """The poll configuration is invalid; nothing was sent to any PLC.
-
-    An :class:`AddressError` so the CLI exits with the usage code 2, like any other bad input.
-    """
 
 
 @dataclass(frozen=True)
@@ -174,8 +168,8 @@ class PollConfig:
     groups: Mapping[str, float] = field(default_factory=lambda: {DEFAULT_GROUP: DEFAULT_INTERVAL})
     concurrency: int | None = DEFAULT_CONCURRENCY
     queue: int = DEFAULT_QUEUE
-    #: the north side's tables ([mqtt], [metrics], [report], [influx]) as read from the TOML,
-    #: checked by plcstack.north.config when the file is loaded
+    #: the north side's tables ([mqtt], [opcua], ...) as read from the TOML, parsed by the
+    #: north side (``plcstack.north.config``)
     north: Mapping[str, Any] = field(default_factory=dict, compare=False)
     #: seconds the north side's batches gather (see :data:`DEFAULT_BATCH_WAIT`)
     batch_wait: float = DEFAULT_BATCH_WAIT
@@ -284,18 +278,28 @@ def validate(config: PollConfig) -> None:
 # -- TOML ---------------------------------------------------------------------------------------
 
 
-def load_config(path: str | Path) -> PollConfig:
-    """Read and validate a TOML file."""
+#: a parser of the tables another layer owns (``[mqtt]``, ``[opcua]``, ...), given them as read
+#: from the file; raises :class:`ConfigError`, which the loader points at the table's line
+TablesParser = Callable[[Mapping[str, Any]], object]
+
+
+def load_config(path: str | Path, *, tables: TablesParser | None = None) -> PollConfig:
+    """Read and validate a TOML file (once): the poll tables here; the other layers' tables
+    are checked to be tables and handed to ``tables`` (the north side's parser:
+    ``plcstack.north.config.load_config`` reads a file for both)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
-    return parse_config(text, source=str(path))
+    return parse_config(text, source=str(path), tables=tables)
 
 
-def parse_config(text: str, *, source: str = "<config>") -> PollConfig:
-    """Parse and validate TOML text; errors name the PLC, the tag and the line if found."""
+def parse_config(
+    text: str, *, source: str = "<config>", tables: TablesParser | None = None
+) -> PollConfig:
+    """Parse and validate TOML text; errors name the PLC, the tag and the line if found.
+    ``tables``: see :func:`load_config`."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -310,7 +314,7 @@ def parse_config(text: str, *, source: str = "<config>") -> PollConfig:
             f"{source}: tables or arrays nested more than {MAX_TOML_DEPTH} deep "
             "(a poll config needs 4 levels)"
         )
-    return _Loader(text, source).load(data)
+    return _Loader(text, source).load(data, tables)
 
 
 def _depth(value: Any) -> int:
@@ -397,9 +401,7 @@ class _Loader:
             names = unknown_names(unknown, allowed)
             raise self.error(f"{where}unknown key(s) {names}", line_key or unknown[0])
 
-    def load(self, data: dict[str, Any]) -> PollConfig:
-        from plcstack.north.config import NORTH_TABLES, parse_north
-
+    def load(self, data: dict[str, Any], tables: TablesParser | None) -> PollConfig:
         top = {"poll", "groups", "plc", *NORTH_SECTIONS}
         unknown = self._unknown(data, top)
         if unknown:
@@ -411,12 +413,14 @@ class _Loader:
         for section in NORTH_SECTIONS:
             if section in data and not isinstance(data[section], dict):
                 raise self.error(f"[{section}] must be a table", section)
-        # [mqtt], [metrics], [report], [influx]: checked now, so a typo stops before any send
-        north = {key: data[key] for key in NORTH_TABLES if key in data}
-        try:
-            parse_north(north)
-        except ConfigError as exc:
-            raise self.error(exc.message, next(iter(north), None)) from None
+        # the other layers' tables ([mqtt], [opcua], ...): parsed by their owner now, when it
+        # is given, so a typo stops before any send, with the line of its table
+        north = {key: data[key] for key in NORTH_SECTIONS if key in data}
+        if tables is not None:
+            try:
+                tables(north)
+            except ConfigError as exc:
+                raise self.error(exc.message, next(iter(north), None)) from None
         poll = data.get("poll", {})
         if not isinstance(poll, dict):
             raise self.error("[poll] must be a table", "poll")
@@ -656,14 +660,11 @@ class _Loader:
         problem = text_problem("description", description)
         if problem:
             raise self.error(f"{where}: {problem}", name)
+        # the Modbus server's key: its grammar is the north side's to check (with the line:
+        # plcstack.north.modbus.config.build_map); here only that it is text
         modbus = spec.get("modbus")
-        if modbus is not None:
-            from plcstack.north.modbus.config import parse_address
-
-            try:
-                parse_address(modbus)
-            except ValueError as exc:
-                raise self.error(f"{where}: {exc}", name) from None
+        if modbus is not None and not isinstance(modbus, str):
+            raise self.error(f'{where}: modbus must be text such as "hr:100", not {modbus!r}', name)
         return TagConfig(
             name,
             address.strip(),

@@ -29,8 +29,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from plcstack.errors import ConfigError
 from plcstack.north.modbus.registers import TABLES, Layout, layout_for
-from plcstack.poll.config import ConfigError, TagConfig
+from plcstack.poll.config import TagConfig
 from plcstack.values import WordOrder
 
 __all__ = [

@@ -31,7 +31,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from plcstack.errors import PlcError, RemoteProtocolError
+from plcstack.errors import ConfigError, PlcError, RemoteProtocolError
 from plcstack.north.modbus.config import MapEntry, ModbusSettings, build_map, parse_modbus
 from plcstack.north.modbus.frames import (
     ModbusServerConnection,
@@ -41,7 +41,6 @@ from plcstack.north.modbus.frames import (
 )
 from plcstack.north.modbus.service import Refused, RegisterImage, describe_code
 from plcstack.north.writes import WritePath
-from plcstack.poll.config import ConfigError
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Sample
 from plcstack.resource import AsyncResource

@@ -17,6 +17,7 @@ from typing import Any
 
 from aiohttp import web
 
+from plcstack.errors import ConfigError
 from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.web.api import MAX_PENDING_WRITES, refusal, routes
 from plcstack.north.web.events import EventClient, EventHub
@@ -24,7 +25,6 @@ from plcstack.north.web.pages import esc, overview_page, plc_page
 from plcstack.north.web.settings import WebSettings
 from plcstack.north.web.state import ConsoleState, plc_row
 from plcstack.north.writes import WritePath
-from plcstack.poll.config import ConfigError
 from plcstack.poll.samples import Sample
 
 __all__ = ["WebConsole"]
