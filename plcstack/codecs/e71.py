@@ -230,12 +230,6 @@ class ClientConnection(ErrorState):
     registration acknowledged on this connection, to size 88H/89H responses.
     """
 
-    #: the polling fast paths (binary code, 01H read in words): a checked read encoded in one
-    #: ``struct`` call (the last request's bytes reused when the same object is sent again),
-    #: and a normal answer over TCP decoded in one step. Tests switch them off (before the
-    #: first ``send``) to prove both paths give the same bytes, events and errors.
-    fast_paths = True
-
     def __init__(self, code: Code | str = Code.BINARY, *, transport: Transport = "tcp") -> None:
         self.code = as_code(code)
         self.transport = transport
@@ -245,9 +239,7 @@ class ClientConnection(ErrorState):
         framer = self._framer
         #: the TCP framer when the 01H fast path applies (binary), else None
         self._fast_stream: StreamResponses | None = (
-            framer
-            if self.fast_paths and self._unit == 1 and isinstance(framer, StreamResponses)
-            else None
+            framer if self._unit == 1 and isinstance(framer, StreamResponses) else None
         )
         #: the stream framer's buffer, from which the fast path takes a normal 01H answer
         #: (an unused empty one for datagrams: ``_fast_stream`` is None then)
@@ -278,7 +270,7 @@ class ClientConnection(ErrorState):
         if request is self._last_read:  # only ever set by the fast path below: its bytes again
             self._pending.append(request)
             return self._last_bytes
-        if type(request) is ReadWords and self._unit == 1 and self.fast_paths:
+        if type(request) is ReadWords and self._unit == 1:
             # The polling hot path: the checks of the general path (``_Header.encode``), inlined
             # over the fields a binary 01H frame holds, and one struct call. Anything it does
             # not accept takes the general path, which decides and words the refusal.
