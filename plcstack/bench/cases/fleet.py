@@ -498,6 +498,8 @@ async def _run_kind(
         "sys_us_per_request": 1e6 * (u1.ru_stime - u0.ru_stime) / done if done else None,
         "sleeps_per_request": (u1.ru_nvcsw - u0.ru_nvcsw) / done if done else None,
         "preempted_per_request": (u1.ru_nivcsw - u0.ru_nivcsw) / done if done else None,
+        #: the process's peak resident memory so far (the responders are another process)
+        "max_rss_mib": u1.ru_maxrss / 1024,
         "passes_per_request": (p1 - p0) / done if done and p1 >= 0 else None,
         "overruns": o1 - o0,
         "p50_ms": pct(50),
@@ -600,6 +602,12 @@ def run_child(
     return summary
 
 
+def _set_interval(seconds: float) -> None:
+    """The schedule of every kind in this process (the module's ``INTERVAL``)."""
+    global INTERVAL  # one child process measures one schedule
+    INTERVAL = seconds
+
+
 # -- parent side ----------------------------------------------------------------------------------
 def spawn(
     kind: str,
@@ -655,12 +663,21 @@ def main(argv: list[str] | None = None) -> int:
         "last and the bases before it (default floor,poll)",
     )
     parser.add_argument("--rounds", type=int, default=4, help="with kind 'alternate' (default 4)")
+    parser.add_argument(
+        "--interval",
+        type=float,
+        default=INTERVAL,
+        help=f"seconds between one PLC's requests (default {INTERVAL:g}: 10 Hz)",
+    )
     args = parser.parse_args(argv)
     kinds = tuple(args.kinds.split(","))
     if len(kinds) < 2 or len(set(kinds)) != len(kinds) or not set(kinds) <= set(KINDS):
         parser.error(f"--kinds takes two or more of {', '.join(KINDS)}, comma-separated")
     if args.rounds < 1:
         parser.error("--rounds must be at least 1")
+    if not 0.001 <= args.interval <= 60:
+        parser.error("--interval must be 0.001..60 seconds")
+    _set_interval(args.interval)
     if args.kind == "serve":
         return _serve_main(args.n, args.cpu)
     summary = run_child(args.kind, args.n, loop=args.loop, duration=args.duration,
