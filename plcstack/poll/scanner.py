@@ -8,8 +8,10 @@ timer for every PLC). When the scan is due:
   before), starts it in the timer callback and gets the result in a callback from the
   transport: no task, no coroutine and no future per scan. At a thousand PLCs at 10 Hz that is
   what keeps the poller near a raw asyncio loop (the fleet case of ``plcstack bench``);
-* anything else (connecting, a request queued behind a write, a plan of several requests, a
-  client that only awaits) runs that scan's requests awaited, in a task of its own.
+* anything else (connecting, a request queued behind a write, a plan of several requests) runs
+  that scan's requests awaited, in a task of its own;
+* a client that cannot start reads (S5-LAN, FETCH/WRITE, AS511) has one task per group that
+  waits on the ticker and awaits each scan's requests: no task per scan.
 
 Either way the scan ends in the same steps: its samples go to the :class:`SampleQueue`, a
 failed request is accounted once (:func:`account_failure`, which also isolates the tags of a
@@ -149,6 +151,7 @@ class Scanner:
         "_plan",
         "_plc",
         "_queue",
+        "_size",
         "_slots",
         "_start",
         "_start_read",
@@ -193,7 +196,10 @@ class Scanner:
         self._done_cb = self._done
 
     def start(self) -> None:
-        self._ticker.call_at(self._group.next_due, self._fire_cb)
+        if self._start_read is None:  # a client that only awaits: one task for every scan
+            self._task = asyncio.get_running_loop().create_task(self._awaited_scans())
+        else:
+            self._ticker.call_at(self._group.next_due, self._fire_cb)
 
     def close(self) -> asyncio.Task[None] | None:
         """Stop scanning; returns the awaited scan in progress (cancelled), if any."""
@@ -210,8 +216,10 @@ class Scanner:
         #: the plan of the callback request in flight (the group's may change meanwhile)
         self._plan = plan
         requests = plan.requests
-        #: the one request's address and count; count 0: not a plan for a callback scan
-        if len(requests) == 1 and self._start_read is not None:
+        #: the one request's size (0: several), and its address and count for a callback
+        #: scan (count 0: not a plan for one)
+        self._size = requests[0].count if len(requests) == 1 else 0
+        if self._size and self._start_read is not None:
             self._address, self._count = requests[0].address, requests[0].count
         else:
             self._address, self._count = "", 0
@@ -253,12 +261,18 @@ class Scanner:
             self._give_back()
         if self._closed:
             return
+        self._complete(reply, self._start, end, self._offset)
+        self._ticker.call_at(self._group.next_due, self._fire_cb)
+
+    def _complete(
+        self, reply: Sequence[int | bool] | Exception, start: float, end: float, offset: float
+    ) -> None:
+        """End a scan of one request: its samples queued, its schedule moved past ``end``.
+        ``start``/``end`` are ``perf_counter`` times, ``offset`` makes them Unix times."""
         stats = self._stats
-        start = self._start
-        offset = self._offset
         try:
             whole = self._whole
-            if whole is not None and type(reply) is list and len(reply) == self._count:
+            if whole is not None and type(reply) is list and len(reply) == self._size:
                 # the usual poll: the one tag is the whole reply, handed out as it is
                 stats.latencies.append(end - start)
                 stats.requests += 1
@@ -287,7 +301,6 @@ class Scanner:
             stats.overruns += missed
             next_due += missed * interval
         group.next_due = next_due
-        self._ticker.call_at(next_due, self._fire_cb)
 
     def _take_slot(self, slots: Slots) -> bool:
         """Take a slot for a callback request if one is free without waiting."""
@@ -304,6 +317,40 @@ class Scanner:
             slots.release()
 
     # -- the awaited scan -----------------------------------------------------------------------
+    async def _awaited_scans(self) -> None:
+        """Every scan of a client that only awaits, in this one task: wait for the scan's time
+        on the ticker, run it, again."""
+        ticker, group = self._ticker, self._group
+        while not self._closed:
+            await ticker.wait_until(group.next_due)
+            plan = group.plan
+            if plan is not self._plan:
+                self._use(plan)
+            if self._size:  # the usual scan: completed as a callback scan is
+                request = plan.requests[0]
+                self._stats.scans += 1
+                slots = self._slots
+                if slots is not None:
+                    await slots.acquire()
+                wall = _wall_clock()
+                start = _clock()
+                try:
+                    reply: Sequence[int | bool] | Exception = await self._plc.client.read(
+                        request.address, request.count
+                    )
+                except Exception as exc:
+                    reply = exc
+                finally:
+                    if slots is not None:
+                        slots.release()
+                self._complete(reply, start, _clock(), wall - start)
+                continue
+            try:
+                await self.scan()
+            except Exception:  # scan turns read failures into samples: this is a bug
+                _log.exception("%s: a scan failed", self._name)
+            advance(self._stats, group, _clock())
+
     async def _scan_task(self) -> None:
         """One scan with its requests awaited, then the next on the ticker."""
         try:
