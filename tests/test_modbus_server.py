@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from plcstack import ConfigError, load_config
 from plcstack.north.modbus.server import ModbusServer
-from plcstack.poll.config import ConfigError, load_config
 from plcstack.poll.engine import Poller
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
