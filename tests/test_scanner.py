@@ -253,8 +253,7 @@ async def test_every_scan_gives_what_the_plcs_hold(concurrency: int | None) -> N
     """Also under a concurrency cap smaller than the fleet: scans that find no slot free run
     awaited, queued for one."""
     tasks_tags, counters, cb_count = await _run(concurrency)
-    assert counters["steady1"]["writes"] == 1 and counters["steady2"]["bad_share"] == 0.0
-    assert counters["multi"]["requests_per_scan"] == 2 and counters["down"]["errors"]
+    assert counters["steady1"]["writes"] == 1 and counters["down"]["errors"]
     # both ways of running a scan ran: callbacks for the plain scans, awaited reads the rest
     for name in ("steady1", "steady2", "mute", "isolate"):
         assert cb_count.started.get(name, 0) >= 2, (name, cb_count.started)
