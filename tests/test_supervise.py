@@ -267,3 +267,24 @@ group_id = "g"
     if "pair" not in names:  # the encoder cannot take it: said once, by name
         assert err.count("sparkplug: PLC press1 tag pair: cannot take the value") == 1, err
     assert "sparkplug mqtt://" in err and " not delivered" in err  # the sink's summary line
+
+
+def test_serve_opcua_with_metrics_but_without_its_library_exits_2(tmp_path: Path) -> None:
+    config = tmp_path / "plant.toml"
+    config.write_text(
+        '[[plc]]\nname = "press1"\nurl = "e71+tcp://127.0.0.1:1"\n'
+        '[plc.tags]\nstrokes = { address = "D100" }\n[metrics]\nport = 0\n'
+    )
+    script = (
+        "import sys; sys.modules['prometheus_client'] = None\n"
+        "from plcstack.cli import main\n"
+        f"sys.exit(main(['serve', 'opcua', {str(config)!r}, '--duration', '5']))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=30
+    )
+    assert done.returncode == 2, done.stderr  # main: "internal error" and exit 1
+    assert done.stderr.splitlines()[-1] == (
+        "plcstack: error: serve opcua: [metrics] needs the Python package prometheus_client,"
+        " which is not installed: pip install 'plcstack[metrics]'"
+    )

@@ -29,7 +29,7 @@ from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signa
 from plcstack.north.config import NorthConfig, load_config
 from plcstack.north.metrics import MetricsSettings
 from plcstack.north.opcua_config import hash_password, parse_opcua_config
-from plcstack.north.pipeline import North
+from plcstack.north.pipeline import North, missing
 from plcstack.poll.engine import Poller, format_stats
 
 
@@ -96,6 +96,11 @@ async def run_opcua(args: argparse.Namespace) -> int:
     from plcstack.north.opcua import OpcUaServer, run_until  # asyncua: only when serving
 
     metrics = north_config.metrics
+    if metrics is not None or metrics_port is not None:
+        problem = missing([("[metrics]", "prometheus_client", "metrics")])
+        if problem is not None:
+            print_error(f"serve opcua: {problem}")
+            return 2
     if metrics_port is not None:
         metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", metrics_port)
     poller = Poller(config)  # every URL and address checked before anything is sent
