@@ -138,14 +138,6 @@ def foreign_privates(text: str) -> list[str]:
     return found
 
 
-#: import cycles that other changes are removing: a cycle through one of these modules is
-#: tolerated, with the reason; any other cycle fails, and so does an entry no cycle passes through
-PENDING_CYCLES = {
-    # the web console's API and server modules import each other
-    "plcstack.north.web.api": "the web console's own change",
-}
-
-
 # -- the package ---------------------------------------------------------------------------------
 
 MODULES = sources()
@@ -153,12 +145,9 @@ MODULES = sources()
 
 def test_no_import_cycle() -> None:
     found = cycles(import_edges(MODULES))
-    unexpected = [c for c in found if not PENDING_CYCLES.keys() & set(c)]
-    assert not unexpected, "modules that import each other (directly or around a cycle):\n" + (
-        "\n".join(" <-> ".join(c) for c in unexpected)
+    assert not found, "modules that import each other (directly or around a cycle):\n" + (
+        "\n".join(" <-> ".join(c) for c in found)
     )
-    gone = {m for m in PENDING_CYCLES if not any(m in c for c in found)}
-    assert not gone, f"no cycle passes through these any more, drop from PENDING_CYCLES: {gone}"
 
 
 def test_no_module_over_800_lines() -> None:

@@ -24,16 +24,28 @@ from __future__ import annotations
 
 import hmac
 import json
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from aiohttp import web
 
-from plcstack.north.web.state import tag_row
+from plcstack.north.web.state import ConsoleState, tag_row
 
-if TYPE_CHECKING:
-    from plcstack.north.web.server import WebConsole
+__all__ = ["MAX_PENDING_WRITES", "ConsoleApi", "routes"]
 
-__all__ = ["MAX_PENDING_WRITES", "routes"]
+
+class ConsoleApi(Protocol):
+    """What the routes need of the console: its state, the PLC rows, the write token and the
+    write path. A protocol here, so the API does not import the server that mounts it."""
+
+    state: ConsoleState
+    token: str | None
+
+    def plc_rows(self, plc: str | None) -> list[dict[str, Any]]: ...
+
+    async def write(self, plc: str, tag: str, value: Any) -> web.Response: ...
+
+    def refuse(self, plc: str, tag: str, value: Any, code: str, message: str) -> web.Response: ...
+
 
 #: writes in flight at once from the web; more are refused with ``busy``
 MAX_PENDING_WRITES = 16
@@ -76,7 +88,7 @@ def token_matches(header: str | None, token: str) -> bool:
     return hmac.compare_digest(given, token.encode())
 
 
-def routes(console: WebConsole) -> list[web.RouteDef]:
+def routes(console: ConsoleApi) -> list[web.RouteDef]:
     state = console.state
 
     async def plcs(request: web.Request) -> web.Response:
