@@ -8,6 +8,7 @@ may only read (the default); ``operator`` may write, ``viewer`` may not.
 from __future__ import annotations
 
 import asyncio
+import json
 import signal
 import sys
 import time
@@ -25,8 +26,10 @@ from asyncua import Client, ua
 from asyncua.ua.uaerrors import UaError, UaStatusCodeError
 
 from plcstack import values as vt
+from plcstack.north.audit import Audit, AuditSettings
 from plcstack.north.opcua import OpcUaServer
 from plcstack.north.opcua_config import OpcUaConfig, UserConfig, hash_password
+from plcstack.north.writes import WritePath
 from plcstack.poll import PlcConfig, PollConfig, Poller, TagConfig
 from plcstack.poll.samples import Quality, Sample
 from plcstack.sim import e71, fetchwrite
@@ -648,3 +651,32 @@ async def test_an_encrypting_policy_a_trust_list_and_no_anonymous_logins(
                 await asyncio.gather(feed, return_exceptions=True)
     finally:
         await sim.aclose()
+
+
+async def test_every_opcua_write_attempt_is_audited_with_the_sessions_login(
+    plant: Plant, tmp_path: Path
+) -> None:
+    audit = Audit(AuditSettings(str(tmp_path / "audit.jsonl")))
+    audit.open()
+    writes = plant.server.writes
+    plant.server.writes = WritePath(plant.poller, audit=audit)
+    try:
+        node = plant.node(plant.operator, "press1", "strokes")
+        await node.write_value(ua.DataValue(ua.Variant(77, ua.VariantType.UInt16)))
+        with pytest.raises(UaStatusCodeError):  # anonymous: refused before the write path
+            await plant.node(plant.anonymous, "press1", "strokes").write_value(
+                ua.DataValue(ua.Variant(78, ua.VariantType.UInt16))
+            )
+        with pytest.raises(UaStatusCodeError):  # a value the tag's type cannot take
+            await node.write_value(ua.DataValue(ua.Variant("x", ua.VariantType.String)))
+    finally:
+        plant.server.writes = writes
+        audit.close()
+    lines = [json.loads(line) for line in (tmp_path / "audit.jsonl").read_text().splitlines()]
+    seen = [(r["source"], r["user"], r["plc"], r["tag"], r["value"], r["result"]) for r in lines]
+    assert seen == [
+        ("opcua", "operator", "press1", "strokes", 77, "ok"),
+        ("opcua", None, "press1", "strokes", 78, "unauthorized"),
+        ("opcua", "operator", "press1", "strokes", "x", "wrong_type"),
+    ]
+    assert [r["may_have_executed"] for r in lines] == [True, False, False]

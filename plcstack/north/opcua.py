@@ -326,18 +326,32 @@ class _WriteService(AttributeService):
         items = params.NodesToWrite
         results: list[ua.StatusCode | None] = [None] * len(items)
         others: list[int] = []
-        jobs: dict[str, list[tuple[int, _Binding, Any]]] = {}
+        jobs: dict[str, list[tuple[int, _Binding, tuple[Any, str | None]]]] = {}
         bindings = self._owner._bindings
+        # the session's login for the audit (None: anonymous or the server itself)
+        login = user.name if isinstance(user, PlcUser) else None
         for i, item in enumerate(items):
             binding = bindings.get(item.NodeId)
             if binding is None:
                 others.append(i)
                 continue
             checked = _check_write(binding, item, user)
-            if isinstance(checked, ua.StatusCode):
-                results[i] = checked
+            if isinstance(checked, _Refusal):
+                results[i] = _status(checked.status)
+                # refused before the write path: logged and audited as every other attempt
+                raw = item.Value.Value.Value if item.Value and item.Value.Value else None
+                where = f"{binding.plc}: write {binding.tag.name}"
+                self._owner.writes.refuse(
+                    "opcua",
+                    login,
+                    binding.plc,
+                    binding.tag.name,
+                    raw,
+                    checked.code,
+                    f"{where}: {checked.reason}; not attempted",
+                )
             else:
-                jobs.setdefault(binding.plc, []).append((i, binding, checked))
+                jobs.setdefault(binding.plc, []).append((i, binding, (checked, login)))
         if others:
             rest = ua.WriteParameters()
             rest.NodesToWrite = [items[i] for i in others]
@@ -349,31 +363,39 @@ class _WriteService(AttributeService):
         return [r if r is not None else _status(_S.BadInternalError) for r in results]
 
 
-def _check_write(binding: _Binding, item: ua.WriteValue, user: User) -> ua.StatusCode | Any:
-    """The value to write, or the status that refuses the write before anything is sent."""
-    where = f"{binding.plc}.{binding.tag.name}"
+@dataclass(frozen=True, slots=True)
+class _Refusal:
+    """A write refused before anything is sent: the OPC UA status, the north side's result
+    code (the words every write path answers and audits) and the reason in words."""
+
+    status: int
+    code: str
+    reason: str
+
+
+def _check_write(binding: _Binding, item: ua.WriteValue, user: User) -> _Refusal | Any:
+    """The value to write, or why the write is refused before anything is sent."""
     if item.AttributeId != AttributeIds.Value:
-        return _status(_S.BadNotWritable)
+        return _Refusal(_S.BadNotWritable, "not_writable", "only the Value attribute is written")
     if not isinstance(user, PlcUser):
-        log.warning("OPC UA write of %s refused: not from a client session", where)
-        return _status(_S.BadUserAccessDenied)
+        return _Refusal(_S.BadUserAccessDenied, "unauthorized", "not from a client session")
     if not binding.tag.writable:
-        log.warning("OPC UA write of %s refused: the tag is not writable = true", where)
-        return _status(_S.BadNotWritable)
+        return _Refusal(_S.BadNotWritable, "not_writable", "the tag is not writable = true")
     if not user.may_write:
-        log.warning("OPC UA write of %s refused: user %s may not write", where, user.name)
-        return _status(_S.BadUserAccessDenied)
+        who = f"user {user.name}" if user.name else "an anonymous session"
+        return _Refusal(_S.BadUserAccessDenied, "unauthorized", f"{who} may not write")
     if item.IndexRange:
-        return _status(_S.BadWriteNotSupported)
+        return _Refusal(_S.BadWriteNotSupported, "bad_request", "IndexRange is not written")
     data = item.Value
     if data is None:
-        return _status(_S.BadTypeMismatch)
+        return _Refusal(_S.BadTypeMismatch, "wrong_type", "no value")
     if data.StatusCode is not None and not data.StatusCode.is_good():
-        return _status(_S.BadWriteNotSupported)  # a PLC holds values, not statuses
+        # a PLC holds values, not statuses
+        return _Refusal(_S.BadWriteNotSupported, "bad_request", "a value with a bad status")
     try:
         return binding.value_of(data.Value)
-    except ValueError:
-        return _status(_S.BadTypeMismatch)
+    except ValueError as exc:
+        return _Refusal(_S.BadTypeMismatch, "wrong_type", str(exc))
 
 
 # -- the server -----------------------------------------------------------------------------------
@@ -610,7 +632,7 @@ class OpcUaServer:
 
     # -- writes out -------------------------------------------------------------------------
     async def _write_to_plcs(
-        self, jobs: dict[str, list[tuple[int, _Binding, Any]]]
+        self, jobs: dict[str, list[tuple[int, _Binding, tuple[Any, str | None]]]]
     ) -> list[tuple[int, ua.StatusCode]]:
         """Each PLC's writes in request order, PLCs in parallel; shielded from the client.
 
@@ -626,18 +648,18 @@ class OpcUaServer:
         return [pair for results in per_plc for pair in results]
 
     async def _write_plc(
-        self, items: Sequence[tuple[int, _Binding, Any]]
+        self, items: Sequence[tuple[int, _Binding, tuple[Any, str | None]]]
     ) -> list[tuple[int, ua.StatusCode]]:
         out: list[tuple[int, ua.StatusCode]] = []
-        for i, binding, value in items:
-            out.append((i, _status(await self._write_tag(binding, value))))
+        for i, binding, (value, login) in items:
+            out.append((i, _status(await self._write_tag(binding, value, login))))
         return out
 
-    async def _write_tag(self, binding: _Binding, value: Any) -> int:
+    async def _write_tag(self, binding: _Binding, value: Any, login: str | None) -> int:
         # the one write path of every north side: allow-list, value grammar, write_tag, the
-        # audit line and one log line (plcstack.north.writes)
+        # audit line (with the session's login) and one log line (plcstack.north.writes)
         result = await self.writes.write(
-            "opcua", None, binding.plc, binding.tag.name, value, previous=binding.last[1]
+            "opcua", login, binding.plc, binding.tag.name, value, previous=binding.last[1]
         )
         if result.ok:
             return _S.Good
