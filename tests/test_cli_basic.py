@@ -21,6 +21,11 @@ def test_bad_url_is_exit_2_with_one_line(capsys: pytest.CaptureFixture[str]) -> 
 
 def test_value_syntax() -> None:
     assert [parse_value(v) for v in ["1", "-5", "0x1F", "true", "OFF"]] == [1, -5, 31, True, False]
+    # integral decimals, as every north side's write grammar takes them
+    assert [parse_value(v) for v in ["1201.0", "-5.0", "1.2e3"]] == [1201, -5, 1200]
+    for text in ("nan", "inf", "1.5"):
+        with pytest.raises(AddressError):
+            parse_value(text)
     with pytest.raises(AddressError, match="'1.5' is not an integer"):
         parse_value("1.5")
 

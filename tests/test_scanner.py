@@ -255,8 +255,17 @@ async def test_every_scan_gives_what_the_plcs_hold(concurrency: int | None) -> N
     tasks_tags, counters, cb_count = await _run(concurrency)
     assert counters["steady1"]["writes"] == 1 and counters["down"]["errors"]
     # both ways of running a scan ran: callbacks for the plain scans, awaited reads the rest
-    for name in ("steady1", "steady2", "mute", "isolate"):
-        assert cb_count.started.get(name, 0) >= 2, (name, cb_count.started)
+    plain = ("steady1", "steady2", "mute", "isolate")
+    if concurrency is None:
+        for name in plain:
+            assert cb_count.started.get(name, 0) >= 2, (name, cb_count.started)
+    else:
+        # under a cap, a scan that finds no slot free runs awaited: how many of one PLC's scans
+        # took a slot depends on which scans held them (a loaded machine gave the mute PLC one),
+        # so the callbacks are counted over the fleet's plain scans
+        assert sum(cb_count.started.get(name, 0) for name in plain) >= 2 * len(plain), (
+            cb_count.started
+        )
     assert "multi" not in cb_count.started and "multi" not in cb_count.refused
     assert cb_count.awaited["multi"] >= ENOUGH  # several requests: always awaited
     assert "down" not in cb_count.started  # never connected: never quiet

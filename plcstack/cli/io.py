@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 from typing import Any
 
@@ -65,7 +66,9 @@ def _add_common_options(parser: argparse.ArgumentParser, type_help: str) -> None
 
 
 def parse_value(text: str) -> int | bool:
-    """CLI value syntax: ``true``/``false``/``on``/``off`` are bits, anything else an integer."""
+    """CLI value syntax: ``true``/``false``/``on``/``off`` are bits, anything else an integer;
+    an integral decimal (``1201.0``, ``1.2e3``) is that integer, as every north side's write
+    grammar takes it, so a value copied from a JSON producer or a spreadsheet works here too."""
     low = text.lower()
     if low in ("true", "on"):
         return True
@@ -74,7 +77,14 @@ def parse_value(text: str) -> int | bool:
     try:
         return int(text, 0)
     except ValueError:
-        raise AddressError(f"value {text!r} is not an integer or true/false") from None
+        pass
+    try:
+        number = float(text)
+    except ValueError:
+        number = math.nan
+    if number.is_integer():
+        return int(number)
+    raise AddressError(f"value {text!r} is not an integer or true/false")
 
 
 def shown(value: object) -> str:
