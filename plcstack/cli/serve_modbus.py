@@ -22,8 +22,9 @@ from plcstack.cli import plain_text, print_error
 from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
 from plcstack.north.config import NorthConfig, load_config
 from plcstack.north.metrics import MetricsSettings
-from plcstack.north.modbus.server import ModbusServer, run_until
+from plcstack.north.modbus.server import ModbusServer
 from plcstack.north.pipeline import North
+from plcstack.north.supervise import run_until
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Sample
 

@@ -85,6 +85,7 @@ from plcstack.north.opcua_types import (
 )
 from plcstack.north.opcua_types import status as _status
 from plcstack.north.opcua_users import PlcUser, UserManagerOfConfig, trust_list
+from plcstack.north.supervise import run_until
 from plcstack.north.write_values import parse_write_value
 from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError, TagConfig
@@ -666,29 +667,6 @@ class OpcUaServer:
         if result.error is None:  # refused before the PLC (not writable, unknown tag)
             return _S.BadNotWritable
         return write_status(result.error)
-
-
-async def run_until(
-    server: OpcUaServer,
-    stop: asyncio.Event,
-    timeout: float | None = None,
-    observe: Callable[[list[Sample]], object] | None = None,
-) -> None:
-    """Feed a started server from its poller until ``stop`` is set or ``timeout`` seconds passed
-    (``observe``: see :meth:`OpcUaServer.run`).
-
-    A failure of the feed itself (a bug) is raised, not swallowed with the cancellation.
-    """
-    feeder = asyncio.create_task(server.run(observe), name="opcua feed")
-    stopper = asyncio.create_task(stop.wait())
-    try:
-        await asyncio.wait({feeder, stopper}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        for task in (feeder, stopper):
-            task.cancel()
-        await asyncio.gather(feeder, stopper, return_exceptions=True)
-    if not feeder.cancelled() and feeder.exception() is not None:
-        raise feeder.exception()  # type: ignore[misc]
 
 
 async def serve(

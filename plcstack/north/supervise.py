@@ -24,7 +24,7 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable, Coroutine, Sequence
-from typing import Any
+from typing import Any, Protocol
 
 from plcstack.errors import PlcError
 from plcstack.poll.samples import Quality
@@ -237,3 +237,33 @@ class Supervisor:
             getattr(sample, "value", None),
             _describe(exc),
         )
+
+
+class Fed(Protocol):
+    """A server fed from its poller's samples (the OPC UA and Modbus servers)."""
+
+    async def run(self, observe: Callable[[list[Any]], object] | None = None) -> None: ...
+
+
+async def run_until(
+    server: Fed,
+    stop: asyncio.Event,
+    timeout: float | None = None,
+    observe: Callable[[list[Any]], object] | None = None,
+) -> None:
+    """Feed a started server from its poller until ``stop`` is set or ``timeout`` seconds
+    passed (``observe``: see the server's ``run``).
+
+    A failure of the feed itself (a bug) is raised, not swallowed with the cancellation, so a
+    ``serve`` command ends with exit 1 and the reason instead of going on without its feed.
+    """
+    feeder = asyncio.create_task(server.run(observe), name=f"{type(server).__name__} feed")
+    stopper = asyncio.create_task(stop.wait(), name=f"{type(server).__name__} stop")
+    try:
+        await asyncio.wait({feeder, stopper}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in (feeder, stopper):
+            task.cancel()
+        await asyncio.gather(feeder, stopper, return_exceptions=True)
+    if not feeder.cancelled() and (error := feeder.exception()) is not None:
+        raise error

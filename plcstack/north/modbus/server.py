@@ -309,23 +309,3 @@ class ModbusCollector:
             "tag writes from Modbus confirmed by the PLC",
             value=float(image.writes_confirmed),
         )
-
-
-async def run_until(
-    server: ModbusServer,
-    stop: asyncio.Event,
-    timeout: float | None = None,
-    observe: Callable[[list[Sample]], object] | None = None,
-) -> None:
-    """Feed a started server from its poller until ``stop`` is set or ``timeout`` seconds
-    passed; a failure of the feed itself (a bug) is raised, not swallowed with the cancel."""
-    feeder = asyncio.create_task(server.run(observe), name="modbus feed")
-    stopper = asyncio.create_task(stop.wait(), name="modbus stop")
-    try:
-        await asyncio.wait({feeder, stopper}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        for task in (feeder, stopper):
-            task.cancel()
-        await asyncio.gather(feeder, stopper, return_exceptions=True)
-    if not feeder.cancelled() and (error := feeder.exception()) is not None:
-        raise error
