@@ -8,7 +8,7 @@ name the PLC (its URL), the request, and for PLC error codes the meaning from th
 from __future__ import annotations
 
 import difflib
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 __all__ = [
     "AddressError",
@@ -23,6 +23,7 @@ __all__ = [
     "RemoteProtocolError",
     "ValueDecodeError",
     "ValueEncodeError",
+    "check_keys",
     "unknown_names",
 ]
 
@@ -63,8 +64,21 @@ class ConfigError(AddressError):
     they are known); nothing was sent to any PLC.
 
     An :class:`AddressError` so the CLI exits with the usage code 2, like any other bad input.
-    Every layer that parses a table of the configuration raises it.
+    Every layer that parses a table of the configuration raises it. ``key`` is the dotted TOML
+    path of what is wrong (``"opcua.endpiont"``, ``"mqt"``) when the raiser knows it: the file
+    loader, which alone has the text, turns it into the line to point at.
     """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        key: str | None = None,
+        plc: str | None = None,
+        request: str | None = None,
+    ) -> None:
+        self.key = key
+        super().__init__(message, plc=plc, request=request)
 
 
 class OptionError(AddressError):
@@ -149,3 +163,24 @@ def unknown_names(unknown: Sequence[str], known: Iterable[str]) -> str:
         close = difflib.get_close_matches(name, choices, n=1, cutoff=0.6)
         parts.append(f"{name} (did you mean {close[0]}?)" if close else name)
     return ", ".join(parts)
+
+
+def check_keys(
+    table: Mapping[str, object],
+    known: Iterable[str],
+    path: str,
+    *,
+    where: str | None = None,
+    hint: str = "",
+) -> None:
+    """Every key of the TOML table at ``path`` (``"opcua"``, ``"opcua.users.bob"``) is known;
+    else one :class:`ConfigError` ``[path]: unknown key(s) prot (did you mean port?)`` whose
+    ``key`` is the first unknown one, so the file loader adds its line. ``where`` replaces
+    ``[path]`` at the start (``[[report.rule]] #2``), ``hint`` ends the message (what to do)."""
+    allowed = set(known)
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise ConfigError(
+            f"{where or f'[{path}]'}: unknown key(s) {unknown_names(unknown, allowed)}{hint}",
+            key=f"{path}.{unknown[0]}",
+        )

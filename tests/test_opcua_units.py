@@ -166,7 +166,8 @@ def test_a_certificate_turns_on_the_encrypting_policies_only(tmp_path: Path) -> 
         ({"users": {"bob": {"password": "x"}}}, "--hash-password"),
         ({"users": {"bob": {"password_hash": "plain"}}}, "pbkdf2_sha256$ITERATIONS$SALT$HASH"),
         ({"users": {"bob": {"password_hash": HASH, "write": "yes"}}}, "true or false"),
-        ({"colour": "blue"}, "unknown key(s) in [opcua]: colour"),
+        ({"colour": "blue"}, "[opcua]: unknown key(s) colour"),
+        ({"endpiont": "opc.tcp://h:1"}, "endpiont (did you mean endpoint?)"),
         ({"trusted_client_certificates": "t/"}, "needs a security policy but None"),
         (
             {

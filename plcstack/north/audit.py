@@ -39,7 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from plcstack.errors import ConfigError
+from plcstack.errors import ConfigError, check_keys
 from plcstack.output import json_safe
 
 __all__ = ["Audit", "AuditSettings", "parse_audit"]
@@ -71,9 +71,7 @@ def parse_audit(table: Any, *, base: Path | None = None) -> AuditSettings:
     file's directory)."""
     if not isinstance(table, dict):
         raise ConfigError("[audit] must be a table")
-    unknown = sorted(set(table) - {"path", "max_bytes", "backups"})
-    if unknown:
-        raise ConfigError(f"[audit]: unknown key(s) {', '.join(unknown)}")
+    check_keys(table, ("path", "max_bytes", "backups"), "audit")
     path = table.get("path")
     if not isinstance(path, str) or not path:
         raise ConfigError('[audit] needs path = "FILE" (one JSON line per write attempt)')

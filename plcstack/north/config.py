@@ -15,12 +15,12 @@ layout = "fields"          # a field per tag (default); "typed": a field per val
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
-from plcstack.errors import ConfigError, unknown_names
+from plcstack.errors import ConfigError, check_keys
 from plcstack.north.audit import AuditSettings, parse_audit
 from plcstack.north.influx import DEFAULT_LAYOUT, DEFAULT_MEASUREMENT, LAYOUTS
 from plcstack.north.metrics import MetricsSettings, parse_metrics
@@ -33,6 +33,8 @@ from plcstack.poll.config import PollConfig
 from plcstack.poll.config import load_config as load_poll_config
 
 __all__ = ["NORTH_TABLES", "NorthConfig", "load_config", "parse_north"]
+
+_T = TypeVar("_T")
 
 #: top-level TOML tables that belong to the north side
 NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua", "web", "modbus", "audit")
@@ -65,13 +67,40 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
     """The north-side tables; ``base`` = the TOML file's directory, for relative file paths
     (``[mqtt]`` ca_file, cert_file, key_file, buffer_path, state_path; ``[opcua]``
     certificates). The poll loader checks without it; ``plcstack poll`` passes it."""
-    influx = tables.get("influx", {})
+    influx = _parsed(tables, "influx", _influx) or (DEFAULT_MEASUREMENT, DEFAULT_LAYOUT)
+    report = _parsed(tables, "report", parse_report)
+    return NorthConfig(
+        mqtt=_parsed(tables, "mqtt", lambda t: parse_mqtt(t, base=base)),
+        metrics=_parsed(tables, "metrics", parse_metrics),
+        report=PASS_ALL if report is None else report,
+        influx_measurement=influx[0],
+        influx_layout=influx[1],
+        opcua=_parsed(tables, "opcua", lambda t: parse_opcua_config(t, base=base)),
+        web=_parsed(tables, "web", parse_web),
+        modbus=_parsed(tables, "modbus", parse_modbus),
+        audit=_parsed(tables, "audit", lambda t: parse_audit(t, base=base)),
+    )
+
+
+def _parsed(tables: Mapping[str, Any], name: str, parse: Callable[[Any], _T]) -> _T | None:
+    """``parse(tables[name])``, None without the table. A :class:`ConfigError` that does not
+    say where it is gets the table as its ``key``, so the file loader points at least at the
+    table's header line."""
+    if name not in tables:
+        return None
+    try:
+        return parse(tables[name])
+    except ConfigError as exc:
+        if exc.key is None:
+            exc.key = name
+        raise
+
+
+def _influx(influx: Any) -> tuple[str, str]:
+    """``[influx]``: (measurement, layout)."""
     if not isinstance(influx, dict):
         raise ConfigError("[influx] must be a table")
-    unknown = sorted(set(influx) - {"measurement", "layout"})
-    if unknown:
-        names = unknown_names(unknown, ["measurement", "layout"])
-        raise ConfigError(f"[influx]: unknown key(s) {names}")
+    check_keys(influx, ("measurement", "layout"), "influx")
     measurement = influx.get("measurement", DEFAULT_MEASUREMENT)
     if not isinstance(measurement, str) or not measurement.strip():
         raise ConfigError("[influx] measurement must be a non-empty string")
@@ -81,17 +110,7 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
             f"[influx] layout must be {' or '.join(repr(x) for x in LAYOUTS)},"
             f" not {influx_layout!r}"
         )
-    return NorthConfig(
-        mqtt=parse_mqtt(tables["mqtt"], base=base) if "mqtt" in tables else None,
-        metrics=parse_metrics(tables["metrics"]) if "metrics" in tables else None,
-        report=parse_report(tables.get("report")),
-        influx_measurement=measurement,
-        influx_layout=influx_layout,
-        opcua=parse_opcua_config(tables["opcua"], base=base) if "opcua" in tables else None,
-        web=parse_web(tables["web"]) if "web" in tables else None,
-        modbus=parse_modbus(tables["modbus"]) if "modbus" in tables else None,
-        audit=parse_audit(tables["audit"], base=base) if "audit" in tables else None,
-    )
+    return measurement, influx_layout
 
 
 def load_config(path: str | Path) -> tuple[PollConfig, NorthConfig]:

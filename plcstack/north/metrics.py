@@ -55,7 +55,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from plcstack.errors import ConfigError, ValueDecodeError, unknown_names
+from plcstack.errors import ConfigError, ValueDecodeError, check_keys
 from plcstack.poll.samples import Quality, Sample
 
 __all__ = [
@@ -84,9 +84,7 @@ def parse_metrics(table: Any) -> MetricsSettings:
     """``[metrics]``: ``host`` (default 127.0.0.1), ``port`` (default 9108; 0 = any free port)."""
     if not isinstance(table, dict):
         raise ConfigError("[metrics] must be a table")
-    unknown = sorted(set(table) - {"host", "port"})
-    if unknown:
-        raise ConfigError(f"[metrics]: unknown key(s) {unknown_names(unknown, {'host', 'port'})}")
+    check_keys(table, ("host", "port"), "metrics")
     host = table.get("host", "127.0.0.1")
     port = table.get("port", 9108)
     if not isinstance(host, str) or not host:

@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any, Protocol
 from urllib.parse import urlsplit
 
-from plcstack.errors import ConfigError, PlcError, unknown_names
+from plcstack.errors import ConfigError, PlcError, check_keys
 from plcstack.north.buffer import Message, StoreAndForward
 from plcstack.north.layout import (
     JsonLayout,
@@ -179,9 +179,7 @@ def parse_mqtt(table: Any, *, base: Path | None = None) -> MqttSettings:
         "ca_file", "cert_file", "key_file", "keepalive", "buffer_path", "buffer_memory",
         "buffer_max", "inflight", "reconnect_max", "state_path", "timeout", "sparkplug_qos",
     }  # fmt: skip
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ConfigError(f"[mqtt]: unknown key(s) {unknown_names(unknown, allowed)}")
+    check_keys(table, allowed, "mqtt")
 
     def text(key: str, default: str | None) -> str | None:
         value = table.get(key, default)

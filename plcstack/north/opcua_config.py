@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from plcstack.errors import ConfigError
+from plcstack.errors import ConfigError, check_keys
 
 __all__ = [
     "DEFAULT_ENDPOINT",
@@ -266,11 +266,7 @@ def parse_opcua_config(section: Mapping[str, Any], *, base: Path | None = None) 
     """Build an :class:`OpcUaConfig` from the ``[opcua]`` table's contents."""
     if not isinstance(section, Mapping):
         raise ConfigError("[opcua] must be a table")
-    unknown = sorted(set(section) - _KEYS)
-    if unknown:
-        raise ConfigError(
-            f"unknown key(s) in [opcua]: {', '.join(unknown)} (known: {', '.join(sorted(_KEYS))})"
-        )
+    check_keys(section, _KEYS, "opcua")
     options: dict[str, Any] = {}
     for key in ("endpoint", "namespace", "server_name", "anonymous"):
         if key in section:
@@ -302,10 +298,8 @@ def _user(name: str, spec: Any) -> UserConfig:
     where = f"opcua.users.{name}"
     if not isinstance(spec, Mapping):
         raise ConfigError(f"{where} must be a table with password_hash and write")
-    unknown = sorted(set(spec) - {"password_hash", "write"})
-    if unknown:
-        hint = " (store a hash: plcstack serve opcua --hash-password)" if "password" in spec else ""
-        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}{hint}")
+    hint = "; store a hash: plcstack serve opcua --hash-password" if "password" in spec else ""
+    check_keys(spec, ("password_hash", "write"), where, hint=hint)
     password_hash = spec.get("password_hash")
     if not isinstance(password_hash, str):
         raise ConfigError(f"{where}: missing password_hash (plcstack serve opcua --hash-password)")

@@ -26,7 +26,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from plcstack.errors import ConfigError
+from plcstack.errors import ConfigError, check_keys
 from plcstack.poll.samples import Quality, Sample
 
 __all__ = ["ReportByException", "ReportPolicy", "parse_report"]
@@ -123,9 +123,7 @@ class ReportByException:
 
 def _policy(table: Mapping[str, Any], base: ReportPolicy, where: str) -> ReportPolicy:
     allowed = {"on_change", "deadband", "deadband_percent", "max_silence", "plc", "tag"}
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}")
+    check_keys(table, allowed, "report" if where == "[report]" else "report.rule", where=where)
     values: dict[str, Any] = {
         "on_change": base.on_change,
         "deadband": base.deadband,

@@ -317,6 +317,11 @@ def parse_config(
     return _Loader(text, source).load(data, tables)
 
 
+def _toml_path(dotted: str) -> list[str]:
+    """``'a . "b" . c'`` -> ``["a", "b", "c"]`` (a dot inside quotes is rare enough to ignore)."""
+    return [part.strip().strip("\"'") for part in dotted.split(".")]
+
+
 def _depth(value: Any) -> int:
     """Nesting depth of parsed TOML, without recursion (so any depth tomllib accepted is safe)."""
     deepest = 0
@@ -359,8 +364,35 @@ class _Loader:
                 return i + 1
         return lo + 1 if self.plc_index >= 0 else None
 
-    def error(self, message: str, key: str | None = None) -> ConfigError:
-        line = self._line_of(key)
+    def _line_of_path(self, path: str) -> int | None:
+        """The line of a dotted TOML path (``"opcua.endpiont"``, ``"mqt"``, ``"report.rule.x"``):
+        the first ``key =`` line or ``[table]``/``[[table]]`` header that names it exactly, else
+        the one that names the longest part of it (the table of an unknown key, when the key
+        sits in an inline table). Top-level paths only: [[plc]] keys use :meth:`_line_of`."""
+        want = _toml_path(path)
+        best, best_len = None, 0
+        table: list[str] = []
+        for i, line in enumerate(self.lines):
+            if header := re.match(r"\s*\[\[?([^\[\]]+)\]\]?\s*(?:#.*)?$", line):
+                table = _toml_path(header.group(1))
+                names = table
+            elif key := re.match(r"\s*([\w\-\s.\"']+?)\s*=", line):
+                names = table + _toml_path(key.group(1))
+            else:
+                continue
+            if names == want:
+                return i + 1
+            common = len(names) if want[: len(names)] == names else 0
+            if common > best_len:
+                best, best_len = i + 1, common
+        return best
+
+    def error(
+        self, message: str, key: str | None = None, *, path: str | None = None
+    ) -> ConfigError:
+        """A ConfigError with ``(file:line)``; the line is that of ``key`` in the current
+        [[plc]] section, or of the dotted top-level ``path``."""
+        line = self._line_of_path(path) if path is not None else self._line_of(key)
         where = f"{self.source}:{line}" if line else self.source
         return ConfigError(f"{message} ({where})", plc=self.plc_name)
 
@@ -408,11 +440,11 @@ class _Loader:
             raise self.error(
                 f"unknown top-level key(s) {unknown_names(unknown, top)}; expected poll, groups,"
                 f" plc or {', '.join(NORTH_SECTIONS)}",
-                unknown[0],
+                path=unknown[0],
             )
         for section in NORTH_SECTIONS:
             if section in data and not isinstance(data[section], dict):
-                raise self.error(f"[{section}] must be a table", section)
+                raise self.error(f"[{section}] must be a table", path=section)
         # the other layers' tables ([mqtt], [opcua], ...): parsed by their owner now, when it
         # is given, so a typo stops before any send, with the line of its table
         north = {key: data[key] for key in NORTH_SECTIONS if key in data}
@@ -420,7 +452,7 @@ class _Loader:
             try:
                 tables(north)
             except ConfigError as exc:
-                raise self.error(exc.message, next(iter(north), None)) from None
+                raise self.error(exc.message, path=exc.key or next(iter(north))) from None
         poll = data.get("poll", {})
         if not isinstance(poll, dict):
             raise self.error("[poll] must be a table", "poll")

@@ -29,7 +29,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from plcstack.errors import ConfigError
+from plcstack.errors import ConfigError, check_keys
 from plcstack.north.modbus.registers import TABLES, Layout, layout_for
 from plcstack.poll.config import TagConfig
 from plcstack.values import WordOrder
@@ -77,9 +77,7 @@ def parse_modbus(table: Any) -> ModbusSettings:
     """``[modbus]``: endpoint, unit_id, word_order; ConfigError naming the key otherwise."""
     if not isinstance(table, dict):
         raise ConfigError("[modbus] must be a table")
-    unknown = sorted(set(table) - {"endpoint", "unit_id", "word_order"})
-    if unknown:
-        raise ConfigError(f"[modbus]: unknown key(s) {', '.join(unknown)}")
+    check_keys(table, ("endpoint", "unit_id", "word_order"), "modbus")
     endpoint = table.get("endpoint", DEFAULT_ENDPOINT)
     m = _ENDPOINT.match(endpoint) if isinstance(endpoint, str) else None
     if m is None or int(m.group(3)) > 65535:

@@ -19,7 +19,7 @@ import os
 from dataclasses import dataclass
 from typing import Any
 
-from plcstack.errors import unknown_names
+from plcstack.errors import check_keys
 from plcstack.poll.config import ConfigError
 
 __all__ = ["DEFAULT_PORT", "WebSettings", "parse_web", "with_port"]
@@ -50,9 +50,7 @@ def parse_web(table: Any) -> WebSettings:
     """Check ``[web]``; a :class:`ConfigError` names the key and what it must be."""
     if not isinstance(table, dict):
         raise ConfigError("[web] must be a table")
-    unknown = sorted(set(table) - _KEYS)
-    if unknown:
-        raise ConfigError(f"[web]: unknown key(s) {unknown_names(unknown, _KEYS)}")
+    check_keys(table, _KEYS, "web")
     host = table.get("host", "127.0.0.1")
     port = table.get("port", DEFAULT_PORT)
     env = table.get("write_token_env")
