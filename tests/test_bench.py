@@ -546,6 +546,31 @@ async def test_fleet_floor_hands_out_bytes_or_the_decoded_words(decode: bool) ->
         assert reply == fleet.REPLY
 
 
+async def test_fleet_responders_share_listeners_but_give_every_plc_its_own_connection() -> None:
+    """A fleet of 10,000 must fit a 20,000-descriptor limit: the responders listen on one
+    socket per PLCS_PER_LISTENER PLCs, and each PLC's connection is answered on its own."""
+    from plcstack.bench.cases import fleet
+
+    n = 2 * fleet.PLCS_PER_LISTENER + 1
+    proc, ports = fleet._start_responders(n, None)
+    writers: list[asyncio.StreamWriter] = []
+    try:
+        assert len(ports) == n and len(set(ports)) == fleet.listener_count(n) == 3
+        for port in ports:
+            reader, writer = await asyncio.open_connection("127.0.0.1", port)
+            writers.append(writer)
+            writer.write(fleet.REQUEST * 2)  # two requests in one segment: two replies
+            assert await asyncio.wait_for(reader.readexactly(2 * len(fleet.REPLY)), 10) == (
+                fleet.REPLY * 2
+            )
+    finally:
+        for writer in writers:
+            writer.close()
+        assert proc.stdin is not None
+        proc.stdin.close()
+        assert proc.wait(10) == 0
+
+
 def test_fleet_alternate_runs_every_kind_per_round_in_abba_order() -> None:
     """One child, one set of responders, the kinds back to back and reversed every other round;
     a ratio per round from that round's runs, and their median."""
