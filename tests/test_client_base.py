@@ -10,6 +10,7 @@ from typing import Any
 import pytest
 
 from plcstack.clients.exchange import ClientCodec, RequestClient
+from plcstack.clients.flight import ConnectTurns
 from plcstack.codecs._common import NEED_DATA, NeedData, ReceiveBuffer
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout, RemoteProtocolError
 from plcstack.transports import Backoff, TcpTransport
@@ -158,3 +159,19 @@ async def test_dead_plc_backs_off_and_comes_back(line_server: Any) -> None:
     server.close()
     with pytest.raises(ConnectionLost, match="client is closed"):
         await plc.read("ASK 7")
+
+
+async def test_a_connect_waits_for_its_turn_before_its_timeout_starts(line_server: Any) -> None:
+    """Clients of one poller share connect turns; waiting for one is not connecting, so a
+    fleet starting thousands of connects does not time them out on its own backlog."""
+    turns = ConnectTurns(1, hold=60.0)
+    plc = make_client(line_server.port, connect_timeout=0.2)
+    plc.connect_turns = turns
+    async with turns.turn():  # another connect holds the one turn, longer than the timeout
+        opening = asyncio.create_task(plc.open())
+        await asyncio.sleep(0.5)
+        assert not opening.done()
+    await opening
+    async with plc:
+        assert await plc.read("ASK 7") == [7]
+    assert plc.stats.connect_failures == 0

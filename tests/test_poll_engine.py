@@ -352,3 +352,20 @@ def test_stats_table_fits_80_columns() -> None:
     assert all(len(line) < 80 for line in lines), table
     assert lines[1].split()[0].endswith("~") and lines[1].split()[1] == "12345678"
     assert lines[2].startswith("p2 ")
+
+
+def test_the_poller_spaces_its_clients_connects_with_one_set_of_turns() -> None:
+    """Every client of one poller waits for the same connect turns (ConnectTurns): a fleet
+    started at once connects CONNECTS_AT_ONCE at a time, not all in one loop backlog."""
+    from plcstack.clients.flight import ConnectTurns
+    from plcstack.poll.engine import CONNECT_TURN_HOLD, CONNECTS_AT_ONCE
+
+    poller, _ = make({"a": [tag("a", "D0")], "b": [tag("b", "D0")]})
+    turns = poller.client("a").connect_turns
+    assert isinstance(turns, ConnectTurns) and poller.client("b").connect_turns is turns
+    assert repr(turns) == (
+        f"<ConnectTurns <Slots {CONNECTS_AT_ONCE}/{CONNECTS_AT_ONCE} free, 0 waiting>, "
+        f"hold {CONNECT_TURN_HOLD:g} s>"
+    )
+    other, _ = make({"c": [tag("c", "D0")]})
+    assert other.client("c").connect_turns is not turns  # per poller, not per process

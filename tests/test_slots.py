@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from plcstack.clients.flight import Slots
+from plcstack.clients.flight import ConnectTurns, Slots
 
 
 def _free(slots: Slots) -> int:
@@ -191,3 +191,74 @@ def test_random_schedules_keep_the_cap_order_and_progress(
         assert not slots._waiters
 
     asyncio.run(run())
+
+
+# -- ConnectTurns: the connects of one poller's clients --------------------------------------------
+async def test_connect_turns_let_at_once_connects_run_and_queue_the_rest() -> None:
+    turns = ConnectTurns(2, hold=60.0)
+    running: list[int] = []
+    most = 0
+    go = asyncio.Event()
+
+    async def connect(i: int) -> None:
+        nonlocal most
+        async with turns.turn():
+            running.append(i)
+            most = max(most, len(running))
+            await go.wait()
+            running.remove(i)
+
+    tasks = [asyncio.create_task(connect(i)) for i in range(5)]
+    await asyncio.sleep(0.01)
+    assert sorted(running) == [0, 1]  # the first two, in arrival order
+    go.set()
+    await asyncio.gather(*tasks)
+    assert most == 2 and not running
+
+
+async def test_a_connect_past_its_hold_gives_its_turn_back() -> None:
+    """A connect that waits on a dead peer must not keep the others from connecting."""
+    turns = ConnectTurns(1, hold=0.05)
+    dead = asyncio.Event()
+    entered = asyncio.Event()
+
+    async def dead_connect() -> None:
+        async with turns.turn():
+            entered.set()
+            await dead.wait()
+
+    stuck = asyncio.create_task(dead_connect())
+    await entered.wait()
+    async with asyncio.timeout(5):  # the hold, not the dead connect, ends the first turn
+        async with turns.turn():
+            assert not stuck.done()
+    dead.set()
+    await stuck  # ends its turn late: the turn was given back once, not twice
+    assert repr(turns) == "<ConnectTurns <Slots 1/1 free, 0 waiting>, hold 0.05 s>"
+
+
+async def test_a_connect_that_fails_or_is_cancelled_gives_its_turn_back() -> None:
+    turns = ConnectTurns(1, hold=60.0)
+    with pytest.raises(OSError):
+        async with turns.turn():
+            raise OSError("refused")
+    waiting = asyncio.Event()
+
+    async def blocked() -> None:
+        async with turns.turn():
+            waiting.set()
+            await asyncio.sleep(60)
+
+    task = asyncio.create_task(blocked())
+    await waiting.wait()
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    async with asyncio.timeout(1):
+        async with turns.turn():
+            pass
+
+
+def test_connect_turns_need_a_positive_hold() -> None:
+    with pytest.raises(ValueError, match="hold"):
+        ConnectTurns(1, hold=0)

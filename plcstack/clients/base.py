@@ -14,7 +14,7 @@ from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self, TypeVar, overload
 
-from plcstack.clients.flight import SingleFlight
+from plcstack.clients.flight import ConnectTurns, SingleFlight
 from plcstack.clients.options import COMMON, Option, resolve
 from plcstack.diagnose import Failure
 from plcstack.durations import check_seconds
@@ -160,6 +160,10 @@ class Client(AsyncResource):
         self._unproven_failures = 0
         #: why requests fail fast until ``_next_attempt`` ("PLC unreachable", ...)
         self._backoff_reason = "PLC unreachable"
+        #: shared by the clients of one poller (None: connect at once). A connect waits for a
+        #: slot before its ``connect_timeout`` starts: when thousands of PLCs connect at the
+        #: same time, the event loop's own backlog must not be what times them out.
+        self.connect_turns: ConnectTurns | None = None
 
     # -- construction -----------------------------------------------------------------------
     #: this client's options, shared by the URL query and keywords (:mod:`.options`)
@@ -205,7 +209,12 @@ class Client(AsyncResource):
 
     async def _connect(self) -> None:
         try:
-            await self.transport.open(self.connect_timeout)
+            turns = self.connect_turns
+            if turns is None:
+                await self.transport.open(self.connect_timeout)
+            else:
+                async with turns.turn():
+                    await self.transport.open(self.connect_timeout)
         except PlcError as exc:
             self.stats.connect_failures += 1
             exc.bind(plc=self.name, request="connect")

@@ -19,6 +19,9 @@ gives it to the first waiter that is still waiting. Hence the invariant that mak
 meanwhile (a request, a callback scan) can overtake the queue. A waiter cancelled after it was
 handed the slot passes it on (it never ran, so nothing was sent on its behalf); one cancelled
 before leaves the queue.
+
+:class:`ConnectTurns` spaces the connects of many clients that share one event loop: a turn
+ends when the connect does, or after ``hold`` seconds, whichever comes first.
 """
 
 from __future__ import annotations
@@ -26,9 +29,10 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+from collections.abc import AsyncIterator
 from types import TracebackType
 
-__all__ = ["SingleFlight", "Slots"]
+__all__ = ["ConnectTurns", "SingleFlight", "Slots"]
 
 
 class Slots:
@@ -120,3 +124,46 @@ class SingleFlight(Slots):
     def __repr__(self) -> str:
         state = "locked" if self.locked() else "unlocked"
         return f"<SingleFlight {state}, {len(self._waiters)} waiting>"
+
+
+class ConnectTurns:
+    """Connects of many clients, ``at_once`` at a time; a turn lasts at most ``hold`` seconds.
+
+    Thousands of PLCs of one poller connect within the same second. Unspaced, every connect's
+    steps queue behind every other's in the one event loop, and that backlog, not the network,
+    outlasts the connect timeout. A connect waits for its turn before its timeout starts. The
+    turn ends when the connect does; a connect still running after ``hold`` seconds waits on
+    its peer, not on this process, and gives its turn back, so dead PLCs (each connect running
+    for its whole timeout) can never take every turn and keep the live ones from reconnecting.
+    """
+
+    __slots__ = ("_slots", "hold")
+
+    def __init__(self, at_once: int, hold: float) -> None:
+        if hold <= 0:
+            raise ValueError(f"ConnectTurns needs a hold above 0 s, not {hold!r}")
+        self._slots = Slots(at_once)
+        self.hold = hold
+
+    @contextlib.asynccontextmanager
+    async def turn(self) -> AsyncIterator[None]:
+        """Wait for a turn; hold it while the body runs, for ``hold`` seconds at most."""
+        slots = self._slots
+        await slots.acquire()
+        held = True
+
+        def give_back() -> None:
+            nonlocal held
+            if held:
+                held = False
+                slots.release()
+
+        timer = asyncio.get_running_loop().call_later(self.hold, give_back)
+        try:
+            yield
+        finally:
+            timer.cancel()
+            give_back()
+
+    def __repr__(self) -> str:
+        return f"<ConnectTurns {self._slots!r}, hold {self.hold:g} s>"

@@ -30,8 +30,17 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 
+from plcstack.clients.flight import ConnectTurns
 from plcstack.poll.config import PlcConfig, PollConfig
-from plcstack.poll.engine import ClientFactory, PlcStats, Poller, Sample, SampleQueue
+from plcstack.poll.engine import (
+    CONNECT_TURN_HOLD,
+    CONNECTS_AT_ONCE,
+    ClientFactory,
+    PlcStats,
+    Poller,
+    Sample,
+    SampleQueue,
+)
 from plcstack.scale.hrw import owner
 from plcstack.scale.lease import Lease, LeaseStore
 from plcstack.scale.presence import Presence
@@ -125,6 +134,9 @@ class Worker:
         for name in check.plcs:
             check.client(name).transport.abort()
         self._plcs: dict[str, PlcConfig] = {p.name: p for p in config.plcs}
+        #: one poller per PLC, one set of connect turns for all of them (a worker that takes
+        #: over thousands of PLCs at once connects them as one poller would)
+        self._connects = ConnectTurns(CONNECTS_AT_ONCE, CONNECT_TURN_HOLD)
         ttl = options.lease_ttl
         self.retry = options.retry if options.retry is not None else min(ttl / 4, 1.0)
         self.renew_every = ttl / 4
@@ -333,7 +345,10 @@ class Worker:
 
     async def _start(self, plc: str, lease: Lease | None) -> None:
         config = dataclasses.replace(self.config, plcs=(self._plcs[plc],))
-        run = _Run(Poller(config, client_factory=self._factory, queue=self.queue), plc)
+        poller = Poller(
+            config, client_factory=self._factory, queue=self.queue, connect_turns=self._connects
+        )
+        run = _Run(poller, plc)
         if lease is not None:
             self._held[plc] = lease
             self._arm(lease)
