@@ -1,18 +1,37 @@
 """The walkthroughs of the docs run as written.
 
-A page's ``## Walkthrough`` section holds one ``sh`` block. Its lines run in order, in this
-process: a line ending in ``&`` (a simulator, the gateway) is started and waited for until it
-says ``listening on``; every other ``plcstack`` line runs to its end, and a trailing comment
-that shows output (``# D0: 1 2``) must match, ``# exit N`` must be the exit code. Every port the
-block names is replaced by a free one, the same free one wherever the block repeats it, so the
-walkthrough neither needs nor takes its documented ports.
+A walkthrough is a section whose heading starts with ``## Walkthrough``; a page may have several,
+each a test of its own. The ``toml`` blocks of a page's walkthroughs whose first line is
+``# FILE`` are written to FILE in a fresh working directory (the source checkout's
+``examples/`` is there too), and a section's one ``sh`` block runs line by line, in order:
+
+- a ``plcstack`` line runs in this process (the same ``args.func`` as the command line). An
+  ``&`` line of a server (``sim``, ``gateway``, ``serve``) is started and waited for until it
+  says ``listening on`` (on stdout or stderr); any other ``&`` line (``poll``) is started.
+- ``plcstack ... | CMD``: what plcstack printed is CMD's stdin.
+- any other line runs in ``/bin/sh`` in the working directory, with this Python's scripts first
+  on PATH (``python``, ``uaread``). An ``&`` line (a broker, a database) is started and waited
+  for until every port it names, on the line or in a file it names, accepts connections.
+- A trailing comment is the output: the comment and the comment-only lines right after the
+  command must each match a line of the output, in order, ``...`` standing for any text (for a
+  server's ``&`` line: what it printed when it started). ``# exit N`` (and a reason after it)
+  is the exit code instead; comment-only lines after it are still the output.
+
+Every port the block and its files name is replaced by a free one, the same one wherever it
+repeats, so a walkthrough neither needs nor takes its documented ports. At the end everything
+started is stopped; a background command that ended early with an error fails the test.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import os
 import re
 import shlex
+import signal
+import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -21,61 +40,273 @@ from plcstack.cli import build_parser
 from tests.servers import free_port
 from tests.test_docs import _run
 
-DOCS = Path(__file__).resolve().parents[1] / "docs"
-WALKTHROUGHS = ["gateway.md"]
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+#: (page, walkthrough number on the page); OPC UA is slow (~9 s: an asyncua server and three
+#: asyncua clients, each a new interpreter)
+WALKTHROUGHS = [
+    pytest.param("gateway.md", 0, id="gateway"),
+    pytest.param("north.md", 0, id="north-mqtt"),
+    pytest.param("north.md", 1, id="north-sparkplug"),
+    pytest.param("north.md", 2, id="north-influx"),
+    pytest.param("opcua.md", 0, id="opcua", marks=pytest.mark.slow),
+]
+#: plcstack commands that serve something and say "listening on" when they do
+SERVERS = {"sim", "gateway", "serve"}
+PORT = re.compile(r"(?:127\.0\.0\.1:|--port[ =]|-p |port = |--metrics-port )(\d{4,5})\b")
+#: bound for one command, and for a server to come up
+TIMEOUT = 30.0
 
 
-def _block(page: str) -> list[str]:
+@dataclass
+class Step:
+    command: str
+    expected: list[str] = field(default_factory=list)
+
+    @property
+    def background(self) -> bool:
+        return self.command.endswith("&")
+
+
+def _sections(page: str) -> list[str]:
     text = (DOCS / page).read_text(encoding="utf-8")
-    section = text.split("## Walkthrough", 1)[1]
-    block = section.split("```sh", 1)[1].split("```", 1)[0]
-    return [line.strip() for line in block.splitlines() if line.strip()]
+    return [part for part in re.split(r"^## ", text, flags=re.M) if part.startswith("Walkthrough")]
 
 
-def _moved_ports(lines: list[str]) -> dict[str, str]:
-    ports = set(re.findall(r"127\.0\.0\.1:(\d{4,5})|--port (\d{4,5})", "\n".join(lines)))
-    return {p: str(free_port()) for pair in ports for p in pair if p}
+def _files(page: str) -> dict[str, str]:
+    """FILE -> text of every ``toml`` block of the page's walkthroughs that starts ``# FILE``."""
+    files = {}
+    for section in _sections(page):
+        for block in re.findall(r"```toml\n(.*?)```", section, flags=re.S):
+            if m := re.match(r"# ([\w.-]+)\s*\n", block):
+                files[m.group(1)] = block
+    return files
+
+
+def _split_comment(line: str) -> tuple[str, str]:
+    """``cmd 'a/#' # out`` -> ("cmd 'a/#'", "out"): a ``#`` after a blank, outside quotes."""
+    quote = ""
+    for i, ch in enumerate(line):
+        if quote:
+            quote = "" if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif ch == "#" and (i == 0 or line[i - 1].isspace()):
+            return line[:i].strip(), line[i + 1 :].strip()
+    return line.strip(), ""
+
+
+def _steps(section: str) -> list[Step]:
+    block = section.split("```sh\n", 1)[1].split("```", 1)[0]
+    steps: list[Step] = []
+    for raw in block.splitlines():
+        command, comment = _split_comment(raw)
+        if command:
+            steps.append(Step(command, [comment] if comment else []))
+        elif comment:
+            assert steps, f"a comment before any command: {raw}"
+            steps[-1].expected.append(comment)
+    return steps
+
+
+def _moved_ports(texts: list[str]) -> dict[str, str]:
+    ports = {m.group(1) for text in texts for m in PORT.finditer(text)}
+    return {p: str(free_port()) for p in sorted(ports)}
 
 
 def _moved(text: str, ports: dict[str, str]) -> str:
     return re.sub(r"\b(\d{4,5})\b", lambda m: ports.get(m.group(1), m.group(1)), text)
 
 
-async def _wait_listening(capsys: pytest.CaptureFixture[str], task: asyncio.Task[int]) -> str:
-    seen = ""
-    async with asyncio.timeout(15):
-        while "listening on" not in seen:
-            assert not task.done(), f"ended before listening: {task.result()}; {seen}"
-            seen += capsys.readouterr().out
-            await asyncio.sleep(0.02)
-    return seen
+def _check(expected: list[str], output: str, what: str) -> None:
+    """Each expected line matches a line of ``output``, in order; ``...`` is any text."""
+    lines = iter(line.strip() for line in output.splitlines())
+    for want in expected:
+        pattern = re.compile(".*".join(re.escape(part) for part in want.split("...")))
+        assert any(pattern.fullmatch(line) for line in lines), (
+            f"{what}: no line {want!r} (in order) in the output:\n{output}"
+        )
 
 
-@pytest.mark.parametrize("page", WALKTHROUGHS)
-async def test_walkthrough_runs_as_written(page: str, capsys: pytest.CaptureFixture[str]) -> None:
-    lines = _block(page)
-    ports = _moved_ports(lines)
-    background: list[asyncio.Task[int]] = []
-    try:
-        for line in lines:
-            command, _, comment = line.partition("#")
-            command = command.strip()
-            comment = comment.strip()
-            argv = shlex.split(_moved(command.removesuffix("&"), ports))
-            assert argv[0] == "plcstack", line
-            build_parser().parse_args(argv[1:])  # every line is valid as written
-            if command.endswith("&"):
-                task = asyncio.create_task(_run(argv[1:]))
-                background.append(task)
-                await _wait_listening(capsys, task)
-                continue
-            code = await _run(argv[1:])
-            shown = capsys.readouterr().out.strip()
-            expected_code = int(m.group(1)) if (m := re.match(r"exit (\d)", comment)) else 0
-            assert code == expected_code, f"{page}: {line}: exit {code}"
-            if comment and not comment.startswith("exit") and argv[1] == "read":
-                assert shown == _moved(comment, ports), f"{page}: {line}"
-    finally:
-        for task in background:
+def _exit_code(expected: list[str]) -> tuple[int, list[str]]:
+    """``# exit 1: why`` -> (1, the output lines after it); else (0, every line)."""
+    if expected and (m := re.match(r"exit (\d+)", expected[0])):
+        return int(m.group(1)), expected[1:]
+    return 0, expected
+
+
+def _text(path: Path) -> str:
+    return path.read_text(errors="replace")
+
+
+async def _ports_accept(ports: list[int], proc: asyncio.subprocess.Process, log: Path) -> None:
+    async with asyncio.timeout(TIMEOUT):
+        for port in ports:
+            while True:
+                assert proc.returncode is None, f"ended early: {_text(log)}"
+                try:
+                    _, writer = await asyncio.open_connection("127.0.0.1", port)
+                except OSError:
+                    await asyncio.sleep(0.02)
+                    continue
+                writer.close()
+                await writer.wait_closed()
+                break
+
+
+class Walkthrough:
+    """One walkthrough's run: its working directory, ports, and what it started."""
+
+    def __init__(self, page: str, capsys: pytest.CaptureFixture[str], cwd: Path) -> None:
+        self.page, self.capsys, self.cwd = page, capsys, cwd
+        self.tasks: list[asyncio.Task[int]] = []
+        self.procs: list[asyncio.subprocess.Process] = []
+        self.env = dict(os.environ)
+        path = [str(Path(sys.executable).parent), self.env.get("PATH", ""), "/usr/sbin", "/sbin"]
+        self.env["PATH"] = os.pathsep.join(path)
+
+    def plcstack_argv(self, command: str) -> list[str]:
+        argv = shlex.split(command)
+        assert argv[0] == "plcstack", command
+        build_parser().parse_args(argv[1:])  # every line is valid as written
+        return argv[1:]
+
+    async def plcstack(self, step: Step, command: str) -> None:
+        pipe_to = None
+        if " | " in command:
+            command, pipe_to = (part.strip() for part in command.split(" | ", 1))
+        argv = self.plcstack_argv(command)
+        if step.background:
+            task = asyncio.create_task(_run(argv))
+            self.tasks.append(task)
+            if argv[0] in SERVERS:
+                await self.wait_listening(task, step)
+            return
+        self.capsys.readouterr()  # what started before is not this command's output
+        code = await _run(argv)
+        shown = self.capsys.readouterr()
+        if pipe_to is not None:
+            assert code == 0, f"{self.page}: {command}: exit {code}: {shown.err}"
+            await self.shell(step, pipe_to, shown.out.encode())
+            return
+        expected_code, expected = _exit_code(step.expected)
+        assert code == expected_code, f"{self.page}: {step.command}: exit {code}: {shown.err}"
+        _check(expected, shown.out, f"{self.page}: {step.command}")
+
+    async def wait_listening(self, task: asyncio.Task[int], step: Step) -> None:
+        seen = ""
+        async with asyncio.timeout(TIMEOUT):
+            while "listening on" not in seen:
+                assert not task.done(), f"ended before listening: {task.result()}; {seen}"
+                out, err = self.capsys.readouterr()
+                seen += out + err
+                await asyncio.sleep(0.02)
+        _check(step.expected, seen, f"{self.page}: {step.command}")
+
+    async def shell(self, step: Step, command: str, stdin: bytes | None = None) -> None:
+        proc = await asyncio.create_subprocess_shell(
+            command,
+            stdin=asyncio.subprocess.PIPE if stdin is not None else asyncio.subprocess.DEVNULL,
+            stdout=asyncio.subprocess.PIPE,
+            stderr=asyncio.subprocess.PIPE,
+            cwd=self.cwd,
+            env=self.env,
+        )
+        try:
+            async with asyncio.timeout(TIMEOUT):
+                out, err = await proc.communicate(stdin)
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+        expected_code, expected = _exit_code(step.expected)
+        what = f"{self.page}: {step.command}"
+        assert proc.returncode == expected_code, f"{what}: exit {proc.returncode}: {err.decode()}"
+        _check(expected, out.decode(), what)
+
+    async def start(self, command: str) -> None:
+        """An ``&`` line that is not plcstack: started, then waited for until its ports accept."""
+        argv = shlex.split(command)
+        log = self.cwd / f"job{len(self.procs)}.log"
+        out = log.open("wb")  # handed to the child as its stdout and stderr
+        try:
+            proc = await asyncio.create_subprocess_exec(
+                *argv,
+                stdin=asyncio.subprocess.DEVNULL,
+                stdout=out,
+                stderr=asyncio.subprocess.STDOUT,
+                cwd=self.cwd,
+                env=self.env,
+                start_new_session=True,
+            )
+        finally:
+            out.close()
+        self.procs.append(proc)
+        named = [command] + [
+            _text(self.cwd / arg) for arg in argv[1:] if (self.cwd / arg).is_file()
+        ]
+        ports = sorted({int(m.group(1)) for text in named for m in PORT.finditer(text)})
+        await _ports_accept(ports, proc, log)
+
+    async def run(self, steps: list[Step], ports: dict[str, str]) -> None:
+        for step in steps:
+            command = _moved(step.command.removesuffix("&").strip(), ports)
+            step.expected = [_moved(line, ports) for line in step.expected]
+            if command.startswith("plcstack "):
+                await self.plcstack(step, command)
+            elif step.background:
+                await self.start(command)
+            else:
+                await self.shell(step, command)
+        for task in self.tasks:  # a background command that gave up is a failed walkthrough
+            if task.done():
+                assert task.exception() is None and task.result() == 0, f"{self.page}: {task}"
+
+    async def stop(self) -> None:
+        for task in self.tasks:
             task.cancel()
-        await asyncio.gather(*background, return_exceptions=True)
+        await asyncio.gather(*self.tasks, return_exceptions=True)
+        for proc in self.procs:
+            if proc.returncode is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(proc.pid, signal.SIGTERM)
+                try:
+                    async with asyncio.timeout(10):
+                        await proc.wait()
+                except TimeoutError:
+                    proc.kill()
+                    await proc.wait()
+
+
+@pytest.mark.parametrize(("page", "number"), WALKTHROUGHS)
+async def test_walkthrough_runs_as_written(
+    page: str,
+    number: int,
+    capsys: pytest.CaptureFixture[str],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    section = _sections(page)[number]
+    steps = _steps(section)
+    files = _files(page)
+    ports = _moved_ports([step.command for step in steps] + list(files.values()))
+    for name, text in files.items():
+        (tmp_path / name).write_text(_moved(text, ports), encoding="utf-8")
+    (tmp_path / "examples").symlink_to(ROOT / "examples")
+    monkeypatch.chdir(tmp_path)  # plcstack's relative paths, as the shell lines' are
+    walk = Walkthrough(page, capsys, tmp_path)
+    try:
+        await walk.run(steps, ports)
+    finally:
+        await walk.stop()
+
+
+def test_every_walkthrough_of_the_docs_is_run() -> None:
+    """A page that gains a walkthrough gains its test here."""
+    run = {(p.values[0], p.values[1]) for p in WALKTHROUGHS}
+    found = {
+        (page.name, number)
+        for page in sorted(DOCS.glob("*.md"))
+        for number in range(len(_sections(page.name)))
+    }
+    assert found == run
