@@ -42,14 +42,15 @@ from tests.test_docs import _run
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
-#: (page, walkthrough number on the page); OPC UA is slow (~9 s: an asyncua server and three
-#: asyncua clients, each a new interpreter)
+#: (page, walkthrough number on the page). Slow: OPC UA (~9 s: an asyncua server and three
+#: asyncua clients, each a new interpreter) and scale-out (~3.5 s: two polls of 1 s each)
 WALKTHROUGHS = [
     pytest.param("gateway.md", 0, id="gateway"),
     pytest.param("north.md", 0, id="north-mqtt"),
     pytest.param("north.md", 1, id="north-sparkplug"),
     pytest.param("north.md", 2, id="north-influx"),
     pytest.param("opcua.md", 0, id="opcua", marks=pytest.mark.slow),
+    pytest.param("scale-out.md", 0, id="scale-out", marks=pytest.mark.slow),
 ]
 #: plcstack commands that serve something and say "listening on" when they do
 SERVERS = {"sim", "gateway", "serve"}
