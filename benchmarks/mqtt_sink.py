@@ -40,7 +40,7 @@ from plcstack.north.mqtt import MqttSettings
 from plcstack.north.pipeline import North
 from plcstack.north.rbe import PASS_ALL, ReportPolicy
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.poll.stats import PlcStats
 
 
@@ -92,14 +92,14 @@ class FakePoller:
         raise NotImplementedError
 
 
-def scan(plc: str, tags: int, t: float, k: int) -> list[Sample]:
+def scan(plc: str, tags: int, t: float, k: int) -> list[Scan]:
     """One PLC's scan: a third ints, a third floats, a third bools, values that move."""
     out = []
     for j in range(tags):
         kind = j % 3
         value: Any = k + j if kind == 0 else (k * 0.1 + j if kind == 1 else (k + j) % 2 == 0)
         out.append(Sample(plc, f"t{j}", value, Quality.GOOD, t, t + 0.002, None))
-    return out
+    return [Scan(plc, "default", t, t + 0.002, tuple(out))]
 
 
 async def drive(north: North, plcs: list[str], tags: int, seconds: int) -> int:
@@ -109,7 +109,8 @@ async def drive(north: North, plcs: list[str], tags: int, seconds: int) -> int:
     for second in range(seconds):
         start = time.perf_counter()
         for k, name in enumerate(plcs):
-            reported += len(north.deliver(scan(name, tags, time.time(), second * 7 + k)))
+            passed = north.deliver(scan(name, tags, time.time(), second * 7 + k))
+            reported += sum(len(s.samples) for s in passed)
             delay = start + (k + 1) * step - time.perf_counter()
             if delay > 0.002 or k % 50 == 49:
                 await asyncio.sleep(max(0.0, delay))

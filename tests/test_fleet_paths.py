@@ -33,6 +33,7 @@ from plcstack.codecs.e71 import (
     parse_address,
 )
 from plcstack.errors import AddressError, PlcError, PlcTimeout
+from plcstack.poll.samples import flatten
 from plcstack.sim import e71 as sim_e71
 from plcstack.transports.tcp import TcpTransport
 from plcstack.transports.udp import UdpTransport
@@ -296,15 +297,15 @@ async def test_poller_batches_give_the_samples_iteration_gives() -> None:
     await asyncio.sleep(0.05)  # more samples wait in the buffer
     await poller.aclose()
     buffered = list(poller.queue.items)
-    assert buffered, "the test needs samples left in the buffer"
+    assert buffered, "the test needs scans left in the buffer"
     rest = [s async for batch in poller.batches() for s in batch]  # ends: the poller is closed
-    assert rest == buffered
+    assert rest == flatten(buffered)
 
     # the same buffer through the sample iterator
     again, _ = make({"p0": [tag("w", "D0", count=4)]}, interval=0.005)
-    again.queue.items.extend(buffered)
+    again.queue.put(buffered)
     await again.aclose()
-    assert [s async for s in again] == buffered
+    assert [s async for s in again] == flatten(buffered)
 
 
 async def test_batches_that_wait_gather_more_and_lose_nothing() -> None:

@@ -11,10 +11,12 @@ from plcstack.north.config import parse_north
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.layout import JsonLayout
 from plcstack.poll.config import ConfigError, PlcConfig, TagConfig, parse_config
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, flatten
 from plcstack.poll.sinks import jsonl_line, jsonl_text
 from plcstack.values import BOOL, FLOAT32, INT16, KG, KY, UINT16, string
 from plcstack.values.points import Scale
+from tests.scan_helpers import each
+from tests.scan_helpers import scan as as_scan
 from tests.servers import Influxd
 from tests.test_north_influx import ROOT, poll_example, post, query
 
@@ -45,14 +47,19 @@ def good(tag: str, value: object, t: float = T) -> Sample:
 def test_one_line_per_plc_and_group_one_field_per_tag_typed_by_the_tag() -> None:
     fmt = InfluxFormat([PLC])
     batch = [
-        good("strokes", 1200),
-        good("force", F32),
-        good("level", 50.0),
-        good("pair", (12, 255)),
-        good("name", 'a "b"'),
-        good("kg", 1.5),
-        good("alarms", [True, False]),
-        Sample("press1", "temp", None, Quality.BAD, T + 1, T + 1.1, "press1: read D10: late"),
+        as_scan(
+            good("strokes", 1200),
+            good("force", F32),
+            good("level", 50.0),
+            good("pair", (12, 255)),
+            good("name", 'a "b"'),
+            good("kg", 1.5),
+            good("alarms", [True, False]),
+        ),
+        as_scan(
+            Sample("press1", "temp", None, Quality.BAD, T + 1, T + 1.1, "press1: read D10: late"),
+            group="slow",
+        ),
     ]
     assert fmt.lines(batch) == [
         'plc,plc=press1,group=default strokes=1200i,force=-0.1,level=50.0,pair="12,255",'
@@ -61,25 +68,25 @@ def test_one_line_per_plc_and_group_one_field_per_tag_typed_by_the_tag() -> None
         " 1800000001000000000",
     ]
     # an integral engineering value is still a float field; a NaN float32 names itself
-    nan = fmt.lines([good("level", 5), good("force", float("nan"))])
+    nan = fmt.lines([as_scan(good("level", 5), good("force", float("nan")))])
     assert nan == [
         'plc,plc=press1,group=default level=5.0,plcstack_error="force: non-finite value nan"'
         " 1800000000000000000"
     ]
     # a second scan of the same group in one batch is a line of its own
-    assert len(fmt.lines([good("strokes", 1), good("strokes", 2, T + 1)])) == 2
+    assert len(fmt.lines([as_scan(good("strokes", 1)), as_scan(good("strokes", 2, T + 1))])) == 2
 
 
 def test_float32_at_float32_precision_in_every_output() -> None:
-    typed = InfluxFormat([PLC], layout="typed").text([good("force", F32), good("level", F32)])
+    typed = InfluxFormat([PLC], layout="typed").text(each([good("force", F32), good("level", F32)]))
     assert typed.splitlines()[0].split(" ")[1] == 'value_float=-0.1,quality="good"'
     assert "value_float=-0.10000000149011612" in typed.splitlines()[1]  # a double stays
     assert json.loads(jsonl_line(good("force", F32), float32=True))["value"] == -0.1
-    jsonl = jsonl_text([PLC])([good("force", F32), good("level", F32)])
+    jsonl = jsonl_text([PLC])(each([good("force", F32), good("level", F32)]))
     assert [json.loads(line)["value"] for line in jsonl.splitlines()] == [-0.1, F32]
     layout = JsonLayout("p", "c", 1, float32={("press1", "force")})
     [(_, payload, _, _)] = [
-        m for m in layout.messages([("press1", "default", [good("force", F32)])]) if "data" in m[0]
+        m for m in layout.messages([as_scan(good("force", F32), group="default")]) if "data" in m[0]
     ]
     assert json.loads(payload)["values"] == {"force": -0.1}
 
@@ -92,9 +99,10 @@ def test_influx_layout_setting() -> None:
 
 
 async def test_the_fields_layout_loads_into_influxdb(influxd: Influxd) -> None:
-    samples = await poll_example()
+    scans = await poll_example()
+    samples = flatten(scans)
     text = (ROOT / "plcstack" / "examples" / "plant.toml").read_text()
-    lines = InfluxFormat(parse_config(text).plcs).lines(samples)
+    lines = InfluxFormat(parse_config(text).plcs).lines(scans)
     influxd.create_database("plant")
     status, body = post(f"{influxd.url}/write?db=plant&precision=ns", "\n".join(lines).encode())
     assert status == 204, body

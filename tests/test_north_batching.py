@@ -1,4 +1,4 @@
-"""The north side takes the poller's samples in batches that gather for ``[poll] batch_wait``.
+"""The north side takes the poller's scans in batches that gather for ``[poll] batch_wait``.
 
 With a thousand PLCs a consumer woken once per event-loop pass cost more CPU per sample than the
 requests did (issue 16); the pipeline therefore asks the poller for gathered batches.
@@ -13,7 +13,7 @@ from typing import Any
 from plcstack.north.config import NorthConfig
 from plcstack.north.pipeline import North
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan, flatten
 
 
 class _Poller:
@@ -25,9 +25,9 @@ class _Poller:
         self.stats: dict[str, Any] = {}
         self.dropped = 0
 
-    async def batches(self, wait: float = 0.0) -> AsyncIterator[list[Sample]]:
+    async def scans(self, wait: float = 0.0) -> AsyncIterator[list[Scan]]:
         self.waits.append(wait)
-        yield [Sample("p", "a", 1, Quality.GOOD, 1.0, 2.0)]
+        yield [Scan("p", "default", 1.0, 2.0, (Sample("p", "a", 1, Quality.GOOD, 1.0, 2.0),))]
 
 
 def _config(**kw: Any) -> PollConfig:
@@ -38,11 +38,11 @@ def _config(**kw: Any) -> PollConfig:
 async def test_pipeline_gathers_batches_for_batch_wait() -> None:
     for config, expected in ((_config(), 0.01), (_config(batch_wait=0), 0.0)):
         poller = _Poller(config)
-        seen: list[list[Sample]] = []
+        seen: list[list[Scan]] = []
         north = North(poller, NorthConfig())
         await north.run(emit=seen.append)
         assert poller.waits == [expected]
-        assert [s.value for batch in seen for s in batch] == [1]
+        assert [s.value for batch in seen for s in flatten(batch)] == [1]
 
 
 async def test_opcua_server_gathers_batches_for_batch_wait() -> None:
@@ -51,10 +51,10 @@ async def test_opcua_server_gathers_batches_for_batch_wait() -> None:
 
     poller = Poller(_config(batch_wait=0.25))  # never started: only its batches are asked for
     recorder = _Poller(poller.config)
-    poller.batches = recorder.batches  # type: ignore[method-assign]
+    poller.scans = recorder.scans  # type: ignore[method-assign]
     server = OpcUaServer(poller)
     sent: list[list[Sample]] = []
-    observed: list[list[Sample]] = []
+    observed: list[list[Scan]] = []
 
     async def send(batch: Iterable[Sample]) -> None:
         sent.append(list(batch))
@@ -66,4 +66,5 @@ async def test_opcua_server_gathers_batches_for_batch_wait() -> None:
     finally:
         await poller.aclose()
     assert recorder.waits == [0.25]
-    assert [s.value for batch in sent for s in batch] == [1] and observed == sent
+    assert [s.value for batch in sent for s in batch] == [1]
+    assert [flatten(batch) for batch in observed] == sent

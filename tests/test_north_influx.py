@@ -21,6 +21,7 @@ import pytest
 from plcstack.north.influx import influx_line, measurement_text, tag_text
 from plcstack.poll.config import parse_config
 from plcstack.poll.engine import Poller, Quality, Sample
+from plcstack.poll.samples import Scan, flatten
 from plcstack.sim import e71, s5lan
 from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.sim.s5memory import S5Memory
@@ -45,7 +46,7 @@ def query(server: Influxd, q: str, db: str = "plant") -> list[dict[str, Any]]:
         return series
 
 
-async def poll_example(scans: int = 7) -> list[Sample]:
+async def poll_example(scans: int = 7) -> list[Scan]:
     melsec = MelsecMemory()
     melsec.write_words("D", 100, [1200])  # strokes
     melsec.write_words("D", 102, [0x0000, 0x7FC0])  # force: a NaN float32 (low word first)
@@ -61,21 +62,21 @@ async def poll_example(scans: int = 7) -> list[Sample]:
         text = text.replace("fast = 0.2", "fast = 0.05").replace(
             "interval = 1.0", "interval = 0.05"
         )
-        samples: list[Sample] = []
+        out: list[Scan] = []
         async with Poller(parse_config(text)) as poller:
             async with asyncio.timeout(10):
-                async for s in poller:
-                    samples.append(s)
-                    if sum(1 for x in samples if x.tag == "status") >= scans:
+                async for batch in poller.scans():
+                    out.extend(batch)
+                    if sum(1 for x in flatten(out) if x.tag == "status") >= scans:
                         break
-        return samples
+        return out
     finally:
         await sim1.aclose()
         await sim2.aclose()
 
 
 async def test_the_example_batch_loads_into_influxdb(influxd: Influxd) -> None:
-    samples = await poll_example()
+    samples = flatten(await poll_example())
     kinds = {type(s.value).__name__ for s in samples}
     assert {"int", "float", "list"} <= kinds  # ints, floats (one NaN) and a list of bools
     lines = [influx_line(s) for s in samples]

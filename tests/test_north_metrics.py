@@ -15,6 +15,7 @@ from plcstack.north.rbe import ReportByException, ReportPolicy
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from tests.poll_fakes import FakeClient
+from tests.scan_helpers import each, scan
 
 
 async def http(port: int, request: bytes) -> tuple[int, bytes]:
@@ -67,7 +68,7 @@ async def test_metrics_endpoint_parses_and_counts() -> None:
         try:
             n = 0
             async for s in poller:
-                collector.observe([s])
+                collector.observe([scan(s)])
                 rbe.accept(s)
                 n += 1
                 if n >= 40:
@@ -153,7 +154,7 @@ async def test_failed_requests_have_their_own_latency_histogram_per_error_type()
         collector = PlcstackCollector(poller)
         n = 0
         async for s in poller:
-            collector.observe([s])
+            collector.observe([scan(s)])
             n += 1
             if n >= 60 and poller.stats["slow"].errors >= 2:
                 break
@@ -216,17 +217,21 @@ def test_failures_that_are_no_failed_request_are_not_observed() -> None:
     t = 1_800_000_000.0
     bad = Quality.BAD
     collector.observe(
-        [
-            # the request answered; the value does not decode
-            Sample("p", "bcd", None, bad, t, t + 0.01, "p: read D1 x1: not BCD", ValueDecodeError),
-            # never sent: the rest of a scan after the connection was lost
-            Sample("p", "x", None, bad, t + 1, t + 1, "p: read D9 x1: lost", ConnectionLost),
-            # no type: cannot tell
-            Sample("p", "y", None, bad, t, t + 0.5, "remote", None),
-            # a timeout, carried by two tags of one request: one observation
-            Sample("p", "a", None, bad, t + 2, t + 2.5, "p: read D5 x2: no answer", PlcTimeout),
-            Sample("p", "b", None, bad, t + 2, t + 2.5, "p: read D5 x2: no answer", PlcTimeout),
-        ]
+        each(
+            [
+                # the request answered; the value does not decode
+                Sample(
+                    "p", "bcd", None, bad, t, t + 0.01, "p: read D1 x1: not BCD", ValueDecodeError
+                ),
+                # never sent: the rest of a scan after the connection was lost
+                Sample("p", "x", None, bad, t + 1, t + 1, "p: read D9 x1: lost", ConnectionLost),
+                # no type: cannot tell
+                Sample("p", "y", None, bad, t, t + 0.5, "remote", None),
+                # a timeout, carried by two tags of one request: one observation
+                Sample("p", "a", None, bad, t + 2, t + 2.5, "p: read D5 x2: no answer", PlcTimeout),
+                Sample("p", "b", None, bad, t + 2, t + 2.5, "p: read D5 x2: no answer", PlcTimeout),
+            ]
+        )
     )
     text = generate_latest_text(collector)
     families = {f.name: f for f in text_string_to_metric_families(text)}

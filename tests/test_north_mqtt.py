@@ -22,6 +22,7 @@ from tests.aio_helpers import eventually
 from tests.north_certs import Authority
 from tests.north_helpers import sample, subscriber
 from tests.poll_fakes import FakeClient
+from tests.scan_helpers import scan
 from tests.servers import Mosquitto
 
 
@@ -42,15 +43,17 @@ def counts(sub: Any) -> list[int]:
 
 async def test_data_and_status_layout(mosquitto: Mosquitto) -> None:
     async with subscriber(mosquitto.host, mosquitto.port, "plcstack/#") as sub:
-        sink = MqttSink(settings(mosquitto, client_id="gw1"), group_of={("press/1", "t"): "fast"})
+        sink = MqttSink(settings(mosquitto, client_id="gw1"))
         await sink.start()
         await sink.wait_connected(5)
         sink.submit(
             [
-                sample("press/1", "t", 21.5),
-                sample("press/1", "alarms", [True, False]),
-                sample("press/1", "bad", None, error="press/1: read D9 x1: no answer"),
-                sample("press/1", "nan", float("nan")),
+                scan(sample("press/1", "t", 21.5), group="fast"),
+                scan(
+                    sample("press/1", "alarms", [True, False]),
+                    sample("press/1", "bad", None, error="press/1: read D9 x1: no answer"),
+                    sample("press/1", "nan", float("nan")),
+                ),
             ]
         )
         await sub.wait_for(lambda s: len(s.messages) >= 4)
@@ -107,7 +110,7 @@ async def test_broker_restart_loses_nothing_and_keeps_order(
                 assert buffer.on_disk > 0
                 mosquitto.start()
             for _ in range(100):
-                sink.submit([sample("p", "n", n)])
+                sink.submit([scan(sample("p", "n", n))])
                 n += 1
                 await asyncio.sleep(0.002)
         await sub.wait_for(lambda s: len(counts(s)) >= 300, timeout=20)
@@ -128,7 +131,7 @@ async def test_disk_backlog_survives_a_poller_restart(mosquitto: Mosquitto, tmp_
     first = MqttSink(settings(mosquitto), buffer=StoreAndForward(path, memory_bytes=1 << 20))
     await first.start()
     for n in range(50):
-        first.submit([sample("p", "n", n)])
+        first.submit([scan(sample("p", "n", n))])
     await asyncio.sleep(0.05)
     await first.aclose()  # memory part goes to disk
     mosquitto.start()
@@ -136,7 +139,7 @@ async def test_disk_backlog_survives_a_poller_restart(mosquitto: Mosquitto, tmp_
         second = MqttSink(settings(mosquitto), buffer=StoreAndForward(path))
         assert len(second.buffer) == 51  # the PLC's status and 50 data messages
         await second.start()
-        second.submit([sample("p", "n", 50)])  # new data goes after the old
+        second.submit([scan(sample("p", "n", 50))])  # new data goes after the old
         await sub.wait_for(lambda s: len(counts(s)) >= 51)
         await second.aclose()
     assert counts(sub) == list(range(51))
@@ -153,7 +156,7 @@ async def test_byte_budget_keeps_the_newest_and_counts_the_rest(
         sink = MqttSink(settings(mosquitto), buffer=buffer)
         await sink.start()
         for n in range(200):
-            sink.submit([sample("p", "n", n)])
+            sink.submit([scan(sample("p", "n", n))])
             assert buffer.backlog_bytes <= 6000
         kept = len(buffer)
         assert buffer.dropped == sink.stats.submitted - kept > 0  # 200 data + 1 status
@@ -283,7 +286,7 @@ async def test_tls_broker_with_the_configured_ca(tmp_path: Path) -> None:
             sink = MqttSink(s)
             await sink.start()
             await sink.wait_connected(5)
-            sink.submit([sample("p", "n", 1)])
+            sink.submit([scan(sample("p", "n", 1))])
             await sub.wait_for(lambda x: any("/data/" in t for t, _ in x.messages))
             await sink.aclose()
         # without the CA the broker's certificate is not trusted: no connection

@@ -19,6 +19,7 @@ from plcstack.poll.config import ConfigError, load_config
 from tests.aio_helpers import eventually
 from tests.north_certs import Authority
 from tests.north_helpers import sample, subscriber
+from tests.scan_helpers import scan as as_scan
 from tests.servers import Mosquitto, ServerUnavailable, free_port
 
 
@@ -94,7 +95,7 @@ async def test_a_client_certificate_signed_by_the_brokers_ca_gets_in(tls_broker:
         )
         await sink.start()
         await sink.wait_connected(10)
-        sink.submit([sample("p", "n", 1)])
+        sink.submit([as_scan(sample("p", "n", 1))])
         await sub.wait_for(lambda s: any("/data/" in t for t, _ in s.messages))
         await sink.aclose()
     assert sink.last_error is None

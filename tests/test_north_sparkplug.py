@@ -18,6 +18,7 @@ from plcstack.values import BOOL, FLOAT32, INT16, UINT16
 from tests.aio_helpers import eventually
 from tests.north_helpers import sample, subscriber
 from tests.poll_fakes import FakeClient
+from tests.scan_helpers import scan as as_scan
 from tests.servers import Mosquitto
 
 
@@ -87,9 +88,11 @@ async def test_sparkplug_session_births_data_deaths_rebirth_and_dcmd(mosquitto: 
         assert metrics(dbirth) == dict.fromkeys(["speed", "neg", "temp", "alarms/0", "alarms/1"])
 
         first = [("speed", 1200), ("neg", -5), ("temp", 21.5), ("alarms", [True, False])]
-        sink.submit([sample("press1", tag, value) for tag, value in first])
-        sink.submit([sample("press1", tag, None, error="down") for tag in ("speed", "neg")])
-        sink.submit([sample("press1", "speed", 1201)])
+        sink.submit([as_scan(*(sample("press1", tag, value) for tag, value in first))])
+        sink.submit(
+            [as_scan(*(sample("press1", tag, None, error="down") for tag in ("speed", "neg")))]
+        )
+        sink.submit([as_scan(sample("press1", "speed", 1201))])
         await sub.wait_for(lambda s: len(s.messages) >= 5)
         kinds = [t.split("/")[2] for t, _ in sub.messages[2:5]]
         assert kinds == ["DDATA", "DDEATH", "DBIRTH"]
@@ -148,13 +151,13 @@ async def test_sparkplug_store_and_forward_marks_replayed_data_historical(
     async with subscriber(mosquitto.host, mosquitto.port, "spBv1.0/g/#") as sub:
         await sink.start()
         await sink.wait_connected(5)
-        sink.submit([sample("p", "speed", 1)])
+        sink.submit([as_scan(sample("p", "speed", 1))])
         await sub.wait_for(lambda s: len(decode(s.messages, "DDATA")) >= 1)
         mosquitto.stop()
         # what comes now must go to the buffer (and be replayed as historical)
         await eventually(lambda: not sink.connected, "the sink notices the broker left")
         for v in (2, 3):
-            sink.submit([sample("p", "speed", v)])
+            sink.submit([as_scan(sample("p", "speed", v))])
         mosquitto.start()
         try:
             await sub.wait_for(lambda s: len(decode(unique(s), "DDATA")) >= 3, timeout=15)

@@ -35,6 +35,7 @@ from plcstack.poll.samples import Quality, Sample
 from plcstack.sim import e71, fetchwrite
 from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.sim.s5memory import Area, S5Memory
+from tests.scan_helpers import scan
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
 
@@ -543,9 +544,9 @@ async def test_submit_is_the_sink_interface_and_keeps_the_newest_sample_per_tag(
         now = time.time()
         server.submit(
             [
-                Sample("press1", "nosuch", 1, Quality.GOOD, now, now),  # unknown: ignored
-                Sample("oven2", "status", 1, Quality.GOOD, now, now),
-                Sample("oven2", "status", 2, Quality.GOOD, now, now),  # replaces the 1
+                scan(Sample("press1", "nosuch", 1, Quality.GOOD, now, now)),  # unknown: ignored
+                scan(Sample("oven2", "status", 1, Quality.GOOD, now, now)),
+                scan(Sample("oven2", "status", 2, Quality.GOOD, now, now)),  # replaces the 1
             ]
         )
         assert server.coalesced == before + 1

@@ -14,15 +14,16 @@ from plcstack.north.config import NorthConfig
 from plcstack.north.mqtt import MqttSettings, MqttSink
 from plcstack.north.pipeline import North
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
+from tests.scan_helpers import scan
 from tests.servers import Mosquitto
 
 
-def _scan(ok: bool, t: float) -> list[Sample]:
+def _scan(ok: bool, t: float) -> list[Scan]:
     if ok:
-        return [Sample("press1", "x", 1, Quality.GOOD, t, t)]
+        return [scan(Sample("press1", "x", 1, Quality.GOOD, t, t))]
     error = "press1: connect: connection refused"
-    return [Sample("press1", "x", None, Quality.BAD, t, t + 0.1, error, ConnectFailed)]
+    return [scan(Sample("press1", "x", None, Quality.BAD, t, t + 0.1, error, ConnectFailed))]
 
 
 def test_a_plc_going_offline_and_back_is_one_warning_each(

@@ -392,19 +392,22 @@ async def test_a_global_cap_slot_comes_back_after_failed_requests() -> None:
     assert len([s for s in samples if s.plc == "ok" and s.quality is Quality.GOOD]) >= 5
 
 
-async def test_a_scan_with_more_tags_than_the_buffer_keeps_its_newest_samples() -> None:
+async def test_a_scan_with_more_tags_than_the_buffer_is_kept_whole_and_older_ones_dropped() -> None:
     tags = [tag(f"t{i}", f"D{100 * i}") for i in range(6)]  # six requests per scan
     poller, _ = make({"p": tags}, queue=2)
     async with poller:
         async with asyncio.timeout(10):
             # counters, not events: poll them (bounded by the timeout)
-            while poller.stats["p"].scans < 1 or poller.pending() < 2:  # noqa: ASYNC110
+            while poller.stats["p"].samples < 18:  # noqa: ASYNC110
                 await asyncio.sleep(0.001)
+        await poller.aclose()
         kept = poller.drain()
     stats = poller.stats["p"]
-    assert stats.samples - stats.drops - poller.pending() == len(kept) == 2
-    assert poller.dropped == stats.drops
-    assert [s.tag for s in kept] == ["t4", "t5"]  # a scan's samples are queued together
+    # a scan is never cut: the newest is kept whole, every older one dropped whole, counted
+    assert [[s.tag for s in scan.samples] for scan in kept] == [[f"t{i}" for i in range(6)]]
+    assert stats.samples - stats.drops == 6 and stats.drops % 6 == 0 and stats.drops >= 12
+    assert poller.pending() == 0
+    assert poller.dropped == stats.drops and poller.queue.dropped_scans == stats.drops // 6
 
 
 async def test_receive_time_is_source_time_plus_the_measured_latency() -> None:

@@ -46,6 +46,7 @@ from plcstack.values import (
 from plcstack.values.points import Scale
 from tests.north_helpers import sample, subscriber
 from tests.poll_fakes import FakeClient
+from tests.scan_helpers import scan as as_scan
 from tests.servers import Mosquitto
 
 # -- the specification's wire format, read by hand ---------------------------------------------
@@ -175,7 +176,7 @@ def test_dbirth_before_the_first_scan_declares_each_tags_type_and_ddata_carries_
 
     scan = [sample("p", t.name, value) for t, _, value, _, _ in TYPES]
     scan.append(sample("p", "alarms", [True, False, True]))
-    [(topic, ddata, qos, _)] = layout.messages([("p", "default", scan)])
+    [(topic, ddata, qos, _)] = layout.messages([as_scan(*scan, group="default")])
     assert topic == "spBv1.0/plant/DDATA/edge1/p" and qos == 0
     data = wire_metrics(ddata)
     for tag, _, _, datatype, wire in TYPES:
@@ -221,31 +222,33 @@ def test_a_group_failing_on_its_own_makes_its_metrics_bad_not_the_device_dead() 
             ("default", [sample("p", "ok", n)]),
             ("slow", [bad("p", "code", ValueDecodeError)]),
         ):
-            kinds += [t.split("/")[2] for t, *_ in layout.messages([("p", group, scan)])]
+            kinds += [t.split("/")[2] for t, *_ in layout.messages([as_scan(*scan, group=group)])]
             statuses += [
-                body for t, body, *_ in json_layout.messages([("p", group, scan)]) if "status" in t
+                body
+                for t, body, *_ in json_layout.messages([as_scan(*scan, group=group)])
+                if "status" in t
             ]
     assert set(kinds) == {"DDATA"}
     assert [json.loads(s)["status"] for s in statuses] == ["online"]
-    last = layout.messages([("p", "slow", [bad("p", "code", ValueDecodeError)])])[0][1]
+    last = layout.messages([as_scan(bad("p", "code", ValueDecodeError), group="slow")])[0][1]
     code = wire_metrics(last)["code"]
     assert code["is_null"] and code["properties"] == {"Quality": 0}  # Sparkplug's BAD
     assert code["datatype"] == UINT16_
 
     # the PLC stops answering: one DDEATH (and JSON offline), then a DBIRTH when it is back
-    gone = [bad("p", "ok", PlcTimeout)]
-    assert [t.split("/")[2] for t, *_ in layout.messages([("p", "default", gone)])] == ["DDEATH"]
-    assert layout.messages([("p", "slow", [bad("p", "code", ValueDecodeError)])]) == []
-    assert [t for t, *_ in json_layout.messages([("p", "default", gone)]) if "status" in t]
-    back = layout.messages([("p", "default", [sample("p", "ok", 7)])])
+    gone = [as_scan(bad("p", "ok", PlcTimeout))]
+    assert [t.split("/")[2] for t, *_ in layout.messages(gone)] == ["DDEATH"]
+    assert layout.messages([as_scan(bad("p", "code", ValueDecodeError), group="slow")]) == []
+    assert [t for t, *_ in json_layout.messages(gone) if "status" in t]
+    back = layout.messages([as_scan(sample("p", "ok", 7), group="default")])
     assert [t.split("/")[2] for t, *_ in back] == ["DBIRTH"]
     assert wire_metrics(back[0][1])["ok"]["value"] == 7
 
 
 def test_every_group_failing_is_unreachable() -> None:
     layout = SparkplugLayout("plant", "edge1", {"p": [TagConfig("a", "D0", UINT16)]})
-    layout.messages([("p", "default", [sample("p", "a", 1)])])
-    out = layout.messages([("p", "default", [bad("p", "a", ValueDecodeError)])])
+    layout.messages([as_scan(sample("p", "a", 1), group="default")])
+    out = layout.messages([as_scan(bad("p", "a", ValueDecodeError), group="default")])
     assert [t.split("/")[2] for t, *_ in out] == ["DDEATH"]
 
 
@@ -288,7 +291,7 @@ async def test_a_qos_1_subscriber_sees_the_configured_qos_and_dcmd_writes_an_ele
         sink = MqttSink(settings, writer=poller, layout=layout, writable=writable)
         await sink.start()
         await sink.wait_connected(5)
-        sink.submit([sample("press1", "speed", 5)])
+        sink.submit([as_scan(sample("press1", "speed", 5))])
         await sub.wait_for(lambda s: any("/DDATA/" in t for t, _ in s.messages))
         kinds = {t.split("/")[2]: q for (t, _), q in zip(sub.messages, sub.qos, strict=True)}
         assert kinds == {"NBIRTH": sparkplug_qos, "DBIRTH": sparkplug_qos, "DDATA": sparkplug_qos}

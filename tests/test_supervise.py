@@ -20,10 +20,11 @@ from plcstack.north.metrics import MetricsSettings
 from plcstack.north.pipeline import North
 from plcstack.north.sparkplug_pb import Payload
 from plcstack.north.supervise import Supervisor
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
 from tests.north_helpers import sample, subscriber
+from tests.scan_helpers import scan
 from tests.servers import Mosquitto
 from tests.test_north_metrics import http
 
@@ -37,6 +38,7 @@ class PickySink:
 
     def __init__(self, probe: bool) -> None:
         self.got: list[list[Sample]] = []
+        self.groups: set[str] = set()
         if probe:
             self.probe = self._check
 
@@ -44,10 +46,12 @@ class PickySink:
         if s.value == 13:
             raise TypeError("int() argument must be a string, not 'tuple'")
 
-    def submit(self, batch: list[Sample]) -> None:
-        for s in batch:
+    def submit(self, scans: list[Scan]) -> None:
+        samples = [s for scan in scans for s in scan.samples]
+        for s in samples:
             self._check(s)
-        self.got.append(list(batch))
+        self.got.append(samples)
+        self.groups.update(scan.group for scan in scans)
 
 
 @pytest.mark.parametrize("probe", [True, False], ids=["probe", "one-by-one"])
@@ -56,7 +60,11 @@ def test_a_sample_a_sink_cannot_take_costs_only_that_sample(
 ) -> None:
     supervisor = Supervisor()
     sink = PickySink(probe)
-    batch = [sample("press1", "a", 1), sample("press1", "b", 13), sample("press1", "c", 3)]
+    batch = [
+        scan(
+            sample("press1", "a", 1), sample("press1", "b", 13), sample("press1", "c", 3), group="g"
+        )
+    ]
     with caplog.at_level(logging.ERROR, "plcstack.north.supervise"):
         supervisor.submit("picky", sink.submit, batch, getattr(sink, "probe", None))
         supervisor.submit("picky", sink.submit, batch, getattr(sink, "probe", None))
@@ -66,6 +74,7 @@ def test_a_sample_a_sink_cannot_take_costs_only_that_sample(
     assert bad.quality is Quality.BAD and bad.error is not None
     assert "picky could not take this value: TypeError" in bad.error
     assert supervisor.errors == {"picky": 2}
+    assert sink.groups == {"g"}  # what is retried keeps the scan's group
     # logged once (per sink, PLC, tag and kind), naming the PLC and the tag
     errors = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
     assert len(errors) == 1
@@ -77,7 +86,7 @@ def test_a_broken_pipe_still_ends_the_run() -> None:
         raise BrokenPipeError
 
     with pytest.raises(BrokenPipeError):
-        Supervisor().submit("stdout", emit, [sample("p", "t", 1)])
+        Supervisor().submit("stdout", emit, [scan(sample("p", "t", 1))])
 
 
 async def test_a_dead_task_is_restarted_with_backoff_and_reported_meanwhile(
@@ -132,7 +141,7 @@ async def test_healthz_names_a_dead_sink_until_it_runs_again() -> None:
         async def run(self) -> None:
             raise ConnectionError("lost the broker")
 
-        def submit(self, batch: list[Sample]) -> None:
+        def submit(self, scans: list[Scan]) -> None:
             pass
 
     class P:

@@ -19,6 +19,7 @@ from plcstack.north.web.settings import WebSettings, parse_web, with_port
 from plcstack.north.web.state import ConsoleState
 from plcstack.poll.config import ConfigError, PlcConfig, TagConfig
 from plcstack.poll.samples import Quality, Sample
+from tests.scan_helpers import scan
 from tests.web_helpers import HOSTILE, TOKEN, Console, running_console
 
 
@@ -217,7 +218,7 @@ def test_a_client_that_does_not_read_is_dropped() -> None:
         assert client is not None
         client.on_drop = lambda: aborted.append(True)
         for i in range(client.limit + 5):
-            state.submit([_sample("t", float(i))])
+            state.submit([scan(_sample("t", float(i)))])
             hub.push()
         return client
 
@@ -234,7 +235,7 @@ def test_trend_ring_is_bounded_and_spaced() -> None:
         clock=lambda: 1000.0,
     )
     for i in range(100):  # 10 samples a second for 10 s: one point a second kept
-        state.submit([Sample("p", "t", float(i), Quality.GOOD, 1000.0 + i / 10, 0.0)])
+        state.submit([scan(Sample("p", "t", float(i), Quality.GOOD, 1000.0 + i / 10, 0.0))])
     points = state.trend("p", "t")
     assert len(points) == 10
     # one point a second, each holding the latest value of its second
@@ -242,7 +243,7 @@ def test_trend_ring_is_bounded_and_spaced() -> None:
     assert values[-1] == 99.0
     assert [b - a for a, b in itertools.pairwise(values)] == [10.0] * 9
     for i in range(100, 200):
-        state.submit([Sample("p", "t", float(i), Quality.GOOD, 1000.0 + i, 0.0)])
+        state.submit([scan(Sample("p", "t", float(i), Quality.GOOD, 1000.0 + i, 0.0))])
     assert len(state.trend("p", "t")) == 10 and state.trend("p", "t")[-1][1] == 199.0
 
 

@@ -21,6 +21,7 @@ from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.values import INT16, UINT16
 from tests.north_helpers import sample, subscriber
+from tests.scan_helpers import scan
 from tests.servers import Mosquitto
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -46,7 +47,7 @@ async def test_each_attempt_is_answered_with_one_code_and_audited_in_order(
     try:
         async with Poller(config) as poller:
             path = WritePath(poller, audit=audit)
-            path.observe([sample("press1", "setpoint", 7)])
+            path.observe([scan(sample("press1", "setpoint", 7))])
             with caplog.at_level(logging.INFO, "plcstack.north.writes"):
                 results = [
                     await path.write("mqtt", None, "press1", "setpoint", 1201.0),

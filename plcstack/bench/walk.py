@@ -9,7 +9,7 @@ The request walk polls one PLC (a fixed-reply E71 responder on loopback, one tag
 until its scans run the usual way (the read checked once, the connection settled), then traces
 one scan with :func:`sys.setprofile`: the calls made under the ticker's callback (the scan is
 due, its request is sent) and under the transport's ``buffer_updated`` (the answer, the sample),
-nothing else the event loop does meanwhile. The north walk hands one such sample to
+nothing else the event loop does meanwhile. The north walk hands one such scan (one sample) to
 :meth:`North.deliver` with an MQTT sink (not connected: it queues) and a JSON-lines ``emit``.
 """
 
@@ -144,7 +144,7 @@ def north_walk() -> Walk:
     from plcstack.north.mqtt import parse_mqtt
     from plcstack.north.pipeline import North
     from plcstack.poll.engine import Poller
-    from plcstack.poll.samples import Quality, make_sample
+    from plcstack.poll.samples import Quality, Scan, make_sample
     from plcstack.poll.sinks import jsonl_line
 
     async def run() -> Walk:
@@ -153,14 +153,15 @@ def north_walk() -> Walk:
         out: list[str] = []
 
         def emit(batch: list[Any]) -> None:
-            out.extend(jsonl_line(s) for s in batch)
+            out.extend(jsonl_line(s) for scan in batch for s in scan.samples)
 
         sample = make_sample("plc", "w", [0] * 64, Quality.GOOD, 1.0, 1.001, None)
-        north.deliver([sample], emit)  # once untraced: first-use work is not the path
+        scan = Scan("plc", "default", 1.0, 1.001, (sample,))
+        north.deliver([scan], emit)  # once untraced: first-use work is not the path
         walk = Walk({North.deliver.__code__})
         walk.arm()
         try:
-            north.deliver([sample], emit)
+            north.deliver([scan], emit)
         finally:
             walk.disarm()
         for client in (poller.client(name) for name in poller.plcs):
@@ -181,7 +182,7 @@ def figure(walk: Walk, title: str) -> str:
 
 def figures() -> dict[str, str]:
     return {
-        "request": figure(request_walk(), "one polled E71 read (scan due -> sample queued)"),
+        "request": figure(request_walk(), "one polled E71 read (scan due -> scan queued)"),
         "north": figure(north_walk(), "one scan's sample through the north side (deliver)"),
     }
 

@@ -29,8 +29,8 @@ from plcstack.north.influx import InfluxFormat
 from plcstack.north.pipeline import North, missing, needs_of
 from plcstack.north.web.settings import with_port
 from plcstack.poll.engine import Poller, format_stats
-from plcstack.poll.samples import Sample
-from plcstack.poll.sinks import FORMATS, jsonl_text
+from plcstack.poll.samples import Scan
+from plcstack.poll.sinks import FORMATS, each_line, jsonl_text
 from plcstack.scale import cli as scale_cli
 
 if TYPE_CHECKING:
@@ -148,7 +148,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return 2
     # every URL and address checked here, before anything is sent
     poller: Poller | Worker = worker if worker is not None else Poller(config)
-    text: Callable[[list[Sample]], str] | None = None
+    text: Callable[[list[Scan]], str] | None = None
     if args.format == "influx":
         text = InfluxFormat(
             config.plcs,
@@ -158,7 +158,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     elif args.format == "jsonl":
         text = jsonl_text(config.plcs)
     elif args.format != "none":
-        text = functools.partial(_each_line, FORMATS[args.format])
+        text = functools.partial(each_line, FORMATS[args.format])
     emit = _emitter(text, out)
     stop = StopEvent()
     installed = install_stop_signals(stop)
@@ -238,17 +238,13 @@ def _flush(out: TextIO) -> None:
         out.flush()
 
 
-def _each_line(line: Callable[[Sample], str], batch: list[Sample]) -> str:
-    return "".join([line(s) + "\n" for s in batch])
-
-
 def _emitter(
-    text: Callable[[list[Sample]], str] | None, out: TextIO
-) -> Callable[[list[Sample]], None] | None:
+    text: Callable[[list[Scan]], str] | None, out: TextIO
+) -> Callable[[list[Scan]], None] | None:
     if text is None:
         return None
 
-    def emit(batch: list[Sample]) -> None:
+    def emit(batch: list[Scan]) -> None:
         out.write(text(batch))
         _flush(out)  # a batch is written: hand it on before waiting for the next scan
 
@@ -256,7 +252,7 @@ def _emitter(
 
 
 async def _write_samples(
-    north: North, emit: Callable[[list[Sample]], None] | None, out: TextIO, stop: asyncio.Event
+    north: North, emit: Callable[[list[Scan]], None] | None, out: TextIO, stop: asyncio.Event
 ) -> None:
     try:
         await north.run(emit)

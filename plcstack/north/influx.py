@@ -57,7 +57,7 @@ from typing import Any
 
 from plcstack.output import FLOAT32_TYPES, float32_short
 from plcstack.poll.config import PlcConfig, TagConfig
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
 
 __all__ = [
     "DEFAULT_LAYOUT",
@@ -183,7 +183,7 @@ def _typed_value(tag: TagConfig | None, value: Any) -> str | None:
 
 
 class InfluxFormat:
-    """``plcstack poll --format influx``: a batch of samples as line protocol text, in the
+    """``plcstack poll --format influx``: a batch of scans as line protocol text, in the
     configured layout (:data:`LAYOUTS`)."""
 
     def __init__(
@@ -200,38 +200,27 @@ class InfluxFormat:
         self._tags = {(plc.name, t.name): t for plc in plcs for t in plc.tags}
         self._head = measurement_text(measurement)
 
-    def text(self, batch: Sequence[Sample]) -> str:
-        """The lines of ``batch``, each ending in a newline."""
+    def text(self, scans: Sequence[Scan]) -> str:
+        """The lines of ``scans``, each ending in a newline."""
         if self.layout == "typed":
             tags = self._tags
             return "".join(
                 influx_line(s, self.measurement, float32=_is_float32(tags.get((s.plc, s.tag))))
                 + "\n"
-                for s in batch
+                for scan in scans
+                for s in scan.samples
             )
-        return "".join(line + "\n" for line in self.lines(batch))
+        return "".join(line + "\n" for line in self.lines(scans))
 
-    def lines(self, batch: Sequence[Sample]) -> list[str]:
-        """The ``fields`` layout: one line per PLC and scan group scan in ``batch``."""
-        scans: dict[tuple[str, str], list[Sample]] = {}
-        out: list[str] = []
-        for s in batch:
-            tag = self._tags.get((s.plc, s.tag))
-            key = (s.plc, tag.group if tag is not None else "default")
-            scan = scans.get(key)
-            if scan is None or any(x.tag == s.tag for x in scan):  # a second scan: new line
-                if scan:
-                    out.append(self._line(key, scan))
-                scan = scans[key] = []
-            scan.append(s)
-        out.extend(self._line(key, scan) for key, scan in scans.items() if scan)
-        return out
+    def lines(self, scans: Sequence[Scan]) -> list[str]:
+        """The ``fields`` layout: one line per scan (a PLC's scan group) in ``scans``."""
+        return [self._line(scan) for scan in scans if scan.samples]
 
-    def _line(self, key: tuple[str, str], scan: list[Sample]) -> str:
-        plc, group = key
+    def _line(self, scan: Scan) -> str:
+        plc, group = scan.plc, scan.group
         fields: list[str] = []
         errors: list[str] = []
-        for s in scan:
+        for s in scan.samples:
             tag = self._tags.get((plc, s.tag))
             if s.quality is not Quality.GOOD or s.value is None:
                 errors.append(f"{s.tag}: {s.error or 'no value'}")
@@ -248,7 +237,7 @@ class InfluxFormat:
                     fields.append(f"{tag_text(name)}={text}")
         if errors:
             fields.append(f"{ERROR_FIELD}={_string('; '.join(errors))}")
-        when = min(s.source_time for s in scan)
+        when = min(s.source_time for s in scan.samples)
         return (
             f"{self._head},plc={tag_text(plc)},group={tag_text(group)}"
             f" {','.join(fields)} {round(when * 1e6) * 1000}"

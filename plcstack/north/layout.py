@@ -50,12 +50,12 @@ from __future__ import annotations
 import json
 import math
 import re
-from collections.abc import Collection, Iterable, Sequence
+from collections.abc import Collection, Sequence
 from typing import Any
 
 from plcstack.errors import ConnectionLost, PlcTimeout
 from plcstack.output import shorten
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
 
 __all__ = [
     "Reachability",
@@ -156,28 +156,6 @@ def write_response_payload(
     return json.dumps(record, ensure_ascii=False, allow_nan=False).encode()
 
 
-def split_scans(
-    samples: Iterable[Sample], group_of: dict[tuple[str, str], str]
-) -> list[tuple[str, str, list[Sample]]]:
-    """Cut a stream of samples into (plc, group, samples) messages, keeping arrival order.
-
-    The poller hands over one scan's samples together; a message ends when the PLC or group
-    changes or a tag repeats (a second scan of the same group in one batch).
-    """
-    out: list[tuple[str, str, list[Sample]]] = []
-    open_: dict[tuple[str, str], tuple[list[Sample], set[str]]] = {}
-    for s in samples:
-        key = (s.plc, group_of.get((s.plc, s.tag), "default"))
-        entry = open_.get(key)
-        if entry is None or s.tag in entry[1]:
-            entry = ([], set())
-            open_[key] = entry
-            out.append((key[0], key[1], entry[0]))
-        entry[0].append(s)
-        entry[1].add(s.tag)
-    return out
-
-
 #: the failures that say the PLC itself cannot be reached (not a bad value in one group)
 _UNREACHABLE = (PlcTimeout, ConnectionLost)
 
@@ -197,11 +175,12 @@ class Reachability:
         self._groups: dict[str, dict[str, bool]] = {}
         self._state: dict[str, bool] = {}
 
-    def update(self, plc: str, group: str, samples: Sequence[Sample]) -> bool | None:
+    def update(self, scan: Scan) -> bool | None:
         """Record one scan; the PLC's new state if it changed (True reachable), else None."""
+        plc, samples = scan.plc, scan.samples
         groups = self._groups.setdefault(plc, {})
         good = any(s.quality is Quality.GOOD for s in samples)
-        groups[group] = good
+        groups[scan.group] = good
         if good:
             reachable = True
         elif any(s.error_type is not None and issubclass(s.error_type, _UNREACHABLE)
@@ -222,7 +201,7 @@ class Reachability:
 
 
 class JsonLayout:
-    """The plain mode: turns samples into data and status messages, parses write requests."""
+    """The plain mode: turns scans into data and status messages, parses write requests."""
 
     def __init__(
         self,
@@ -257,12 +236,12 @@ class JsonLayout:
     def subscriptions(self) -> list[str]:
         return [write_request_topic(self.prefix)]
 
-    def messages(
-        self, batch: Sequence[tuple[str, str, list[Sample]]]
-    ) -> list[tuple[str, bytes, int, bool]]:
+    def messages(self, scans: Sequence[Scan]) -> list[tuple[str, bytes, int, bool]]:
+        """A data message per scan, after a status message when its PLC's state changed."""
         out: list[tuple[str, bytes, int, bool]] = []
-        for plc, group, samples in batch:
-            online = self.reachability.update(plc, group, samples)
+        for scan in scans:
+            plc, group, samples = scan.plc, scan.group, scan.samples
+            online = self.reachability.update(scan)
             if online is not None:
                 when = max(s.receive_time for s in samples)
                 out.append((status_topic(self.prefix, plc), status_payload(online, when), 1, True))

@@ -56,7 +56,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from plcstack.errors import ConfigError, ValueDecodeError, check_keys
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
 
 __all__ = [
     "LATENCY_BUCKETS",
@@ -139,16 +139,18 @@ class PlcstackCollector:
         self._failures: dict[tuple[str, str], _Histogram] = {}
         self._seen: dict[tuple[str, float, str | None], None] = {}
 
-    def observe(self, samples: Iterable[Sample]) -> None:
+    def observe(self, scans: Iterable[Scan]) -> None:
         """Note which PLCs delivered good data and how long failed requests took (called with
         every batch, before RBE)."""
         up = self._up
         good = Quality.GOOD
-        for s in samples:
-            ok = s.quality is good
-            up[s.plc] = ok
-            if not ok:
-                self._observe_failure(s)
+        for scan in scans:
+            ok = True
+            for s in scan.samples:
+                ok = s.quality is good
+                if not ok:
+                    self._observe_failure(s)
+            up[scan.plc] = ok  # as of the scan's last sample
 
     def _observe_failure(self, s: Sample) -> None:
         kind = s.error_type

@@ -1,4 +1,4 @@
-"""MQTT sink: samples out, writes in, over aiomqtt with our own reconnect and store-and-forward.
+"""MQTT sink: scans out, writes in, over aiomqtt with our own reconnect and store-and-forward.
 
 aiomqtt (on paho-mqtt) is one connection per ``async with Client(...)`` and never reconnects by
 itself; this module is the loop around it:
@@ -13,7 +13,7 @@ itself; this module is the loop around it:
   nothing is resent twice behind our back) and the backlog again, oldest first.
 
 :meth:`MqttSink.submit` never blocks and never touches the network: the poller's consumer hands
-over samples, the layout turns them into messages, the queue takes them (memory, then disk).
+over scans, the layout turns each into its messages, the queue takes them (memory, then disk).
 
 Delivery is at least once: messages in flight when a connection drops are sent again, so a
 subscriber may see the last window (``inflight``, default 64) twice, always in order. With
@@ -46,7 +46,6 @@ from plcstack.north.buffer import Message, StoreAndForward
 from plcstack.north.layout import (
     JsonLayout,
     data_payload,
-    split_scans,
     status_payload,
     status_topic,
     topic_level,
@@ -57,7 +56,7 @@ from plcstack.north.mqtt_errors import PahoLog, connect_error
 from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.write_values import split_element
 from plcstack.north.writes import BAD_REQUEST, BUSY, UNKNOWN_PLC, WritePath
-from plcstack.poll.samples import Sample
+from plcstack.poll.samples import Sample, Scan
 from plcstack.transports.backoff import Backoff
 
 __all__ = ["MqttSettings", "MqttSink", "Writer", "parse_mqtt"]
@@ -267,14 +266,13 @@ class SinkStats:
 
 
 class MqttSink:
-    """Publishes samples through a :class:`StoreAndForward` queue; answers write requests."""
+    """Publishes scans through a :class:`StoreAndForward` queue; answers write requests."""
 
     def __init__(
         self,
         settings: MqttSettings,
         *,
         writer: Writer | None = None,
-        group_of: dict[tuple[str, str], str] | None = None,
         layout: Any = None,
         buffer: StoreAndForward | None = None,
         writable: dict[tuple[str, str], bool] | None = None,
@@ -298,7 +296,6 @@ class MqttSink:
         self.writer = writer
         self.writable = writable
         self.writes = writes if writes is not None else WritePath(writer)
-        self.group_of = group_of or {}
         self.layout = (
             layout
             if layout is not None
@@ -334,17 +331,17 @@ class MqttSink:
         """The sink's name in logs, metrics and ``/healthz``: ``mqtt`` or ``sparkplug``."""
         return "sparkplug" if self.settings.mode == "sparkplug" else "mqtt"
 
-    # -- in: samples ----------------------------------------------------------------------------
-    def submit(self, samples: Sequence[Sample]) -> None:
-        """Queue the messages for these samples (never blocks, never raises for the network).
+    # -- in: scans ------------------------------------------------------------------------------
+    def submit(self, scans: Sequence[Scan]) -> None:
+        """Queue the messages for these scans (never blocks, never raises for the network).
 
         All or nothing: every message is encoded before the first is queued, so a sample the
         layout cannot encode raises with nothing queued, and the supervisor's retry without it
         queues nothing twice.
         """
-        if not samples:
+        if not scans:
             return
-        messages = self.layout.messages(split_scans(samples, self.group_of))
+        messages = self.layout.messages(scans)
         for topic, payload, qos, retain in messages:
             self._put(topic, payload, qos, retain)
 

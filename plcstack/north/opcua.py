@@ -90,7 +90,7 @@ from plcstack.north.write_values import parse_write_value
 from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError, TagConfig
 from plcstack.poll.engine import Poller
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
 
 __all__ = [
     "STATUS_MAP",
@@ -587,7 +587,7 @@ class OpcUaServer:
             await server.write_attribute_value(binding.nodeid, data)
             self.updates += 1
 
-    def submit(self, samples: Iterable[Sample]) -> None:
+    def submit(self, scans: Iterable[Scan]) -> None:
         """The sinks' common interface: never blocks, holds at most one sample per tag.
 
         Samples are applied by a task of the server; when it falls behind, a tag's newer sample
@@ -596,7 +596,7 @@ class OpcUaServer:
         """
         pending = self._pending
         known = self._by_tag
-        for sample in samples:
+        for sample in (s for scan in scans for s in scan.samples):
             key = (sample.plc, sample.tag)
             if key not in known:
                 continue
@@ -617,8 +617,8 @@ class OpcUaServer:
             except Exception:  # one bad batch must not end the feed of every later one
                 log.exception("OPC UA server: applying %d samples failed", len(batch))
 
-    async def run(self, observe: Callable[[list[Sample]], object] | None = None) -> None:
-        """Consume the poller's samples until it is closed (or this task is cancelled).
+    async def run(self, observe: Callable[[list[Scan]], object] | None = None) -> None:
+        """Consume the poller's scans until it is closed (or this task is cancelled).
 
         ``observe`` sees every batch first (the metrics collector's ``observe``: ``plcstack
         serve opcua`` with ``[metrics]``).
@@ -626,10 +626,10 @@ class OpcUaServer:
         poller = self.poller
         # gathered for poll.batch_wait, as the north pipeline takes them: one wake-up per
         # event-loop pass would cost more than the requests with many PLCs
-        async for batch in poller.batches(wait=poller.config.batch_wait):
+        async for batch in poller.scans(wait=poller.config.batch_wait):
             if observe is not None:
                 observe(batch)
-            await self.send(batch)
+            await self.send(s for scan in batch for s in scan.samples)
 
     # -- writes out -------------------------------------------------------------------------
     async def _write_to_plcs(

@@ -5,11 +5,13 @@ async with Poller(config) as poller, North(poller, parse_north(config.north)) as
     await north.run(emit=lambda batch: ...)   # optional extra sink, e.g. lines on stdout
 ```
 
-The consumer takes what the poller has, in batches that gather for ``[poll] batch_wait``
-seconds after their first sample (10 ms by default: with a thousand PLCs, one wake-up per
-event-loop pass cost more CPU than the requests themselves), lets the metrics see it (``up``
-needs the unfiltered truth), filters it once through :class:`ReportByException` and hands
-the same list to each sink. Sinks never block the consumer: the MQTT sink queues (memory,
+The consumer takes the poller's scans (:class:`~plcstack.poll.samples.Scan`: PLC, group,
+times, samples), in batches that gather for ``[poll] batch_wait`` seconds after their first
+scan (10 ms by default: with a thousand PLCs, one wake-up per event-loop pass cost more CPU
+than the requests themselves), lets the metrics see them (``up`` needs the unfiltered truth),
+filters each scan once through :class:`ReportByException` and hands the same list of scans to
+each sink's ``submit`` (:class:`~plcstack.poll.samples.ScanSink`, the one protocol of every
+sink). Sinks never block the consumer: the MQTT sink queues (memory,
 then disk), stdout is written by the caller's ``emit``.
 Writes come back the other way only through the poller's ``write_tag``.
 
@@ -28,14 +30,14 @@ from typing import Any, Self
 
 from plcstack.north.audit import Audit
 from plcstack.north.config import NorthConfig
-from plcstack.north.layout import JsonLayout, Reachability, split_scans
+from plcstack.north.layout import JsonLayout, Reachability
 from plcstack.north.metrics import MetricsServer, PlcstackCollector
 from plcstack.north.mqtt import MqttSink
 from plcstack.north.rbe import ReportByException
 from plcstack.north.supervise import Supervisor
 from plcstack.north.writes import WritePath
 from plcstack.output import float32_tags
-from plcstack.poll.samples import Sample
+from plcstack.poll.samples import Scan
 
 __all__ = ["North", "missing", "needs_of", "sink_name"]
 
@@ -96,9 +98,6 @@ class North:
         self.writes = WritePath(poller if hasattr(poller, "write_tag") else None, audit=self.audit)
         self.sinks: list[Any] = list(sinks)
         self.mqtt: MqttSink | None = None
-        plcs = getattr(getattr(poller, "config", None), "plcs", ())
-        group_of = {(plc.name, tag.name): tag.group for plc in plcs for tag in plc.tags}
-        self._group_of = group_of
         #: whether each PLC is reachable, by the rule the MQTT status uses: changes are logged
         self.reachability = Reachability()
         self._offline: set[str] = set()
@@ -123,7 +122,6 @@ class North:
             self.mqtt = MqttSink(
                 config.mqtt,
                 writer=writer,
-                group_of=group_of,
                 layout=layout,
                 writable=writable,
                 plcs=[plc.name for plc in poller.config.plcs],
@@ -212,9 +210,9 @@ class North:
         return lines
 
     def deliver(
-        self, batch: Sequence[Sample], emit: Callable[[list[Sample]], None] | None = None
-    ) -> list[Sample]:
-        """One batch through metrics, RBE and every sink; returns what was reported."""
+        self, batch: Sequence[Scan], emit: Callable[[list[Scan]], None] | None = None
+    ) -> list[Scan]:
+        """One batch of scans through metrics, RBE and every sink; returns what was reported."""
         self.collector.observe(batch)
         self.writes.observe(batch)  # the audit's "previous" (nothing without an audit)
         self._log_reachability(batch)
@@ -227,16 +225,17 @@ class North:
                 submit("stdout", emit, reported)
         return reported
 
-    def _log_reachability(self, batch: Sequence[Sample]) -> None:
+    def _log_reachability(self, batch: Sequence[Scan]) -> None:
         """A PLC going offline (with the reason) and coming back: one WARNING per change, so
         an operator sees it at the default log level, not once per scan."""
         update = self.reachability.update
-        for plc, group, samples in split_scans(batch, self._group_of):
-            state = update(plc, group, samples)
+        for scan in batch:
+            state = update(scan)
             if state is None:
                 continue
+            plc = scan.plc
             if not state:
-                reason = next((s.error for s in samples if s.error), None) or "no good value"
+                reason = next((s.error for s in scan.samples if s.error), None) or "no good value"
                 log.warning("PLC %s is offline: %s", plc, reason)
                 self._offline.add(plc)
             elif plc in self._offline:
@@ -245,15 +244,9 @@ class North:
             else:
                 log.info("PLC %s is online", plc)
 
-    async def run(self, emit: Callable[[list[Sample]], None] | None = None) -> None:
-        """Consume the poller until cancelled."""
+    async def run(self, emit: Callable[[list[Scan]], None] | None = None) -> None:
+        """Consume the poller's (or a scale-out Worker's) scans until cancelled: one list per
+        wake-up, gathered for ``batch_wait``."""
         poller = self.poller
-        batches = getattr(poller, "batches", None)
-        if batches is not None:  # the Poller: one list per wake-up, gathered for batch_wait
-            async for batch in batches(wait=poller.config.batch_wait):
-                self.deliver(batch, emit)
-            return
-        async for first in poller:  # anything else that iterates samples (a scale-out Worker)
-            batch = [first]
-            batch.extend(poller.drain())
+        async for batch in poller.scans(wait=poller.config.batch_wait):
             self.deliver(batch, emit)

@@ -1,7 +1,9 @@
 """Report-by-exception: pass on a tag's sample only when it says something new.
 
 Applied once, between the poller and every sink (MQTT, Influx, OPC UA, stdout), so each sink
-sees the same decisions. Per tag, a sample is reported when any of these holds:
+sees the same decisions. It filters each scan: a scan keeps the samples that are reported (the
+same PLC, group and times), and a scan none of whose samples is reported is not passed on. Per
+tag, a sample is reported when any of these holds:
 
 * it is the tag's first sample, or its quality changed (good <-> bad), or a bad sample's error
   text changed (a PLC that goes from "timeout" to "refused" is news);
@@ -27,7 +29,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from plcstack.errors import ConfigError, check_keys
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
 
 __all__ = ["ReportByException", "ReportPolicy", "parse_report"]
 
@@ -117,8 +119,19 @@ class ReportByException:
             self.suppressed += 1
         return report
 
-    def filter(self, samples: Iterable[Sample]) -> list[Sample]:
-        return [s for s in samples if self.accept(s)]
+    def filter(self, scans: Iterable[Scan]) -> list[Scan]:
+        """The scans with only their reported samples; a scan with none is left out, a scan
+        with all of them is passed on as it is."""
+        out: list[Scan] = []
+        accept = self.accept
+        for scan in scans:
+            samples = scan.samples
+            kept = tuple(s for s in samples if accept(s))
+            if len(kept) == len(samples):
+                out.append(scan)
+            elif kept:
+                out.append(scan.with_samples(kept))
+        return out
 
 
 def _policy(table: Mapping[str, Any], base: ReportPolicy, where: str) -> ReportPolicy:

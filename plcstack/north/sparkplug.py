@@ -54,7 +54,7 @@ from plcstack.north.layout import Reachability, topic_level
 from plcstack.north.sparkplug_pb import DATATYPES, Payload
 from plcstack.north.sparkplug_state import BdSeqStore, default_state_path
 from plcstack.poll.config import TagConfig
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.values import value_type
 
 __all__ = ["NAMESPACE", "SparkplugLayout"]
@@ -351,18 +351,17 @@ class SparkplugLayout:
     def subscriptions(self) -> list[str]:
         return [self.topic("NCMD"), self.topic("DCMD") + "/+"]
 
-    def messages(
-        self, batch: Sequence[tuple[str, str, list[Sample]]]
-    ) -> list[tuple[str, bytes, int, bool]]:
+    def messages(self, scans: Sequence[Scan]) -> list[tuple[str, bytes, int, bool]]:
         """DDATA per PLC and scan; DDEATH/DBIRTH when a PLC becomes unreachable/reachable
         (:class:`~plcstack.north.layout.Reachability`: a group failing on its own only makes
         its metrics null with Quality BAD); ``seq`` is set when published."""
         out: list[tuple[str, bytes, int, bool]] = []
-        for plc, group, samples in batch:
+        for scan in scans:
+            plc, samples = scan.plc, scan.samples
             last = self._last.setdefault(plc, {})
             for s in samples:
                 last[s.tag] = s
-            changed = self.reachability.update(plc, group, samples)
+            changed = self.reachability.update(scan)
             when = max(s.receive_time for s in samples)
             if changed is False:
                 self._dead.add(plc)

@@ -2,18 +2,19 @@
 
 Two kinds of failure, one place that sees them:
 
-* **A sink that cannot take a sample** (an encoder that raises for one value): the batch is
-  retried without it. With the sink's ``probe(sample)`` (raises for a sample it cannot take, no
-  side effects) the culprits are found, replaced by a bad-quality copy naming the failure, and the
-  batch goes again as a whole; without a probe, each sample goes alone. So a failure costs at most
+* **A sink that cannot take a sample** (an encoder that raises for one value): the batch of
+  scans is retried without it. With the sink's ``probe(sample)`` (raises for a sample it cannot
+  take, no side effects) the culprits are found, replaced by a bad-quality copy naming the
+  failure, and the batch goes again as a whole; without a probe, each sample goes alone (a scan
+  of that one sample, with its PLC, group and times). So a failure costs at most
   that one sample. Each is counted (``plcstack_sink_errors_total{sink}``) and logged at ERROR with
   the PLC and tag, once per sink, PLC, tag and kind of error (later ones at DEBUG).
 * **A sink or server task that dies** (an exception, or returning when it should run until
   cancelled): logged at ERROR with the reason, counted, and restarted after a growing, jittered
   backoff; meanwhile :meth:`Supervisor.health` names it, so ``/healthz`` answers 503.
 
-The supervisor knows sinks only as names and callables and samples only as objects with ``plc``
-and ``tag``: it does not depend on what a sink does or on how samples are grouped.
+The supervisor knows sinks only as names and callables, scans as records with ``samples`` and
+samples as objects with ``plc`` and ``tag``: it does not depend on what a sink does.
 """
 
 from __future__ import annotations
@@ -158,20 +159,20 @@ class Supervisor:
         for handle in self._tasks:
             await handle.stop()
 
-    # -- samples --------------------------------------------------------------------------------
+    # -- scans ----------------------------------------------------------------------------------
     def submit(
         self,
         name: str,
         submit: Callable[[list[Any]], None],
-        batch: Sequence[Any],
+        scans: Sequence[Any],
         probe: Callable[[Any], None] | None = None,
     ) -> None:
-        """``submit(batch)``; if it raises, the batch again without the samples it cannot take.
+        """``submit(scans)``; if it raises, the scans again without the samples it cannot take.
 
         ``BrokenPipeError`` passes through: the reader of stdout went away, which ends a run
         deliberately.
         """
-        batch = list(batch)
+        batch = list(scans)
         try:
             submit(batch)
             return
@@ -182,15 +183,19 @@ class Supervisor:
         if probe is not None:
             culprits = False
             fixed: list[Any] = []
-            for s in batch:
-                try:
-                    probe(s)
-                except Exception as exc:
-                    culprits = True
-                    self._lost(name, s, exc)
-                    s = marked_bad(s, name, exc)
-                if s is not None:
-                    fixed.append(s)
+            for scan in batch:
+                kept: list[Any] = []
+                for s in scan.samples:
+                    try:
+                        probe(s)
+                    except Exception as exc:
+                        culprits = True
+                        self._lost(name, s, exc)
+                        s = marked_bad(s, name, exc)
+                    if s is not None:
+                        kept.append(s)
+                if kept:
+                    fixed.append(scan.with_samples(tuple(kept)))
             if culprits:
                 try:
                     submit(fixed)
@@ -204,21 +209,23 @@ class Supervisor:
         self._one_by_one(name, submit, batch, first)
 
     def _one_by_one(
-        self, name: str, submit: Callable[[list[Any]], None], batch: list[Any], cause: BaseException
+        self, name: str, submit: Callable[[list[Any]], None], scans: list[Any], cause: BaseException
     ) -> None:
+        """Each sample alone, as a scan of one sample (its PLC, group and times kept)."""
         log.debug("%s could not take a batch (%s); one sample at a time", name, _describe(cause))
-        for s in batch:
-            try:
-                submit([s])
-                continue
-            except BrokenPipeError:
-                raise
-            except Exception as exc:
-                self._lost(name, s, exc)
-                bad = marked_bad(s, name, exc)
-            if bad is not None:
-                with contextlib.suppress(Exception):
-                    submit([bad])
+        for scan in scans:
+            for s in scan.samples:
+                try:
+                    submit([scan.with_samples((s,))])
+                    continue
+                except BrokenPipeError:
+                    raise
+                except Exception as exc:
+                    self._lost(name, s, exc)
+                    bad = marked_bad(s, name, exc)
+                if bad is not None:
+                    with contextlib.suppress(Exception):
+                        submit([scan.with_samples((bad,))])
 
     def _lost(self, name: str, sample: Any, exc: BaseException) -> None:
         """Count a sample a sink could not take; log it at ERROR the first time per kind."""
@@ -240,7 +247,7 @@ class Supervisor:
 
 
 class Fed(Protocol):
-    """A server fed from its poller's samples (the OPC UA and Modbus servers)."""
+    """A server fed from its poller's scans (the OPC UA and Modbus servers)."""
 
     async def run(self, observe: Callable[[list[Any]], object] | None = None) -> None: ...
 

@@ -102,13 +102,15 @@ class WritePath:
         self.refused = 0
         self._last_code: dict[tuple[str, str, str], str] = {}
 
-    def observe(self, samples: Iterable[Any]) -> None:
-        """Note the polled values (the audit's ``previous``); a no-op without an audit."""
+    def observe(self, scans: Iterable[Any]) -> None:
+        """Note the polled values of a batch of scans (the audit's ``previous``); a no-op
+        without an audit."""
         if self.audit is None:
             return
         latest = self.latest
-        for s in samples:
-            latest[(s.plc, s.tag)] = s.value
+        for scan in scans:
+            for s in scan.samples:
+                latest[(s.plc, s.tag)] = s.value
 
     async def write(
         self,

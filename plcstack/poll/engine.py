@@ -1,10 +1,13 @@
-"""The Poller: many PLCs, scan groups on intervals, samples out as an async iterator.
+"""The Poller: many PLCs, scan groups on intervals, scans (or samples) out as async iterators.
 
 ```python
 async with Poller(load_config("plant.toml")) as poller:
     async for s in poller:
         print(s.plc, s.tag, s.value, s.quality)
 ```
+
+The north side takes whole scans (:meth:`Poller.scans`: PLC, group, times, samples); iterating
+the poller itself gives the same samples one by one.
 
 How it behaves, and why:
 
@@ -29,9 +32,10 @@ How it behaves, and why:
   per scan instead of one per request.
 * A scan that runs past its next due time is not queued: the missed ticks are counted as overruns
   and the schedule moves to the next tick in the future.
-* Samples wait in a bounded buffer (:class:`~plcstack.poll.samples.SampleQueue`) for the
-  consumer; when it is full, the oldest sample is dropped and counted (per PLC and in total).
-  Nothing is dropped silently. Several pollers may share one buffer (the scale-out worker).
+* Scans wait in a bounded buffer (:class:`~plcstack.poll.samples.ScanQueue`, ``poll.queue``
+  samples) for the consumer; when it is full, the oldest scans are dropped whole and their
+  samples counted (per PLC and in total). Nothing is dropped silently. Several pollers may
+  share one buffer (the scale-out worker).
 * A merged request that the PLC rejects with an error code (e.g. a gap that crosses the end of a
   data block) is not retried in that scan; from the next scan on, its tags are read separately so
   one bad address does not blank its neighbours.
@@ -39,7 +43,7 @@ How it behaves, and why:
 Cost (``plcstack bench``, the fleet case): with a thousand E71 PLCs at 10 Hz the poller
 spends about what a raw asyncio loop spends on the same requests once that loop also turns each
 reply into its words as Python ints; the rest of the difference to a loop that keeps the bytes is
-allocating those ints. The north side takes samples in batches gathered for ``poll.batch_wait``
+allocating those ints. The north side takes scans in batches gathered for ``poll.batch_wait``
 (a consumer woken once per loop pass cost more than the requests). The poller never touches
 global GC settings.
 """
@@ -58,7 +62,7 @@ from plcstack.clients.flight import ConnectTurns, Slots
 from plcstack.errors import AddressError, PlcError
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, encode_tag
-from plcstack.poll.samples import Quality, Sample, SampleQueue
+from plcstack.poll.samples import Quality, Sample, Scan, ScanQueue, flatten
 from plcstack.poll.scanner import GroupState, PlcState, Scanner
 from plcstack.poll.stats import LATENCY_WINDOW, LatencyWindow, PlcStats, format_stats
 from plcstack.poll.ticker import Ticker
@@ -74,7 +78,8 @@ __all__ = [
     "Poller",
     "Quality",
     "Sample",
-    "SampleQueue",
+    "Scan",
+    "ScanQueue",
     "format_stats",
     "timer_resolution",
 ]
@@ -103,7 +108,8 @@ def default_client_factory(plc: PlcConfig) -> Client:
 
 
 class Poller(AsyncResource):
-    """Polls every PLC of a :class:`PollConfig`; iterate over it for :class:`Sample` objects.
+    """Polls every PLC of a :class:`PollConfig`: :meth:`scans` for :class:`Scan` objects, or
+    iterate over it for their :class:`Sample` objects one by one.
 
     Clients and read plans are built in the constructor, so every bad URL or address raises
     :class:`AddressError` (naming PLC and tag) before anything is sent. ``client_factory`` builds
@@ -117,13 +123,13 @@ class Poller(AsyncResource):
         config: PollConfig,
         *,
         client_factory: ClientFactory | None = None,
-        queue: SampleQueue | None = None,
+        queue: ScanQueue | None = None,
         connect_turns: ConnectTurns | None = None,
     ) -> None:
         self.config = config
         factory = client_factory or default_client_factory
-        #: where the scans put their samples (``queue``: one shared with other pollers)
-        self.queue = queue if queue is not None else SampleQueue(config.queue)
+        #: where the scans go (``queue``: one shared with other pollers)
+        self.queue = queue if queue is not None else ScanQueue(config.queue)
         #: the concurrency cap's slots (``poll.concurrency``), shared by both kinds of scan
         self._slots: Slots | None = (
             Slots(config.concurrency) if config.concurrency is not None else None
@@ -244,40 +250,49 @@ class Poller(AsyncResource):
     async def aopen(self) -> None:
         await self.start()
 
-    # -- samples ----------------------------------------------------------------------------
+    # -- scans and samples ------------------------------------------------------------------
+    def scans(self, wait: float = 0.0) -> AsyncIterator[list[Scan]]:
+        """Every completed scan, as lists: all that is buffered at each wake-up (never an empty
+        list); ends once the poller is closed and the buffer is empty.
+
+        What the north side consumes: one wake-up and one list per event-loop pass instead of
+        one step per sample (at 1000 PLCs, 10 Hz: 10,000 coroutine steps a second). ``wait``
+        (seconds) lets a batch gather for that long after its first scan: fewer, larger
+        batches (a historian or a broker sink loses nothing by a few milliseconds; the samples
+        keep their own times). Keep it well below the time the buffer (``poll.queue`` samples)
+        takes to fill, or the oldest scans are dropped (and counted).
+        """
+        return self.queue.batches(wait, self._ended)
+
     def __aiter__(self) -> Self:
         return self
 
     async def __anext__(self) -> Sample:
-        return await self.queue.next(self._ended)
+        """The samples of :meth:`scans`, one at a time."""
+        return await self.queue.next_sample(self._ended)
 
     def _ended(self) -> bool:
         return self._closed
 
-    def batches(self, wait: float = 0.0) -> AsyncIterator[list[Sample]]:
-        """Every sample, in the order ``async for sample in poller`` gives them, as lists: all
-        that is buffered at each wake-up (never an empty list). Ends like the sample iterator.
-
-        For consumers of many PLCs: one wake-up and one list per event-loop pass instead of
-        one ``__anext__`` per sample (at 1000 PLCs, 10 Hz: 10,000 coroutine steps a second).
-        ``wait`` (seconds) lets a batch gather for that long after its first sample: fewer,
-        larger batches (a historian or a broker sink loses nothing by a few milliseconds; the
-        samples keep their own times). Keep it well below the time the buffer (``poll.queue``
-        samples) takes to fill, or the oldest are dropped (and counted).
-        """
-        return self.queue.batches(wait, self._ended)
+    async def batches(self, wait: float = 0.0) -> AsyncIterator[list[Sample]]:
+        """The samples of :meth:`scans`, each list of scans flattened into one list of their
+        samples, in the order ``async for sample in poller`` gives them (for consumers that
+        want samples and no grouping)."""
+        async for scans in self.queue.batches(wait, self._ended):
+            yield flatten(scans)
 
     def pending(self) -> int:
         """Samples buffered and not yet taken by the consumer."""
         return len(self.queue)
 
-    def drain(self) -> list[Sample]:
-        """Take every buffered sample at once (for consumers that batch)."""
+    def drain(self) -> list[Scan]:
+        """Take every buffered scan at once (what is left after the poller was closed)."""
         return self.queue.drain()
 
     @property
     def dropped(self) -> int:
-        """Samples dropped because the buffer was full (of every poller sharing it)."""
+        """Samples dropped because the buffer was full (of every poller sharing it); a full
+        buffer drops whole scans, each counting its samples."""
         return self.queue.dropped
 
     # -- statistics -------------------------------------------------------------------------

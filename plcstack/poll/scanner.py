@@ -13,7 +13,8 @@ timer for every PLC). When the scan is due:
 * a client that cannot start reads (S5-LAN, FETCH/WRITE, AS511) has one task per group that
   waits on the ticker and awaits each scan's requests: no task per scan.
 
-Either way the scan ends in the same steps: its samples go to the :class:`SampleQueue`, a
+Either way the scan ends in the same steps: it goes to the :class:`ScanQueue` as one
+:class:`Scan` (PLC, group, times, a sample per tag), a
 failed request is accounted once (:func:`account_failure`, which also isolates the tags of a
 merged request the PLC refused), and the next scan goes on the ticker (:func:`advance`: missed
 ticks are counted as overruns, never queued up).
@@ -37,7 +38,7 @@ from plcstack.clients.flight import Slots
 from plcstack.errors import AddressError, ConnectionLost, PlcError, PlcErrorResponse, PlcTimeout
 from plcstack.poll.config import PlcConfig, TagConfig
 from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, describe
-from plcstack.poll.samples import Quality, SampleQueue, make_sample
+from plcstack.poll.samples import Quality, Sample, Scan, ScanQueue, make_sample
 from plcstack.poll.stats import PlcStats
 from plcstack.poll.ticker import Ticker
 from plcstack.values import ByteOrder, Endian, WordOrder
@@ -52,6 +53,8 @@ _log = logging.getLogger(__name__)
 _clock = time.perf_counter
 _wall_clock = time.time
 _GOOD, _BAD = Quality.GOOD, Quality.BAD
+#: ``Scan(...)`` without the named tuple's ``__new__`` (a Python function): the same object
+_new_tuple = tuple.__new__
 
 
 @dataclass(slots=True)
@@ -143,6 +146,7 @@ class Scanner:
         "_done_cb",
         "_fire_cb",
         "_group",
+        "_group_name",
         "_holding",
         "_items",
         "_limit",
@@ -167,11 +171,12 @@ class Scanner:
         plc: PlcState,
         group: GroupState,
         ticker: Ticker,
-        queue: SampleQueue,
+        queue: ScanQueue,
         slots: Slots | None,
     ) -> None:
         self._plc = plc
         self._group = group
+        self._group_name = group.name
         self._ticker = ticker
         self._queue = queue
         self._items = queue.items
@@ -267,7 +272,7 @@ class Scanner:
     def _complete(
         self, reply: Sequence[int | bool] | Exception, start: float, end: float, offset: float
     ) -> None:
-        """End a scan of one request: its samples queued, its schedule moved past ``end``.
+        """End a scan of one request: the scan queued, its schedule moved past ``end``.
         ``start``/``end`` are ``perf_counter`` times, ``offset`` makes them Unix times."""
         stats = self._stats
         try:
@@ -276,13 +281,19 @@ class Scanner:
                 # the usual poll: the one tag is the whole reply, handed out as it is
                 stats.latencies.append(end - start)
                 stats.requests += 1
-                items = self._items
-                items.append(
-                    make_sample(self._name, whole, reply, _GOOD, start + offset, end + offset, None)
-                )
+                name = self._name
+                source = start + offset
+                receive = end + offset
+                self._items.append(
+                    _new_tuple(Scan, (name, self._group_name, source, receive,
+                               (make_sample(name, whole, reply, _GOOD, source, receive, None),)))
+                )  # fmt: skip
                 stats.samples += 1
-                if len(items) > self._limit:
-                    self._queue.trim()
+                queue = self._queue
+                held = queue.held + 1
+                queue.held = held
+                if held > self._limit:
+                    queue.trim()
                 self._wake()
             elif isinstance(reply, Exception):
                 error = account_failure(self._plc, self._group, self._plan, 0, reply)
@@ -415,7 +426,7 @@ class Scanner:
         self._deliver(plan, replies, 0.0, 0.0, sent, received)
         return failed
 
-    # -- samples --------------------------------------------------------------------------------
+    # -- the scan out ---------------------------------------------------------------------------
     def _deliver(
         self,
         plan: ScanPlan,
@@ -425,13 +436,19 @@ class Scanner:
         sent: list[float] | None,
         received: list[float] | None,
     ) -> None:
-        """Queue one scan's samples; times are Unix seconds, per request when several."""
+        """Queue one scan; times are Unix seconds, per request when several (the scan's are
+        its first send and its last answer)."""
         plc = self._plc
         name = self._name
         order = plc.order
         extract = plan.extract
-        items = self._items
+        samples: list[Sample] = []
+        append = samples.append
         bad = 0
+        if sent is not None and received is not None:
+            first, last = min(sent), max(received)
+        else:
+            first, last = source, receive
         for tag_plan in plan.tags:
             if sent is not None and received is not None:
                 ids = tag_plan.request_ids
@@ -440,19 +457,20 @@ class Scanner:
             result = extract(tag_plan, replies, order)
             if isinstance(result, PlcError):
                 bad += 1
-                items.append(
+                append(
                     make_sample(
                         name, tag_plan.tag.name, None, _BAD, source, receive, str(result),
                         type(result),
                     )
                 )  # fmt: skip
             else:
-                items.append(
-                    make_sample(name, tag_plan.tag.name, result, _GOOD, source, receive, None)
-                )
+                append(make_sample(name, tag_plan.tag.name, result, _GOOD, source, receive, None))
+        self._items.append(Scan(name, self._group_name, first, last, tuple(samples)))
         stats = plc.stats
-        stats.samples += len(plan.tags)
+        stats.samples += len(samples)
         stats.bad_samples += bad
-        if len(items) > self._queue.limit:
-            self._queue.trim()
+        queue = self._queue
+        queue.held += len(samples)
+        if queue.held > self._limit:
+            queue.trim()
         self._wake()

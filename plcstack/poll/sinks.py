@@ -18,15 +18,15 @@ loads a config that mixes ints, floats and bools; a non-finite float is a bad-qu
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from datetime import UTC, datetime
 from typing import Any
 
 from plcstack.north.influx import influx_line
 from plcstack.output import float32_tags, json_safe, shorten
-from plcstack.poll.engine import Sample
+from plcstack.poll.samples import Sample, Scan
 
-__all__ = ["FORMATS", "influx_line", "iso_time", "jsonl_line", "jsonl_text"]
+__all__ = ["FORMATS", "each_line", "influx_line", "iso_time", "jsonl_line", "jsonl_text"]
 
 
 def iso_time(t: float) -> str:
@@ -51,14 +51,26 @@ def jsonl_line(sample: Sample, *, float32: bool = False) -> str:
     return json.dumps(record, ensure_ascii=False, allow_nan=False)
 
 
-def jsonl_text(plcs: Iterable[Any]) -> Callable[[list[Sample]], str]:
-    """The JSON lines of a batch, float32 tags of ``plcs`` at float32 precision."""
+def jsonl_text(plcs: Iterable[Any]) -> Callable[[Sequence[Scan]], str]:
+    """The JSON lines of a batch of scans (a line per sample), float32 tags of ``plcs`` at
+    float32 precision."""
     float32 = float32_tags(plcs)
 
-    def text(batch: list[Sample]) -> str:
-        return "".join([jsonl_line(s, float32=(s.plc, s.tag) in float32) + "\n" for s in batch])
+    def text(scans: Sequence[Scan]) -> str:
+        return "".join(
+            [
+                jsonl_line(s, float32=(s.plc, s.tag) in float32) + "\n"
+                for scan in scans
+                for s in scan.samples
+            ]
+        )
 
     return text
+
+
+def each_line(line: Callable[[Sample], str], scans: Sequence[Scan]) -> str:
+    """``line`` of every sample of ``scans``, each ending in a newline."""
+    return "".join([line(s) + "\n" for scan in scans for s in scan.samples])
 
 
 #: ``--format`` name -> line formatter

@@ -15,8 +15,8 @@ they matter:
    the old lease to expire (``ttl`` after its last renew) and polls at most ``retry`` later.
 
 Each owned PLC runs in its own :class:`~plcstack.poll.Poller` (one PLC each, so starting and
-stopping one never touches another); their samples are merged into one bounded buffer that this
-object hands out like a Poller does (``async for``, ``drain``, ``pending``, ``stats``).
+stopping one never touches another); their scans are merged into one bounded buffer that this
+object hands out like a Poller does (``scans``, ``async for``, ``drain``, ``pending``, ``stats``).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import asyncio
 import contextlib
 import dataclasses
 import fnmatch
-from collections.abc import Callable, Coroutine
+from collections.abc import AsyncIterator, Callable, Coroutine
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
@@ -39,7 +39,8 @@ from plcstack.poll.engine import (
     PlcStats,
     Poller,
     Sample,
-    SampleQueue,
+    Scan,
+    ScanQueue,
 )
 from plcstack.scale.hrw import owner
 from plcstack.scale.lease import Lease, LeaseStore
@@ -110,7 +111,8 @@ class _Run:
 
 
 class Worker:
-    """One worker of a sharded fleet: iterate over it for the samples of the PLCs it owns.
+    """One worker of a sharded fleet: :meth:`scans` (or ``async for``: samples) of the PLCs it
+    owns.
 
     ``config`` is the whole fleet (every worker reads the same file); ``on_event`` gets one line
     per ownership change (the CLI prints them on stderr).
@@ -162,7 +164,7 @@ class Worker:
             on_event=self._event,
         )
         #: the one buffer every PLC's poller scans into (drops counted there, per PLC)
-        self.queue = SampleQueue(config.queue)
+        self.queue = ScanQueue(config.queue)
         self._runs: dict[str, _Run] = {}
         self._held: dict[str, Lease] = {}
         self._timers: dict[str, asyncio.TimerHandle] = {}
@@ -227,12 +229,16 @@ class Worker:
     ) -> None:
         await self.aclose()
 
-    # -- samples (the Poller's interface, so the CLI can run either) ------------------------------
+    # -- scans (the Poller's interface, so the CLI can run either) --------------------------------
+    def scans(self, wait: float = 0.0) -> AsyncIterator[list[Scan]]:
+        """Every scan of every owned PLC, as lists (see :meth:`Poller.scans`)."""
+        return self.queue.batches(wait, self._ended)
+
     def __aiter__(self) -> Self:
         return self
 
     async def __anext__(self) -> Sample:
-        return await self.queue.next(self._ended)
+        return await self.queue.next_sample(self._ended)
 
     def _ended(self) -> bool:
         return self._closed
@@ -240,7 +246,7 @@ class Worker:
     def pending(self) -> int:
         return len(self.queue)
 
-    def drain(self) -> list[Sample]:
+    def drain(self) -> list[Scan]:
         return self.queue.drain()
 
     @property

@@ -7,7 +7,7 @@ from plcstack.poll import Poller, load_config
 config = load_config("plant.toml")
 async with Poller(config) as poller, ModbusServer.from_config(poller, "plant.toml") as server:
     print(server.endpoint)   # the address actually bound (port 0 picks a free one)
-    await server.run()       # feeds the poller's samples into the register image
+    await server.run()       # feeds the poller's scans into the register image
 ```
 
 or ``plcstack serve modbus plant.toml``. What is answered is in
@@ -27,7 +27,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +42,7 @@ from plcstack.north.modbus.frames import (
 from plcstack.north.modbus.service import Refused, RegisterImage, describe_code
 from plcstack.north.writes import WritePath
 from plcstack.poll.engine import Poller
-from plcstack.poll.samples import Sample
+from plcstack.poll.samples import Scan
 from plcstack.resource import AsyncResource
 
 __all__ = ["MAX_PENDING", "ModbusCollector", "ModbusServer"]
@@ -258,16 +258,16 @@ class ModbusServer(AsyncResource):
         """``async with server`` listens (see :meth:`start`)."""
         await self.start()
 
-    # -- samples in -----------------------------------------------------------------------------
-    def submit(self, samples: Iterable[Sample]) -> None:
-        """The sinks' common interface: take samples into the image (never blocks)."""
-        self.image.update(samples)
+    # -- scans in -------------------------------------------------------------------------------
+    def submit(self, scans: Sequence[Scan]) -> None:
+        """The sinks' common interface: take scans into the image (never blocks)."""
+        self.image.update(scans)
 
-    async def run(self, observe: Callable[[list[Sample]], object] | None = None) -> None:
-        """Consume the poller's samples until it is closed (or this task is cancelled);
+    async def run(self, observe: Callable[[list[Scan]], object] | None = None) -> None:
+        """Consume the poller's scans until it is closed (or this task is cancelled);
         ``observe`` sees every batch first (the metrics collector)."""
         poller = self.poller
-        async for batch in poller.batches(wait=poller.config.batch_wait):
+        async for batch in poller.scans(wait=poller.config.batch_wait):
             if observe is not None:
                 observe(batch)
             self.image.update(batch)

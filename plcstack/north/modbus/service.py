@@ -48,7 +48,7 @@ from plcstack.north.modbus.frames import (
 from plcstack.north.modbus.registers import EncodeError
 from plcstack.north.write_values import NOT_WRITABLE, UNKNOWN_TAG, WRONG_TYPE
 from plcstack.north.writes import BAD_REQUEST, BUSY, UNKNOWN_PLC, WritePath, WriteResult
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Scan
 from plcstack.values import WordOrder
 
 __all__ = ["Refused", "RegisterImage", "exception_for", "write_exception"]
@@ -118,10 +118,10 @@ class RegisterImage:
                 table[entry.layout.start + offset] = (slot, offset)
 
     # -- samples in -----------------------------------------------------------------------------
-    def update(self, samples: Iterable[Sample]) -> None:
-        """Take the poller's samples (tags without a ``modbus`` key are ignored)."""
+    def update(self, scans: Iterable[Scan]) -> None:
+        """Take the poller's scans (tags without a ``modbus`` key are ignored)."""
         by_tag = self._by_tag
-        for sample in samples:
+        for sample in (s for scan in scans for s in scan.samples):
             slot = by_tag.get((sample.plc, sample.tag))
             if slot is None:
                 continue

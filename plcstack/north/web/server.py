@@ -1,6 +1,6 @@
 """:class:`WebConsole`: the console's aiohttp application, run on the poller's own event loop.
 
-A north-side sink like the others: ``start()``, ``submit(batch)`` (the state takes the samples;
+A north-side sink like the others: ``start()``, ``submit(scans)`` (the state takes the samples;
 nothing is sent from there), ``aclose()``. Binds 127.0.0.1 unless ``[web] host`` says otherwise:
 the pages name every PLC of the plant. Every response carries a Content-Security-Policy that
 allows scripts, styles and connections from the console itself only (no inline script), and
@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import sys
+from collections.abc import Sequence
 from importlib import resources
 from typing import Any
 
@@ -25,7 +26,7 @@ from plcstack.north.web.pages import esc, overview_page, plc_page
 from plcstack.north.web.settings import WebSettings
 from plcstack.north.web.state import ConsoleState, plc_row
 from plcstack.north.writes import WritePath
-from plcstack.poll.samples import Sample
+from plcstack.poll.samples import Scan
 
 __all__ = ["WebConsole"]
 
@@ -78,8 +79,8 @@ class WebConsole:
         return f"http://{self.settings.host}:{self.port}/"
 
     # -- the sink protocol ----------------------------------------------------------------------
-    def submit(self, batch: list[Sample]) -> None:
-        self.state.submit(batch)
+    def submit(self, scans: Sequence[Scan]) -> None:
+        self.state.submit(scans)
 
     async def start(self) -> None:
         """Listen; a :class:`ConfigError` naming the address if that is not possible."""

@@ -20,7 +20,7 @@ from typing import Any
 
 from plcstack.output import float32_short, json_safe
 from plcstack.poll.config import PlcConfig, TagConfig
-from plcstack.poll.samples import Quality, Sample
+from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.poll.stats import LatencyWindow, PlcStats
 
 __all__ = ["TREND_STEP", "ConsoleState", "PlcHealth", "Trend", "plc_row", "tag_row"]
@@ -95,11 +95,11 @@ class ConsoleState:
         self._points = trend_seconds
         self._epoch = clock()
 
-    def submit(self, batch: Iterable[Sample]) -> None:
-        """Take one batch of samples (the north side's sink protocol)."""
+    def submit(self, scans: Iterable[Scan]) -> None:
+        """Take one batch of scans (the north side's sink protocol)."""
         latest, changed, health, trends = self.latest, self.changed, self.health, self.trends
         good = Quality.GOOD
-        for s in batch:
+        for s in (s for scan in scans for s in scan.samples):
             key = (s.plc, s.tag)
             prev = latest.get(key)
             latest[key] = s
