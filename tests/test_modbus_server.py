@@ -79,7 +79,7 @@ async def plant(tmp_path: Path, order: str = "big") -> AsyncIterator[Plant]:
     path = tmp_path / "plant.toml"
     path.write_text(PLANT.format(order=order, url=sim.url, dead=free_port()))
     poller = Poller(load_config(path))
-    server = ModbusServer.from_config(poller, path)
+    server = ModbusServer.from_config(poller)
     feed: asyncio.Task[None] | None = None
     try:
         async with poller, server:
@@ -253,7 +253,7 @@ async def test_a_write_whose_outcome_is_unknown_is_an_exception_and_logged(
         'set = { address = "D0", type = "uint16", modbus = "hr:0", writable = true }\n'
     )
     poller = Poller(load_config(path))
-    server = ModbusServer.from_config(poller, path)  # not polling: only the write goes out
+    server = ModbusServer.from_config(poller)  # not polling: only the write goes out
     try:
         async with server:
             with caplog.at_level(logging.WARNING, logger="plcstack.north.modbus"):
@@ -278,7 +278,7 @@ def test_overlapping_tags_are_refused_naming_both_with_lines(tmp_path: Path) -> 
     )
     poller = Poller(load_config(path))
     with pytest.raises(ConfigError) as caught:
-        ModbusServer.from_config(poller, path)
+        ModbusServer.from_config(poller)
     text = str(caught.value)
     assert "tag 'speed' of PLC 'b' (hr:11)" in text and f"{path}:10" in text
     assert "tag 'temp' of PLC 'a' (hr:10..11)" in text and f"{path}:5" in text
@@ -302,7 +302,7 @@ def test_bad_modbus_keys_are_config_errors_with_the_line(
         f'x = {{ address = "D0", {spec} }}\n'
     )
     with pytest.raises(ConfigError, match=message) as caught:
-        ModbusServer.from_config(Poller(load_config(path)), path)
+        ModbusServer.from_config(Poller(load_config(path)))
     assert f"{path}:5" in str(caught.value)
 
 
@@ -331,4 +331,4 @@ def test_a_config_without_modbus_keys_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "none.toml"
     path.write_text('[[plc]]\nname = "a"\nurl = "e71+tcp://127.0.0.1:1"\n[plc.tags]\nx = "D0"\n')
     with pytest.raises(ConfigError, match="no tag has a modbus key"):
-        ModbusServer.from_config(Poller(load_config(path)), path)
+        ModbusServer.from_config(Poller(load_config(path)))

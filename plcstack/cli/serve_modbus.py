@@ -26,7 +26,7 @@ from plcstack.north.modbus.server import ModbusServer
 from plcstack.north.pipeline import North
 from plcstack.north.supervise import run_until
 from plcstack.poll.engine import Poller, format_stats
-from plcstack.poll.samples import Sample
+from plcstack.poll.samples import Scan
 
 
 def register(servers: Any) -> None:
@@ -64,13 +64,13 @@ async def run_modbus(args: argparse.Namespace) -> int:
     if metrics_port is not None:
         metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", metrics_port)
     poller = Poller(config)  # every URL and address checked before anything is sent
-    server = ModbusServer.from_config(poller, args.config)  # overlaps refused here
+    server = ModbusServer.from_config(poller)  # overlaps refused here (the file read once)
     # the north side of `plcstack poll`, metrics and the audit: the same collector, HTTP server
     # and write path (every Modbus write is an [audit] line with source "modbus")
     north = North(poller, NorthConfig(metrics=metrics, audit=north_config.audit))
     server.writes = north.writes
 
-    def observe(batch: list[Sample]) -> None:
+    def observe(batch: list[Scan]) -> None:
         north.collector.observe(batch)
         north.writes.observe(batch)  # the audit's "previous" value of a written tag
 

@@ -132,6 +132,9 @@ class TagConfig:
     #: where the Modbus server serves the tag (``"hr:100"``, ``"ir:0"``, ``"co:5"``, ``"di:0"``;
     #: see plcstack.north.modbus); the poller itself does not use it
     modbus: str | None = None
+    #: the tag's line in the TOML file, when a north side's errors about it need one (a tag
+    #: with a ``modbus`` key); None for tags built in Python
+    line: int | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -173,6 +176,9 @@ class PollConfig:
     north: Mapping[str, Any] = field(default_factory=dict, compare=False)
     #: seconds the north side's batches gather (see :data:`DEFAULT_BATCH_WAIT`)
     batch_wait: float = DEFAULT_BATCH_WAIT
+    #: the file it was read from (``file:line`` in the north side's errors); None if built in
+    #: Python
+    source: str | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -514,7 +520,9 @@ class _Loader:
         self.plc_index, self.plc_name = -1, None
         if not plcs:
             raise self.error("no PLC configured: add a [[plc]] table with name, url and tags")
-        return PollConfig(tuple(plcs), groups, concurrency, queue, north, batch_wait)
+        return PollConfig(
+            tuple(plcs), groups, concurrency, queue, north, batch_wait, source=self.source
+        )
 
     def _plc(
         self,
@@ -708,4 +716,5 @@ class _Loader:
             unit=unit,
             description=description,
             modbus=modbus,
+            line=self._line_of(name) if modbus is not None else None,
         )

@@ -110,39 +110,25 @@ class MapEntry:
         return f"tag {self.tag.name!r} of PLC {self.plc!r} ({self.layout.table}:{span})"
 
 
-def _tag_line(lines: list[str], plc_index: int, tag: str) -> int | None:
-    """The 1-based line of ``tag`` inside the ``plc_index``-th ``[[plc]]`` (tomllib keeps no
-    positions; the tag's key is searched for, as the poll loader does for its errors)."""
-    starts = [i for i, line in enumerate(lines) if re.match(r"\s*\[\[\s*plc\s*\]\]", line)]
-    if plc_index >= len(starts):
-        return None
-    hi = starts[plc_index + 1] if plc_index + 1 < len(starts) else len(lines)
-    pattern = re.compile(r'\s*["\']?' + re.escape(tag) + r'["\']?\s*=')
-    for i in range(starts[plc_index], hi):
-        if pattern.match(lines[i]):
-            return i + 1
-    return None
-
-
 def build_map(
     plcs: Mapping[str, Mapping[str, tuple[TagConfig, int]]],
     *,
-    source: str = "<config>",
-    text: str | None = None,
+    source: str | None = None,
 ) -> list[MapEntry]:
     """Every tag with a ``modbus`` key, in address order; ConfigError for a bad key or overlap.
 
     ``plcs`` is PLC name -> tag name -> (tag, point bits), in the file's order (what
-    ``Poller.tags`` gives); ``text`` the TOML text, for the line numbers in errors.
+    ``Poller.tags`` gives); ``source`` the file the tags were read from: errors name it with
+    each tag's line (which the poll loader noted, :attr:`TagConfig.line`), the file is not read
+    again.
     """
-    lines = text.splitlines() if text is not None else []
 
-    def where(plc_index: int, tag: str) -> str:
-        line = _tag_line(lines, plc_index, tag) if lines else None
-        return f"{source}:{line}" if line else source
+    def where(tag: TagConfig) -> str:
+        name = source or "<config>"
+        return f"{name}:{tag.line}" if tag.line else name
 
     entries: list[tuple[MapEntry, str]] = []
-    for index, (plc, tags) in enumerate(plcs.items()):
+    for plc, tags in plcs.items():
         for name, (tag, bits) in tags.items():
             if tag.modbus is None:
                 continue
@@ -150,8 +136,8 @@ def build_map(
                 table, start = parse_address(tag.modbus)
                 layout = layout_for(tag, bits, table, start)
             except ValueError as exc:
-                raise ConfigError(f"tag {name!r}: {exc} ({where(index, name)})", plc=plc) from None
-            entries.append((MapEntry(plc, tag, layout), where(index, name)))
+                raise ConfigError(f"tag {name!r}: {exc} ({where(tag)})", plc=plc) from None
+            entries.append((MapEntry(plc, tag, layout), where(tag)))
     entries.sort(key=lambda e: (TABLES.index(e[0].layout.table), e[0].layout.start))
     for (a, a_at), (b, b_at) in itertools.pairwise(entries):
         if a.layout.table == b.layout.table and b.layout.start < a.layout.end:

@@ -5,7 +5,7 @@ from plcstack.north.modbus import ModbusServer
 from plcstack.poll import Poller, load_config
 
 config = load_config("plant.toml")
-async with Poller(config) as poller, ModbusServer.from_config(poller, "plant.toml") as server:
+async with Poller(config) as poller, ModbusServer.from_config(poller) as server:
     print(server.endpoint)   # the address actually bound (port 0 picks a free one)
     await server.run()       # feeds the poller's scans into the register image
 ```
@@ -28,7 +28,6 @@ import asyncio
 import logging
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from pathlib import Path
 from typing import Any
 
 from plcstack.errors import ConfigError, PlcError, RemoteProtocolError
@@ -157,18 +156,18 @@ class ModbusServer(AsyncResource):
         self._writes: set[asyncio.Task[None]] = set()
 
     @classmethod
-    def from_config(cls, poller: Poller, path: str | Path) -> ModbusServer:
-        """The server of a TOML file's ``[modbus]`` table and ``modbus`` keys, with line numbers
-        in its errors (the poller must come from the same file)."""
-        path = Path(path)
-        text = path.read_text(encoding="utf-8")
+    def from_config(cls, poller: Poller) -> ModbusServer:
+        """The server of the poller's configuration: its ``[modbus]`` table and ``modbus``
+        keys, as the one read of the TOML file parsed them, with file and line in its
+        errors."""
+        source = poller.config.source or "<config>"
         table = poller.config.north.get("modbus", {})
         try:
             settings = parse_modbus(table)
         except ConfigError as exc:
-            raise ConfigError(f"{exc.message} ({path})") from None
+            raise ConfigError(f"{exc.message} ({source})") from None
         tags = {plc: poller.tags(plc) for plc in poller.plcs}
-        return cls(poller, settings, build_map(tags, source=str(path), text=text))
+        return cls(poller, settings, build_map(tags, source=poller.config.source))
 
     @property
     def endpoint(self) -> str:
