@@ -327,6 +327,42 @@ def test_bad_modbus_tables_are_config_errors(tmp_path: Path, table: str, message
     assert str(path) in str(caught.value)
 
 
+def test_the_file_is_read_once_and_errors_still_name_its_lines(tmp_path: Path) -> None:
+    """from_config takes what load_config parsed: with the file gone, an overlap is still
+    reported at file:line (it used to read the file a second time for the lines)."""
+    path = tmp_path / "once.toml"
+    path.write_text(
+        '[[plc]]\nname = "a"\nurl = "e71+tcp://127.0.0.1:1"\n[plc.tags]\n'
+        'x = { address = "D0", modbus = "hr:0" }\n'
+        'y = { address = "D1", modbus = "hr:0" }\n'
+    )
+    poller = Poller(load_config(path))
+    path.unlink()
+    with pytest.raises(ConfigError) as caught:
+        ModbusServer.from_config(poller)
+    assert f"{path}:5" in str(caught.value) and f"{path}:6" in str(caught.value)
+
+
+def test_the_image_takes_scans(tmp_path: Path) -> None:
+    from plcstack.north.modbus.frames import Request
+    from plcstack.poll.samples import Quality, Sample, Scan
+
+    path = tmp_path / "scans.toml"
+    path.write_text(
+        '[[plc]]\nname = "a"\nurl = "e71+tcp://127.0.0.1:1"\n[plc.tags]\n'
+        'x = { address = "D0", type = "uint16", modbus = "hr:0" }\n'
+        'y = { address = "D1", type = "uint16", modbus = "hr:1" }\n'
+    )
+    server = ModbusServer.from_config(Poller(load_config(path)))
+    samples = (
+        Sample("a", "x", 7, Quality.GOOD, 1.0, 1.1),
+        Sample("a", "y", 9, Quality.GOOD, 1.0, 1.1),
+    )
+    server.submit([Scan("a", "default", 1.0, 1.1, samples)])
+    # FC 3, read holding registers 0..1
+    assert server.image.read(Request(1, 1, 3, 0, 2)) == [7, 9]
+
+
 def test_a_config_without_modbus_keys_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "none.toml"
     path.write_text('[[plc]]\nname = "a"\nurl = "e71+tcp://127.0.0.1:1"\n[plc.tags]\nx = "D0"\n')
