@@ -92,7 +92,7 @@ MAX_TOML_DEPTH = 32
 #: a crowd of dead or slow PLCs (each holding a slot for a whole timeout) delay the healthy ones
 DEFAULT_CONCURRENCY: int | None = None
 DEFAULT_QUEUE = 10_000
-#: how long the north side's batch gathers after its first sample (``Poller.batches(wait=)``):
+#: how long the north side's batch gathers after its first scan (``Poller.scans(wait=)``):
 #: with a thousand PLCs a wake-up per loop pass cost the consumer more than the requests did
 #: (about 9 us per request); 10 ms is nothing against a historian's or a broker's
 #: pace, and each sample keeps its own times

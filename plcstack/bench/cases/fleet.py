@@ -63,7 +63,7 @@ __all__ = ["KINDS", "REPLY", "REQUEST", "spawn"]
 KINDS = ("floor", "decoded", "clients", "poll")
 #: 10 Hz
 INTERVAL = 0.1
-#: how long the poll kind's consumer lets a batch gather (``Poller.batches(wait=...)``): the
+#: how long the poll kind's consumer lets a batch gather (``Poller.scans(wait=...)``): the
 #: default ``[poll] batch_wait``, as the north side uses it (the fleet's poller keeps the
 #: default); ``FLEET_CONSUMER_WAIT`` sets it (0 is a batch per loop pass, which with callback
 #: scans cost about 9 us per request more)
@@ -548,14 +548,15 @@ async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.
         # Every sample's quality is checked; its 64 values only for the first sample of each
         # PLC (the responders send one fixed reply), as the floor checks its first reply: a
         # per-sample list comparison would be the consumer's cost, not the poller's.
-        async for batch in poller.batches(wait=CONSUMER_WAIT):
-            for sample in batch:
-                if sample.value is None:
-                    bad.append(f"{sample.plc}: {sample.error}")
-                elif sample.plc not in checked:
-                    checked.add(sample.plc)
-                    if list(cast(Any, sample.value)) != expected:
-                        bad.append(f"{sample.plc}: {sample.value!r:.120}")
+        async for batch in poller.scans(wait=CONSUMER_WAIT):
+            for scan in batch:
+                for sample in scan.samples:
+                    if sample.value is None:
+                        bad.append(f"{sample.plc}: {sample.error}")
+                    elif sample.plc not in checked:
+                        checked.add(sample.plc)
+                        if list(cast(Any, sample.value)) != expected:
+                            bad.append(f"{sample.plc}: {sample.value!r:.120}")
 
     consumer = asyncio.create_task(consume())
     await poller.start()
