@@ -440,16 +440,7 @@ class SparkplugLayout:
         if result is None:
             sink.stats.writes_ok += 1
         else:
-            # Sparkplug has no reply message: logged, counted, and answered on the JSON topic
+            # Sparkplug has no reply message: counted and answered on the JSON topic; the write
+            # path (north/writes.py) has logged it, once per change of outcome
             self.writes_refused += 1
-            code, message, may_have_executed = result
-            log.warning(
-                "sparkplug: DCMD %s/%s = %r refused (%s%s): %s",
-                plc,
-                tag,
-                value,
-                code,
-                ", may have executed" if may_have_executed else "",
-                message,
-            )
             sink._respond(topic_level(plc), f"dcmd:{tag}", *result)
