@@ -13,6 +13,8 @@ from pathlib import Path
 import pytest
 
 from plcstack.cli import main
+from plcstack.errors import ConfigError
+from plcstack.north.opcua_config import load_opcua_config
 
 PLC = """[[plc]]
 name = "press1"
@@ -57,3 +59,15 @@ def test_a_typo_in_any_table_is_one_line_with_the_guess_and_its_line(
     assert err.count("\n") == 1 and err.startswith("plcstack: error: "), err
     assert fragment in err, err
     assert err.rstrip().endswith(f"({path}:{line})"), err
+
+
+def test_the_python_loader_of_opcua_points_at_the_line_too(tmp_path: Path) -> None:
+    """``load_opcua_config`` (the Python API's way to the ``[opcua]`` table) reads the file
+    itself: its errors name the file and line as ``plcstack poll`` does."""
+    path = tmp_path / "plant.toml"
+    path.write_text(PLC + '\n[opcua]\nanonymous = "read"\nendpiont = "opc.tcp://h:1"\n')
+    with pytest.raises(ConfigError) as err:
+        load_opcua_config(path)
+    assert str(err.value) == (
+        f"[opcua]: unknown key(s) endpiont (did you mean endpoint?) ({path}:8)"
+    )

@@ -36,6 +36,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from plcstack.errors import ConfigError, check_keys
+from plcstack.poll.config import toml_line
 
 __all__ = [
     "DEFAULT_ENDPOINT",
@@ -253,13 +254,18 @@ def load_opcua_config(path: str | Path) -> OpcUaConfig:
     """
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
+        data = tomllib.loads(text)
     except OSError as exc:
         raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    section = data.get("opcua", {})
-    return parse_opcua_config(section, base=path.parent)
+    try:
+        return parse_opcua_config(data.get("opcua", {}), base=path.parent)
+    except ConfigError as exc:
+        line = toml_line(text.splitlines(), exc.key or "opcua")
+        where = f"{path}:{line}" if line else str(path)
+        raise ConfigError(f"{exc.message} ({where})", key=exc.key) from None
 
 
 def parse_opcua_config(section: Mapping[str, Any], *, base: Path | None = None) -> OpcUaConfig:

@@ -51,7 +51,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -78,6 +78,7 @@ __all__ = [
     "TagConfig",
     "load_config",
     "parse_config",
+    "toml_line",
 ]
 
 DEFAULT_GROUP = "default"
@@ -323,6 +324,32 @@ def parse_config(
     return _Loader(text, source).load(data, tables)
 
 
+def toml_line(lines: Sequence[str], path: str) -> int | None:
+    """The 1-based line of a dotted top-level TOML path (``"opcua.endpiont"``, ``"mqt"``,
+    ``"report.rule.x"``) in a file's lines: the first ``key =`` line or ``[table]`` /
+    ``[[table]]`` header that names it exactly, else the one that names the longest part of it
+    (the table of an unknown key, or the line that opens an inline table). tomllib keeps no
+    positions; every table's "unknown key" error (:class:`ConfigError` ``key``) is pointed at
+    its line with this."""
+    want = _toml_path(path)
+    best, best_len = None, 0
+    table: list[str] = []
+    for i, line in enumerate(lines):
+        if header := re.match(r"\s*\[\[?([^\[\]]+)\]\]?\s*(?:#.*)?$", line):
+            table = _toml_path(header.group(1))
+            names = table
+        elif key := re.match(r"\s*([\w\-\s.\"']+?)\s*=", line):
+            names = table + _toml_path(key.group(1))
+        else:
+            continue
+        if names == want:
+            return i + 1
+        common = len(names) if want[: len(names)] == names else 0
+        if common > best_len:
+            best, best_len = i + 1, common
+    return best
+
+
 def _toml_path(dotted: str) -> list[str]:
     """``'a . "b" . c'`` -> ``["a", "b", "c"]`` (a dot inside quotes is rare enough to ignore)."""
     return [part.strip().strip("\"'") for part in dotted.split(".")]
@@ -370,35 +397,12 @@ class _Loader:
                 return i + 1
         return lo + 1 if self.plc_index >= 0 else None
 
-    def _line_of_path(self, path: str) -> int | None:
-        """The line of a dotted TOML path (``"opcua.endpiont"``, ``"mqt"``, ``"report.rule.x"``):
-        the first ``key =`` line or ``[table]``/``[[table]]`` header that names it exactly, else
-        the one that names the longest part of it (the table of an unknown key, when the key
-        sits in an inline table). Top-level paths only: [[plc]] keys use :meth:`_line_of`."""
-        want = _toml_path(path)
-        best, best_len = None, 0
-        table: list[str] = []
-        for i, line in enumerate(self.lines):
-            if header := re.match(r"\s*\[\[?([^\[\]]+)\]\]?\s*(?:#.*)?$", line):
-                table = _toml_path(header.group(1))
-                names = table
-            elif key := re.match(r"\s*([\w\-\s.\"']+?)\s*=", line):
-                names = table + _toml_path(key.group(1))
-            else:
-                continue
-            if names == want:
-                return i + 1
-            common = len(names) if want[: len(names)] == names else 0
-            if common > best_len:
-                best, best_len = i + 1, common
-        return best
-
     def error(
         self, message: str, key: str | None = None, *, path: str | None = None
     ) -> ConfigError:
         """A ConfigError with ``(file:line)``; the line is that of ``key`` in the current
         [[plc]] section, or of the dotted top-level ``path``."""
-        line = self._line_of_path(path) if path is not None else self._line_of(key)
+        line = toml_line(self.lines, path) if path is not None else self._line_of(key)
         where = f"{self.source}:{line}" if line else self.source
         return ConfigError(f"{message} ({where})", plc=self.plc_name)
 
