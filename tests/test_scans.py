@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+from collections.abc import Sequence
 from types import SimpleNamespace
 from typing import Any
 
@@ -23,7 +24,7 @@ from plcstack.north.pipeline import North
 from plcstack.north.rbe import ReportByException, ReportPolicy
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig, parse_config
 from plcstack.poll.engine import Poller
-from plcstack.poll.samples import Quality, Sample, Scan, ScanQueue, flatten
+from plcstack.poll.samples import Quality, Sample, Scan, ScanQueue, ScanSink, flatten
 from plcstack.poll.sinks import jsonl_text
 from plcstack.poll.stats import PlcStats
 from plcstack.sim import e71
@@ -198,7 +199,7 @@ def test_north_reports_each_scan_after_rbe_to_every_sink() -> None:
         def __init__(self) -> None:
             self.got: list[list[Scan]] = []
 
-        def submit(self, scans: list[Scan]) -> None:
+        def submit(self, scans: Sequence[Scan]) -> None:
             self.got.append(list(scans))
 
     plc = PlcConfig("p", "e71+tcp://127.0.0.1:1", (TagConfig("a", "D0"), TagConfig("b", "D1")))
@@ -218,6 +219,21 @@ def test_north_reports_each_scan_after_rbe_to_every_sink() -> None:
 
 
 # -- every sink takes scans -------------------------------------------------------------------
+def test_every_sink_implements_the_one_protocol() -> None:
+    """Checked by mypy (this list is typed) and here: each sink's ``submit`` takes scans."""
+    import inspect
+
+    from plcstack.north.modbus.server import ModbusServer
+    from plcstack.north.opcua import OpcUaServer
+    from plcstack.north.web.server import WebConsole
+    from plcstack.north.web.state import ConsoleState
+
+    sinks: list[type[ScanSink]] = [MqttSink, WebConsole, ConsoleState, ModbusServer, OpcUaServer]
+    for sink in sinks:
+        [param] = list(inspect.signature(sink.submit).parameters.values())[1:]
+        assert param.name == "scans", sink
+
+
 def _two_groups_same_times() -> list[Scan]:
     """Two scans of one PLC, different groups, same tags' timing."""
     return [

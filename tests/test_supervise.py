@@ -9,6 +9,7 @@ import io
 import logging
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -141,7 +142,7 @@ async def test_healthz_names_a_dead_sink_until_it_runs_again() -> None:
         async def run(self) -> None:
             raise ConnectionError("lost the broker")
 
-        def submit(self, scans: list[Scan]) -> None:
+        def submit(self, scans: Sequence[Scan]) -> None:
             pass
 
     class P:

@@ -26,7 +26,7 @@ import importlib
 import logging
 from collections.abc import Callable, Sequence
 from types import TracebackType
-from typing import Any, Self
+from typing import Any, Self, cast
 
 from plcstack.north.audit import Audit
 from plcstack.north.config import NorthConfig
@@ -37,7 +37,7 @@ from plcstack.north.rbe import ReportByException
 from plcstack.north.supervise import Supervisor
 from plcstack.north.writes import WritePath
 from plcstack.output import float32_tags
-from plcstack.poll.samples import Scan
+from plcstack.poll.samples import Scan, ScanSink
 
 __all__ = ["North", "missing", "needs_of", "sink_name"]
 
@@ -85,7 +85,7 @@ def needs_of(config: NorthConfig) -> list[tuple[str, str, str]]:
 class North:
     """The north side of one poller: RBE, the MQTT sink and the metrics server as configured."""
 
-    def __init__(self, poller: Any, config: NorthConfig, *, sinks: Sequence[Any] = ()) -> None:
+    def __init__(self, poller: Any, config: NorthConfig, *, sinks: Sequence[ScanSink] = ()) -> None:
         self.poller = poller
         self.config = config
         self.rbe = ReportByException(config.report)
@@ -96,7 +96,9 @@ class North:
         # the one write path of every north side of this run (a scale-out Worker has no
         # write_tag yet: every write is refused with the reason)
         self.writes = WritePath(poller if hasattr(poller, "write_tag") else None, audit=self.audit)
-        self.sinks: list[Any] = list(sinks)
+        #: every sink of the run, each taking scans through its one ``submit`` (the others'
+        #: methods - start, aclose, summary, probe, supervisor - are optional)
+        self.sinks: list[ScanSink] = list(sinks)
         self.mqtt: MqttSink | None = None
         #: whether each PLC is reachable, by the rule the MQTT status uses: changes are logged
         self.reachability = Reachability()
@@ -136,7 +138,7 @@ class North:
             self.sinks.append(self.web)
         for sink in self.sinks:
             if hasattr(sink, "supervisor"):
-                sink.supervisor = self.supervisor  # its tasks run under the run's supervisor
+                cast(Any, sink).supervisor = self.supervisor  # its tasks run under the run's
         self.collector = PlcstackCollector(
             poller,
             [s for s in self.sinks if hasattr(s, "buffer")],
