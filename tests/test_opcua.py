@@ -489,6 +489,9 @@ interval = 0.05
 endpoint = "opc.tcp://127.0.0.1:0/plcstack"
 anonymous = "write"
 
+[audit]
+path = "writes.jsonl"
+
 [[plc]]
 name = "press1"
 url = "{sim.url}"
@@ -523,6 +526,11 @@ strokes = {{ address = "D100", type = "uint16", writable = true }}
         rest = await asyncio.wait_for(proc.stderr.read(), 30)
         assert await proc.wait() == 0
         assert b"press1" in rest  # the statistics table
+        # the write's audit line holds the value before it, as serve modbus's and poll's do
+        audit = [json.loads(line) for line in (tmp_path / "writes.jsonl").read_text().splitlines()]
+        assert [(a["source"], a["tag"], a["previous"], a["value"], a["result"]) for a in audit] == [
+            ("opcua", "strokes", 5, 6, "ok")
+        ]
     finally:
         if proc.returncode is None:
             proc.kill()

@@ -25,12 +25,10 @@ from pathlib import Path
 from typing import Any
 
 from plcstack.cli import plain_text, print_error, serve_modbus
-from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
-from plcstack.north.config import NorthConfig, load_config
-from plcstack.north.metrics import MetricsSettings
+from plcstack.cli.serve_run import add_run_options, check_run_options, metrics_settings, run_fed
+from plcstack.north.config import load_config
 from plcstack.north.opcua_config import hash_password, parse_opcua_config
-from plcstack.north.pipeline import North, missing
-from plcstack.poll.engine import Poller, format_stats
+from plcstack.poll.engine import Poller
 
 
 def register(subparsers: Any) -> None:
@@ -47,17 +45,7 @@ def register(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     opcua.add_argument("config", nargs="?", help="TOML file with [[plc]] tables and [opcua]")
-    opcua.add_argument(
-        "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
-    )
-    opcua.add_argument(
-        "--metrics-port",
-        type=int,
-        default=None,
-        metavar="PORT",
-        help="serve /metrics and /healthz on this port (overrides [metrics] port; 0 = any free"
-        " port; host from [metrics], default 127.0.0.1)",
-    )
+    add_run_options(opcua)
     opcua.add_argument(
         "--hash-password",
         action="store_true",
@@ -80,12 +68,7 @@ async def run_opcua(args: argparse.Namespace) -> int:
     if args.config is None:
         print_error("serve opcua: CONFIG is required")
         return 2
-    if args.duration is not None and not args.duration > 0:
-        print_error("serve opcua: --duration must be greater than 0")
-        return 2
-    metrics_port = getattr(args, "metrics_port", None)
-    if metrics_port is not None and not 0 <= metrics_port <= 65535:
-        print_error("serve opcua: --metrics-port must be 0..65535")
+    if not check_run_options(args, "serve opcua"):
         return 2
     if importlib.util.find_spec("asyncua") is None:
         print_error("serve opcua: asyncua is not installed; pip install 'plcstack[opcua]'")
@@ -93,31 +76,18 @@ async def run_opcua(args: argparse.Namespace) -> int:
     # -v (INFO) logs every write; the log options are the ones every subcommand has
     config, north_config = load_config(args.config)  # read once
     opcua_config = north_config.opcua or parse_opcua_config({}, base=Path(args.config).parent)
-    from plcstack.north.opcua import OpcUaServer, run_until  # asyncua: only when serving
+    from plcstack.north.opcua import OpcUaServer  # asyncua: only when serving
 
-    metrics = north_config.metrics
-    if metrics is not None or metrics_port is not None:
-        problem = missing([("[metrics]", "prometheus_client", "metrics")])
-        if problem is not None:
-            print_error(f"serve opcua: {problem}")
-            return 2
-    if metrics_port is not None:
-        metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", metrics_port)
+    metrics, ok = metrics_settings(args, north_config, "serve opcua")
+    if not ok:
+        return 2
     poller = Poller(config)  # every URL and address checked before anything is sent
     server = OpcUaServer(poller, opcua_config)
-    # the north side of `plcstack poll`, metrics only: the same collector and HTTP server
-    north = North(poller, NorthConfig(metrics=metrics, audit=north_config.audit))
-    server.writes = north.writes  # OPC UA writes share the run's write path and its audit
-    stop = StopEvent()
-    installed = install_stop_signals(stop)
-    try:
-        async with poller, north, server:  # a metrics port that is taken fails first
-            print(f"OPC UA server listening on {server.url}", file=sys.stderr, flush=True)
-            if north.metrics is not None:
-                host, port = north.metrics.settings.host, north.metrics.port
-                print(f"metrics on http://{host}:{port}/metrics", file=sys.stderr, flush=True)
-            await run_until(server, stop, args.duration, observe=north.collector.observe)
-    finally:
-        remove_stop_signals(installed)
-    print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
-    return stop.exit_code()
+    return await run_fed(
+        poller,
+        server,
+        north_config,
+        metrics,
+        listening=lambda: f"OPC UA server listening on {server.url}",
+        duration=args.duration,
+    )

@@ -1,0 +1,121 @@
+"""What ``serve opcua`` and ``serve modbus`` share: their run options and one run of a fed server.
+
+Both poll the PLCs of a file and feed a server from the scans; both also serve ``/metrics`` and
+``/healthz`` as ``plcstack poll`` does, send client writes through the run's one write path (so
+each is an ``[audit]`` line with the tag's value before the write), run until Ctrl-C, SIGTERM or
+``--duration``, and end with the poller's statistics. Written once, so the two servers cannot
+drift apart in what their options mean or in what a write's audit line holds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Iterable
+from contextlib import AbstractAsyncContextManager
+from typing import Any, Protocol
+
+from plcstack.cli import print_error
+from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
+from plcstack.north.config import NorthConfig
+from plcstack.north.metrics import MetricsSettings
+from plcstack.north.pipeline import North, missing
+from plcstack.north.supervise import run_until
+from plcstack.north.writes import WritePath
+from plcstack.poll.engine import Poller, format_stats
+from plcstack.poll.samples import Scan
+
+__all__ = ["FedServer", "add_run_options", "check_run_options", "metrics_settings", "run_fed"]
+
+
+class FedServer(AbstractAsyncContextManager[Any], Protocol):
+    """A north-side server fed by a poller (the OPC UA and the Modbus server)."""
+
+    writes: WritePath
+
+    async def run(self, observe: Callable[[list[Any]], object] | None = None) -> None: ...
+
+
+def add_run_options(parser: argparse.ArgumentParser) -> None:
+    """``--duration`` and ``--metrics-port``, the same for every fed server."""
+    parser.add_argument(
+        "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
+    )
+    parser.add_argument(
+        "--metrics-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="serve /metrics and /healthz on this port (overrides [metrics] port; 0 = any free"
+        " port; host from [metrics], default 127.0.0.1)",
+    )
+
+
+def check_run_options(args: argparse.Namespace, command: str) -> bool:
+    """Whether ``--duration`` and ``--metrics-port`` are in range (else one error line)."""
+    if args.duration is not None and not args.duration > 0:
+        print_error(f"{command}: --duration must be greater than 0")
+        return False
+    port = args.metrics_port
+    if port is not None and not 0 <= port <= 65535:
+        print_error(f"{command}: --metrics-port must be 0..65535")
+        return False
+    return True
+
+
+def metrics_settings(
+    args: argparse.Namespace, north_config: NorthConfig, command: str
+) -> tuple[MetricsSettings | None, bool]:
+    """The metrics endpoint of the run (``[metrics]``, its port replaced by ``--metrics-port``),
+    and whether it can be served (prometheus_client installed; else one error line)."""
+    metrics = north_config.metrics
+    if args.metrics_port is not None:
+        metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", args.metrics_port)
+    if metrics is not None:
+        problem = missing([("[metrics]", "prometheus_client", "metrics")])
+        if problem is not None:
+            print_error(f"{command}: {problem}")
+            return None, False
+    return metrics, True
+
+
+async def run_fed(
+    poller: Poller,
+    server: FedServer,
+    north_config: NorthConfig,
+    metrics: MetricsSettings | None,
+    *,
+    listening: Callable[[], str],
+    duration: float | None,
+    collectors: Iterable[Any] = (),
+) -> int:
+    """Run ``server`` fed by ``poller`` until stopped; the exit code.
+
+    ``listening`` says where the server listens once it does (printed on stderr, the line a
+    script waits for); ``collectors`` are the server's own Prometheus collectors.
+    """
+    # the north side of `plcstack poll`, metrics and the audit: the same collector, HTTP server
+    # and write path (every client write is an [audit] line naming the server as its source)
+    north = North(poller, NorthConfig(metrics=metrics, audit=north_config.audit))
+    server.writes = north.writes
+
+    def observe(batch: list[Scan]) -> None:
+        north.collector.observe(batch)
+        north.writes.observe(batch)  # the audit's "previous" value of a written tag
+
+    if north.metrics is not None:
+        for collector in collectors:
+            north.metrics.registry.register(collector)
+    stop = StopEvent()
+    installed = install_stop_signals(stop)
+    try:
+        async with poller, north, server:  # a metrics port that is taken fails first
+            print(listening(), file=sys.stderr, flush=True)
+            if north.metrics is not None:
+                host, port = north.metrics.settings.host, north.metrics.port
+                print(f"metrics on http://{host}:{port}/metrics", file=sys.stderr, flush=True)
+            await run_until(server, stop, duration, observe=observe)
+    finally:
+        remove_stop_signals(installed)
+    print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
+    return stop.exit_code()
