@@ -24,6 +24,7 @@ from plcstack.sim import as511 as sim_as511
 from plcstack.sim.base import Simulator
 from plcstack.sim.s5memory import Area, BlockType
 from plcstack.sim.s5store import ABSOLUTE, FAULT_CODES, FaultKind
+from tests.robust_helpers import GOOD
 
 ROOT = Path(__file__).resolve().parents[1]
 LOOP = ("127.0.0.1", 0)
@@ -37,12 +38,21 @@ def machine(s: Simulator) -> sim_as511.AS511Machine:
 
 @asynccontextmanager
 async def running(
-    *, pty: bool = True, baud: int | None = None, **options: object
+    *,
+    pty: bool = True,
+    baud: int | None = None,
+    char_timeout: float = GOOD,
+    **options: object,
 ) -> AsyncIterator[tuple[Simulator, gateway.Gateway]]:
-    """An AS511 simulator and a gateway in front of it, serving S5-LAN and FETCH/WRITE."""
+    """An AS511 simulator and a gateway in front of it, serving S5-LAN and FETCH/WRITE.
+
+    The gateway's AS511 client waits ``char_timeout`` for each character of the line: long by
+    default, since the simulator runs in the test's own event loop and a loaded machine can stall
+    that loop for hundreds of milliseconds between two characters (a 0.3 s wait answered
+    requests with "Err 9: timeout" under load). Only a test about a dead line sets it short."""
     sim: Simulator = await (sim_as511.start_pty(baud=baud) if pty else sim_as511.start(baud=baud))
     async with sim:
-        plc = connect(sim.url, nak_backoff=0.05, char_timeout=0.3)
+        plc = connect(sim.url, nak_backoff=0.05, char_timeout=char_timeout)
         assert isinstance(plc, AS511Client)
         gw = await gateway.start(plc, s5lan=LOOP, fetchwrite=LOOP, **options)  # type: ignore[arg-type]
         async with gw:
@@ -109,7 +119,7 @@ async def test_missing_block_and_short_block_map_to_the_protocols_codes() -> Non
 
 
 async def test_nak_and_dead_line_answer_promptly_and_recover() -> None:
-    async with running() as (sim, gw):
+    async with running(char_timeout=0.3) as (sim, gw):
         m = machine(sim)
         lan_url, fw_url = urls(gw)
         async with connect(lan_url) as lan, connect(fw_url) as fw:
