@@ -76,8 +76,12 @@ async def test_two_workers_split_the_fleet_and_hand_over(
                 assert b.leases is not None
                 holders = await b.leases.holders()
                 assert holders == {f"plc.{p}": owner(p, ["a", "b"]) for p in fleet.watch}
-            # b left cleanly: released, so a takes its PLCs back at once (no ttl wait)
-            await until(lambda: len(a.owned) == 8, timeout=TTL / 2)
+            # b left cleanly: it released its leases (deleted them, so no ttl wait), and a takes
+            # its PLCs back. The release is checked in the bucket, not by how soon a is done: a
+            # bound of half a ttl on a's takeover failed on a loaded machine.
+            assert a.leases is not None
+            assert "b" not in (await a.leases.holders()).values()
+            await until(lambda: len(a.owned) == 8)
             loop = asyncio.get_running_loop()
             mark = loop.time()
             await fleet.wait_all_polled(mark, timeout=2)
@@ -108,10 +112,11 @@ async def test_a_worker_cut_from_nats_stops_before_the_ttl(
                 await until(lambda: not a.owned, timeout=2 * TTL)
                 assert loop.time() > cut
                 # a closed its connections; the simulators see the close a few loop passes
-                # later (same event loop), and long before b may take the leases (ttl)
+                # later (same event loop). That this was before b connected is the peak of one
+                # connection per PLC asserted below (a bound of a quarter ttl here was a
+                # wall-clock claim a loaded machine broke).
                 await until(
-                    lambda: all(fleet.watch[n].sim.connection_count.current == 0 for n in mine),
-                    timeout=TTL / 4,
+                    lambda: all(fleet.watch[n].sim.connection_count.current == 0 for n in mine)
                 )
                 # a withdrew (standby), so b takes a's PLCs once the leases expired
                 await until(lambda: b.owned == set(fleet.watch), timeout=3 * TTL)
