@@ -111,8 +111,14 @@ def _steps(section: str) -> list[Step]:
 
 
 def _moved_ports(texts: list[str]) -> dict[str, str]:
-    ports = {m.group(1) for text in texts for m in PORT.finditer(text)}
-    return {p: str(free_port()) for p in sorted(ports)}
+    """Documented port -> a free one, a different one for each (the kernel may hand out a port
+    it just gave again once it is closed)."""
+    moved: dict[str, str] = {}
+    for port in sorted({m.group(1) for text in texts for m in PORT.finditer(text)}):
+        while (free := str(free_port())) in moved.values():
+            pass
+        moved[port] = free
+    return moved
 
 
 def _moved(text: str, ports: dict[str, str]) -> str:
