@@ -8,7 +8,7 @@ from plcstack.poll.config import (
     load_config,
     parse_config,
 )
-from plcstack.poll.engine import PlcStats, Poller, Quality, Sample, format_stats
+from plcstack.poll.engine import PlcStats, Poller, Quality, Sample, Scan, format_stats
 from plcstack.poll.plan import ReadRequest, ScanPlan, build_plan
 from plcstack.values import Scale, ValueType, WordOrder, value_type
 
@@ -22,6 +22,7 @@ __all__ = [
     "ReadRequest",
     "Sample",
     "Scale",
+    "Scan",
     "ScanPlan",
     "TagConfig",
     "ValueType",
