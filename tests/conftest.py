@@ -39,7 +39,7 @@ __all__ = ["influxd", "mosquitto", "nats_server"]
 pytest_plugins = ["pytester"]
 
 # Hypothesis by default fails an example that takes over 200 ms (deadline) and a test whose data
-# generation is slow (too_slow): wall-clock limits, which a loaded 2-core machine (two workers,
+# generation is slow (too_slow): wall-clock limits, which a loaded 2-core machine (three workers,
 # simulators, servers) breaks at random. How much each test tries stays its own max_examples.
 settings.register_profile("plcstack", deadline=None, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("plcstack")
