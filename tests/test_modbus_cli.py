@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -73,10 +74,8 @@ async def test_serve_modbus_answers_and_counts(
                 await asyncio.sleep(0.02)
                 err += capsys.readouterr().err
             endpoint = err.split("Modbus server listening on ", 1)[1].split()[0]
-            while True:  # until the first poll arrived
-                if await modbus(endpoint, "rh", 0, 1) == ["ok 5"]:
-                    break
-                await asyncio.sleep(0.05)
+        # the line comes once every PLC's first scan is stored: the first read has the value
+        assert await modbus(endpoint, "rh", 0, 1) == ["ok 5"]
         # the dead PLC's tag; nothing mapped; the dead tag and an unmapped register (0x02 wins)
         assert (
             await modbus(endpoint, "rh", 1, 1, "rh", 7, 1, "rh", 1, 2)
@@ -142,3 +141,49 @@ def test_overlapping_map_exits_2_naming_both_tags(
     assert main(["serve", "modbus", str(path)]) == 2
     err = capsys.readouterr().err
     assert "tag 'y'" in err and "tag 'x'" in err and f"{path}:6" in err and f"{path}:5" in err
+
+
+async def test_the_listening_line_comes_once_every_plcs_first_scan_is_stored(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A script waits for the line and reads at once: it gets values, not exception 0x0B
+    ("waiting for initial data"). The live PLC's first scan is due 0.5 s after the start (the
+    first scans are spread over the interval), the dead one's fails at once."""
+    memory = MelsecMemory()
+    memory.write_words("D", 100, [5])
+    sim = await e71.start(memory)
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f"""
+[poll]
+interval = 2
+[modbus]
+endpoint = "127.0.0.1:0"
+[[plc]]
+name = "dead"
+url = "e71+tcp://127.0.0.1:{free_port()}?timeout=0.2"
+[plc.tags]
+level = {{ address = "D1", type = "uint16", modbus = "hr:1" }}
+[[plc]]
+name = "press1"
+url = "{sim.url}"
+[plc.tags]
+strokes = {{ address = "D100", type = "uint16", modbus = "hr:0" }}
+"""
+    )
+    args = argparse.Namespace(config=str(path), duration=None, metrics_port=None)
+    serving = asyncio.create_task(run_modbus(args))
+    try:
+        async with asyncio.timeout(20):
+            err = ""
+            while "Modbus server listening on " not in err:
+                assert not serving.done(), serving.result()
+                await asyncio.sleep(0.01)
+                err += capsys.readouterr().err
+        endpoint = err.split("Modbus server listening on ", 1)[1].split()[0]
+        assert await modbus(endpoint, "rh", 0, 1, "rh", 1, 1) == ["ok 5", "exc 0x0B"]
+    finally:
+        serving.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await serving
+        await sim.aclose()

@@ -9,7 +9,10 @@ refused when the file is loaded. See docs/modbus.md.
 
 With ``[metrics]`` in the file (or ``--metrics-port``) it also serves ``/metrics`` and
 ``/healthz`` as ``plcstack poll`` does, plus the Modbus requests, exception answers and clients.
-Runs until Ctrl-C or SIGTERM (or ``--duration``), then prints the poller's statistics on stderr.
+It prints ``Modbus server listening on HOST:PORT`` on stderr once every PLC's first scan is in
+(a PLC that does not answer: once that scan failed), so a client that connects then reads
+values. Runs until Ctrl-C or SIGTERM (or ``--duration``), then prints the poller's statistics
+on stderr.
 """
 
 from __future__ import annotations

@@ -33,7 +33,11 @@ class FedServer(AbstractAsyncContextManager[Any], Protocol):
 
     writes: WritePath
 
-    async def run(self, observe: Callable[[list[Any]], object] | None = None) -> None: ...
+    async def run(
+        self,
+        observe: Callable[[list[Any]], object] | None = None,
+        stored: Callable[[list[Any]], object] | None = None,
+    ) -> None: ...
 
 
 def add_run_options(parser: argparse.ArgumentParser) -> None:
@@ -91,8 +95,10 @@ async def run_fed(
 ) -> int:
     """Run ``server`` fed by ``poller`` until stopped; the exit code.
 
-    ``listening`` says where the server listens once it does (printed on stderr, the line a
-    script waits for); ``collectors`` are the server's own Prometheus collectors.
+    ``listening`` says where the server listens, printed on stderr once the first scan of every
+    PLC is stored (a PLC that does not answer: once its first scan failed): the line a script
+    or an operator waits for, after which a client reads the PLCs' values, not "waiting for
+    initial data". ``collectors`` are the server's own Prometheus collectors.
     """
     # the north side of `plcstack poll`, metrics and the audit: the same collector, HTTP server
     # and write path (every client write is an [audit] line naming the server as its source)
@@ -103,6 +109,15 @@ async def run_fed(
         north.collector.observe(batch)
         north.writes.observe(batch)  # the audit's "previous" value of a written tag
 
+    # the PLCs that scan (a PLC without tags never does)
+    waiting = {plc for plc in poller.plcs if poller.tags(plc)}
+
+    def stored(batch: list[Scan]) -> None:
+        if waiting:
+            waiting.difference_update(scan.plc for scan in batch)
+            if not waiting:
+                print(listening(), file=sys.stderr, flush=True)
+
     if north.metrics is not None:
         for collector in collectors:
             north.metrics.registry.register(collector)
@@ -110,11 +125,12 @@ async def run_fed(
     installed = install_stop_signals(stop)
     try:
         async with poller, north, server:  # a metrics port that is taken fails first
-            print(listening(), file=sys.stderr, flush=True)
             if north.metrics is not None:
                 host, port = north.metrics.settings.host, north.metrics.port
                 print(f"metrics on http://{host}:{port}/metrics", file=sys.stderr, flush=True)
-            await run_until(server, stop, duration, observe=observe)
+            if not waiting:  # nothing to wait for
+                print(listening(), file=sys.stderr, flush=True)
+            await run_until(server, stop, duration, observe=observe, stored=stored)
     finally:
         remove_stop_signals(installed)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)

@@ -617,11 +617,16 @@ class OpcUaServer:
             except Exception:  # one bad batch must not end the feed of every later one
                 log.exception("OPC UA server: applying %d samples failed", len(batch))
 
-    async def run(self, observe: Callable[[list[Scan]], object] | None = None) -> None:
+    async def run(
+        self,
+        observe: Callable[[list[Scan]], object] | None = None,
+        stored: Callable[[list[Scan]], object] | None = None,
+    ) -> None:
         """Consume the poller's scans until it is closed (or this task is cancelled).
 
         ``observe`` sees every batch first (the metrics collector's ``observe``: ``plcstack
-        serve opcua`` with ``[metrics]``).
+        serve opcua`` with ``[metrics]``); ``stored`` sees it once its values are what a client
+        reads (``plcstack serve opcua`` says it listens after every PLC's first scan).
         """
         poller = self.poller
         # gathered for poll.batch_wait, as the north pipeline takes them: one wake-up per
@@ -630,6 +635,8 @@ class OpcUaServer:
             if observe is not None:
                 observe(batch)
             await self.send(s for scan in batch for s in scan.samples)
+            if stored is not None:
+                stored(batch)
 
     # -- writes out -------------------------------------------------------------------------
     async def _write_to_plcs(

@@ -249,7 +249,11 @@ class Supervisor:
 class Fed(Protocol):
     """A server fed from its poller's scans (the OPC UA and Modbus servers)."""
 
-    async def run(self, observe: Callable[[list[Any]], object] | None = None) -> None: ...
+    async def run(
+        self,
+        observe: Callable[[list[Any]], object] | None = None,
+        stored: Callable[[list[Any]], object] | None = None,
+    ) -> None: ...
 
 
 async def run_until(
@@ -257,14 +261,15 @@ async def run_until(
     stop: asyncio.Event,
     timeout: float | None = None,
     observe: Callable[[list[Any]], object] | None = None,
+    stored: Callable[[list[Any]], object] | None = None,
 ) -> None:
     """Feed a started server from its poller until ``stop`` is set or ``timeout`` seconds
-    passed (``observe``: see the server's ``run``).
+    passed (``observe`` and ``stored``: see the server's ``run``).
 
     A failure of the feed itself (a bug) is raised, not swallowed with the cancellation, so a
     ``serve`` command ends with exit 1 and the reason instead of going on without its feed.
     """
-    feeder = asyncio.create_task(server.run(observe), name=f"{type(server).__name__} feed")
+    feeder = asyncio.create_task(server.run(observe, stored), name=f"{type(server).__name__} feed")
     stopper = asyncio.create_task(stop.wait(), name=f"{type(server).__name__} stop")
     try:
         await asyncio.wait({feeder, stopper}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)

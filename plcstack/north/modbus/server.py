@@ -262,14 +262,21 @@ class ModbusServer(AsyncResource):
         """The sinks' common interface: take scans into the image (never blocks)."""
         self.image.update(scans)
 
-    async def run(self, observe: Callable[[list[Scan]], object] | None = None) -> None:
+    async def run(
+        self,
+        observe: Callable[[list[Scan]], object] | None = None,
+        stored: Callable[[list[Scan]], object] | None = None,
+    ) -> None:
         """Consume the poller's scans until it is closed (or this task is cancelled);
-        ``observe`` sees every batch first (the metrics collector)."""
+        ``observe`` sees every batch first (the metrics collector), ``stored`` once its values
+        are what a client reads."""
         poller = self.poller
         async for batch in poller.scans(wait=poller.config.batch_wait):
             if observe is not None:
                 observe(batch)
             self.image.update(batch)
+            if stored is not None:
+                stored(batch)
 
     def collector(self) -> ModbusCollector:
         return ModbusCollector(self)
