@@ -54,6 +54,10 @@ from plcstack.codecs.e71_framing import StreamResponses
 from plcstack.errors import PlcError
 from tests.test_as511_codec import GOLDENS, run_pg
 
+#: examples per property in the default run; the heaviest three also run at 500-600 examples as
+#: ``..._at_length`` twins marked slow (``pytest -m slow``, run by CI), seconds of CPU each
+DEFAULT_EXAMPLES = 120
+
 _REFS: list[Any] = [
     DeviceRef(Device.D, 0),
     DeviceRef(Device.D, 9000),
@@ -102,11 +106,24 @@ def _twin(value: Any) -> Any:
     return value
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=DEFAULT_EXAMPLES, deadline=None)
 @given(picks=st.lists(_picks, min_size=1, max_size=8), code=st.sampled_from(list(Code)))
 def test_e71_read_words_send_fast_path_is_the_general_encoder(
     picks: list[tuple[int, int, int, int, str]], code: Code
 ) -> None:
+    _e71_read_words_send(picks, code)
+
+
+@pytest.mark.slow
+@settings(max_examples=500, deadline=None)
+@given(picks=st.lists(_picks, min_size=1, max_size=8), code=st.sampled_from(list(Code)))
+def test_e71_read_words_send_fast_path_is_the_general_encoder_at_length(
+    picks: list[tuple[int, int, int, int, str]], code: Code
+) -> None:
+    _e71_read_words_send(picks, code)
+
+
+def _e71_read_words_send(picks: list[tuple[int, int, int, int, str]], code: Code) -> None:
     fast = E71ClientConnection(code)
     sent = 0
     last: ReadWords | None = None
@@ -231,11 +248,24 @@ def _decode_all(fast: bool, requests: list[Any], stream: bytes, cuts: list[int])
     return out
 
 
-@settings(max_examples=500, deadline=None)
+@settings(max_examples=DEFAULT_EXAMPLES, deadline=None)
 @given(case=_streams(), cuts=st.lists(st.integers(0, 600), max_size=6))
 def test_e71_one_step_decoding_is_the_general_decoder(
     case: tuple[list[Any], bytes], cuts: list[int]
 ) -> None:
+    _e71_one_step(case, cuts)
+
+
+@pytest.mark.slow
+@settings(max_examples=500, deadline=None)
+@given(case=_streams(), cuts=st.lists(st.integers(0, 600), max_size=6))
+def test_e71_one_step_decoding_is_the_general_decoder_at_length(
+    case: tuple[list[Any], bytes], cuts: list[int]
+) -> None:
+    _e71_one_step(case, cuts)
+
+
+def _e71_one_step(case: tuple[list[Any], bytes], cuts: list[int]) -> None:
     requests, stream = case
     cuts = [c for c in cuts if c <= len(stream)]
     assert _decode_all(True, requests, stream, cuts) == _decode_all(False, requests, stream, cuts)
@@ -373,11 +403,24 @@ def _run_pg(fast: bool, job: Job, chunks: list[tuple[bytes, float]], timers: lis
     return trace
 
 
-@settings(max_examples=600, deadline=None)
+@settings(max_examples=DEFAULT_EXAMPLES, deadline=None)
 @given(dialogue=_as511_dialogues())
 def test_as511_whole_answer_steps_are_the_byte_machine(
     dialogue: tuple[Job, list[tuple[bytes, float]], list[bool]],
 ) -> None:
+    _as511_steps(dialogue)
+
+
+@pytest.mark.slow
+@settings(max_examples=600, deadline=None)
+@given(dialogue=_as511_dialogues())
+def test_as511_whole_answer_steps_are_the_byte_machine_at_length(
+    dialogue: tuple[Job, list[tuple[bytes, float]], list[bool]],
+) -> None:
+    _as511_steps(dialogue)
+
+
+def _as511_steps(dialogue: tuple[Job, list[tuple[bytes, float]], list[bool]]) -> None:
     job, chunks, timers = dialogue
     assert _run_pg(True, job, chunks, timers) == _run_pg(False, job, chunks, timers)
 
