@@ -136,17 +136,22 @@ class ReceiveBuffer:
     from the front is O(n), so we keep a read offset and compact only when it pays.
     """
 
-    __slots__ = ("_buf", "_pos")
+    __slots__ = ("_buf", "_pos", "held")
 
     def __init__(self) -> None:
         self._buf = bytearray()
         self._pos = 0
+        #: the bytearray behind the buffer, always the same object. Emptied as soon as all of it
+        #: is taken, so it is empty exactly when nothing is buffered: a decoder's fast path
+        #: tests that with a truth test, no Python call (``if buffer`` calls ``__bool__``).
+        #: Read it, never change it.
+        self.held = self._buf
 
     def __len__(self) -> int:
         return len(self._buf) - self._pos
 
     def __bool__(self) -> bool:
-        return len(self._buf) > self._pos
+        return bool(self._buf)  # emptied whenever everything is taken
 
     def feed(self, data: bytes | bytearray | memoryview) -> None:
         if self._pos and self._pos == len(self._buf):
@@ -171,7 +176,10 @@ class ReceiveBuffer:
         start = self._pos
         self._pos += n
         out = bytes(self._buf[start : self._pos])
-        if self._pos > 4096 and self._pos * 2 > len(self._buf):
+        if self._pos == len(self._buf):
+            self._buf.clear()  # all taken: empty, so ``held`` says so
+            self._pos = 0
+        elif self._pos > 4096 and self._pos * 2 > len(self._buf):
             del self._buf[: self._pos]
             self._pos = 0
         return out
@@ -184,7 +192,10 @@ class ReceiveBuffer:
             return None
         self._pos = end = pos + n
         out = bytes(buf[pos:end])
-        if end > 4096 and end * 2 > len(buf):
+        if end == len(buf):
+            buf.clear()  # all taken: empty, so ``held`` says so
+            self._pos = 0
+        elif end > 4096 and end * 2 > len(buf):
             del buf[:end]
             self._pos = 0
         return out

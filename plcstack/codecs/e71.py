@@ -250,6 +250,8 @@ class ClientConnection(ErrorState):
         else:
             self._fast_buffer = ReceiveBuffer()
             self._feed = framer.feed
+        #: the buffer's bytes: empty exactly when nothing is buffered (a truth test, no call)
+        self._fast_held = self._fast_buffer.held
         #: the last ReadWords sent and its encoding (frozen: the same object encodes the same),
         #: and the size and word layout of its normal binary answer (``take_answer``)
         self._last_read: ReadWords | None = None
@@ -381,7 +383,7 @@ class ClientConnection(ErrorState):
             or not data.startswith(_NORMAL_01H)
             or self.error is not None
             or stream.skip_trailer
-            or self._fast_buffer  # bytes buffered before this chunk: the general path
+            or self._fast_held  # bytes buffered before this chunk: the general path
         ):
             return None
         pending.popleft()

@@ -12,7 +12,9 @@ from __future__ import annotations
 import asyncio
 import collections
 import enum
-from collections.abc import AsyncIterator, Callable, Iterable, Sequence
+import itertools
+import operator
+from collections.abc import AsyncIterator, Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, fields
 from typing import Any, NamedTuple, Protocol
 
@@ -25,6 +27,7 @@ __all__ = [
     "Scan",
     "ScanQueue",
     "ScanSink",
+    "each_sample",
     "flatten",
     "make_sample",
 ]
@@ -113,9 +116,21 @@ class Scan(NamedTuple):
         return self._replace(samples=samples)
 
 
+#: a scan's samples, and the chaining of them: iterating scans' samples at C speed (a nested
+#: Python loop costs a few bytecodes per scan on the north side's hot path)
+_samples_of = operator.attrgetter("samples")
+_chain = itertools.chain.from_iterable
+
+
+def each_sample(scans: Iterable[Scan]) -> Iterator[Sample]:
+    """The samples of ``scans``, in order, iterated in C (``for sample in each_sample(batch)``
+    instead of a loop in a loop)."""
+    return _chain(map(_samples_of, scans))
+
+
 def flatten(scans: Iterable[Scan]) -> list[Sample]:
     """The samples of ``scans``, in order (for consumers that want samples, not scans)."""
-    return [sample for scan in scans for sample in scan.samples]
+    return list(_chain(map(_samples_of, scans)))
 
 
 class ScanSink(Protocol):

@@ -526,6 +526,7 @@ async def _run_kind(
 async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.Task[None]]:
     from plcstack.poll.config import DEFAULT_GROUP, PlcConfig, PollConfig, TagConfig
     from plcstack.poll.engine import Poller
+    from plcstack.poll.samples import each_sample
 
     plcs = tuple(
         PlcConfig(
@@ -549,14 +550,13 @@ async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.
         # PLC (the responders send one fixed reply), as the floor checks its first reply: a
         # per-sample list comparison would be the consumer's cost, not the poller's.
         async for batch in poller.scans(wait=CONSUMER_WAIT):
-            for scan in batch:
-                for sample in scan.samples:
-                    if sample.value is None:
-                        bad.append(f"{sample.plc}: {sample.error}")
-                    elif sample.plc not in checked:
-                        checked.add(sample.plc)
-                        if list(cast(Any, sample.value)) != expected:
-                            bad.append(f"{sample.plc}: {sample.value!r:.120}")
+            for sample in each_sample(batch):
+                if sample.value is None:
+                    bad.append(f"{sample.plc}: {sample.error}")
+                elif sample.plc not in checked:
+                    checked.add(sample.plc)
+                    if list(cast(Any, sample.value)) != expected:
+                        bad.append(f"{sample.plc}: {sample.value!r:.120}")
 
     consumer = asyncio.create_task(consume())
     await poller.start()
