@@ -172,6 +172,30 @@ def test_a_tls_close_during_connect_is_explained(cert_file: str | None) -> None:
     assert "certificate" not in lost.message
 
 
+@pytest.mark.parametrize("cert_file", [None, "/etc/plc/line1.crt"])
+def test_the_alert_and_the_close_of_one_certificate_problem_are_one_reason(
+    cert_file: str | None,
+) -> None:
+    """Under TLS 1.3 the broker's alert or only its close reaches us (a race): from one attempt
+    to the next the same missing or rejected certificate reads either way, and the sink logs a
+    reason once, so both must be one reason; a dropped session stays another."""
+    from types import SimpleNamespace
+
+    from plcstack.north.mqtt_errors import connect_error, reason_of
+
+    settings = SimpleNamespace(cert_file=cert_file)
+    alert = "CERTIFICATE_REQUIRED" if cert_file is None else "TLSV1_ALERT_UNKNOWN_CA"
+    eof = OSError("EOF occurred in violation of protocol (_ssl.c:2427)")
+    told = OSError(f"[SSL: {alert}] tlsv13 alert (_ssl.c:2580)")
+    closed, alerted, lost = (
+        connect_error(exc, [], broker="mqtts://b:8883", connected=up, settings=settings)
+        for exc, up in ((eof, False), (told, False), (eof, True))
+    )
+    assert str(closed) != str(alerted)  # two wordings...
+    assert reason_of(closed) == reason_of(alerted)  # ...one reason
+    assert reason_of(lost) != reason_of(closed)
+
+
 async def test_unusable_certificate_files_fail_at_start(tls_broker: TlsBroker) -> None:
     missing = tls_broker.settings(cert_file="/nonexistent/line1.crt", key_file="/nonexistent/k")
     with pytest.raises(ConfigError) as raised:

@@ -53,7 +53,7 @@ from plcstack.north.layout import (
     write_response_payload,
     write_response_topic,
 )
-from plcstack.north.mqtt_errors import PahoLog, connect_error
+from plcstack.north.mqtt_errors import PahoLog, connect_error, reason_of
 from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.write_values import split_element
 from plcstack.north.writes import BAD_REQUEST, BUSY, UNKNOWN_PLC, WritePath
@@ -520,7 +520,7 @@ class MqttSink:
         )
         self.stats.failures += 1
         previous, self.last_error = self.last_error, error
-        if previous is not None and str(previous) == str(error):
+        if previous is not None and reason_of(previous) == reason_of(error):
             log.debug("%s (again)", error)
         else:
             log.warning("%s; retrying with backoff", error)

@@ -20,7 +20,7 @@ from typing import Any
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcError
 
-__all__ = ["PahoLog", "connect_error"]
+__all__ = ["PahoLog", "connect_error", "reason_of"]
 
 log = logging.getLogger("plcstack.north.mqtt")
 
@@ -119,3 +119,36 @@ def connect_error(
     if connected:
         return ConnectionLost(f"connection lost: {message}", plc=broker, request="session")
     return ConnectFailed(message, plc=broker, request="connect")
+
+
+#: meanings that are one reason for an operator: under TLS 1.3 whether the broker's alert or
+#: only its close reaches us is a race, so one missing (or one rejected) client certificate
+#: shows as either text from one attempt to the next
+_SAME_REASON = (
+    (
+        (
+            "the broker requires a client certificate",
+            "the broker closed the TLS connection during the handshake; if it requires a "
+            "client certificate",
+        ),
+        "the broker requires a client certificate",
+    ),
+    (
+        (
+            "the broker rejected our client certificate",
+            "the broker closed the TLS connection after the handshake: it most likely "
+            "rejected our client certificate",
+        ),
+        "the broker rejected our client certificate",
+    ),
+)
+
+
+def reason_of(error: PlcError) -> str:
+    """What changes when the reason a broker stays away changes: the sink logs a failed
+    attempt once per reason, not once per wording of it (see ``_SAME_REASON``)."""
+    message = error.message
+    for prefixes, reason in _SAME_REASON:
+        if message.startswith(prefixes):
+            return reason
+    return message
