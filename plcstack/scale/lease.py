@@ -34,6 +34,7 @@ import nats.errors
 import nats.js.errors
 from nats.aio.client import Client as NatsClient
 from nats.js.api import KeyValueConfig, StorageType
+from nats.js.client import JetStreamContext
 from nats.js.kv import KeyValue
 
 from plcstack.errors import PlcError
@@ -105,6 +106,7 @@ class LeaseStore:
         self.on_connection = on_connection
         self._nc: NatsClient | None = None
         self._kv: KeyValue | None = None
+        self._js: JetStreamContext | None = None
         #: keys this incarnation may have written without seeing the answer (timeouts)
         self._maybe_ours: set[str] = set()
         #: key-value requests sent (for the scale-out figures)
@@ -189,10 +191,10 @@ class LeaseStore:
                 plc=self.url,
                 request=request,
             )
-        self._kv = kv
+        self._kv, self._js = kv, js
 
     async def close(self) -> None:
-        nc, self._nc, self._kv = self._nc, None, None
+        nc, self._nc, self._kv, self._js = self._nc, None, None, None
         if nc is not None:
             with contextlib.suppress(Exception):
                 await nc.close()
@@ -331,19 +333,24 @@ class LeaseStore:
         return True
 
     async def holders(self) -> dict[str, str]:
-        """``{key: owner}`` of every lease now in the bucket (for tests and diagnostics)."""
-        kv = self._kv
-        if kv is None:
+        """``{key: owner}`` of every lease now in the bucket (for tests and diagnostics).
+
+        The keys come from the bucket's stream (its subjects that hold a message), not from
+        nats-py's ``keys()``: that watches the bucket and may end before the first entry
+        arrives (it decides "nothing pending" from a consumer just created), returning no keys
+        while leases are held.
+        """
+        kv, js = self._kv, self._js
+        if kv is None or js is None:
             return {}
+        prefix = f"$KV.{self.bucket}."
+        info = await js.stream_info(f"KV_{self.bucket}", subjects_filter=f"{prefix}>")
         out: dict[str, str] = {}
-        try:
-            keys = await kv.keys()
-        except nats.js.errors.NoKeysError:
-            return out
-        for key in keys:
+        for subject in sorted(info.state.subjects or {}):
+            key = subject[len(prefix) :]
             try:
                 entry = await kv.get(key)
-            except nats.js.errors.KeyNotFoundError:
+            except nats.js.errors.KeyNotFoundError:  # deleted or expired: no holder
                 continue
             with contextlib.suppress(ValueError, AttributeError):
                 out[key] = str(json.loads(entry.value or b"").get("owner"))
