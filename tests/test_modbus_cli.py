@@ -51,6 +51,18 @@ async def get(port: int, path: str) -> str:
     return data.partition(b"\r\n\r\n")[2].decode()
 
 
+async def listening(serving: asyncio.Task[int], capsys: pytest.CaptureFixture[str]) -> str:
+    """The endpoint of the ``listening on`` line ``serve modbus`` prints on stderr (the command
+    must not end before it)."""
+    async with asyncio.timeout(20):
+        err = ""
+        while "Modbus server listening on " not in err:
+            assert not serving.done(), serving.result()
+            await asyncio.sleep(0.01)
+            err += capsys.readouterr().err
+    return err.split("Modbus server listening on ", 1)[1].split()[0]
+
+
 def mbap(transaction: int, pdu: bytes, protocol: int = 0) -> bytes:
     return struct.pack(">HHHB", transaction, protocol, len(pdu) + 1, 1) + pdu
 
@@ -67,13 +79,7 @@ async def test_serve_modbus_answers_and_counts(
     args = argparse.Namespace(config=str(path), duration=None, metrics_port=metrics)
     serving = asyncio.create_task(run_modbus(args))
     try:
-        async with asyncio.timeout(20):
-            err = ""
-            while "Modbus server listening on " not in err:
-                assert not serving.done(), serving.result()
-                await asyncio.sleep(0.02)
-                err += capsys.readouterr().err
-            endpoint = err.split("Modbus server listening on ", 1)[1].split()[0]
+        endpoint = await listening(serving, capsys)
         # the line comes once every PLC's first scan is stored: the first read has the value
         assert await modbus(endpoint, "rh", 0, 1) == ["ok 5"]
         # the dead PLC's tag; nothing mapped; the dead tag and an unmapped register (0x02 wins)
@@ -174,13 +180,7 @@ strokes = {{ address = "D100", type = "uint16", modbus = "hr:0" }}
     args = argparse.Namespace(config=str(path), duration=None, metrics_port=None)
     serving = asyncio.create_task(run_modbus(args))
     try:
-        async with asyncio.timeout(20):
-            err = ""
-            while "Modbus server listening on " not in err:
-                assert not serving.done(), serving.result()
-                await asyncio.sleep(0.01)
-                err += capsys.readouterr().err
-        endpoint = err.split("Modbus server listening on ", 1)[1].split()[0]
+        endpoint = await listening(serving, capsys)
         assert await modbus(endpoint, "rh", 0, 1, "rh", 1, 1) == ["ok 5", "exc 0x0B"]
     finally:
         serving.cancel()
