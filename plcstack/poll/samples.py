@@ -130,7 +130,7 @@ def each_sample(scans: Iterable[Scan]) -> Iterator[Sample]:
 
 def flatten(scans: Iterable[Scan]) -> list[Sample]:
     """The samples of ``scans``, in order (for consumers that want samples, not scans)."""
-    return list(_chain(map(_samples_of, scans)))
+    return list(each_sample(scans))
 
 
 class ScanSink(Protocol):
