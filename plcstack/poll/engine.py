@@ -95,6 +95,11 @@ CONNECTS_AT_ONCE = 100
 CONNECT_TURN_HOLD = 0.5
 
 
+def new_connect_turns() -> ConnectTurns:
+    """A fresh set of connect turns for the pollers of one event loop (see CONNECTS_AT_ONCE)."""
+    return ConnectTurns(CONNECTS_AT_ONCE, CONNECT_TURN_HOLD)
+
+
 def default_client_factory(plc: PlcConfig) -> Client:
     options: dict[str, Any] = {}
     if plc.timeout is not None:
@@ -136,11 +141,7 @@ class Poller(AsyncResource):
         )
         #: the turns its clients connect in (see CONNECTS_AT_ONCE; ``connect_turns``: turns
         #: shared with other pollers of the same event loop)
-        self._connects = (
-            connect_turns
-            if connect_turns is not None
-            else ConnectTurns(CONNECTS_AT_ONCE, CONNECT_TURN_HOLD)
-        )
+        self._connects = connect_turns if connect_turns is not None else new_connect_turns()
         self._resolution = 0.0  # the running loop's timer resolution, set by start()
         self._ticker: Ticker | None = None  # set by start()
         self._running = False

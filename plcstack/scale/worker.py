@@ -30,17 +30,15 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 
-from plcstack.clients.flight import ConnectTurns
 from plcstack.poll.config import PlcConfig, PollConfig
 from plcstack.poll.engine import (
-    CONNECT_TURN_HOLD,
-    CONNECTS_AT_ONCE,
     ClientFactory,
     PlcStats,
     Poller,
     Sample,
     Scan,
     ScanQueue,
+    new_connect_turns,
 )
 from plcstack.scale.hrw import owner
 from plcstack.scale.lease import Lease, LeaseStore
@@ -138,7 +136,7 @@ class Worker:
         self._plcs: dict[str, PlcConfig] = {p.name: p for p in config.plcs}
         #: one poller per PLC, one set of connect turns for all of them (a worker that takes
         #: over thousands of PLCs at once connects them as one poller would)
-        self._connects = ConnectTurns(CONNECTS_AT_ONCE, CONNECT_TURN_HOLD)
+        self._connects = new_connect_turns()
         ttl = options.lease_ttl
         self.retry = options.retry if options.retry is not None else min(ttl / 4, 1.0)
         self.renew_every = ttl / 4
