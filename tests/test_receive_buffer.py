@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import struct
 
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -40,6 +41,9 @@ def test_held_is_empty_exactly_when_nothing_is_buffered(steps: list[tuple[str, o
             if arg <= len(model):
                 assert buffer.take(arg) == bytes(model[:arg])
                 del model[:arg]
+            else:  # more than is buffered: refused, and nothing taken
+                with pytest.raises(ValueError, match="bytes buffered"):
+                    buffer.take(arg)
         elif kind == "prefixed":
             assert isinstance(arg, int)
             prefix = bytes(model[:1])

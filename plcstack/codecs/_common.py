@@ -133,61 +133,51 @@ class ReceiveBuffer:
     """A byte buffer that consumes from the front without copying the tail each time.
 
     Stream decoders take a frame off the front once they know its length; ``bytearray`` deletion
-    from the front is O(n), so we keep a read offset and compact only when it pays.
+    from the front is O(n), so we keep a read offset and compact only when it pays. Whenever all
+    of it is taken, the bytearray is emptied and the offset goes back to 0, so it is empty
+    exactly when nothing is buffered.
     """
 
-    __slots__ = ("_buf", "_pos", "held")
+    __slots__ = ("_pos", "held")
 
     def __init__(self) -> None:
-        self._buf = bytearray()
+        #: the bytearray behind the buffer, one object for the buffer's life; the bytes before
+        #: the read offset are taken already. It is empty exactly when nothing is buffered: a
+        #: decoder's fast path binds it once and tests it by truth value, no Python call
+        #: (``if buffer`` would call ``__bool__``). Read it, never change it.
+        self.held = bytearray()
         self._pos = 0
-        #: the bytearray behind the buffer, always the same object. Emptied as soon as all of it
-        #: is taken, so it is empty exactly when nothing is buffered: a decoder's fast path
-        #: tests that with a truth test, no Python call (``if buffer`` calls ``__bool__``).
-        #: Read it, never change it.
-        self.held = self._buf
 
     def __len__(self) -> int:
-        return len(self._buf) - self._pos
+        return len(self.held) - self._pos
 
     def __bool__(self) -> bool:
-        return bool(self._buf)  # emptied whenever everything is taken
+        return bool(self.held)  # emptied whenever everything is taken
 
     def feed(self, data: bytes | bytearray | memoryview) -> None:
-        if self._pos and self._pos == len(self._buf):
-            self._buf.clear()
-            self._pos = 0
-        self._buf += data
+        self.held += data  # nothing to reset: a full take has emptied it already
 
     def peek(self, n: int | None = None) -> bytes:
         """Up to ``n`` bytes from the front (all if ``None``) without consuming them."""
-        end = len(self._buf) if n is None else min(len(self._buf), self._pos + n)
-        return bytes(self._buf[self._pos : end])
+        end = len(self.held) if n is None else min(len(self.held), self._pos + n)
+        return bytes(self.held[self._pos : end])
 
     def __getitem__(self, index: int) -> int:
-        if index < 0 or self._pos + index >= len(self._buf):
+        if index < 0 or self._pos + index >= len(self.held):
             raise IndexError(index)
-        return self._buf[self._pos + index]
+        return self.held[self._pos + index]
 
     def take(self, n: int) -> bytes:
         """Remove and return exactly ``n`` bytes; the caller has checked ``len(self) >= n``."""
-        if n > len(self):
+        out = self.take_prefixed(b"", n)  # every prefix starts with b""
+        if out is None:
             raise ValueError(f"take({n}) with only {len(self)} bytes buffered")
-        start = self._pos
-        self._pos += n
-        out = bytes(self._buf[start : self._pos])
-        if self._pos == len(self._buf):
-            self._buf.clear()  # all taken: empty, so ``held`` says so
-            self._pos = 0
-        elif self._pos > 4096 and self._pos * 2 > len(self._buf):
-            del self._buf[: self._pos]
-            self._pos = 0
         return out
 
     def take_prefixed(self, prefix: bytes, n: int) -> bytes | None:
         """Take exactly ``n`` bytes if that many are buffered and they start with ``prefix``;
         else ``None``, and nothing is taken (a decoder's fast path for a known answer)."""
-        buf, pos = self._buf, self._pos
+        buf, pos = self.held, self._pos
         if len(buf) - pos < n or not buf.startswith(prefix, pos):
             return None
         self._pos = end = pos + n
@@ -205,7 +195,7 @@ class ReceiveBuffer:
         after the prefix, if that many are buffered and they start with ``prefix``; else
         ``None``, and nothing is taken. A decoder's fast path for an answer of known size: one
         call, no intermediate ``bytes`` copy of the frame."""
-        buf, pos = self._buf, self._pos
+        buf, pos = self.held, self._pos
         have = len(buf)
         start = pos + len(prefix)
         end = start + layout.size
@@ -226,5 +216,5 @@ class ReceiveBuffer:
         return self.take(len(self))
 
     def clear(self) -> None:
-        self._buf.clear()
+        self.held.clear()
         self._pos = 0
