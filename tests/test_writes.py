@@ -19,12 +19,18 @@ from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
+from plcstack.transports.peer import peer_address
 from plcstack.values import INT16, UINT16
 from tests.north_helpers import sample, subscriber
 from tests.scan_helpers import scan
 from tests.servers import Mosquitto
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+#: clients' addresses as the north sides hand them in
+ANNA = "10.0.0.7:50412"
+BOB = "[fd00::5]:41000"
 
 
 def _lines(path: Path) -> list[dict[str, Any]]:
@@ -50,13 +56,15 @@ async def test_each_attempt_is_answered_with_one_code_and_audited_in_order(
             path.observe([scan(sample("press1", "setpoint", 7))])
             with caplog.at_level(logging.INFO, "plcstack.north.writes"):
                 results = [
-                    await path.write("mqtt", None, "press1", "setpoint", 1201.0),
-                    await path.write("opcua", "anna", "press1", "count", 1),
-                    await path.write("opcua", "anna", "press1", "count", 2),
-                    await path.write("mqtt", None, "press1", "nope", 1),
-                    await path.write("mqtt", None, "press9", "setpoint", 1),
-                    await path.write("mqtt", None, "press1", "setpoint", "lots"),
-                    path.refuse("web", "bob", "press1", "setpoint", 5, "busy", "queue full"),
+                    await path.write("mqtt", None, "press1", "setpoint", 1201.0, peer=None),
+                    await path.write("opcua", "anna", "press1", "count", 1, peer=ANNA),
+                    await path.write("opcua", "anna", "press1", "count", 2, peer=ANNA),
+                    await path.write("mqtt", None, "press1", "nope", 1, peer=None),
+                    await path.write("mqtt", None, "press9", "setpoint", 1, peer=None),
+                    await path.write("mqtt", None, "press1", "setpoint", "lots", peer=None),
+                    path.refuse(
+                        "web", "bob", "press1", "setpoint", 5, "busy", "queue full", peer=BOB
+                    ),
                 ]
     finally:
         audit.close()
@@ -87,19 +95,21 @@ async def test_each_attempt_is_answered_with_one_code_and_audited_in_order(
         "previous": 7,
         "result": "ok",
         "may_have_executed": True,
+        "peer": None,
     }
-    assert [(x["source"], x["user"], x["result"]) for x in lines[1:]] == [
-        ("opcua", "anna", "not_writable"),
-        ("opcua", "anna", "not_writable"),
-        ("mqtt", None, "unknown_tag"),
-        ("mqtt", None, "unknown_plc"),
-        ("mqtt", None, "wrong_type"),
-        ("web", "bob", "busy"),
+    assert [(x["source"], x["user"], x["result"], x["peer"]) for x in lines[1:]] == [
+        ("opcua", "anna", "not_writable", ANNA),
+        ("opcua", "anna", "not_writable", ANNA),
+        ("mqtt", None, "unknown_tag", None),
+        ("mqtt", None, "unknown_plc", None),
+        ("mqtt", None, "wrong_type", None),
+        ("web", "bob", "busy", BOB),
     ]
     # one WARNING per refusal that changed; the repeated one at DEBUG, the confirmed one at INFO
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 5
     assert warnings[0].startswith("write from opcua user anna refused (not_writable): press1:")
+    assert warnings[0].endswith(f"; not attempted (client {ANNA})")
     infos = [r.getMessage() for r in caplog.records if r.levelno == logging.INFO]
     assert infos == ["write from mqtt: press1: write setpoint = 1201.0: confirmed by the PLC"]
 
@@ -114,7 +124,7 @@ def test_an_audit_that_cannot_be_written_is_an_error_and_counted(
     with caplog.at_level(logging.ERROR, "plcstack.north.audit"):
         ok = audit.record(
             source="mqtt", user=None, plc="p", tag="t", value=1, previous=None,
-            result="ok", may_have_executed=True, now=0.0,
+            result="ok", may_have_executed=True, peer=None, now=0.0,
         )  # fmt: skip
     audit.close()
     assert not ok and failures == [1] and audit.failed == 1
@@ -130,7 +140,7 @@ def test_a_full_file_is_rotated_and_backups_are_kept(tmp_path: Path) -> None:
     for i in range(200):
         audit.record(
             source="api", user=None, plc="p", tag="t", value=i, previous=None,
-            result="ok", may_have_executed=True, now=float(i),
+            result="ok", may_have_executed=True, peer=None, now=float(i),
         )  # fmt: skip
     audit.close()
     files = sorted(p.name for p in tmp_path.iterdir())
@@ -142,6 +152,15 @@ def test_a_full_file_is_rotated_and_backups_are_kept(tmp_path: Path) -> None:
     ]
     assert all(p.stat().st_size <= 4096 for p in tmp_path.iterdir())
     assert values == list(range(200 - len(values), 200))  # the newest, in order, none twice
+
+
+def test_a_peer_is_spelled_host_colon_port() -> None:
+    assert peer_address(("127.0.0.1", 50412)) == "127.0.0.1:50412"
+    assert peer_address(("::1", 5020, 0, 0)) == "[::1]:5020"  # IPv6: bracketed, flow info dropped
+    assert peer_address("/run/plc.sock") == "/run/plc.sock"
+    assert peer_address(b"/run/plc.sock") == "/run/plc.sock"
+    for nothing in (None, "", b"", (), ("host",)):
+        assert peer_address(nothing) is None
 
 
 def test_the_audit_table() -> None:
@@ -209,6 +228,8 @@ path = "writes.jsonl"
         ("mqtt", "strokes", 8, 7, "ok"),
         ("mqtt", "", None, None, "bad_request"),
     ]
+    # the broker hides the publisher: the key is there, null
+    assert [x["peer"] for x in lines] == [None, None]
     assert memory.read_words("D", 100, 1) == [8]
     # the refused write is said once at the default log level
     assert "write from mqtt refused (bad_request)" in err.decode()

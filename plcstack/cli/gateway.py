@@ -132,9 +132,11 @@ async def run(args: argparse.Namespace) -> int:
             raise
     writes = WritePath(None, audit=audit)
 
-    def written(where: str, data: bytes, code: str, may: bool, message: str) -> None:
+    def written(
+        where: str, data: bytes, code: str, may: bool, message: str, peer: str | None
+    ) -> None:
         result = WriteResult(code == "ok", code, message, may)
-        writes.record("gateway", None, args.plc, where, list(data), result)
+        writes.record("gateway", None, args.plc, where, list(data), result, peer=peer)
 
     gw.store.on_write = written
     stop = StopEvent()

@@ -121,10 +121,11 @@ class As511Store:
         self._worker: asyncio.Task[None] | None = None
         self._cache: dict[Target, list[_Span]] = {}
         #: told of every write attempt once its outcome is known, before the client is
-        #: answered: ``(address, data, result, may_have_executed, message)`` with ``result``
-        #: ``ok`` or the fault kind (``write_denied``, ``plc_timeout``, ...); the command line
-        #: logs refusals and writes the audit line from it
-        self.on_write: Callable[[str, bytes, str, bool, str], None] | None = None
+        #: answered: ``(address, data, result, may_have_executed, message, peer)`` with
+        #: ``result`` ``ok`` or the fault kind (``write_denied``, ``plc_timeout``, ...) and
+        #: ``peer`` the network client's ``host:port``; the command line logs refusals and
+        #: writes the audit line from it
+        self.on_write: Callable[[str, bytes, str, bool, str, str | None], None] | None = None
 
     @property
     def worker(self) -> asyncio.Task[None] | None:
@@ -158,7 +159,9 @@ class As511Store:
             return cached
         return await self._submit(target, offset, size, None)
 
-    async def write(self, target: Target, offset: int, data: bytes) -> None:
+    async def write(
+        self, target: Target, offset: int, data: bytes, *, peer: str | None = None
+    ) -> None:
         self.stats.writes += 1
         where = f"{describe_target(target)}+{offset}"
         if not self.writable.allows(target):
@@ -167,21 +170,26 @@ class As511Store:
                 FaultKind.WRITE_DENIED,
                 f"writing {describe_target(target)} is not allowed (writable: {self.writable})",
             )
-            self._written(where, data, fault)
+            self._written(where, data, peer, fault)
             raise fault
         try:
             await self._submit(target, offset, len(data), bytes(data))
         except S5Fault as fault:
-            self._written(where, data, fault)
+            self._written(where, data, peer, fault)
             raise
         except asyncio.CancelledError:
             # the client went away: a queued write is skipped, a running one completes
-            self._written(where, data, None, "cancelled")
+            self._written(where, data, peer, None, "cancelled")
             raise
-        self._written(where, data, None)
+        self._written(where, data, peer, None)
 
     def _written(
-        self, where: str, data: bytes, fault: S5Fault | None, result: str | None = None
+        self,
+        where: str,
+        data: bytes,
+        peer: str | None,
+        fault: S5Fault | None,
+        result: str | None = None,
     ) -> None:
         hook = self.on_write
         if hook is None:
@@ -191,14 +199,14 @@ class As511Store:
             message = f"write {where} ({len(data)} bytes): " + (
                 "confirmed by the PLC" if code == "ok" else "the client went away"
             )
-            hook(where, bytes(data), code, True, message)
+            hook(where, bytes(data), code, True, message, peer)
             return
         text = str(fault)
         # only a timeout after the request went out may have executed; one that waited in the
         # queue past its deadline or met a stopped gateway was never sent
         sent = fault.kind is FaultKind.PLC_TIMEOUT and "not executed" not in text
         sent = sent and "gateway" not in text
-        hook(where, bytes(data), fault.kind.value, sent, f"write {where}: {text}")
+        hook(where, bytes(data), fault.kind.value, sent, f"write {where}: {text}", peer)
 
     # -- queue --------------------------------------------------------------------------------
     async def _submit(self, target: Target, offset: int, size: int, data: bytes | None) -> bytes:

@@ -11,13 +11,19 @@ Each line (keys always present, in this order)::
 
     {"time": "2026-11-25T21:50:01.123Z", "source": "mqtt", "user": null, "plc": "press1",
      "tag": "setpoint", "value": 1201, "previous": 1200, "result": "ok",
-     "may_have_executed": true}
+     "may_have_executed": true, "peer": "10.0.0.7:50412"}
 
 ``source`` is the north side (``mqtt``, ``sparkplug``, ``opcua``, ``gateway``, ``web``,
 ``modbus``, ``api``); ``user`` the login name or null; ``tag`` the address for the gateway;
 ``previous`` the last polled value (null if none was seen yet); ``result`` ``ok`` or the error
 code the source answered; ``may_have_executed`` false only when the PLC certainly did not
-execute it (refused before sending, or the PLC answered with an error).
+execute it (refused before sending, or the PLC answered with an error). ``peer`` is the
+network address (``host:port``, ``[v6]:port``) of the client connection the write came in on,
+which answers "which machine sent this" where ``user`` is null: the HTTP client of the web console
+and REST API (a reverse proxy's address when one is in front), the Modbus TCP client, the OPC UA
+session's client, the gateway's S5-LAN or FETCH/WRITE client. It is null for MQTT and Sparkplug
+writes (the broker delivers a message without its publisher's address) and for a write from
+Python. ``peer`` was added last, so a reader that knows the keys before it is unaffected.
 
 A line is written and flushed before the answer goes back to the client. Rotation is by size:
 before a line would take the file past ``max_bytes``, ``FILE.N`` becomes ``FILE.N+1`` (the
@@ -56,6 +62,7 @@ FIELDS = (
     "previous",
     "result",
     "may_have_executed",
+    "peer",
 )
 
 
@@ -139,6 +146,7 @@ class Audit:
         previous: Any,
         result: str,
         may_have_executed: bool,
+        peer: str | None,
         now: float,
     ) -> bool:
         """Append and flush one line; False (logged, counted) if it could not be written."""
@@ -152,6 +160,7 @@ class Audit:
             "previous": json_safe(previous),
             "result": result,
             "may_have_executed": may_have_executed,
+            "peer": peer,
         }
         line = json.dumps(entry, ensure_ascii=False, default=repr) + "\n"
         size = len(line.encode("utf-8"))

@@ -681,8 +681,11 @@ class MqttSink:
         elif len(self._writes) >= MAX_PENDING_WRITES:
             refusal = BUSY, "too many writes waiting; not attempted"
         if refusal is not None:
-            # logged and audited as every refused write is, then answered
-            self.writes.refuse(self.name, None, plc or level, str(tag or ""), value, *refusal)
+            # logged and audited as every refused write is, then answered; no peer: the broker
+            # delivers a message without its publisher's address
+            self.writes.refuse(
+                self.name, None, plc or level, str(tag or ""), value, *refusal, peer=None
+            )
             self._respond(level, request_id, *refusal)
             return
         assert plc is not None and tag is not None
@@ -701,11 +704,12 @@ class MqttSink:
         base = element[0] if element is not None and (plc, tag) not in (writable or {}) else tag
         if writable is not None and False in (writable.get((plc, tag)), writable.get((plc, base))):
             code, message, _ = self._read_only(plc, tag)
-            result = self.writes.refuse(self.name, None, plc, tag, value, code, message)
+            result = self.writes.refuse(self.name, None, plc, tag, value, code, message, peer=None)
         else:
             # writable None (the Python API): every tag is writable through this sink
+            # no peer: the broker delivers a message without its publisher's address
             result = await self.writes.write(
-                self.name, None, plc, tag, value, allow_list=self.writable is not None
+                self.name, None, plc, tag, value, peer=None, allow_list=self.writable is not None
             )
         if result.ok:
             return None

@@ -59,7 +59,8 @@ from urllib.parse import urlsplit, urlunsplit
 
 from asyncua import ua
 from asyncua.crypto.permission_rules import User, UserRole
-from asyncua.server.address_space import AddressSpace, AttributeService
+from asyncua.server.address_space import AttributeService
+from asyncua.server.internal_server import InternalServer
 from asyncua.server.server import Server
 from asyncua.ua.attribute_ids import AttributeIds
 from asyncua.ua.object_ids import ObjectIds
@@ -84,7 +85,7 @@ from plcstack.north.opcua_types import (
     write_status,
 )
 from plcstack.north.opcua_types import status as _status
-from plcstack.north.opcua_users import PlcUser, UserManagerOfConfig, trust_list
+from plcstack.north.opcua_users import PlcUser, UserManagerOfConfig, session_peer, trust_list
 from plcstack.north.supervise import run_until
 from plcstack.north.write_values import parse_write_value
 from plcstack.north.writes import WritePath
@@ -307,6 +308,9 @@ def _folder_item(name: str, description: str, idx: int) -> ua.AddNodesItem:
 # -- writes ---------------------------------------------------------------------------------------
 
 
+#: one tag write of a client's request: (value, the session's login, its client's address)
+_Job = tuple[Any, str | None, str | None]
+
 #: asyncua's default for callers that name no user (the server itself): an admin
 _INTERNAL_USER = User(role=UserRole.Admin)
 
@@ -317,8 +321,9 @@ class _WriteService(AttributeService):
     Items for other nodes (asyncua's own) go to the base class unchanged.
     """
 
-    def __init__(self, aspace: AddressSpace, owner: OpcUaServer) -> None:
-        super().__init__(aspace)
+    def __init__(self, iserver: InternalServer, owner: OpcUaServer) -> None:
+        super().__init__(iserver.aspace)
+        self._iserver = iserver
         self._owner = owner
 
     async def write(
@@ -327,10 +332,12 @@ class _WriteService(AttributeService):
         items = params.NodesToWrite
         results: list[ua.StatusCode | None] = [None] * len(items)
         others: list[int] = []
-        jobs: dict[str, list[tuple[int, _Binding, tuple[Any, str | None]]]] = {}
+        jobs: dict[str, list[tuple[int, _Binding, _Job]]] = {}
         bindings = self._owner._bindings
-        # the session's login for the audit (None: anonymous or the server itself)
+        # the session's login and client address for the audit (None: anonymous or the server
+        # itself; no address for the server's own calls)
         login = user.name if isinstance(user, PlcUser) else None
+        peer = session_peer(self._iserver, user)
         for i, item in enumerate(items):
             binding = bindings.get(item.NodeId)
             if binding is None:
@@ -350,9 +357,10 @@ class _WriteService(AttributeService):
                     raw,
                     checked.code,
                     f"{where}: {checked.reason}; not attempted",
+                    peer=peer,
                 )
             else:
-                jobs.setdefault(binding.plc, []).append((i, binding, (checked, login)))
+                jobs.setdefault(binding.plc, []).append((i, binding, (checked, login, peer)))
         if others:
             rest = ua.WriteParameters()
             rest.NodesToWrite = [items[i] for i in others]
@@ -491,7 +499,7 @@ class OpcUaServer:
         self.namespace_index = idx = await server.register_namespace(config.namespace)
         await self._build(server, idx)
         iserver = server.iserver
-        iserver.attribute_service = _WriteService(iserver.aspace, self)
+        iserver.attribute_service = _WriteService(iserver, self)
         # per-session UserAccessLevel, IndexRange on Read, PercentDeadband, BuildInfo
         await set_build_info(server)
         install(
@@ -640,7 +648,7 @@ class OpcUaServer:
 
     # -- writes out -------------------------------------------------------------------------
     async def _write_to_plcs(
-        self, jobs: dict[str, list[tuple[int, _Binding, tuple[Any, str | None]]]]
+        self, jobs: dict[str, list[tuple[int, _Binding, _Job]]]
     ) -> list[tuple[int, ua.StatusCode]]:
         """Each PLC's writes in request order, PLCs in parallel; shielded from the client.
 
@@ -656,18 +664,26 @@ class OpcUaServer:
         return [pair for results in per_plc for pair in results]
 
     async def _write_plc(
-        self, items: Sequence[tuple[int, _Binding, tuple[Any, str | None]]]
+        self, items: Sequence[tuple[int, _Binding, _Job]]
     ) -> list[tuple[int, ua.StatusCode]]:
         out: list[tuple[int, ua.StatusCode]] = []
-        for i, binding, (value, login) in items:
-            out.append((i, _status(await self._write_tag(binding, value, login))))
+        for i, binding, (value, login, peer) in items:
+            out.append((i, _status(await self._write_tag(binding, value, login, peer))))
         return out
 
-    async def _write_tag(self, binding: _Binding, value: Any, login: str | None) -> int:
+    async def _write_tag(
+        self, binding: _Binding, value: Any, login: str | None, peer: str | None
+    ) -> int:
         # the one write path of every north side: allow-list, value grammar, write_tag, the
-        # audit line (with the session's login) and one log line (plcstack.north.writes)
+        # audit line (with the session's login and client address) and one log line
         result = await self.writes.write(
-            "opcua", login, binding.plc, binding.tag.name, value, previous=binding.last[1]
+            "opcua",
+            login,
+            binding.plc,
+            binding.tag.name,
+            value,
+            peer=peer,
+            previous=binding.last[1],
         )
         if result.ok:
             return _S.Good

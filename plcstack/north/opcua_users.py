@@ -1,5 +1,6 @@
 """Who may do what on the OPC UA server: sessions' logins (anonymous per ``anonymous``, user
-names by PBKDF2 password hash) and the trust list of client certificates."""
+names by PBKDF2 password hash), the trust list of client certificates, and where a session's
+client is (the write audit's ``peer``)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,9 @@ from asyncua.server.user_managers import UserManager
 
 from plcstack.north.opcua_config import OpcUaConfig, check_password
 from plcstack.poll.config import ConfigError
+from plcstack.transports.peer import peer_address
 
-__all__ = ["PlcUser", "UserManagerOfConfig", "trust_list"]
+__all__ = ["PlcUser", "UserManagerOfConfig", "session_peer", "trust_list"]
 
 log = logging.getLogger("plcstack.north.opcua")
 
@@ -56,6 +58,25 @@ class UserManagerOfConfig(UserManager):
             log.warning("OPC UA login refused for user %r", username)
             return None
         return PlcUser(role=UserRole.User, name=username, may_write=user.write)
+
+
+def session_peer(iserver: InternalServer, user: User) -> str | None:
+    """The network address (``host:port``) of the client whose session carries ``user``; None
+    for the server's own calls.
+
+    asyncua names each client's session by its connection's peername (``InternalSession.name``,
+    set from the transport when the session is created) but hands the attribute service only
+    the session's user. :class:`UserManagerOfConfig` makes a new :class:`PlcUser` at every
+    activation, so the session is the one whose user *is* this object (asyncua keeps the
+    client sessions in ``_external_sessions``; a test of the audit's ``peer`` pins that).
+    """
+    if not isinstance(user, PlcUser):
+        return None
+    sessions: dict[Any, Any] = getattr(iserver, "_external_sessions", {})
+    for session in list(sessions.values()):
+        if session.user is user:
+            return peer_address(session.name)
+    return None
 
 
 def _check_directory(directory: Path) -> None:

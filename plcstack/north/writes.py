@@ -2,12 +2,15 @@
 
 ```python
 writes = WritePath(poller, audit=audit)          # one per run (North makes it)
-result = await writes.write("mqtt", None, "press1", "setpoint", 1201)
+result = await writes.write("mqtt", None, "press1", "setpoint", 1201, peer=None)
 if not result.ok:
     answer(result.code, result.message, result.may_have_executed)
 ```
 
-:meth:`WritePath.write` takes ``(source, user, plc, tag, value)`` and does, in this order:
+:meth:`WritePath.write` takes ``(source, user, plc, tag, value)`` and the client's ``peer``
+(its network address, ``host:port`` as :func:`~plcstack.transports.peer.peer_address` spells
+it; None where the north side cannot know it: MQTT and Sparkplug, whose broker hides the
+publisher) and does, in this order:
 
 1. the allow-list: the PLC and the tag must exist, and the tag must say ``writable = true``;
 2. the value grammar every north side shares
@@ -120,11 +123,14 @@ class WritePath:
         tag: str,
         value: Any,
         *,
+        peer: str | None,
         previous: Any = _UNSET,
         allow_list: bool = True,
     ) -> WriteResult:
         """One write attempt from a north-side client; never raises for the write's outcome.
 
+        ``peer``: the client's address (``host:port``), None where the north side cannot
+        know it; a required keyword, so no north side leaves it out by accident.
         ``previous``: the value the caller last showed its client (default: the last polled
         one this path saw). ``allow_list=False``: the caller's own allow-list admitted the write
         (a sink built in Python with ``writable=None``, "every tag"); the tag's ``writable``
@@ -133,7 +139,7 @@ class WritePath:
         if previous is _UNSET:
             previous = self.latest.get((plc, tag))
         result = await self._attempt(plc, tag, value, allow_list)
-        self._finish(source, user, plc, tag, value, previous, result)
+        self._finish(source, user, peer, plc, tag, value, previous, result)
         return result
 
     def refuse(
@@ -145,11 +151,13 @@ class WritePath:
         value: Any,
         code: str,
         message: str,
+        *,
+        peer: str | None,
     ) -> WriteResult:
         """A refusal the caller decided before the write path (nothing was sent): logged and
-        audited like any other."""
+        audited like any other, with the client's ``peer`` as in :meth:`write`."""
         result = WriteResult(False, code, message, False)
-        self.record(source, user, plc, tag, value, result)
+        self.record(source, user, plc, tag, value, result, peer=peer)
         return result
 
     def record(
@@ -161,13 +169,14 @@ class WritePath:
         value: Any,
         result: WriteResult,
         *,
+        peer: str | None,
         previous: Any = _UNSET,
     ) -> None:
         """Log and audit a write that a north side carried out on a path of its own (the
         gateway writes addresses over AS511, not tags through the poller)."""
         if previous is _UNSET:
             previous = self.latest.get((plc, tag))
-        self._finish(source, user, plc, tag, value, previous, result)
+        self._finish(source, user, peer, plc, tag, value, previous, result)
 
     async def _attempt(self, plc: str, tag: str, value: Any, allow_list: bool) -> WriteResult:
         poller = self.poller
@@ -219,6 +228,7 @@ class WritePath:
         self,
         source: str,
         user: str | None,
+        peer: str | None,
         plc: str,
         tag: str,
         value: Any,
@@ -235,14 +245,17 @@ class WritePath:
                 previous=previous,
                 result=result.code,
                 may_have_executed=result.may_have_executed,
+                peer=peer,
                 now=time.time(),
             )
         who = f"{source}" + (f" user {user}" if user else "")
+        # the client's address last, after the message: the wording before it stays as it was
+        client = f" (client {peer})" if peer else ""
         key = (source, plc, tag)
         if result.ok:
             self.ok += 1
             self._last_code.pop(key, None)
-            log.info("write from %s: %s", who, result.message)
+            log.info("write from %s: %s%s", who, result.message, client)
             return
         self.refused += 1
         # one WARNING per change: a client repeating the same refused write is not a log flood
@@ -250,4 +263,4 @@ class WritePath:
         if len(self._last_code) >= 4096:  # bounded, whatever names clients send
             self._last_code.clear()
         self._last_code[key] = result.code
-        log.log(level, "write from %s refused (%s): %s", who, result.code, result.message)
+        log.log(level, "write from %s refused (%s): %s%s", who, result.code, result.message, client)

@@ -47,6 +47,7 @@ from plcstack.sim.s5store import (
     memory_of,
     resolve_store,
 )
+from plcstack.transports.peer import peer_address
 
 __all__ = ["FetchWriteSimulator", "add_cli_arguments", "default_memory", "serve_cli", "start"]
 
@@ -147,6 +148,7 @@ class FetchWriteSimulator(TcpSimulator):
         if task is not None:
             self.track(task)
         self.connections += 1
+        peer = peer_address(writer.get_extra_info("peername"))
         loop = asyncio.get_running_loop()
         # a module is lenient with partners that do not count (only strict checks them)
         mk = MkConnection(strict=self.strict, check_seq=self.strict) if self.mk else None
@@ -160,7 +162,7 @@ class FetchWriteSimulator(TcpSimulator):
         try:
             while True:
                 while (event := codec.next_event()) is not NEED_DATA:
-                    response, close = await self.answer(event, role)
+                    response, close = await self.answer(event, role, peer)
                     if self.silent:
                         continue
                     writer.write(codec.send(response))
@@ -213,12 +215,13 @@ class FetchWriteSimulator(TcpSimulator):
             writer.transport.abort()
 
     async def answer(
-        self, event: FetchRequest | WriteRequest | BadRequest, role: _Role
+        self, event: FetchRequest | WriteRequest | BadRequest, role: _Role, peer: str | None = None
     ) -> tuple[FetchResponse | WriteResponse, bool]:
         """The acknowledgement of one job and whether to close the connection afterwards.
 
         Executed on ``self.store``: the simulated CPU, or the real one behind the AS511 gateway
-        (one server implementation for both).
+        (one server implementation for both); ``peer``, the client's address, goes with a write
+        to the store (the gateway audits it).
         """
         self.jobs += 1
         is_fetch = isinstance(event, FetchRequest) or (
@@ -244,7 +247,7 @@ class FetchWriteSimulator(TcpSimulator):
             target, offset, _ = self._span(event.org, event.db, event.start, 0)
             if target == _PB:  # ... and writes go to the output image
                 target = Area.OUTPUTS
-            await self.store.write(target, offset, event.data)
+            await self.store.write(target, offset, event.data, peer=peer)
             return ack(0), False
         except S5Fault as exc:
             return ack(exc.fetchwrite_error), False

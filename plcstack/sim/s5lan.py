@@ -43,6 +43,7 @@ from plcstack.sim.base import (
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.sim.s5store import S5Fault, S5Store, Target, memory_of, resolve_store
+from plcstack.transports.peer import peer_address
 
 __all__ = ["DEFAULT_DATA_WORDS", "S5LanSimulator", "add_cli_arguments", "default_memory", "start"]
 
@@ -135,8 +136,9 @@ class _State:
         self.writers: set[asyncio.StreamWriter] = set()
 
     # -- executing a valid request on the store (A.7 steps 5..8) ---------------------------
-    async def execute(self, req: Request) -> tuple[int, bytes]:
-        """Answer one well-formed request from the store: ``(Err, data)``.
+    async def execute(self, req: Request, peer: str | None = None) -> tuple[int, bytes]:
+        """Answer one well-formed request from the store: ``(Err, data)``; ``peer`` is the
+        client's address, handed to the store with a write (the gateway audits it).
 
         The same code serves the simulator (a :class:`MemoryStore`) and the AS511 gateway (the
         real CPU behind its programming port): one server implementation for both.
@@ -160,7 +162,8 @@ class _State:
             if h.is_read:
                 raw = await self.store.read(target, offset, n)
                 return ERR_OK, swap_words(raw) if swap else raw
-            await self.store.write(target, offset, swap_words(req.data) if swap else req.data)
+            data = swap_words(req.data) if swap else req.data
+            await self.store.write(target, offset, data, peer=peer)
             return ERR_OK, b""
         except S5Fault as exc:
             return exc.s5lan_err, b""
@@ -177,6 +180,7 @@ async def _handle(
         return
     state.active += 1
     state.writers.add(writer)
+    peer = peer_address(writer.get_extra_info("peername"))
     codec = ServerConnection(
         header_byte_order=state.header_byte_order, strict=state.strict, version=state.version
     )
@@ -195,7 +199,7 @@ async def _handle(
                     data = await reader.read(65536)
             except TimeoutError:
                 if codec.awaiting_data:
-                    if not await _answer(state, codec, writer, codec.data_timeout()):
+                    if not await _answer(state, codec, writer, codec.data_timeout(), peer):
                         return
                     continue
                 if not codec.buffered:
@@ -205,7 +209,7 @@ async def _handle(
                 return
             codec.receive_data(data)
             while (event := codec.next_event()) is not NEED_DATA:
-                if not await _answer(state, codec, writer, event):
+                if not await _answer(state, codec, writer, event, peer):
                     return
     except (ConnectionError, OSError):
         return
@@ -216,15 +220,20 @@ async def _handle(
 
 
 async def _answer(
-    state: _State, codec: ServerConnection, writer: asyncio.StreamWriter, event: object
+    state: _State,
+    codec: ServerConnection,
+    writer: asyncio.StreamWriter,
+    event: object,
+    peer: str | None,
 ) -> bool:
-    """Answer one event; ``False`` when the connection must be closed."""
+    """Answer one event of the client at ``peer``; ``False`` when the connection must be
+    closed."""
     if isinstance(event, BadRequest):
         writer.write(codec.send_response(event.header, event.err))
         await writer.drain()
         return not event.close
     assert isinstance(event, Request)
-    err, data = await state.execute(event)
+    err, data = await state.execute(event, peer)
     if state.realistic_timing:
         await asyncio.sleep(estimate_seconds(event.header.data_len or 0))
     header: Header = event.header

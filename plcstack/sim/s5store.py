@@ -110,12 +110,15 @@ class S5Store(Protocol):
     Offsets and sizes are bytes; block offsets count from data word 0 (the body, after the
     10-byte header); T and C hold 2 bytes per timer/counter. Data are in PLC byte order
     (big-endian words). A refused access raises :class:`S5Fault`; nothing else may escape.
-    ``write`` returns only once the CPU has taken the data.
+    ``write`` returns only once the CPU has taken the data; its ``peer`` is the network client
+    that asked (``host:port``, for the gateway's write audit; None: unknown).
     """
 
     async def read(self, target: Target, offset: int, size: int) -> bytes: ...
 
-    async def write(self, target: Target, offset: int, data: bytes) -> None: ...
+    async def write(
+        self, target: Target, offset: int, data: bytes, *, peer: str | None = None
+    ) -> None: ...
 
 
 _ACCESS_KINDS: Final = {2: FaultKind.NO_AREA, 3: FaultKind.TOO_SMALL}
@@ -137,7 +140,10 @@ class MemoryStore:
         except S5AccessError as exc:
             raise S5Fault(_ACCESS_KINDS.get(exc.code, FaultKind.NO_AREA), str(exc)) from None
 
-    async def write(self, target: Target, offset: int, data: bytes) -> None:
+    async def write(
+        self, target: Target, offset: int, data: bytes, *, peer: str | None = None
+    ) -> None:
+        """Into the image; ``peer`` (who asked) is not kept: a simulator audits nothing."""
         try:
             if isinstance(target, tuple):
                 self.memory.write_block(target[0], target[1], offset, data)

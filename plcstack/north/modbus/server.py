@@ -43,6 +43,7 @@ from plcstack.north.writes import WritePath
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Scan
 from plcstack.resource import AsyncResource
+from plcstack.transports.peer import peer_address
 
 __all__ = ["MAX_PENDING", "ModbusCollector", "ModbusServer"]
 
@@ -59,22 +60,22 @@ class _Connection(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
         self.pending: deque[Request] = deque()
         self.writing: asyncio.Task[None] | None = None
-        self.peer = "?"
+        #: the client's address (``host:port``), as the log and the write audit say it
+        self.peer: str | None = None
         self.paused = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
-        peer = transport.get_extra_info("peername")
-        self.peer = f"{peer[0]}:{peer[1]}" if isinstance(peer, tuple) else str(peer)
+        self.peer = peer_address(transport.get_extra_info("peername"))
         self.server._connections.add(self)
-        log.info("Modbus client %s connected", self.peer)
+        log.info("Modbus client %s connected", self.peer or "?")
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.server._connections.discard(self)
         self.transport = None
         self.pending.clear()
-        log.info("Modbus client %s disconnected", self.peer)
+        log.info("Modbus client %s disconnected", self.peer or "?")
 
     def data_received(self, data: bytes) -> None:
         self.codec.receive_data(data)
@@ -82,7 +83,9 @@ class _Connection(asyncio.Protocol):
             while (request := self.codec.next_request()) is not None:
                 self.pending.append(request)
         except RemoteProtocolError as exc:
-            log.warning("Modbus client %s: %s; closing the connection", self.peer, exc.message)
+            log.warning(
+                "Modbus client %s: %s; closing the connection", self.peer or "?", exc.message
+            )
             self.server.protocol_errors += 1
             if self.transport is not None:
                 self.transport.close()
@@ -110,7 +113,7 @@ class _Connection(asyncio.Protocol):
             self.transport.resume_reading()
 
     async def _write(self, request: Request) -> None:
-        self._send(await self.server.answer_write(request))
+        self._send(await self.server.answer_write(request, peer=self.peer))
 
     def _write_done(self, task: asyncio.Task[None]) -> None:
         self.server._writes.discard(task)
@@ -215,12 +218,13 @@ class ModbusServer(AsyncResource):
         except Refused as refused:
             return self._refused(request, refused)
 
-    async def answer_write(self, request: Request) -> bytes:
-        """The frame answering a write, after the PLC confirmed it (or the refusal)."""
+    async def answer_write(self, request: Request, *, peer: str | None) -> bytes:
+        """The frame answering a write, after the PLC confirmed it (or the refusal); ``peer``
+        is the client's address for the write audit."""
         image = self.image
         image.requests[request.function] += 1
         try:
-            await image.write(request, self.writes)
+            await image.write(request, self.writes, peer=peer)
         except Refused as refused:
             return self._refused(request, refused)
         return response_frame(request)

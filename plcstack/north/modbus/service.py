@@ -189,10 +189,10 @@ class RegisterImage:
             index += size
         return jobs
 
-    async def write(self, request: Request, writes: WritePath) -> None:
+    async def write(self, request: Request, writes: WritePath, *, peer: str | None) -> None:
         """Carry out a write request tag by tag through the run's write path (allow-list, value
-        grammar, the poller's write_tag, audit with source ``modbus``); :class:`Refused` at the
-        first refusal or failure."""
+        grammar, the poller's write_tag, audit with source ``modbus`` and the client's address
+        ``peer``); :class:`Refused` at the first refusal or failure."""
         try:
             jobs = self.plan_write(request)
         except _NotWritable as refusal:
@@ -205,12 +205,13 @@ class RegisterImage:
                 refusal.value,
                 refusal.result,
                 refusal.reason,
+                peer=peer,
             )
             raise
         done: list[str] = []
         for entry, value in jobs:
             name = f"{entry.plc}.{entry.tag.name}"
-            result = await writes.write("modbus", None, entry.plc, entry.tag.name, value)
+            result = await writes.write("modbus", None, entry.plc, entry.tag.name, value, peer=peer)
             if result.ok:
                 self.writes_confirmed += 1
                 done.append(name)

@@ -29,6 +29,7 @@ from typing import Any, Protocol
 from aiohttp import web
 
 from plcstack.north.web.state import ConsoleState, tag_row
+from plcstack.transports.peer import peer_address
 
 __all__ = ["MAX_PENDING_WRITES", "ConsoleApi", "routes"]
 
@@ -42,9 +43,11 @@ class ConsoleApi(Protocol):
 
     def plc_rows(self, plc: str | None) -> list[dict[str, Any]]: ...
 
-    async def write(self, plc: str, tag: str, value: Any) -> web.Response: ...
+    async def write(self, plc: str, tag: str, value: Any, *, peer: str | None) -> web.Response: ...
 
-    def refuse(self, plc: str, tag: str, value: Any, code: str, message: str) -> web.Response: ...
+    def refuse(
+        self, plc: str, tag: str, value: Any, code: str, message: str, *, peer: str | None
+    ) -> web.Response: ...
 
 
 #: writes in flight at once from the web; more are refused with ``busy``
@@ -111,6 +114,9 @@ def routes(console: ConsoleApi) -> list[web.RouteDef]:
 
     async def write(request: web.Request) -> web.Response:
         plc, tag = request.match_info["plc"], request.match_info["tag"]
+        # the HTTP client's address for the audit (a reverse proxy's, when one is in front)
+        transport = request.transport
+        peer = peer_address(transport.get_extra_info("peername") if transport else None)
         token = console.token
         if token is None:
             return console.refuse(
@@ -120,6 +126,7 @@ def routes(console: ConsoleApi) -> list[web.RouteDef]:
                 "not_writable",
                 "writes are off: the console was started without a write token"
                 " ([web] write_token_env names an environment variable that is not set)",
+                peer=peer,
             )
         if not token_matches(request.headers.get("Authorization"), token):
             return console.refuse(
@@ -129,6 +136,7 @@ def routes(console: ConsoleApi) -> list[web.RouteDef]:
                 "unauthorized",
                 f"a valid 'Authorization: Bearer TOKEN' is required (request from"
                 f" {request.remote}); not attempted",
+                peer=peer,
             )
         try:
             body = await request.json()
@@ -136,9 +144,14 @@ def routes(console: ConsoleApi) -> list[web.RouteDef]:
             body = None
         if not isinstance(body, dict) or "value" not in body:
             return console.refuse(
-                plc, tag, None, "bad_request", 'the body must be a JSON object {"value": ...}'
+                plc,
+                tag,
+                None,
+                "bad_request",
+                'the body must be a JSON object {"value": ...}',
+                peer=peer,
             )
-        return await console.write(plc, tag, body["value"])
+        return await console.write(plc, tag, body["value"], peer=peer)
 
     return [
         web.get("/api/plcs", plcs),

@@ -141,12 +141,15 @@ class WebConsole:
         names = list(health) if plc is None else [plc]
         return [plc_row(name, health[name], stats.get(name)) for name in names]
 
-    async def write(self, plc: str, tag: str, value: Any) -> web.Response:
+    async def write(self, plc: str, tag: str, value: Any, *, peer: str | None) -> web.Response:
         """One write from the web, after the token was checked (see :mod:`.api`): through the
-        north side's one write path (allow-list, value grammar, ``write_tag``, audit)."""
+        north side's one write path (allow-list, value grammar, ``write_tag``, audit with the
+        HTTP client's address as ``peer``)."""
         if len(self._writes) >= MAX_PENDING_WRITES:
-            return self.refuse(plc, tag, value, "busy", "too many writes waiting; not attempted")
-        task = asyncio.create_task(self.writes.write(SOURCE, None, plc, tag, value))
+            return self.refuse(
+                plc, tag, value, "busy", "too many writes waiting; not attempted", peer=peer
+            )
+        task = asyncio.create_task(self.writes.write(SOURCE, None, plc, tag, value, peer=peer))
         self._writes.add(task)
         task.add_done_callback(self._writes.discard)
         # shielded: a browser that goes away does not cancel a write half done
@@ -155,9 +158,11 @@ class WebConsole:
             return web.json_response({"ok": True})
         return refusal(result.code, result.message, result.may_have_executed)
 
-    def refuse(self, plc: str, tag: str, value: Any, code: str, message: str) -> web.Response:
+    def refuse(
+        self, plc: str, tag: str, value: Any, code: str, message: str, *, peer: str | None
+    ) -> web.Response:
         """A refusal decided here (token, body, too many): logged and audited as every other."""
-        self.writes.refuse(SOURCE, None, plc, tag, value, code, message)
+        self.writes.refuse(SOURCE, None, plc, tag, value, code, message, peer=peer)
         return refusal(code, message)
 
     # -- pages ----------------------------------------------------------------------------------
