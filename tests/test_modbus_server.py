@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import struct
 from collections.abc import AsyncIterator
@@ -14,7 +15,9 @@ from pathlib import Path
 import pytest
 
 from plcstack import ConfigError, load_config
+from plcstack.north.audit import Audit, AuditSettings
 from plcstack.north.modbus.server import ModbusServer
+from plcstack.north.writes import WritePath
 from plcstack.poll.engine import Poller
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
@@ -224,6 +227,48 @@ async def test_writes_refused_before_anything_is_sent(
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == 6
     assert [r.name for r in warnings].count("plcstack.north.modbus") == 1
+
+
+async def write_register(
+    endpoint: str, transaction: int, address: int, value: int
+) -> tuple[int, str]:
+    """FC 6 over a connection of our own: the function code of the answer (0x86: an
+    exception) and this end's ``host:port``, which the audit must name."""
+    host, port = endpoint.rsplit(":", 1)
+    reader, writer = await asyncio.open_connection(host, int(port))
+    try:
+        me = writer.get_extra_info("sockname")
+        pdu = struct.pack(">BHH", 6, address, value)
+        writer.write(struct.pack(">HHHB", transaction, 0, len(pdu) + 1, 1) + pdu)
+        async with asyncio.timeout(10):
+            head = await reader.readexactly(7)
+            body = await reader.readexactly(struct.unpack(">H", head[4:6])[0] - 1)
+    finally:
+        writer.close()
+        await writer.wait_closed()
+    return body[0], f"{me[0]}:{me[1]}"
+
+
+async def test_the_audit_names_the_modbus_client_of_each_write(tmp_path: Path) -> None:
+    audit = Audit(AuditSettings(str(tmp_path / "writes.jsonl")))
+    audit.open()
+    try:
+        async with plant(tmp_path) as p:
+            p.server.writes = WritePath(p.poller, audit=audit)
+            confirmed = await write_register(p.endpoint, 1, 0, 77)  # strokes
+            refused = await write_register(p.endpoint, 2, 3, 1)  # half of total's int32
+            failed = await write_register(p.endpoint, 3, 60, 1)  # the dead PLC's setpoint
+    finally:
+        audit.close()
+    assert [answer for answer, _ in (confirmed, refused, failed)] == [0x06, 0x86, 0x86]
+    assert p.memory.read_words("D", 100, 1) == [77]
+    lines = [json.loads(x) for x in (tmp_path / "writes.jsonl").read_text().splitlines()]
+    # refused before anything is sent, failed at the PLC, confirmed: each with its client
+    assert [(x["source"], x["tag"], x["result"], x["peer"]) for x in lines] == [
+        ("modbus", "strokes", "ok", confirmed[1]),
+        ("modbus", "total", "bad_request", refused[1]),
+        ("modbus", "setpoint", "plc_error", failed[1]),
+    ]
 
 
 async def test_a_write_to_a_dead_plc_is_refused_with_0x0b(tmp_path: Path) -> None:

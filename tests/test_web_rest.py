@@ -97,6 +97,50 @@ async def test_write_with_token_reaches_the_plc_and_the_audit(tmp_path: Path) ->
     ]
 
 
+async def post_from_socket(
+    console: Console, plc: str, tag: str, body: bytes, token: str
+) -> tuple[int, str]:
+    """POST over a socket of our own, so the test knows the client's address exactly: the
+    HTTP status and this end's ``host:port``."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
+    try:
+        host, port = writer.get_extra_info("sockname")[:2]
+        head = (
+            f"POST /api/plcs/{plc}/tags/{tag} HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+            f"Authorization: Bearer {token}\r\nContent-Type: application/json\r\n"
+            f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+        )
+        writer.write(head.encode() + body)
+        async with asyncio.timeout(10):
+            response = await reader.read()  # the server closes after its answer
+    finally:
+        writer.close()
+        await writer.wait_closed()
+    return int(response.split(b" ", 2)[1]), f"{host}:{port}"
+
+
+async def test_the_audit_names_the_http_client_of_each_write(tmp_path: Path) -> None:
+    audit = tmp_path / "writes.jsonl"
+    async with running_console(audit=audit) as console:
+        await wait_value(console, "press1", "setpoint", 1500)
+        ok = await post_from_socket(console, "press1", "setpoint", b'{"value": 43}', TOKEN)
+        token = await post_from_socket(console, "press1", "setpoint", b'{"value": 1}', "wrong")
+        body = await post_from_socket(console, "press1", "setpoint", b"[]", TOKEN)
+        tag = await post_from_socket(console, "press1", "counter", b'{"value": 1}', TOKEN)
+    assert [status for status, _ in (ok, token, body, tag)] == [200, 401, 400, 403]
+    assert console.memory.read_words("D", 100, 1) == [43]
+    lines = [json.loads(line) for line in audit.read_text(encoding="utf-8").splitlines()]
+    # each line names the connection it came in on: refusals by the token, the body and the
+    # write path's allow-list as well as the confirmed write
+    assert [(r["result"], r["peer"]) for r in lines] == [
+        ("ok", ok[1]),
+        ("unauthorized", token[1]),
+        ("bad_request", body[1]),
+        ("not_writable", tag[1]),
+    ]
+    assert list(lines[0])[-1] == "peer"  # added last: readers of the older keys are unaffected
+
+
 async def test_write_refusals() -> None:
     async with running_console() as console:
         for token in (None, "wrong", TOKEN + "x", ""):
