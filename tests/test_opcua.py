@@ -662,6 +662,14 @@ async def test_an_encrypting_policy_a_trust_list_and_no_anonymous_logins(
         await sim.aclose()
 
 
+def local_address(client: Client) -> str:
+    """The ``host:port`` a connected asyncua client speaks from (what the server sees)."""
+    protocol = client.uaclient.protocol
+    assert protocol is not None and protocol.transport is not None
+    host, port = protocol.transport.get_extra_info("sockname")[:2]
+    return f"{host}:{port}"
+
+
 async def test_every_opcua_write_attempt_is_audited_with_the_sessions_login(
     plant: Plant, tmp_path: Path
 ) -> None:
@@ -689,3 +697,7 @@ async def test_every_opcua_write_attempt_is_audited_with_the_sessions_login(
         ("opcua", "operator", "press1", "strokes", "x", "wrong_type"),
     ]
     assert [r["may_have_executed"] for r in lines] == [True, False, False]
+    # which machine: each session's client address, the anonymous one's refusal included
+    operator, anonymous = local_address(plant.operator), local_address(plant.anonymous)
+    assert operator != anonymous
+    assert [r["peer"] for r in lines] == [operator, anonymous, operator]
