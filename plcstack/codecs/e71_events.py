@@ -13,7 +13,7 @@ import abc
 import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import ClassVar, Final
+from typing import ClassVar, Final, Generic, TypeVar
 
 from plcstack.codecs._common import Event, slot_init
 from plcstack.codecs.e71_devices import DeviceRef, check_ref, dev_value
@@ -73,6 +73,8 @@ def _check_word(value: int) -> None:
 
 #: subheader, PC number, timer, device number, device code, count, 00H of 00H-03H (binary)
 _READ_FRAME: Final = struct.Struct("<BBHIHBB")
+#: the value of one point of a test (random write) request: a bit's state or a word
+_V = TypeVar("_V")
 #: what ``_check_word`` accepts as a type (``bool`` is an ``int``)
 _INT_OR_BOOL: Final = frozenset({int, bool})
 
@@ -134,7 +136,24 @@ class _Batch(_Header):
         w.num(0, 1)
 
 
-def _fast_read(req: ReadBits | ReadWords, bit_unit: bool) -> bytes | None:
+@dataclass(frozen=True, slots=True)
+class _BatchRead(_Batch):
+    """00H/01H: a batch read of ``count`` points (bit units) or words (word units)."""
+
+    #: True for 00H (bit units: bit devices only), False for 01H (word units)
+    BIT_UNIT: ClassVar[bool]
+    count: int
+
+    def point_count(self) -> int:
+        return self.count
+
+    def encode(self, code: Code) -> bytes:
+        if code is Code.BINARY and (data := _fast_read(self)) is not None:
+            return data
+        return _Header.encode(self, code)
+
+
+def _fast_read(req: _BatchRead) -> bytes | None:
     """The polling hot path of 00H/01H in binary: the checks of :meth:`_Header.encode`,
     inlined, and one struct call; ``None`` sends the request down the general path."""
     ref, count, pc, timer = req.ref, req.count, req.pc, req.timer
@@ -144,7 +163,7 @@ def _fast_read(req: ReadBits | ReadWords, bit_unit: bool) -> bytes | None:
     dev, number = ref.device, ref.number
     if (
         1 <= count <= command_limit(req.COMMAND, dev)
-        and (dev.is_bit if bit_unit else head_ok(ref))
+        and (dev.is_bit if req.BIT_UNIT else head_ok(ref))
         and 0 <= pc <= 0xFF
         and 0 <= timer <= 0xFFFF
         and type(number) is int
@@ -156,36 +175,20 @@ def _fast_read(req: ReadBits | ReadWords, bit_unit: bool) -> bytes | None:
 
 @slot_init
 @dataclass(frozen=True, slots=True)
-class ReadBits(_Batch):
+class ReadBits(_BatchRead):
     """00H: batch read in bit units (bit devices), 1-256 points."""
 
     COMMAND: ClassVar[int] = 0x00
-    count: int
-
-    def point_count(self) -> int:
-        return self.count
-
-    def encode(self, code: Code) -> bytes:
-        if code is Code.BINARY and (data := _fast_read(self, True)) is not None:
-            return data
-        return _Header.encode(self, code)
+    BIT_UNIT: ClassVar[bool] = True
 
 
 @slot_init
 @dataclass(frozen=True, slots=True)
-class ReadWords(_Batch):
+class ReadWords(_BatchRead):
     """01H: batch read in word units; for bit devices ``count`` is in words of 16 points."""
 
     COMMAND: ClassVar[int] = 0x01
-    count: int
-
-    def point_count(self) -> int:
-        return self.count
-
-    def encode(self, code: Code) -> bytes:
-        if code is Code.BINARY and (data := _fast_read(self, False)) is not None:
-            return data
-        return _Header.encode(self, code)
+    BIT_UNIT: ClassVar[bool] = False
 
 
 @slot_init
@@ -249,34 +252,11 @@ class WriteWords(_Batch):
 
 
 @dataclass(frozen=True, slots=True)
-class TestBits(_Header):
-    """04H: test (random write) in bit units: ``(point, state)`` pairs."""
+class _Test(_Header, Generic[_V]):
+    """04H/05H: test (random write): ``(device, value)`` pairs after the count field."""
 
-    COMMAND: ClassVar[int] = 0x04
     __test__: ClassVar[bool] = False  # not a pytest class
-    points: tuple[tuple[DeviceRef, bool], ...]
-
-    def device_refs(self) -> tuple[DeviceRef, ...]:
-        return tuple(p[0] for p in self.points)
-
-    def point_count(self) -> int:
-        return len(self.points)
-
-    def _fields(self, w: Writer, n: int) -> None:
-        w.num(n, 1)
-        w.num(0, 1)
-        for ref, state in self.points:
-            w.num(dev_value(ref), 6)
-            w.num(1 if state else 0, 1)
-
-
-@dataclass(frozen=True, slots=True)
-class TestWords(_Header):
-    """05H: test (random write) in word units: ``(head, word)`` pairs."""
-
-    COMMAND: ClassVar[int] = 0x05
-    __test__: ClassVar[bool] = False  # not a pytest class
-    points: tuple[tuple[DeviceRef, int], ...]
+    points: tuple[tuple[DeviceRef, _V], ...]
 
     def device_refs(self) -> tuple[DeviceRef, ...]:
         return tuple(p[0] for p in self.points)
@@ -288,9 +268,33 @@ class TestWords(_Header):
         w.num(n, 1)
         w.num(0, 1)
         for ref, value in self.points:
-            _check_word(value)
             w.num(dev_value(ref), 6)
-            w.num(value, 2)
+            self._value(w, value)
+
+    def _value(self, w: Writer, value: _V) -> None:
+        """Write one point's new value."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True, slots=True)
+class TestBits(_Test[bool]):
+    """04H: test (random write) in bit units: ``(point, state)`` pairs."""
+
+    COMMAND: ClassVar[int] = 0x04
+
+    def _value(self, w: Writer, value: bool) -> None:
+        w.num(1 if value else 0, 1)
+
+
+@dataclass(frozen=True, slots=True)
+class TestWords(_Test[int]):
+    """05H: test (random write) in word units: ``(head, word)`` pairs."""
+
+    COMMAND: ClassVar[int] = 0x05
+
+    def _value(self, w: Writer, value: int) -> None:
+        _check_word(value)
+        w.num(value, 2)
 
 
 @dataclass(frozen=True, slots=True)
