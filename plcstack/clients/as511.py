@@ -24,8 +24,6 @@ from typing import Any, Self
 from plcstack.clients.as511_blocks import AREA_BYTES, BLOCK_TYPES, As511Blocks, pack_words
 from plcstack.clients.as511_link import BITS_PER_BYTE
 from plcstack.clients.base import (
-    DEFAULT_CONNECT_TIMEOUT,
-    DEFAULT_TIMEOUT,
     Points,
     as_points,
 )
@@ -37,7 +35,6 @@ from plcstack.codecs.as511 import (
 )
 from plcstack.errors import AddressError, PlcError, ValueEncodeError
 from plcstack.s5address import S5Address, S5Area, S5Unit, parse_s5_address
-from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.transports.serial import SerialTransport
 from plcstack.transports.tcp import TcpTransport
@@ -88,35 +85,6 @@ class AS511Client(As511Blocks, S5Access):
         choice("parity", "E", ("N", "E", "O"), "parity (8E1 by default)"),
         Option("stopbits", 1.0, float, _stopbits, "stop bits: 1, 1.5 or 2"),
     )
-
-    def __init__(
-        self,
-        name: str,
-        transport: Transport,
-        *,
-        char_timeout: float = DEFAULT_CHAR_TIMEOUT,
-        response_timeout: float | None = None,
-        nak_backoff: float = 0.5,
-        line_byte_time: float | None = None,
-        cache: bool = True,
-        strict: bool = False,
-        timeout: float = DEFAULT_TIMEOUT,
-        connect_timeout: float = DEFAULT_CONNECT_TIMEOUT,
-        backoff: Backoff | None = None,
-    ) -> None:
-        super().__init__(
-            name,
-            transport,
-            cache=cache,
-            strict=strict,
-            char_timeout=char_timeout,
-            response_timeout=response_timeout,
-            nak_backoff=nak_backoff,
-            line_byte_time=line_byte_time,
-            timeout=timeout,
-            connect_timeout=connect_timeout,
-            backoff=backoff,
-        )
 
     # -- construction -----------------------------------------------------------------------
     @classmethod

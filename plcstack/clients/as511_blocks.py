@@ -21,10 +21,11 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Sequence
-from typing import Any
 
 from plcstack.clients.as511_link import As511Link
+from plcstack.clients.base import DEFAULT_CONNECT_TIMEOUT, DEFAULT_TIMEOUT
 from plcstack.codecs.as511 import (
+    DEFAULT_CHAR_TIMEOUT,
     MAX_READ_BYTES,
     MAX_WRITE_BYTES,
     BlockInfo,
@@ -51,6 +52,7 @@ from plcstack.errors import (
     ValueEncodeError,
 )
 from plcstack.s5address import S5Address, S5Area, S5Unit
+from plcstack.transports.backoff import Backoff
 from plcstack.transports.base import Transport
 from plcstack.values import pack_ints
 
@@ -122,10 +124,34 @@ class As511Blocks(As511Link):
     """The PG services of spec part B.7 on one :class:`As511Link`, with the block cache."""
 
     def __init__(
-        self, name: str, transport: Transport, *, cache: bool = True, strict: bool = False,
-        **link: Any,
-    ) -> None:  # fmt: skip
-        super().__init__(name, transport, **link)
+        self,
+        name: str,
+        transport: Transport,
+        *,
+        char_timeout: float = DEFAULT_CHAR_TIMEOUT,
+        response_timeout: float | None = None,
+        nak_backoff: float = 0.5,
+        line_byte_time: float | None = None,
+        cache: bool = True,
+        strict: bool = False,
+        timeout: float = DEFAULT_TIMEOUT,
+        connect_timeout: float = DEFAULT_CONNECT_TIMEOUT,
+        backoff: Backoff | None = None,
+    ) -> None:
+        """The link's options and the PG services' own: ``cache`` (block addresses from B_INFO)
+        and ``strict`` (check the 5 leading zero bytes of read answers). The client takes this
+        signature as it is."""
+        super().__init__(
+            name,
+            transport,
+            char_timeout=char_timeout,
+            response_timeout=response_timeout,
+            nak_backoff=nak_backoff,
+            line_byte_time=line_byte_time,
+            timeout=timeout,
+            connect_timeout=connect_timeout,
+            backoff=backoff,
+        )
         self.cache_enabled = cache
         self.strict = strict
         self.block_cache: dict[tuple[int, int], BlockInfo] = {}
