@@ -11,6 +11,7 @@ import argparse
 import asyncio
 from abc import abstractmethod
 from collections.abc import Callable
+from typing import Any
 
 from plcstack.resource import AsyncResource
 
@@ -23,6 +24,7 @@ __all__ = [
     "TcpSimulator",
     "UdpSimulator",
     "add_idle_timeout_argument",
+    "bound_address",
     "check_idle_timeout",
     "idle_timeout_of",
 ]
@@ -121,6 +123,14 @@ class ConnectionCount:
         self.current -= 1
 
 
+def bound_address(sockname: Any, scheme: str, query: str = "") -> tuple[str, int, str]:
+    """Host, port and client URL of a simulator bound at ``sockname`` (a socket's
+    ``getsockname()``), e.g. ``e71+tcp://127.0.0.1:40001``: every network simulator's URL."""
+    host: str = sockname[0]
+    port: int = sockname[1]
+    return host, port, f"{scheme}://{host}:{port}" + (f"?{query}" if query else "")
+
+
 class Simulator(AsyncResource):
     """A running simulator. Close it with ``await sim.aclose()`` or ``async with``."""
 
@@ -150,10 +160,9 @@ class TcpSimulator(Simulator):
 
     def __init__(self, server: asyncio.Server, scheme: str, query: str = "") -> None:
         self.server = server
-        sockname = server.sockets[0].getsockname()
-        self.host: str = sockname[0]
-        self.port: int = sockname[1]
-        self.url = f"{scheme}://{self.host}:{self.port}" + (f"?{query}" if query else "")
+        self.host, self.port, self.url = bound_address(
+            server.sockets[0].getsockname(), scheme, query
+        )
         self._conn_tasks: set[asyncio.Task[None]] = set()
         #: client connections now / at most at once (simulators without per-connection tasks
         #: call ``opened``/``closed`` themselves)
@@ -185,10 +194,9 @@ class UdpSimulator(Simulator):
 
     def __init__(self, transport: asyncio.DatagramTransport, scheme: str, query: str = "") -> None:
         self.transport = transport
-        sockname = transport.get_extra_info("sockname")
-        self.host: str = sockname[0]
-        self.port: int = sockname[1]
-        self.url = f"{scheme}://{self.host}:{self.port}" + (f"?{query}" if query else "")
+        self.host, self.port, self.url = bound_address(
+            transport.get_extra_info("sockname"), scheme, query
+        )
 
     async def aclose(self) -> None:
         self.transport.close()

@@ -281,8 +281,9 @@ class _TcpConnection(asyncio.Protocol):
         self.transport = None
 
 
-class E71TcpSimulator(TcpSimulator):
-    """An E71 on TCP: up to 8 connections at once, one :class:`MelsecMemory` behind all."""
+class _E71Plc:
+    """What the TCP and the UDP E71 simulator share: the PLC behind the module (its memory and
+    code), how it answers (latency, CPU time, mute) and the count of requests received."""
 
     #: seconds added to every answer (network latency); never turns into an end code
     delay = 0.0
@@ -290,6 +291,16 @@ class E71TcpSimulator(TcpSimulator):
     cpu_time = 0.0
     #: swallow requests without answering (a dead link, for timeout tests)
     mute = False
+
+    def _init_plc(self, memory: MelsecMemory, code: Code, abnormal_trailer: bool) -> None:
+        self.memory = memory
+        self.code = code
+        self.abnormal_trailer = abnormal_trailer
+        self.requests = 0
+
+
+class E71TcpSimulator(_E71Plc, TcpSimulator):
+    """An E71 on TCP: up to 8 connections at once, one :class:`MelsecMemory` behind all."""
 
     def __init__(
         self,
@@ -302,13 +313,10 @@ class E71TcpSimulator(TcpSimulator):
         incomplete_timeout: float,
     ) -> None:
         super().__init__(server, "e71+tcp", "code=ascii" if code is Code.ASCII else "")
-        self.memory = memory
-        self.code = code
+        self._init_plc(memory, code, abnormal_trailer)
         self.lower_ok = lower_ok
-        self.abnormal_trailer = abnormal_trailer
         self.incomplete_timeout = incomplete_timeout
         self.connections: set[_TcpConnection] = set()
-        self.requests = 0
 
     async def aclose(self) -> None:
         for conn in list(self.connections):
@@ -350,15 +358,8 @@ class _UdpEndpoint(asyncio.DatagramProtocol):
             self.transport.sendto(out, addr)
 
 
-class E71UdpSimulator(UdpSimulator):
+class E71UdpSimulator(_E71Plc, UdpSimulator):
     """An E71 on UDP: one message per datagram, answered to its source address."""
-
-    #: seconds added to every answer (network latency); never turns into an end code
-    delay = 0.0
-    #: seconds the CPU needs per request; beyond the request's monitoring timer -> 60H
-    cpu_time = 0.0
-    #: swallow requests without answering (a dead link, for timeout tests)
-    mute = False
 
     def __init__(
         self,
@@ -369,10 +370,7 @@ class E71UdpSimulator(UdpSimulator):
         abnormal_trailer: bool,
     ) -> None:
         super().__init__(transport, "e71+udp", "code=ascii" if code is Code.ASCII else "")
-        self.memory = memory
-        self.code = code
-        self.abnormal_trailer = abnormal_trailer
-        self.requests = 0
+        self._init_plc(memory, code, abnormal_trailer)
 
 
 async def start(

@@ -37,7 +37,7 @@ from plcstack.codecs.e71_buffers import (
     RawBufferConnection,
 )
 from plcstack.errors import RemoteProtocolError
-from plcstack.sim.base import Simulator
+from plcstack.sim.base import Simulator, bound_address
 
 __all__ = ["FixedBufferSimulator", "start_fixed_buffer"]
 
@@ -337,9 +337,8 @@ async def start_fixed_buffer(
         server = await loop.create_server(lambda: _TcpConn(sim), host, port)
         sim._server = server
         sockname = server.sockets[0].getsockname()
-    sim.host, sim.port = sockname[0], sockname[1]
     query = [f"code={code_.value}"] if code_ is Code.ASCII else []
     if not procedure:
         query.append("procedure=0")
-    sim.url = f"e71+{transport}://{sim.host}:{sim.port}" + ("?" + "&".join(query) if query else "")
+    sim.host, sim.port, sim.url = bound_address(sockname, f"e71+{transport}", "&".join(query))
     return sim
