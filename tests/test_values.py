@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import pytest
 from hypothesis import example, given
@@ -30,6 +31,7 @@ from plcstack.values import (
     UINT32,
     Endian,
     Scale,
+    ValueType,
     bits_of_points,
     string,
     value_type,
@@ -238,6 +240,32 @@ def test_integers_refuse_out_of_range(vtype: object, bad: object) -> None:
     assert isinstance(vtype, type(INT16))
     with pytest.raises(ValueEncodeError, match=vtype.name):
         vtype.encode(bad, 16)
+
+
+@pytest.mark.parametrize(
+    ("vtype", "point_bits", "lo", "hi", "name"),
+    [
+        (INT16, 16, -32768, 32767, "int16"),
+        (UINT32, 16, 0, 2**32 - 1, "uint32"),
+        (BCD16, 16, 0, 9999, "bcd16"),
+        (KZ, 16, 0, 999, "kz"),
+        # a raw point takes both readings of its bits: signed and unsigned
+        (RAW, 16, -32768, 65535, "a 16-bit point"),
+        (RAW, 8, -128, 255, "a 8-bit point"),
+    ],
+)
+def test_integer_types_take_their_bounds_and_refuse_past_them_in_one_wording(
+    vtype: ValueType[Any], point_bits: int, lo: int, hi: int, name: str
+) -> None:
+    for edge in (lo, hi):
+        points = vtype.encode(edge, point_bits)
+        # a raw point reads back unsigned; every other type reads back what was written
+        back = edge & ((1 << point_bits) - 1) if vtype is RAW else edge
+        assert vtype.decode_many(points, 1, point_bits) == [back]
+    for bad in (lo - 1, hi + 1):
+        with pytest.raises(ValueEncodeError) as info:
+            vtype.encode(bad, point_bits)
+        assert info.value.message == f"{bad!r} cannot be written as {name}: outside {lo}..{hi}"
 
 
 @given(st.integers(-(2**31), 2**31 - 1), st.sampled_from([BIG, LITTLE]), st.sampled_from([8, 16]))

@@ -235,6 +235,15 @@ def as_integer(value: object, type_name: str) -> int:
     return value
 
 
+def as_integer_in(value: object, type_name: str, lo: int, hi: int) -> int:
+    """``value`` as an integer ``lo..hi`` for ``type_name``; anything else is refused, in the
+    same words for every integer type (the integers, BCD, a raw point)."""
+    v = as_integer(value, type_name)
+    if not lo <= v <= hi:
+        raise refuse(value, type_name, f"outside {lo}..{hi}")
+    return v
+
+
 def as_number(value: object, type_name: str) -> float:
     """``value`` as a float for ``type_name``; a bool, a non-number or an overflow is refused."""
     if isinstance(value, bool) or not isinstance(value, int | float):

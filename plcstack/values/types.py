@@ -17,7 +17,7 @@ from plcstack.values.core import (
     Point,
     ValueType,
     WordOrder,
-    as_integer,
+    as_integer_in,
     as_number,
     refuse,
 )
@@ -63,10 +63,7 @@ class _Int(NumericType[int]):
         return raw
 
     def to_raw(self, value: object) -> int:
-        v = as_integer(value, self.name)
-        if not self._lo <= v <= self._hi:
-            raise refuse(value, self.name, f"outside {self._lo}..{self._hi}")
-        return v & ((1 << self.bits) - 1)
+        return as_integer_in(value, self.name, self._lo, self._hi) & ((1 << self.bits) - 1)
 
 
 class _Float32(NumericType[float]):
@@ -158,10 +155,7 @@ class _BCD(NumericType[int]):
         return _bcd_digits(raw, self._digits, self.name)
 
     def to_raw(self, value: object) -> int:
-        v = as_integer(value, self.name)
-        hi = 10**self._digits - 1
-        if not 0 <= v <= hi:
-            raise refuse(value, self.name, f"outside 0..{hi}")
+        v = as_integer_in(value, self.name, 0, 10**self._digits - 1)
         return _to_bcd(v, self._digits)
 
 
@@ -250,11 +244,8 @@ class _Raw(ValueType[int | bool]):
     ) -> list[Point]:
         if point_bits <= 1:
             return BOOL.encode(value, 1)
-        v = as_integer(value, f"a {point_bits}-bit point")
         lo, hi = -(1 << (point_bits - 1)), (1 << point_bits) - 1
-        if not lo <= v <= hi:
-            raise refuse(value, f"a {point_bits}-bit point", f"outside {lo}..{hi}")
-        return [v & hi]
+        return [as_integer_in(value, f"a {point_bits}-bit point", lo, hi) & hi]
 
 
 class _KY(NumericType[tuple[int, int]]):
