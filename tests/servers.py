@@ -17,10 +17,11 @@ Usage (the fixtures ``mosquitto`` and ``influxd`` are registered in ``tests/conf
         mosquitto.start()                 # same port again, same persistence directory
         mosquitto.restart()               # both
 
-The port is picked once (bind to port 0, close, hand it to the server) and kept across
-``restart()`` so clients reconnect to the same address. With ``persistence=True`` (the default)
-the broker keeps persistent sessions and their queued QoS 1/2 messages across a restart (it saves
-its database on SIGTERM), which is what a store-and-forward test needs from the subscriber side.
+The port is picked once (``tests.ports.free_port``: reserved for this process, outside the range
+the kernel hands out) and kept across ``restart()`` so clients reconnect to the same address.
+With ``persistence=True`` (the default) the broker keeps persistent sessions and their queued
+QoS 1/2 messages across a restart (it saves its database on SIGTERM), which is what a
+store-and-forward test needs from the subscriber side.
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ from typing import Self
 
 import pytest
 
+from tests.ports import free_port
+
 __all__ = [
     "Influxd",
     "Mosquitto",
@@ -58,14 +61,6 @@ START_TIMEOUT = 10.0
 
 class ServerUnavailable(RuntimeError):
     """The server binary is missing or did not come up; the message says why."""
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    """A port nothing listens on right now (the kernel's choice for port 0)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 def _accepts(host: str, port: int) -> bool:

@@ -23,6 +23,7 @@ import plcstack
 from plcstack.cli import _all_parsers, build_parser, main
 from plcstack.logs import install_trace
 from plcstack.sim import e71 as e71_sim
+from tests.ports import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -77,9 +78,7 @@ def test_sim_start_up_errors_are_exit_2_with_one_line(
 
 
 def test_plc_failure_is_exit_1_with_one_line(capsys: pytest.CaptureFixture[str]) -> None:
-    with socket.socket() as sock:  # a port nobody listens on
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+    port = free_port()  # nobody listens there
     assert main(["read", f"e71+tcp://127.0.0.1:{port}", "D0"]) == 1
     assert "cannot connect" in _one_error_line(capsys.readouterr().err)
 

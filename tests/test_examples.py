@@ -13,6 +13,7 @@ from plcstack.cli.demo import example_config
 from plcstack.poll.config import parse_config
 from plcstack.poll.engine import Poller, Quality
 from plcstack.sim import e71, s5lan
+from tests.ports import free_ports_in_a_row
 
 
 def _default_port(simulator: str) -> int:
@@ -60,34 +61,9 @@ def test_write_config(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     assert capsys.readouterr().out == example_config()
 
 
-def _free_base_port() -> int:
-    """A port N with N, N+1 and N+2 free right now (bound together, then released)."""
-    import socket
-
-    for _ in range(50):
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            base: int = probe.getsockname()[1]
-        if base > 65000:
-            continue
-        sockets = []
-        try:
-            for port in range(base, base + 3):
-                sock = socket.socket()
-                sockets.append(sock)
-                sock.bind(("127.0.0.1", port))
-            return base
-        except OSError:
-            continue
-        finally:
-            for sock in sockets:
-                sock.close()
-    raise AssertionError("no three consecutive free ports on 127.0.0.1")
-
-
 async def test_base_port_moves_the_config_and_its_sim_commands_together(tmp_path: Path) -> None:
     # the sim commands the written file shows start simulators exactly where its URLs point
-    base = _free_base_port()
+    base = free_ports_in_a_row(3)
     target = tmp_path / "plant.toml"
     argv = ["demo", "--write-config", str(target), "--base-port", str(base)]
     assert await asyncio.to_thread(main, argv) == 0

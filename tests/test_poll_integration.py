@@ -14,7 +14,6 @@ import importlib.util
 import io
 import json
 import os
-import socket
 import subprocess
 import sys
 from argparse import Namespace
@@ -30,6 +29,7 @@ from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.demo import available_protocols
 from plcstack.poll.engine import Poller, Quality, Sample
 from tests.aio_helpers import ends_quietly
+from tests.ports import free_port
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -73,13 +73,6 @@ class DelayProxy:
             task.cancel()
         await asyncio.gather(*self.tasks, return_exceptions=True)
         await self.server.wait_closed()
-
-
-def closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-    return port  # nothing listens here any more: connects are refused
 
 
 @dataclass(frozen=True)
@@ -210,7 +203,7 @@ async def test_dead_slow_and_restarting_plcs_do_not_disturb_a_good_one(proto: Pr
     restart_port = restart.port
     plcs = (
         PlcConfig("good", good.url, tags),
-        PlcConfig("dead", f"{proto.scheme}://127.0.0.1:{closed_port()}", tags),
+        PlcConfig("dead", f"{proto.scheme}://127.0.0.1:{free_port()}", tags),
         PlcConfig("slow", f"{proto.scheme}://127.0.0.1:{slow_port}", tags),
         PlcConfig("restart", restart.url, tags),
     )

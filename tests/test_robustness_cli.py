@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import socket
 import sys
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -24,6 +23,7 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.melsec_memory import MelsecMemory
+from tests.ports import free_port
 from tests.robust_helpers import MisbehavingProxy, record_loop_errors
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -117,9 +117,7 @@ async def _bad_address_over_tcp(name: str) -> None:
 
 async def _bad_address_with_plc_unreachable() -> None:
     """The address is checked before connecting: a typo is exit 2 even with the PLC offline."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]  # closed again: nobody listens there
+    port = free_port()  # nobody listens there
     url = f"e71+tcp://127.0.0.1:{port}"
     code, err, _ = await _cli("read", url, "Q5")
     assert code == 2 and len(err) == 1 and url in err[0] and "read Q5" in err[0], err

@@ -16,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import re
-import socket
 import time
 from collections.abc import Callable
 from typing import Any
@@ -32,6 +31,7 @@ from plcstack.poll.ticker import Ticker
 from plcstack.sim import e71 as sim_e71
 from plcstack.sim.melsec_memory import MelsecMemory
 from tests.aio_helpers import eventually, poll_tasks_left
+from tests.ports import free_port
 from tests.test_poll_engine import tag
 
 GROUPS = {"fast": 0.01, "slow": 0.03}
@@ -64,12 +64,6 @@ def _memory() -> MelsecMemory:
     return memory
 
 
-def _closed_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 class Fleet:
     """Fresh simulators and the poller's config for one run."""
 
@@ -83,7 +77,7 @@ class Fleet:
         self.sims["mute"] = await sim_e71.start(_memory())
         self.sims["mute"].__class__ = _MuteAfter
         self.sims["isolate"] = await sim_e71.start(_memory())
-        down = f"e71+tcp://127.0.0.1:{_closed_port()}"
+        down = f"e71+tcp://127.0.0.1:{free_port()}"
         url = {name: sim.url for name, sim in self.sims.items()}
         plcs = (
             PlcConfig(

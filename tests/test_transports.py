@@ -9,14 +9,7 @@ import pytest
 from plcstack.errors import ConnectFailed, ConnectionLost
 from plcstack.transports import Backoff, TcpTransport, UdpTransport
 from tests.aio_helpers import ends_quietly
-
-
-def free_port() -> int:
-    """A port nothing listens on (bound and released; good enough on loopback)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-    return port
+from tests.ports import free_port
 
 
 async def test_tcp_roundtrip_eof_and_reopen() -> None:
