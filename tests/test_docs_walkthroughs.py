@@ -17,15 +17,19 @@ each a test of its own. The ``toml`` blocks of a page's walkthroughs whose first
   server's ``&`` line: what it printed when it started). ``# exit N`` (and a reason after it)
   is the exit code instead; comment-only lines after it are still the output.
 
-Every port the block and its files name is replaced by a free one, the same one wherever it
-repeats, so a walkthrough neither needs nor takes its documented ports. At the end everything
-started is stopped; a background command that ended early with an error fails the test.
+Every port the block and its files name is replaced by a free one (``tests.ports``: reserved
+for this process, never one the kernel hands out meanwhile), the same one wherever it repeats,
+so a walkthrough neither needs nor takes its documented ports. After each line, a background
+command that has ended fails the test with what it printed. A walkthrough has :data:`BUDGET`
+seconds in all, less than pytest's own timeout, so whatever it started is stopped at the end
+even when it hangs; and a process it starts gets SIGTERM from the kernel if this one dies.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
 import os
 import re
 import shlex
@@ -37,7 +41,7 @@ from pathlib import Path
 import pytest
 
 from plcstack.cli import build_parser
-from tests.servers import free_port
+from tests.ports import free_port
 from tests.test_docs import _run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,6 +61,15 @@ SERVERS = {"sim", "gateway", "serve"}
 PORT = re.compile(r"(?:127\.0\.0\.1:|--port[ =]|-p |port = |--metrics-port )(\d{4,5})\b")
 #: bound for one command, and for a server to come up
 TIMEOUT = 30.0
+#: bound for a whole walkthrough (pytest's timeout is 60 s: the stop must run before it)
+BUDGET = 45.0
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: the kernel sends it SIGTERM when this process ends, so a test
+    process killed by a timeout leaves no broker or subscriber behind."""
+    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
 
 
 @dataclass
@@ -168,6 +181,7 @@ class Walkthrough:
         self.page, self.capsys, self.cwd = page, capsys, cwd
         self.tasks: list[asyncio.Task[int]] = []
         self.procs: list[asyncio.subprocess.Process] = []
+        self.logs: list[Path] = []
         self.env = dict(os.environ)
         path = [str(Path(sys.executable).parent), self.env.get("PATH", ""), "/usr/sbin", "/sbin"]
         self.env["PATH"] = os.pathsep.join(path)
@@ -218,6 +232,7 @@ class Walkthrough:
             stderr=asyncio.subprocess.PIPE,
             cwd=self.cwd,
             env=self.env,
+            preexec_fn=_die_with_parent,
         )
         try:
             async with asyncio.timeout(TIMEOUT):
@@ -245,29 +260,55 @@ class Walkthrough:
                 cwd=self.cwd,
                 env=self.env,
                 start_new_session=True,
+                preexec_fn=_die_with_parent,
             )
         finally:
             out.close()
         self.procs.append(proc)
+        self.logs.append(log)
         named = [command] + [
             _text(self.cwd / arg) for arg in argv[1:] if (self.cwd / arg).is_file()
         ]
         ports = sorted({int(m.group(1)) for text in named for m in PORT.finditer(text)})
         await _ports_accept(ports, proc, log)
+        assert proc.returncode is None, f"{command}: ended: {_text(log)}"
 
     async def run(self, steps: list[Step], ports: dict[str, str]) -> None:
         for step in steps:
             command = _moved(step.command.removesuffix("&").strip(), ports)
             step.expected = [_moved(line, ports) for line in step.expected]
-            if command.startswith("plcstack "):
-                await self.plcstack(step, command)
-            elif step.background:
-                await self.start(command)
-            else:
-                await self.shell(step, command)
-        for task in self.tasks:  # a background command that gave up is a failed walkthrough
+            try:
+                async with asyncio.timeout(TIMEOUT):
+                    if command.startswith("plcstack "):
+                        await self.plcstack(step, command)
+                    elif step.background:
+                        await self.start(command)
+                    else:
+                        await self.shell(step, command)
+            except TimeoutError:
+                raise AssertionError(
+                    f"{self.page}: {command}: no end within {TIMEOUT:g} s{self.background()}"
+                ) from None
+            self.check_background(command)
+
+    def check_background(self, after: str) -> None:
+        """Every background command still runs: one that ended, even with exit 0, took away
+        what the next lines need (a server, a worker)."""
+        for task in self.tasks:
             if task.done():
-                assert task.exception() is None and task.result() == 0, f"{self.page}: {task}"
+                ended = repr(task.exception()) if task.exception() else f"exit {task.result()}"
+                raise AssertionError(f"{self.page}: after {after}: a plcstack job ended: {ended}")
+        for proc, log in zip(self.procs, self.logs, strict=True):
+            assert proc.returncode is None, (
+                f"{self.page}: after {after}: {log.name} ended (exit {proc.returncode}): "
+                f"{_text(log)}"
+            )
+
+    def background(self) -> str:
+        """What the background jobs printed so far, for a failure message."""
+        out, err = self.capsys.readouterr()
+        logs = "".join(f"\n--- {log.name}:\n{_text(log)}" for log in self.logs)
+        return f"\n--- plcstack jobs:\n{out}{err}{logs}"
 
     async def stop(self) -> None:
         for task in self.tasks:
@@ -303,7 +344,10 @@ async def test_walkthrough_runs_as_written(
     monkeypatch.chdir(tmp_path)  # plcstack's relative paths, as the shell lines' are
     walk = Walkthrough(page, capsys, tmp_path)
     try:
-        await walk.run(steps, ports)
+        async with asyncio.timeout(BUDGET):
+            await walk.run(steps, ports)
+    except TimeoutError:
+        raise AssertionError(f"{page}: not done within {BUDGET:g} s{walk.background()}") from None
     finally:
         await walk.stop()
 
