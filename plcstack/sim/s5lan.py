@@ -39,6 +39,7 @@ from plcstack.sim.base import (
     TcpSimulator,
     add_idle_timeout_argument,
     check_idle_timeout,
+    close_writer,
     idle_timeout_of,
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
@@ -176,7 +177,7 @@ async def _handle(
         # D.A4: the module supports one connection; the extra one is closed at once so the
         # second client fails fast instead of waiting for an answer that never comes.
         state.refused += 1
-        writer.close()
+        await close_writer(writer)
         return
     state.active += 1
     state.writers.add(writer)
@@ -216,7 +217,7 @@ async def _handle(
     finally:
         state.active -= 1
         state.writers.discard(writer)
-        writer.close()  # not abort(): an Err 6 answer before a close must still go out
+        await close_writer(writer)  # not abort(): an Err 6 answer before a close must go out
 
 
 async def _answer(
