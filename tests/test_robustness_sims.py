@@ -30,6 +30,7 @@ from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.e71_fixed import FixedBufferSimulator, start_fixed_buffer
 from plcstack.url import parse_url
+from tests.aio_helpers import eventually
 from tests.robust_helpers import capture_request, mutations, record_loop_errors
 
 # PLCSTACK_FUZZ_SCALE=10 for a longer exploratory run (the default keeps the file fast)
@@ -89,14 +90,6 @@ async def _udp_fuzz(host: str, port: int, frames: list[bytes], seed: int) -> Non
         await asyncio.sleep(0.05)
 
 
-async def _settle(cond: Callable[[], bool], seconds: float = 2.0) -> None:
-    """Wait (bounded) until the simulator has noticed all fuzz connections are gone."""
-    for _ in range(int(seconds / 0.01)):
-        if cond():
-            return
-        await asyncio.sleep(0.01)
-
-
 async def _roundtrip(url: str, address: str, seed: int, **opts: Any) -> list[bytes]:
     """A fresh client writes a new value and reads it back; returns captured request frames."""
     value = random.Random(seed).randrange(1, 0xFF)
@@ -116,7 +109,7 @@ TCP_CASES: dict[str, tuple[SimStarter, str]] = {
     "e71-tcp-binary": (lambda: e71_sim.start(), "D100"),
     "e71-tcp-ascii": (lambda: e71_sim.start(code="ascii"), "D100"),
     "s5lan": (lambda: s5lan_sim.start(), "MW100"),
-    "as511-tcp": (lambda: as511_sim.start(char_timeout=0.05), "MB10"),
+    "as511-tcp": (lambda: as511_sim.start(), "MB10"),
     "fetchwrite-raw": (lambda: fw_sim.start(), "MW100"),
     "fetchwrite-mk": (lambda: fw_sim.start(mk=True), "MW100"),
 }
@@ -131,9 +124,9 @@ async def test_tcp_simulator_survives_garbage(name: str) -> None:
             frames = await _roundtrip(sim.url, address, 1)
             await _tcp_fuzz(sim.host, sim.port, frames, seed=zlib.crc32(name.encode()))
             if name == "s5lan":  # one connection only (D.A4): the fuzz ones must be released
-                await _settle(lambda: sim.active_connections == 0)
+                await eventually(lambda: sim.active_connections == 0, "fuzz connections gone")
             elif name.startswith("e71"):
-                await _settle(lambda: not sim.connections)
+                await eventually(lambda: not sim.connections, "fuzz connections gone")
             await _roundtrip(sim.url, address, 2)
             await _roundtrip(sim.url, address, 3)
         finally:
@@ -211,7 +204,7 @@ async def test_e71_fixed_buffer_simulator_survives_garbage(
                 await _udp_fuzz(sim.host, sim.port, [frame], seed=21)
             else:
                 await _tcp_fuzz(sim.host, sim.port, [frame], seed=22)
-                await _settle(lambda: sim._tcp is None)
+                await eventually(lambda: sim._tcp is None, "fuzz connection gone")
             await _fixed_check(sim, (4, 5, 6))
         finally:
             await sim.aclose()
@@ -220,21 +213,25 @@ async def test_e71_fixed_buffer_simulator_survives_garbage(
 
 async def test_as511_pty_simulator_survives_garbage() -> None:
     async with record_loop_errors() as errors:
-        sim = await as511_sim.start_pty(char_timeout=0.05)
+        sim = await as511_sim.start_pty()
         try:
             frames = await _roundtrip(sim.url, "MB10", 1)
             rng = random.Random(31 * SCALE)
             payloads = [rng.randbytes(rng.randrange(1, 200)) for _ in range(10)]
             for frame in frames:
                 payloads += mutations(frame, rng, 15)
+            await eventually(lambda: sim.idle, "line idle")  # the last DLE ACK is in
+            sent = sim.received
             for p in payloads:  # a PG that talks nonsense, then lets go of the port mid-frame
                 fd = os.open(sim.path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
                 try:
-                    os.write(fd, p)
+                    sent += os.write(fd, p)
                     await asyncio.sleep(0.002)
                 finally:
                     os.close(fd)
-            await asyncio.sleep(0.1)  # past the character timeout: the AG is idle again
+            # every byte through the pty (the kernel passes them on in its own time), handled,
+            # and the AG back from its character timeout
+            await eventually(lambda: sim.received == sent and sim.idle, "garbage taken, line idle")
             await _roundtrip(sim.url, "MB10", 2)
             await _roundtrip(sim.url, "MB10", 3)
         finally:

@@ -15,6 +15,7 @@ against the simulator match a real 9600 baud line.
 from __future__ import annotations
 
 import argparse
+import array
 import asyncio
 import contextlib
 import logging
@@ -32,6 +33,7 @@ from plcstack.codecs.as511 import (
     FN_SYSTEM_PARAMETERS,
     FN_WRITE,
     AGConnection,
+    AGState,
     Idled,
     Request,
 )
@@ -42,6 +44,7 @@ from plcstack.sim.base import (
     TcpSimulator,
     add_idle_timeout_argument,
     check_idle_timeout,
+    close_writer,
     idle_timeout_of,
 )
 from plcstack.sim.s5memory import BLOCK_HEADER_BYTES, BlockType, S5AccessError, S5Memory
@@ -194,12 +197,21 @@ class AS511Machine:
         return b"\x00" + struct.pack(f">{entries}H", *words)
 
     # -- one line ------------------------------------------------------------------------------
+    def new_line(self) -> AGConnection:
+        """The AG's side of one new line (a connection, a serial port), with this machine's
+        timing."""
+        return AGConnection(char_timeout=self.char_timeout, tx_byte_time=self.byte_time)
+
     async def serve_line(
-        self, read: Callable[[], Awaitable[bytes]], write: Callable[[bytes], None]
+        self,
+        read: Callable[[], Awaitable[bytes]],
+        write: Callable[[bytes], None],
+        ag: AGConnection | None = None,
     ) -> None:
-        """Run the AG on one line until ``read`` returns b"" (EOF)."""
+        """Run the AG (``ag``, or a :meth:`new_line`) on one line until ``read`` returns b""
+        (EOF)."""
         loop = asyncio.get_running_loop()
-        ag = AGConnection(char_timeout=self.char_timeout, tx_byte_time=self.byte_time)
+        ag = ag if ag is not None else self.new_line()
         while True:
             try:
                 async with asyncio.timeout_at(ag.deadline):
@@ -319,7 +331,7 @@ async def start(
             # callback (which calls task.exception()) from logging a spurious error on 3.11.
             pass
         finally:
-            writer.close()
+            await close_writer(writer)
 
     server = await asyncio.start_server(handle, host, port)
     query = f"baud={baud}" if baud else ""
@@ -348,13 +360,45 @@ class PtySimulator(Simulator):
         self.url = f"as511://{self.path}{query}"
         self._queue: asyncio.Queue[bytes] = asyncio.Queue()
         self._pending = bytearray()
+        self._ag = machine.new_line()
+        self._handling = False  # the AG works through bytes it has read
+        #: bytes read from the PG side so far (a pty passes them on in the kernel's own time:
+        #: a test that wrote N bytes waits for this to count them before it looks at
+        #: :attr:`idle`)
+        self.received = 0
         self._task: asyncio.Task[None] | None = None
         self._closed = False
 
     def _start(self) -> None:
         loop = asyncio.get_running_loop()
         loop.add_reader(self._master, self._on_readable)
-        self._task = loop.create_task(self.machine.serve_line(self._queue.get, self._write))
+        self._task = loop.create_task(self.machine.serve_line(self._read, self._write, self._ag))
+
+    async def _read(self) -> bytes:
+        """The next bytes from the PG; asked for once the AG has handled the ones before."""
+        self._handling = False
+        data = await self._queue.get()
+        self._handling = True
+        return data
+
+    @property
+    def idle(self) -> bool:
+        """The line is quiet: no byte from the PG waits to be read or handled, the AG has no
+        job under way (its character timeout ended any half-received one) and its answers are
+        all written. A PG that starts talking before this (after noise on the line, or a PG
+        that let go mid-job) has its first bytes taken as part of what came before."""
+        import fcntl  # POSIX only, as the pty itself
+        import termios
+
+        unread = array.array("i", [0])
+        fcntl.ioctl(self._master, termios.FIONREAD, unread)
+        return (
+            not unread[0]
+            and not self._handling
+            and self._queue.empty()
+            and not self._pending
+            and self._ag.state is AGState.IDLE
+        )
 
     def _on_readable(self) -> None:
         try:
@@ -364,6 +408,7 @@ class PtySimulator(Simulator):
         except OSError:
             return  # EIO while no slave is open: nothing to read
         if data:
+            self.received += len(data)
             self._queue.put_nowait(data)
 
     def _write(self, data: bytes) -> None:
