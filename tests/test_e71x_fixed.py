@@ -7,11 +7,13 @@ from __future__ import annotations
 import asyncio
 import itertools
 from collections.abc import AsyncIterator
+from typing import Any
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from plcstack.clients.e71 import E71Client
 from plcstack.clients.e71_fixed import E71BroadcastReceiver, E71FixedBufferClient
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.e71 import Code
@@ -30,6 +32,7 @@ from plcstack.errors import (
     RemoteProtocolError,
 )
 from plcstack.sim.e71_fixed import FixedBufferSimulator, start_fixed_buffer
+from plcstack.transports.tcp import TcpTransport
 from plcstack.url import parse_url
 from tests.aio_helpers import ends_quietly
 
@@ -347,3 +350,13 @@ async def test_udp_broadcast_receive() -> None:
             await sim.aclose()
         with pytest.raises(PlcTimeout):
             await rx.receive(timeout=0.05)
+
+
+@pytest.mark.parametrize("client_class", [E71FixedBufferClient, E71Client])
+def test_both_e71_clients_take_the_code_one_way(client_class: type[Any]) -> None:
+    # the fixed-buffer client and the E71 client read their ``code`` option alike
+    transport = TcpTransport("127.0.0.1", 5000)
+    assert client_class("plc1", transport, code="ascii").code is Code.ASCII
+    assert client_class("plc1", transport, code=Code.BINARY).code is Code.BINARY
+    with pytest.raises(AddressError, match="plc1: code must be binary or ascii, not 'ebcdic'"):
+        client_class("plc1", transport, code="ebcdic")

@@ -59,6 +59,7 @@ from plcstack.codecs.e71 import (
     parse_address,
     unit_error,
 )
+from plcstack.codecs.e71_wire import as_code
 from plcstack.diagnose import Failure, e71_hint
 from plcstack.errors import (
     AddressError,
@@ -74,7 +75,7 @@ from plcstack.transports.udp import UdpTransport
 from plcstack.url import PlcUrl
 from plcstack.values import FLOAT32, INT32, Endian, plain_words
 
-__all__ = ["MAX_POINTS", "E71Client"]
+__all__ = ["MAX_POINTS", "E71Client", "client_code"]
 
 #: a reply type passed through :meth:`E71Client._reply_or_raise` unchanged
 R = TypeVar("R")
@@ -83,6 +84,15 @@ R = TypeVar("R")
 MAX_POINTS = 256
 #: most (address, count) word reads a client keeps checked and encoded (a poller reads a few)
 _READ_CACHE = 1024
+
+
+def client_code(code: Code | str, plc: str) -> Code:
+    """The frame coding a client of ``plc`` was configured with (the E71 and the fixed-buffer
+    client alike); anything but binary or ascii is the user's :class:`AddressError`."""
+    try:
+        return as_code(code)
+    except LocalProtocolError:
+        raise AddressError(f"code must be binary or ascii, not {code!r}", plc=plc) from None
 
 
 def _default_timer(timeout: float) -> int:
@@ -119,10 +129,7 @@ class E71Client(E71CommandsMixin):
         super().__init__(
             name, transport, timeout=timeout, connect_timeout=connect_timeout, backoff=backoff
         )
-        try:
-            self.code = code if isinstance(code, Code) else Code(code)
-        except ValueError:
-            raise AddressError(f"code must be binary or ascii, not {code!r}", plc=name) from None
+        self.code = client_code(code, name)
         if not (0 <= pc <= 0x40 or pc == 0xFF):
             raise AddressError(f"PC number {pc:#x} is not 00H-40H or FFH", plc=name)
         self.pc = pc

@@ -32,6 +32,7 @@ from plcstack.clients.base import (
     Points,
     as_points,
 )
+from plcstack.clients.e71 import client_code
 from plcstack.clients.options import COMMON, choice, flag
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.e71 import Code
@@ -93,10 +94,7 @@ class E71FixedBufferClient(Client):
         super().__init__(
             name, transport, timeout=timeout, connect_timeout=connect_timeout, backoff=backoff
         )
-        try:
-            self.code = code if isinstance(code, Code) else Code(code)
-        except ValueError:
-            raise AddressError(f"code must be binary or ascii, not {code!r}", plc=name) from None
+        self.code = client_code(code, name)
         if not procedure and self.code is Code.ASCII:
             raise AddressError("without procedure the data are always binary (§8.2)", plc=name)
         self.procedure = procedure
