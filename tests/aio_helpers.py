@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-__all__ = ["Handler", "ends_quietly", "eventually", "poll_tasks_left"]
+__all__ = ["Handler", "blocked_until", "ends_quietly", "eventually", "poll_tasks_left"]
 
 Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
 
@@ -45,6 +46,19 @@ async def eventually(condition: Callable[[], object], what: str, timeout: float 
         if loop.time() > deadline:
             raise AssertionError(f"not within {timeout:g} s: {what}")
         await asyncio.sleep(0.01)
+
+
+def blocked_until(condition: Callable[[], object], what: str, timeout: float = 10.0) -> None:
+    """:func:`eventually` that blocks the event loop meanwhile: for "the bytes wait in the
+    kernel, the loop has not read them", which only a loop that does not run can promise.
+
+    The peer that sends them must not need this loop (a thread, another process, the kernel).
+    """
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {timeout:g} s: {what}")
+        time.sleep(0.005)
 
 
 def poll_tasks_left() -> list[asyncio.Task[Any]]:

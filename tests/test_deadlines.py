@@ -8,6 +8,7 @@ import gc
 import weakref
 
 from plcstack.transports.deadlines import Deadlines, deadlines_of, future_factory
+from tests.aio_helpers import eventually
 
 
 class _Conn:
@@ -26,7 +27,7 @@ async def test_callbacks_run_in_time_order_never_early() -> None:
     now = loop.time()
     for i, delay in enumerate([0.04, 0.01, 0.03, 0.0, 0.02]):
         deadlines.call_at(now + delay, conns[i].on_timer)
-    await asyncio.sleep(0.1)
+    await eventually(lambda: len(log) == 5, "all five deadlines came due")
     assert [name for name, _, _ in log] == ["c3", "c1", "c4", "c2", "c0"]
     resolution = deadlines._resolution
     assert all(fired >= when - resolution for _, when, fired in log)
@@ -41,7 +42,7 @@ async def test_a_later_entry_armed_first_does_not_delay_an_earlier_one() -> None
     late, early = _Conn(log, "late"), _Conn(log, "early")
     deadlines.call_at(loop.time() + 5.0, late.on_timer)
     deadlines.call_at(loop.time() + 0.01, early.on_timer)
-    await asyncio.sleep(0.05)
+    await eventually(lambda: log, "the early deadline came due")
     assert [name for name, _, _ in log] == ["early"]
 
 
@@ -55,7 +56,8 @@ async def test_a_connection_that_is_gone_is_not_kept_or_called() -> None:
     del conn
     gc.collect()
     assert alive() is None
-    await asyncio.sleep(0.03)
+    assert len(deadlines) == 1
+    await eventually(lambda: len(deadlines) == 0, "the dead entry's time came and it was dropped")
     assert log == []
 
 

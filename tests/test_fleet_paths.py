@@ -37,7 +37,7 @@ from plcstack.poll.samples import flatten
 from plcstack.sim import e71 as sim_e71
 from plcstack.transports.tcp import TcpTransport
 from plcstack.transports.udp import UdpTransport
-from tests.aio_helpers import ends_quietly
+from tests.aio_helpers import blocked_until, ends_quietly, eventually
 from tests.test_client_base import LineClient
 from tests.test_codec_fast_paths import _decode_all
 
@@ -144,10 +144,12 @@ async def test_quiet_and_input_waiting_see_what_the_loop_has_not_read(stale_peer
         # nothing in the kernel, nothing delivered
         assert transport.quiet() and not transport.input_waiting()
         transport.write(b"ASK 2\n")
-        time.sleep(0.2)  # noqa: ASYNC251 - blocks the loop: the answer waits in the kernel
+        # the loop does not run: the answer waits in the kernel
+        blocked_until(transport.input_waiting, "the answer is in the kernel")
         assert not transport.quiet() and transport.input_waiting()
         assert transport.take_received() == []
-        await asyncio.sleep(0.05)  # the loop reads it now: queued, so still not quiet
+        # the loop reads it now: queued, so still not quiet
+        await eventually(lambda: not transport.input_waiting(), "the loop read the answer")
         assert not transport.quiet() and not transport.input_waiting()
         assert transport.take_received() == [b"2\n"]
         assert transport.quiet()
@@ -166,10 +168,14 @@ async def test_stale_bytes_are_found(stale_peer: Any, where: str) -> None:
         stale_peer.extra_after = b"2"
         stale_peer.delay = 0.02
         assert await client.read("ASK 2") == [2]
-        if where == "delivered":
-            await asyncio.sleep(0.2)  # the loop has read the stale answer into the protocol
-        else:
-            time.sleep(0.2)  # noqa: ASYNC251 - the stale answer waits in the kernel
+        transport = client.transport
+        if where == "delivered":  # the loop has read the stale answer into the protocol
+            await eventually(
+                lambda: not transport.quiet() and not transport.input_waiting(),
+                "the stale answer is delivered",
+            )
+        else:  # the stale answer waits in the kernel
+            blocked_until(transport.input_waiting, "the stale answer is in the kernel")
         # never 77: the stale answer is found, the connection (UDP: the socket, a new local
         # port) replaced, the request sent anew
         assert await client.read("ASK 3") == [3]
@@ -190,10 +196,10 @@ async def test_peer_close_between_requests_reconnects(stale_server: Any, where: 
     async with client:
         assert await client.read("ASK 5") == [5]
         if where == "delivered":
-            await asyncio.sleep(0.2)
-        else:
-            time.sleep(0.2)  # noqa: ASYNC251 - the end of stream waits in the kernel
-            assert client.transport.input_waiting()
+            await eventually(lambda: not client.transport.is_open, "the end of stream is seen")
+        else:  # the end of stream waits in the kernel
+            blocked_until(client.transport.input_waiting, "the end of stream is in the kernel")
+            assert client.transport.is_open
         assert await client.read("ASK 6") == [6]
         assert stale_server.connections == 2
         assert client.stats.errors == 0
@@ -294,7 +300,7 @@ async def test_poller_batches_give_the_samples_iteration_gives() -> None:
             if len(seen) >= 50:
                 break
     assert all(s.quality.name == "GOOD" for s in seen)
-    await asyncio.sleep(0.05)  # more samples wait in the buffer
+    await eventually(lambda: poller.queue.items, "more samples wait in the buffer")
     await poller.aclose()
     buffered = list(poller.queue.items)
     assert buffered, "the test needs scans left in the buffer"
@@ -359,11 +365,11 @@ async def test_as511_chattering_line_still_ends_at_the_transaction_bound() -> No
         async with connect(f"as511+tcp://127.0.0.1:{port}?timeout=0.3") as plc:
             with pytest.raises(PlcError):  # the first byte is no DLE: the transaction aborts
                 await plc.read("DB1.DW0", 1)
-            started = time.monotonic()
-            # the next one waits for the line's silence after an abort (B5.5), which never comes
+            # the next one waits for the line's silence after an abort (B5.5), which never
+            # comes; a hang would end in the outer bound's TimeoutError, which is no PlcTimeout
             with pytest.raises(PlcTimeout, match="stuck"):
-                await plc.read("DB1.DW0", 1)
-            assert time.monotonic() - started < 10
+                async with asyncio.timeout(10):
+                    await plc.read("DB1.DW0", 1)
     finally:
         server.close()
 

@@ -16,6 +16,7 @@ from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.e71 import E71TcpSimulator
 from plcstack.sim.e71_fixed import INBOX_BYTES, start_fixed_buffer
+from tests.aio_helpers import eventually
 
 IDLE = 0.3
 
@@ -41,10 +42,11 @@ async def test_e71_idle_sockets_expire_and_free_the_eight_connections() -> None:
     assert isinstance(sim, E71TcpSimulator)
     async with sim:
         writers = await _idle_sockets(sim.port, 8)
-        await asyncio.sleep(0.05)
-        assert sim.connection_count.current == 8
-        await asyncio.sleep(IDLE * 3)
-        assert sim.idle_closed == 8 and sim.connection_count.current == 0
+        await eventually(lambda: sim.connection_count.current == 8, "the eight are accepted")
+        await eventually(
+            lambda: sim.idle_closed == 8 and sim.connection_count.current == 0,
+            "the idle sockets expired",
+        )
         async with connect(sim.url + "?timeout=1") as plc:
             assert await plc.read("D0") == [0]
         for w in writers:
@@ -76,7 +78,7 @@ async def test_fetchwrite_and_as511_tcp_cap_their_connections(kind: str) -> None
         sim = await as511_sim.start(max_connections=2)
     async with sim:
         held = await _idle_sockets(sim.port, 2)
-        await asyncio.sleep(0.05)
+        await eventually(lambda: sim.connection_count.current == 2, "the two are accepted")
         reader, writer = await asyncio.open_connection("127.0.0.1", sim.port)
         assert await _closed_by_peer(writer, reader)
         assert sim.refused_connections == 1
