@@ -275,7 +275,10 @@ async def play(
             state(await read_awaited(client, peer.port))
         assert not client._lock.locked()
         await peer.idle()
-        await asyncio.sleep(0.01)  # whatever the peer sent last has reached us
+        await eventually(  # whatever the peer sent last has reached us
+            lambda: not client.transport.is_open or not client.transport.input_waiting(),
+            "the peer's last bytes are delivered",
+        )
         state(await read_awaited(client, peer.port))
         await peer.idle()
         record.append(len(peer.received))
@@ -452,19 +455,30 @@ async def test_refused_while_stale_bytes_wait(where: str) -> None:
             assert await client.read("D0", 4) == WORDS
             peer.replies.append(lambda n: [n, 0.02, b"\x81\x00"])  # a late second answer
             assert await client.read("D0", 4) == WORDS
+            transport = client.transport
+            socket = transport._transport  # type: ignore[attr-defined]
+            assert isinstance(socket, asyncio.ReadTransport)
+            if where == "in-kernel":
+                # the peer writes from this loop, so a blocked loop would block it too: the
+                # loop stops reading this socket instead (before the late answer, 20 ms away)
+                socket.pause_reading()
             await peer.idle()
             if where == "delivered":
-                await asyncio.sleep(0.02)
+                await eventually(
+                    lambda: not transport.quiet() and not transport.input_waiting(),
+                    "the late answer is delivered",
+                )
             else:
-                import time
-
-                time.sleep(0.05)  # noqa: ASYNC251 - blocks the loop: the bytes wait in the kernel
+                await eventually(transport.input_waiting, "the late answer is in the kernel")
+                assert transport.take_received() == []  # not delivered
             requests = len(peer.received)
             before = dataclasses.asdict(client.stats)
             done = Done()
             assert not client.start_read("D0", 4, done)
             assert dataclasses.asdict(client.stats) == before and len(peer.received) == requests
             assert done.calls == []
+            if where == "in-kernel":
+                socket.resume_reading()
             # the general path finds them and reconnects; then the callback path again
             assert await client.read("D0", 4) == WORDS
             assert peer.connections == 2 and client.stats.errors == 1

@@ -30,6 +30,7 @@ from plcstack.codecs.e71 import (
 from plcstack.sim import e71 as sim_e71
 from plcstack.sim.e71 import execute
 from plcstack.sim.melsec_memory import CpuState, MelsecAccessError, MelsecMemory
+from tests.aio_helpers import eventually
 
 
 def ref(text: str) -> DeviceRef:
@@ -142,12 +143,19 @@ def test_monitor_registration_is_shared_and_kind_checked() -> None:
     assert execute(mem, MonitorWords()).values == (42,)  # type: ignore[union-attr]
 
 
+def _buffered(sim: sim_e71.E71TcpSimulator) -> bool:
+    """Whether a connection of ``sim`` holds part of a request."""
+    return any(conn.codec.buffered for conn in sim.connections)
+
+
 async def test_incomplete_tcp_request_is_discarded_after_timeout() -> None:
     sim = await sim_e71.start(incomplete_timeout=0.05)
+    assert isinstance(sim, sim_e71.E71TcpSimulator)
     try:
         reader, writer = await asyncio.open_connection(sim.host, sim.port)
         writer.write(bytes.fromhex("01 FF 0A 00 64 00"))  # half a request
-        await asyncio.sleep(0.3)
+        await eventually(lambda: _buffered(sim), "the half request arrived")
+        await eventually(lambda: not _buffered(sim), "the half request was discarded")
         writer.write(bytes.fromhex("01 FF 0A 00 64 00 00 00 20 44 01 00"))
         assert await asyncio.wait_for(reader.readexactly(4), 5) == bytes.fromhex("81 00 00 00")
         writer.close()

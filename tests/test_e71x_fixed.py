@@ -34,7 +34,7 @@ from plcstack.errors import (
 from plcstack.sim.e71_fixed import FixedBufferSimulator, start_fixed_buffer
 from plcstack.transports.tcp import TcpTransport
 from plcstack.url import parse_url
-from tests.aio_helpers import ends_quietly
+from tests.aio_helpers import ends_quietly, eventually
 
 B, A = Code.BINARY, Code.ASCII
 
@@ -217,7 +217,8 @@ async def settle() -> None:
 async def test_partner_to_plc_waits_for_the_plc_program(sim: FixedBufferSimulator) -> None:
     async with fixed_client(sim.url, timeout=5) as fb:
         send = asyncio.create_task(fb.send([0x0001, 0x0002, 0x0003]))
-        await settle()
+        await eventually(lambda: sim.pending() == 1, "the PLC received the data")
+        await settle()  # an early E0 00 (there must be none) would arrive now
         assert sim.pending() == 1
         assert not send.done()  # E0 00 only after "received data taken" (§8.1)
         assert await sim.receive(timeout=5) == (1, 2, 3)
@@ -290,7 +291,7 @@ async def test_client_reports_error_end_codes() -> None:
 async def test_simulator_records_62h_and_70h() -> None:
     async with await start_fixed_buffer(ack_timeout=0.3) as sim:
         reader, writer = await asyncio.open_connection(sim.host, sim.port)
-        await settle()
+        await eventually(lambda: sim.connected, "the simulator accepted its partner")
         send = asyncio.create_task(sim.send([1, 2]))
         assert await reader.readexactly(8) == hx("60 00 02 00 01 00 02 00")
         writer.write(hx("E0 52"))

@@ -131,16 +131,15 @@ async def test_nak_and_dead_line_answer_promptly_and_recover() -> None:
                 await fw.read("MB0")
             assert fw_nak.value.code == 0x01
             m.busy = False
-            m.mute = True  # a dead cable: answered with the timeout codes within the deadline
-            loop = asyncio.get_running_loop()
-            t0 = loop.time()
+            # a dead cable: answered with the timeout codes (char_timeout 0.3 s each) before
+            # the clients' own deadlines, which would raise PlcTimeout instead
+            m.mute = True
             with pytest.raises(PlcErrorResponse) as lan_dead:
                 await lan.read("MB0")
             assert lan_dead.value.code == 9
             with pytest.raises(PlcErrorResponse) as fw_dead:
                 await fw.read("MB0")
             assert fw_dead.value.code == 0x04
-            assert loop.time() - t0 < 2.0  # char_timeout 0.3 s each, far below client deadlines
             m.mute = False
             for _ in range(50):  # the AS511 side comes back (after its backoff)
                 try:

@@ -35,6 +35,7 @@ from plcstack.poll.samples import Quality, Sample
 from plcstack.sim import e71, fetchwrite
 from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.sim.s5memory import Area, S5Memory
+from tests.aio_helpers import eventually
 from tests.scan_helpers import scan
 
 pytestmark = pytest.mark.asyncio(loop_scope="module")
@@ -297,7 +298,8 @@ async def test_points_that_are_no_value_of_the_type_read_bad_out_of_range(plant:
 async def test_unchanged_samples_keep_the_time_of_the_last_change(plant: Plant) -> None:
     node = plant.node(plant.anonymous, "press1", "force")
     first = await wait_for(node, good)
-    await asyncio.sleep(0.2)  # several more scans of the same value
+    skipped = plant.server.unchanged
+    await eventually(lambda: plant.server.unchanged >= skipped + 3, "more scans, same value")
     again = await node.read_data_value()
     assert again.SourceTimestamp == first.SourceTimestamp
     assert plant.server.unchanged > 0

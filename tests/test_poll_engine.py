@@ -14,6 +14,7 @@ from plcstack.clients.base import Client
 from plcstack.errors import AddressError, ConnectionLost, PlcError, PlcTimeout
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller, Quality, Sample, format_stats
+from tests.aio_helpers import eventually
 from tests.poll_fakes import FakeClient
 
 URL = "e71+tcp://127.0.0.1:1"  # never dialled: the fakes stand in for the client
@@ -236,7 +237,9 @@ async def test_concurrency_limit_bounds_requests_in_flight() -> None:
         for _ in range(20):
             await asyncio.sleep(0.01)
             assert sum(f.in_flight for f in fakes.values()) <= 3
-        assert sum(f.in_flight for f in fakes.values()) == 3
+        await eventually(
+            lambda: sum(f.in_flight for f in fakes.values()) == 3, "three requests in flight"
+        )
         gate.set()
         await collect(poller, lambda s: len({x.plc for x in s}) == 8)
 

@@ -30,7 +30,7 @@ from plcstack.s5address import S5Area, S5Unit
 from plcstack.sim import s5lan
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.transports.backoff import Backoff
-from tests.aio_helpers import ends_quietly
+from tests.aio_helpers import ends_quietly, eventually
 from tests.cli_helpers import cli_in_process
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -322,7 +322,7 @@ async def test_module_reset_mid_session_reconnects(sim: s5lan.S5LanSimulator) ->
     async with client_for(sim) as plc:
         assert await plc.read("MB0") == [0]
         sim.close_clients()
-        await asyncio.sleep(0.05)
+        await eventually(lambda: not plc.transport.is_open, "the client saw the module close")
         assert await plc.read("MB0") == [0]
         assert plc.stats.connects == 2
 

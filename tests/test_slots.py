@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plcstack.clients.flight import ConnectTurns, Slots
+from tests.aio_helpers import eventually
 
 
 def _free(slots: Slots) -> int:
@@ -209,7 +210,8 @@ async def test_connect_turns_let_at_once_connects_run_and_queue_the_rest() -> No
             running.remove(i)
 
     tasks = [asyncio.create_task(connect(i)) for i in range(5)]
-    await asyncio.sleep(0.01)
+    await eventually(lambda: len(running) == 2, "two connects got their turn")
+    await asyncio.sleep(0.01)  # a third (there must be none) would get in now
     assert sorted(running) == [0, 1]  # the first two, in arrival order
     go.set()
     await asyncio.gather(*tasks)
