@@ -85,11 +85,12 @@ async def test_standby_and_stale_or_malformed_status(mosquitto: Mosquitto) -> No
         await until(lambda: a.live == {"a"})
         await b.set_online(True)
         await until(lambda: a.live == {"a", "b"})
+        seen = (a.messages, b.messages)
         async with aiomqtt.Client(mosquitto.host, mosquitto.port) as other:
             await other.publish("plcstack/workers/junk", b"\xff not json", qos=1, retain=True)
             # the late Will of an earlier run of b: b says again that it is online
             stale = b'{"state":"offline","worker":"b","incarnation":"b/1"}'
             await other.publish("plcstack/workers/b", stale, qos=1, retain=True)
-        await until(lambda: a.live == {"a", "b"})
-        await asyncio.sleep(0.2)
+        # each has seen the junk, the stale Will and b's record published again
+        await until(lambda: a.messages >= seen[0] + 3 and b.messages >= seen[1] + 3)
         assert a.live == {"a", "b"} and b.live == {"a", "b"}
