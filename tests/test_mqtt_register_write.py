@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import asyncio
 import socket
+from pathlib import Path
 
 import pytest
 
 aiomqtt = pytest.importorskip("aiomqtt")
 
-from plcstack.north.mqtt import guarded_client  # noqa: E402
+from plcstack.north.mqtt_client import guarded_client  # noqa: E402
 
 
 async def _register_then_close(client: object) -> list[dict[str, object]]:
@@ -51,3 +52,22 @@ async def test_aiomqtts_own_client_logs_the_bad_descriptor() -> None:
     """What the guard is for: without it the loop reports an unhandled OSError."""
     errors = await _register_then_close(aiomqtt.Client("127.0.0.1", 1))
     assert errors and isinstance(errors[0].get("exception"), OSError), errors
+
+
+def test_every_mqtt_connection_of_the_product_uses_the_guarded_client() -> None:
+    """The sink and the scale-out presence both meet resets (the presence's when a worker loses
+    its broker); a new ``aiomqtt.Client(`` anywhere else would bring the race back."""
+    root = Path(__file__).resolve().parents[1] / "plcstack"
+    builders = [
+        f"{path.relative_to(root)}:{n}"
+        for path in sorted(root.rglob("*.py"))
+        for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+        if "aiomqtt.Client(" in line
+    ]
+    assert builders == [], builders
+    users = {
+        path.relative_to(root).as_posix()
+        for path in root.rglob("*.py")
+        if "guarded_client(aiomqtt)(" in path.read_text(encoding="utf-8")
+    }
+    assert users == {"north/mqtt.py", "scale/presence.py"}, users

@@ -30,7 +30,6 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-import functools
 import logging
 import os
 import socket
@@ -53,6 +52,7 @@ from plcstack.north.layout import (
     write_response_payload,
     write_response_topic,
 )
+from plcstack.north.mqtt_client import guarded_client
 from plcstack.north.mqtt_errors import PahoLog, connect_error, reason_of
 from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.write_values import split_element
@@ -66,40 +66,6 @@ log = logging.getLogger("plcstack.north.mqtt")
 
 #: write requests waiting for their PLC at once; more are refused with ``busy``
 MAX_PENDING_WRITES = 256
-
-
-@functools.cache  # one class per aiomqtt module, not one per session
-def guarded_client(aiomqtt: Any) -> Any:
-    """``aiomqtt.Client`` whose socket-write registration survives a socket closed first.
-
-    paho asks for a writer from the thread that connects; aiomqtt then schedules
-    ``loop.add_writer(fd)`` with the descriptor read at that moment. A connect that fails
-    (a broker that requires a client certificate closes at once) closes the socket before the
-    loop runs it: asyncio logs "Bad file descriptor", or, if a PLC connection got the same
-    descriptor number meanwhile, the writer lands on that socket. Here the loop checks, when it
-    runs, that the socket still has that descriptor.
-    """
-
-    class GuardedClient(aiomqtt.Client):  # type: ignore[misc]
-        def _on_socket_register_write(self, client: Any, userdata: Any, sock: Any) -> None:
-            fileno = sock.fileno()
-            loop = self._loop
-
-            def callback() -> None:
-                # as aiomqtt's: a failed write means the connection broke
-                try:
-                    client.loop_write()
-                except Exception as exc:
-                    if not self._disconnected.done():
-                        self._disconnected.set_exception(exc)
-
-            def register() -> None:
-                if fileno >= 0 and sock.fileno() == fileno:  # closed: -1
-                    loop.add_writer(fileno, callback)
-
-            loop.call_soon_threadsafe(register)
-
-    return GuardedClient
 
 
 class Writer(Protocol):

@@ -31,6 +31,7 @@ from urllib.parse import urlsplit
 
 import aiomqtt
 
+from plcstack.north.mqtt_client import guarded_client
 from plcstack.scale.lease import CoordinationError
 
 __all__ = ["Presence", "parse_mqtt_url"]
@@ -144,7 +145,7 @@ class Presence:
 
     async def _session(self) -> None:
         will = aiomqtt.Will(self.topic, self._record("offline"), qos=1, retain=True)
-        async with aiomqtt.Client(
+        async with guarded_client(aiomqtt)(
             self.host,
             self.port,
             identifier=f"plcstack-{self.incarnation}",
