@@ -66,6 +66,7 @@ class ScriptedE71:
         self.received: list[bytes] = []  # every request's bytes, in order
         self.sources: set[object] = set()
         self.playing = 0  # scripts being played now
+        self.closed = 0  # connections this peer ended (its close, or the client's seen)
         self._tasks: set[asyncio.Task[None]] = set()
         self._server: asyncio.Server | None = None
         self._udp: asyncio.DatagramTransport | None = None
@@ -148,6 +149,7 @@ class ScriptedE71:
             pass
         finally:
             writer.close()
+            self.closed += 1
 
     async def idle(self) -> None:
         """Wait until every script has been played to its end."""
@@ -270,6 +272,7 @@ async def play(
             await client.open()
         peer.replies.extend(script)
         _started.clear()
+        closed = peer.closed
         if path == "callback":
             outcome = await read_callback(client, peer.port, check=False)
         else:
@@ -278,6 +281,8 @@ async def play(
         # the state once whatever the peer sent last has reached us (the bytes after an answer
         # and the end of stream come in their own time)
         await peer.idle()
+        if peer.closed > closed:  # the peer closed: the end of stream reaches us in its own time
+            await eventually(lambda: not client.transport.is_open, "the client saw the close")
         await eventually(
             lambda: not client.transport.is_open or not client.transport.input_waiting(),
             "the peer's last bytes are delivered",
