@@ -59,7 +59,7 @@ WALKTHROUGHS = [
 #: plcstack commands that serve something and say "listening on" when they do
 SERVERS = {"sim", "gateway", "serve"}
 PORT = re.compile(r"(?:127\.0\.0\.1:|--port[ =]|-p |port = |--metrics-port )(\d{4,5})\b")
-#: bound for one command, and for a server to come up
+#: bound for one line: a command to end, a server to come up (run() holds every line to it)
 TIMEOUT = 30.0
 #: bound for a whole walkthrough (pytest's timeout is 60 s: the stop must run before it)
 BUDGET = 45.0
@@ -160,18 +160,17 @@ def _text(path: Path) -> str:
 
 
 async def _ports_accept(ports: list[int], proc: asyncio.subprocess.Process, log: Path) -> None:
-    async with asyncio.timeout(TIMEOUT):
-        for port in ports:
-            while True:
-                assert proc.returncode is None, f"ended early: {_text(log)}"
-                try:
-                    _, writer = await asyncio.open_connection("127.0.0.1", port)
-                except OSError:
-                    await asyncio.sleep(0.02)
-                    continue
-                writer.close()
-                await writer.wait_closed()
-                break
+    for port in ports:
+        while True:
+            assert proc.returncode is None, f"ended early: {_text(log)}"
+            try:
+                _, writer = await asyncio.open_connection("127.0.0.1", port)
+            except OSError:
+                await asyncio.sleep(0.02)
+                continue
+            writer.close()
+            await writer.wait_closed()
+            break
 
 
 class Walkthrough:
@@ -216,12 +215,11 @@ class Walkthrough:
 
     async def wait_listening(self, task: asyncio.Task[int], step: Step) -> None:
         seen = ""
-        async with asyncio.timeout(TIMEOUT):
-            while "listening on" not in seen:
-                assert not task.done(), f"ended before listening: {task.result()}; {seen}"
-                out, err = self.capsys.readouterr()
-                seen += out + err
-                await asyncio.sleep(0.02)
+        while "listening on" not in seen:
+            assert not task.done(), f"ended before listening: {task.result()}; {seen}"
+            out, err = self.capsys.readouterr()
+            seen += out + err
+            await asyncio.sleep(0.02)
         _check(step.expected, seen, f"{self.page}: {step.command}")
 
     async def shell(self, step: Step, command: str, stdin: bytes | None = None) -> None:
@@ -235,9 +233,8 @@ class Walkthrough:
             preexec_fn=_die_with_parent,
         )
         try:
-            async with asyncio.timeout(TIMEOUT):
-                out, err = await proc.communicate(stdin)
-        finally:
+            out, err = await proc.communicate(stdin)
+        finally:  # also when the line's time ran out (see run)
             if proc.returncode is None:
                 proc.kill()
                 await proc.wait()
