@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from plcstack.resource import AsyncResource
+from plcstack.transports.peer import peer_address
 
 __all__ = [
     "DEFAULT_IDLE_TIMEOUT",
@@ -155,10 +156,12 @@ class ConnectionCount:
 
 def bound_address(sockname: Any, scheme: str, query: str = "") -> tuple[str, int, str]:
     """Host, port and client URL of a simulator bound at ``sockname`` (a socket's
-    ``getsockname()``), e.g. ``e71+tcp://127.0.0.1:40001``: every network simulator's URL."""
+    ``getsockname()``), e.g. ``e71+tcp://127.0.0.1:40001``: every network simulator's URL. The
+    URL names the address as the logs and the audit do (:func:`peer_address`: an IPv6 host in
+    brackets, as a URL needs it)."""
     host: str = sockname[0]
     port: int = sockname[1]
-    return host, port, f"{scheme}://{host}:{port}" + (f"?{query}" if query else "")
+    return host, port, f"{scheme}://{peer_address(sockname)}" + (f"?{query}" if query else "")
 
 
 class Simulator(AsyncResource):
