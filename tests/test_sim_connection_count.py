@@ -2,18 +2,9 @@
 
 from __future__ import annotations
 
-import asyncio
-
 import plcstack
 from plcstack.sim import e71, s5lan
-
-
-async def _settle(predicate: object, timeout: float = 2.0) -> None:
-    assert callable(predicate)
-    deadline = asyncio.get_running_loop().time() + timeout
-    while not predicate():
-        assert asyncio.get_running_loop().time() < deadline, "condition not reached"
-        await asyncio.sleep(0.01)
+from tests.aio_helpers import eventually
 
 
 async def test_e71_counts_current_and_peak_connections() -> None:
@@ -25,9 +16,9 @@ async def test_e71_counts_current_and_peak_connections() -> None:
             async with plcstack.connect(sim.url) as b:
                 await b.read("D0", 1)
                 assert (count.current, count.peak) == (2, 2)
-            await _settle(lambda: count.current == 1)
+            await eventually(lambda: count.current == 1, "1 connection(s) open", 2.0)
             await a.read("D0", 1)
-        await _settle(lambda: count.current == 0)
+        await eventually(lambda: count.current == 0, "0 connection(s) open", 2.0)
         assert (count.peak, count.total) == (2, 2)
 
 
@@ -37,5 +28,5 @@ async def test_stream_simulators_count_through_track() -> None:
         async with plcstack.connect(sim.url) as plc:
             await plc.read("DB1.DW0", 1)
             assert (count.current, count.peak) == (1, 1)
-        await _settle(lambda: count.current == 0)
+        await eventually(lambda: count.current == 0, "0 connection(s) open", 2.0)
         assert count.total == 1
