@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import asyncio
 
+import nats.js.errors
 import pytest
 
 from plcstack.scale.lease import CoordinationError, LeaseStore, lease_key
+from tests.robust_helpers import record_loop_errors
 from tests.scale_helpers import CutProxy
 from tests.servers import NatsServer, free_port
 
@@ -125,3 +127,35 @@ async def test_a_renew_without_the_server_gives_no_answer(nats_server: NatsServe
     finally:
         await a.close()
         await proxy.aclose()
+
+
+async def test_a_refusal_that_meets_the_stop_of_its_worker_is_read(
+    nats_server: NatsServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker stops (a cancel) just as NATS refuses a create: the stop wins, and the
+    refusal is read, not left for asyncio to report as "Task exception was never retrieved"
+    (as Python 3.11's wait_for leaves it)."""
+    store = LeaseStore(nats_server.url, worker="a", ttl=2.0)
+    await store.connect()
+    started = asyncio.Event()
+
+    async def refused_as_the_stop_comes(key: str, value: bytes) -> int:
+        started.set()
+        try:
+            await asyncio.sleep(10)
+        except asyncio.CancelledError:
+            refused = nats.js.errors.KeyWrongLastSequenceError(description="wrong last sequence: 4")
+            raise refused from None
+        raise AssertionError("not cancelled")
+
+    try:
+        monkeypatch.setattr(store._kv, "create", refused_as_the_stop_comes)
+        async with record_loop_errors() as errors:
+            acquiring = asyncio.create_task(store.acquire("press1"))
+            await started.wait()
+            acquiring.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await acquiring
+        assert errors.describe() == []
+    finally:
+        await store.close()

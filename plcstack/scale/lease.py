@@ -26,8 +26,9 @@ import contextlib
 import json
 import re
 import uuid
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import nats
 import nats.errors
@@ -40,6 +41,28 @@ from nats.js.kv import KeyValue
 from plcstack.errors import PlcError
 
 __all__ = ["CoordinationError", "Lease", "LeaseStore", "lease_key"]
+
+_T = TypeVar("_T")
+
+
+def _read_outcome(task: asyncio.Future[Any]) -> None:
+    if not task.cancelled():
+        task.exception()  # read: never "Task exception was never retrieved"
+
+
+async def _bounded(request: Awaitable[_T], timeout: float) -> _T:
+    """``request`` to NATS, bounded by ``timeout`` as ``asyncio.wait_for`` bounds it, with its
+    outcome always read.
+
+    On Python 3.11 ``wait_for`` runs the request in a task of its own. When the worker stops
+    (a cancel) just as NATS answers with an error (a ``create`` refused: the key exists), the
+    cancel wins and the task's error is left unread, which asyncio reports at garbage
+    collection as "Task exception was never retrieved" though nothing went wrong.
+    """
+    task = asyncio.ensure_future(request)
+    task.add_done_callback(_read_outcome)
+    return await asyncio.wait_for(task, timeout)
+
 
 _PLAIN_NAME = re.compile(r"[-_A-Za-z0-9]+")
 
@@ -137,7 +160,7 @@ class LeaseStore:
 
         try:
             # bounded here: with unlimited reconnects, nats-py retries a first connect forever
-            self._nc = await asyncio.wait_for(
+            self._nc = await _bounded(
                 nats.connect(
                     self.url,
                     name=f"plcstack {self.incarnation}",
@@ -150,7 +173,7 @@ class LeaseStore:
                     reconnected_cb=reconnected,
                     error_cb=error,
                 ),
-                timeout=self.connect_timeout,
+                self.connect_timeout,
             )
         except Exception as exc:
             raise CoordinationError(
@@ -221,9 +244,7 @@ class LeaseStore:
         sent = loop.time()
         self.ops += 1
         try:
-            revision = await asyncio.wait_for(
-                kv.create(key, self._value(plc)), timeout=self.op_timeout
-            )
+            revision = await _bounded(kv.create(key, self._value(plc)), self.op_timeout)
         except nats.js.errors.KeyWrongLastSequenceError:
             if key in self._maybe_ours:
                 return await self._adopt(plc, key)
@@ -240,7 +261,7 @@ class LeaseStore:
             return None
         self.ops += 1
         try:
-            entry = await asyncio.wait_for(kv.get(key), timeout=self.op_timeout)
+            entry = await _bounded(kv.get(key), self.op_timeout)
         except nats.js.errors.KeyNotFoundError:
             self._maybe_ours.discard(key)
             return None  # gone meanwhile: the next acquire creates it
@@ -270,9 +291,9 @@ class LeaseStore:
         sent = asyncio.get_running_loop().time()
         self.ops += 1
         try:
-            revision = await asyncio.wait_for(
+            revision = await _bounded(
                 kv.update(lease.key, self._value(lease.plc), last=lease.revision),
-                timeout=self.op_timeout,
+                self.op_timeout,
             )
         except nats.js.errors.KeyWrongLastSequenceError:
             if lease.key in self._maybe_ours:
@@ -295,7 +316,7 @@ class LeaseStore:
         if kv is None:
             return False
         try:
-            entry = await asyncio.wait_for(kv.get(lease.key), timeout=self.op_timeout)
+            entry = await _bounded(kv.get(lease.key), self.op_timeout)
             record = json.loads(entry.value or b"")
         except (TimeoutError, ValueError, nats.errors.Error):
             return False
@@ -319,9 +340,7 @@ class LeaseStore:
             return False
         self.ops += 1
         try:
-            await asyncio.wait_for(
-                kv.delete(lease.key, last=lease.revision), timeout=self.op_timeout
-            )
+            await _bounded(kv.delete(lease.key, last=lease.revision), self.op_timeout)
         except nats.js.errors.APIError:
             self._maybe_ours.discard(lease.key)
             return False  # no longer ours: nothing to release
