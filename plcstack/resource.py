@@ -8,11 +8,33 @@ safe to call twice.
 
 from __future__ import annotations
 
+import asyncio
 from abc import ABC, abstractmethod
+from collections.abc import Iterable
 from types import TracebackType
-from typing import Self
+from typing import Any, Self
 
-__all__ = ["AsyncResource"]
+__all__ = ["AsyncResource", "cancel_until_done"]
+
+#: seconds between the cancels of a task that is still running
+_RECANCEL = 0.5
+
+
+async def cancel_until_done(tasks: Iterable[asyncio.Task[Any]]) -> None:
+    """Cancel ``tasks`` and return once each has really ended (their outcome is the caller's
+    to read).
+
+    One cancel is not always enough on Python 3.11: an ``asyncio.wait_for`` whose result
+    arrives together with the cancel returns the result and drops the cancel (ours, or one
+    inside a library: nats-py waits for every request that way), and the task carries on. A
+    resource that stopped its tasks with one cancel and then waited for them could wait for
+    ever; so a task still running is cancelled again every half second.
+    """
+    pending = {task for task in tasks if not task.done()}
+    while pending:
+        for task in pending:
+            task.cancel()
+        _, pending = await asyncio.wait(pending, timeout=_RECANCEL)
 
 
 class AsyncResource(ABC):

@@ -29,6 +29,7 @@ from typing import Any, Protocol
 
 from plcstack.errors import PlcError
 from plcstack.poll.samples import Quality
+from plcstack.resource import cancel_until_done
 from plcstack.transports.backoff import Backoff
 
 __all__ = ["Supervised", "Supervisor"]
@@ -114,11 +115,7 @@ class Supervised:
         task = self.task
         if task is None:
             return
-        # Python 3.11's asyncio.wait_for can swallow a cancellation that arrives together with
-        # its result, and the task then carries on: cancel until it has really ended.
-        while not task.done():
-            task.cancel()
-            await asyncio.wait({task}, timeout=0.5)
+        await cancel_until_done([task])  # one cancel may be dropped on Python 3.11
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await task
 

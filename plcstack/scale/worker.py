@@ -40,6 +40,7 @@ from plcstack.poll.engine import (
     ScanQueue,
     new_connect_turns,
 )
+from plcstack.resource import cancel_until_done
 from plcstack.scale.hrw import owner
 from plcstack.scale.lease import Lease, LeaseStore
 from plcstack.scale.presence import Presence
@@ -203,8 +204,7 @@ class Worker:
         if self._running:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self.presence.aclose(), timeout=2.0)
-        for task in self._tasks:
-            task.cancel()
+        await cancel_until_done(self._tasks)
         await asyncio.gather(*self._tasks, return_exceptions=True)
         if self._standby_timer is not None:
             self._standby_timer.cancel()
