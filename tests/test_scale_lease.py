@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 
 import nats.js.errors
 import pytest
@@ -159,3 +160,21 @@ async def test_a_refusal_that_meets_the_stop_of_its_worker_is_read(
         assert errors.describe() == []
     finally:
         await store.close()
+
+
+async def test_a_store_closed_while_reconnecting_leaves_no_task(nats_server: NatsServer) -> None:
+    """nats-py's reconnecting task ends with the store, also when it drops the cancel of
+    nats-py's close (as a wait_for inside it can on Python 3.11)."""
+    store = LeaseStore(nats_server.url, worker="a", ttl=2.0)
+    await store.connect()
+
+    async def reconnecting_that_drops_a_cancel() -> None:
+        with contextlib.suppress(asyncio.CancelledError):
+            await asyncio.sleep(10)
+        await asyncio.sleep(10)  # goes on reconnecting
+
+    task = asyncio.create_task(reconnecting_that_drops_a_cancel())
+    await asyncio.sleep(0)
+    store._nc._reconnection_task = task  # type: ignore[union-attr]
+    await store.close()
+    assert task.done()

@@ -39,6 +39,7 @@ from nats.js.client import JetStreamContext
 from nats.js.kv import KeyValue
 
 from plcstack.errors import PlcError
+from plcstack.resource import cancel_until_done
 
 __all__ = ["CoordinationError", "Lease", "LeaseStore", "lease_key"]
 
@@ -217,10 +218,22 @@ class LeaseStore:
         self._kv, self._js = kv, js
 
     async def close(self) -> None:
+        """Disconnect; returns once nats-py's own tasks have ended.
+
+        nats-py's close cancels its reconnecting task once and waits for it only briefly; on
+        Python 3.11 that task can drop the cancel (a ``wait_for`` inside it) and go on
+        reconnecting after the store is closed, a task nobody awaits. So it is cancelled until
+        it has ended (:func:`cancel_until_done`).
+        """
         nc, self._nc, self._kv, self._js = self._nc, None, None, None
-        if nc is not None:
-            with contextlib.suppress(Exception):
-                await nc.close()
+        if nc is None:
+            return
+        with contextlib.suppress(Exception):
+            await nc.close()
+        reconnecting = getattr(nc, "_reconnection_task", None)
+        if isinstance(reconnecting, asyncio.Task):
+            await cancel_until_done([reconnecting])
+            await asyncio.gather(reconnecting, return_exceptions=True)
 
     # -- lease operations -------------------------------------------------------------------------
     def _value(self, plc: str) -> bytes:
