@@ -1,7 +1,9 @@
 """CLI behaviour every protocol shares: usage errors are exit 2 with one clear stderr line."""
 
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -35,3 +37,29 @@ def test_console_entry_point_runs_as_module() -> None:
         [sys.executable, "-m", "plcstack", "--help"], capture_output=True, text=True, check=True
     )
     assert "read" in out.stdout and "sim" in out.stdout
+
+
+def test_a_decimal_raw_write_names_the_plc_and_the_type_it_needs(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # refused before anything is sent: nobody needs to listen on port 1
+    assert main(["write", "e71+tcp://127.0.0.1:1", "D100", "1", "12.5"]) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        "plcstack: error: e71+tcp://127.0.0.1:1: write D100: value '12.5' is not an integer or "
+        "true/false; a decimal needs a type: --type float32 (two points per value)"
+    ]
+
+
+def test_a_terminal_that_is_not_utf8_gets_escapes_not_a_crash() -> None:
+    """LANG=de_DE.ISO-8859-1 or a Windows code page: PYTHONIOENCODING=ascii stands in for it."""
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    page = next(p for p in sorted(docs.glob("*.md")) if not p.read_text("utf-8").isascii())
+    text = page.read_text("utf-8")
+    out = subprocess.run(
+        [sys.executable, "-m", "plcstack", "docs", page.stem],
+        capture_output=True,
+        env={**os.environ, "PYTHONIOENCODING": "ascii"},
+        check=False,
+    )
+    assert (out.returncode, out.stderr) == (0, b"")
+    assert out.stdout.decode("ascii") == text.encode("ascii", "backslashreplace").decode("ascii")

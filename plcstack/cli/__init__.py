@@ -25,6 +25,7 @@ import importlib
 import logging
 import sys
 from collections.abc import Iterator, Sequence
+from io import TextIOWrapper  # not ``import io``: the submodule plcstack.cli.io takes ``io``
 from typing import NoReturn
 
 from plcstack import __version__
@@ -164,7 +165,18 @@ def print_error(message: object) -> None:
     _fail("error", message)
 
 
+def _tolerant_output() -> None:
+    """A terminal that is not UTF-8 (``LANG=de_DE.ISO-8859-1``, a Windows code page, a serial
+    console) cannot show every character a page, a tag name or a PLC string holds (a unit ``°C``,
+    Japanese device comments): such a character is written escaped, as ``\\xb0``, instead of
+    ending the command with a UnicodeEncodeError after half its output."""
+    for stream in (sys.stdout, sys.stderr):
+        if isinstance(stream, TextIOWrapper) and stream.errors == "strict":
+            stream.reconfigure(errors="backslashreplace")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    _tolerant_output()
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
