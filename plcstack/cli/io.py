@@ -84,6 +84,11 @@ def parse_value(text: str) -> int | bool:
         number = math.nan
     if number.is_integer():
         return int(number)
+    if math.isfinite(number):  # 12.5: a decimal is a type of several points, not a raw point
+        raise AddressError(
+            f"value {text!r} is not an integer or true/false; "
+            "a decimal needs a type: --type float32 (two points per value)"
+        )
     raise AddressError(f"value {text!r} is not an integer or true/false")
 
 
@@ -160,15 +165,19 @@ async def run_read(args: argparse.Namespace) -> int:
 async def run_write(args: argparse.Namespace) -> int:
     plc = connect(args.url, **_options(args))
     try:
+        # a value that does not parse is reported like any other refusal: with the PLC and
+        # the request, so the line says which of several scripted writes it was
+        try:
+            if args.type == "raw":
+                points: list[int | bool] = [parse_value(v) for v in args.values]
+            else:
+                vtype = value_type(args.type)
+                typed = [_text_value(v, vtype.kind) for v in args.values]
+        except AddressError as exc:
+            raise exc.bind(plc=plc.name, request=f"write {args.address}") from None
         if args.type == "raw":
-            points: list[int | bool] = [parse_value(v) for v in args.values]
             await plc.write(args.address, points)
         else:
-            vtype = value_type(args.type)
-            try:
-                typed = [_text_value(v, vtype.kind) for v in args.values]
-            except AddressError as exc:
-                raise exc.bind(plc=plc.name, request=f"write {args.address}") from None
             await plc.write_as(args.address, vtype, typed, word_order=_order(args))
     finally:
         await plc.aclose()
