@@ -11,10 +11,10 @@ import argparse
 import asyncio
 import contextlib
 from abc import abstractmethod
-from collections.abc import Callable
 from typing import Any
 
 from plcstack.resource import AsyncResource
+from plcstack.transports.guard import IdleWatch
 from plcstack.transports.peer import peer_address
 
 __all__ = [
@@ -94,42 +94,6 @@ def idle_timeout_of(args: argparse.Namespace) -> float | None:
     """The ``--idle-timeout`` of parsed CLI arguments as ``start()`` takes it (0 -> None)."""
     value: float | None = getattr(args, "idle_timeout", DEFAULT_IDLE_TIMEOUT)
     return None if value == 0 else value
-
-
-class IdleWatch:
-    """Calls ``on_idle`` once ``timeout`` seconds passed without :meth:`touch`.
-
-    One timer per connection, re-armed only when it fires (``touch`` just stores the time), so
-    a busy connection costs one attribute write per chunk received.
-    """
-
-    __slots__ = ("_handle", "_last", "_loop", "on_idle", "timeout")
-
-    def __init__(self, timeout: float | None, on_idle: Callable[[], None]) -> None:
-        self.timeout = timeout
-        self.on_idle = on_idle
-        self._loop = asyncio.get_running_loop()
-        self._last = self._loop.time()
-        self._handle: asyncio.TimerHandle | None = None
-        if timeout is not None:
-            self._handle = self._loop.call_later(timeout, self._fire)
-
-    def touch(self) -> None:
-        self._last = self._loop.time()
-
-    def cancel(self) -> None:
-        if self._handle is not None:
-            self._handle.cancel()
-            self._handle = None
-
-    def _fire(self) -> None:
-        assert self.timeout is not None
-        due = self._last + self.timeout
-        if self._loop.time() >= due:
-            self._handle = None
-            self.on_idle()
-        else:
-            self._handle = self._loop.call_at(due, self._fire)
 
 
 class ConnectionCount:

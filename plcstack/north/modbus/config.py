@@ -5,6 +5,8 @@
 endpoint = "127.0.0.1:5020"   # the default: loopback only ("0.0.0.0:502" for the plant network)
 unit_id = 1                   # the unit identifier answered; requests to another get 0x0A
 word_order = "big"            # two-register values: high word first ("little": low word first)
+max_clients = 32              # clients at once; the next one is closed at once (logged once)
+idle_timeout = 600            # seconds a client may send nothing before it is dropped (0: never)
 
 [[plc]]
 name = "press1"
@@ -36,6 +38,8 @@ from plcstack.values import WordOrder
 
 __all__ = [
     "DEFAULT_ENDPOINT",
+    "DEFAULT_IDLE_TIMEOUT",
+    "DEFAULT_MAX_CLIENTS",
     "MapEntry",
     "ModbusSettings",
     "build_map",
@@ -44,6 +48,12 @@ __all__ = [
 ]
 
 DEFAULT_ENDPOINT = "127.0.0.1:5020"
+#: clients at once: enough for the panels and SCADA of a line; a flood of connections (a scan, a
+#: client that leaks sockets) is turned away at the limit instead of taking the process's files
+DEFAULT_MAX_CLIENTS = 32
+#: seconds a client may send nothing: a dead panel (cable pulled, power cut) never says goodbye,
+#: and its connection would count against ``max_clients`` for ever. Longer than any sane poll.
+DEFAULT_IDLE_TIMEOUT = 600.0
 _ADDRESS = re.compile(r"^\s*(hr|ir|co|di)\s*:\s*(\d{1,5})\s*$", re.IGNORECASE)
 _ENDPOINT = re.compile(r"^(?:\[([^\]]+)\]|([^:\[\]]+)):(\d{1,5})$")
 
@@ -56,6 +66,9 @@ class ModbusSettings:
     port: int = 5020
     unit_id: int = 1
     word_order: WordOrder = WordOrder.BIG
+    max_clients: int = DEFAULT_MAX_CLIENTS
+    #: None: never drop a silent client
+    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT
 
     @property
     def endpoint(self) -> str:
@@ -74,10 +87,13 @@ def parse_address(text: object) -> tuple[str, int]:
 
 
 def parse_modbus(table: Any) -> ModbusSettings:
-    """``[modbus]``: endpoint, unit_id, word_order; ConfigError naming the key otherwise."""
+    """``[modbus]``: endpoint, unit_id, word_order, max_clients, idle_timeout; ConfigError
+    naming the key otherwise."""
     if not isinstance(table, dict):
         raise ConfigError("[modbus] must be a table")
-    check_keys(table, ("endpoint", "unit_id", "word_order"), "modbus")
+    check_keys(
+        table, ("endpoint", "unit_id", "word_order", "max_clients", "idle_timeout"), "modbus"
+    )
     endpoint = table.get("endpoint", DEFAULT_ENDPOINT)
     m = _ENDPOINT.match(endpoint) if isinstance(endpoint, str) else None
     if m is None or int(m.group(3)) > 65535:
@@ -92,7 +108,22 @@ def parse_modbus(table: Any) -> ModbusSettings:
         word_order = WordOrder(order)
     except ValueError:
         raise ConfigError(f'[modbus] word_order must be "big" or "little", not {order!r}') from None
-    return ModbusSettings(m.group(1) or m.group(2), int(m.group(3)), unit_id, word_order)
+    clients = table.get("max_clients", DEFAULT_MAX_CLIENTS)
+    if isinstance(clients, bool) or not isinstance(clients, int) or not 1 <= clients <= 10_000:
+        raise ConfigError(f"[modbus] max_clients must be 1..10000, not {clients!r}")
+    idle = table.get("idle_timeout", DEFAULT_IDLE_TIMEOUT)
+    if isinstance(idle, bool) or not isinstance(idle, int | float) or not 0 <= idle < 1e9:
+        raise ConfigError(
+            f"[modbus] idle_timeout must be seconds (0: never drop a silent client), not {idle!r}"
+        )
+    return ModbusSettings(
+        m.group(1) or m.group(2),
+        int(m.group(3)),
+        unit_id,
+        word_order,
+        clients,
+        float(idle) or None,
+    )
 
 
 @dataclass(frozen=True, slots=True)

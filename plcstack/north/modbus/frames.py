@@ -110,6 +110,12 @@ class ModbusServerConnection:
     def receive_data(self, data: bytes) -> None:
         self._buffer += data
 
+    @property
+    def buffered(self) -> int:
+        """Bytes received and not yet taken as requests (a partial frame, or requests the
+        server has not come to yet)."""
+        return len(self._buffer)
+
     def next_request(self) -> Request | None:
         """The next complete request, or None until more data arrived."""
         buf = self._buffer

@@ -18,15 +18,22 @@ or ``plcstack serve modbus plant.toml``. What is answered is in
 Each connection answers its requests in the order they came. A read is answered at once, from
 the image, inside the data callback; a write runs in a task (the PLC's answer is awaited) and
 the requests behind it wait for it. A client that disconnects does not cut a PLC write short:
-the write finishes and its outcome is logged. At most :data:`MAX_PENDING` requests wait per
-connection; beyond that the server stops reading from that client until it caught up.
+the write finishes and its outcome is logged.
+
+Requests are taken from a connection's bytes only when they can be answered: while a write
+waits for its PLC, or while the client does not read its answers (the transport's write buffer
+above its high-water mark), the server stops reading from that client, so what it holds for one
+client is bounded (a client that sent reads and never read the answers grew the server by
+119 MB in 15 s before). The client that does not read is said once in the log; if it also sends
+nothing for ``idle_timeout`` seconds it is dropped. A frame must be complete within
+:data:`~plcstack.transports.guard.FRAME_TIMEOUT` seconds of its first byte, and at most
+``max_clients`` clients are served at once (see :mod:`plcstack.transports.guard`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
@@ -43,14 +50,12 @@ from plcstack.north.writes import WritePath
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Scan
 from plcstack.resource import AsyncResource
+from plcstack.transports.guard import FRAME_TIMEOUT, ClientLimit, FrameDeadline, IdleWatch
 from plcstack.transports.peer import peer_address
 
-__all__ = ["MAX_PENDING", "ModbusCollector", "ModbusServer"]
+__all__ = ["ModbusCollector", "ModbusServer"]
 
 log = logging.getLogger("plcstack.north.modbus")
-
-#: requests one connection may have waiting behind a write before reading from it pauses
-MAX_PENDING = 64
 
 
 class _Connection(asyncio.Protocol):
@@ -58,59 +63,133 @@ class _Connection(asyncio.Protocol):
         self.server = server
         self.codec = ModbusServerConnection()
         self.transport: asyncio.Transport | None = None
-        self.pending: deque[Request] = deque()
         self.writing: asyncio.Task[None] | None = None
         #: the client's address (``host:port``), as the log and the write audit say it
         self.peer: str | None = None
+        #: counted against ``max_clients`` (a refused connection is not)
+        self.admitted = False
+        #: the client does not read: its answers are above the transport's high-water mark
+        self.write_blocked = False
+        self.said_blocked = False
         self.paused = False
+        self.idle: IdleWatch | None = None
+        self.frame: FrameDeadline | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
         self.peer = peer_address(transport.get_extra_info("peername"))
-        self.server._connections.add(self)
+        server = self.server
+        if not server.limit.admit(self.peer):
+            transport.abort()
+            return
+        self.admitted = True
+        server._connections.add(self)
+        self.idle = IdleWatch(server.settings.idle_timeout, self._idle_out)
+        self.frame = FrameDeadline(FRAME_TIMEOUT, self._frame_late)
         log.info("Modbus client %s connected", self.peer or "?")
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self.server._connections.discard(self)
         self.transport = None
-        self.pending.clear()
+        if not self.admitted:
+            return
+        self.admitted = False
+        self.server.limit.release()
+        self.server._connections.discard(self)
+        if self.idle is not None:
+            self.idle.cancel()
+        if self.frame is not None:
+            self.frame.cancel()
         log.info("Modbus client %s disconnected", self.peer or "?")
 
     def data_received(self, data: bytes) -> None:
+        if self.idle is not None:
+            self.idle.touch()
         self.codec.receive_data(data)
-        try:
-            while (request := self.codec.next_request()) is not None:
-                self.pending.append(request)
-        except RemoteProtocolError as exc:
+        self._drain()
+
+    def pause_writing(self) -> None:
+        self.write_blocked = True
+        if not self.said_blocked and self.transport is not None:
+            self.said_blocked = True
+            self.server.slow_clients += 1
             log.warning(
-                "Modbus client %s: %s; closing the connection", self.peer or "?", exc.message
+                "Modbus client %s does not read its answers (%d bytes waiting); not reading its"
+                " requests until it does",
+                self.peer or "?",
+                self.transport.get_write_buffer_size(),
             )
-            self.server.protocol_errors += 1
-            if self.transport is not None:
-                self.transport.close()
-            return
-        if self.writing is None:
-            self._drain()
-        if len(self.pending) > MAX_PENDING and self.transport is not None and not self.paused:
-            self.paused = True
-            self.transport.pause_reading()
+
+    def resume_writing(self) -> None:
+        self.write_blocked = False
+        self._drain()
 
     def _drain(self) -> None:
-        """Answer waiting requests in order until one is a write (that one runs in a task)."""
+        """Answer the requests received, in order, until one is a write (that one runs in a
+        task) or the client stops reading; then read more only if nothing waits."""
         server = self.server
-        while self.pending:
-            request = self.pending.popleft()
+        while self.writing is None and not self.write_blocked and self.transport is not None:
+            try:
+                request = self.codec.next_request()
+            except RemoteProtocolError as exc:
+                log.warning(
+                    "Modbus client %s: %s; closing the connection", self.peer or "?", exc.message
+                )
+                server.protocol_errors += 1
+                self._drop()
+                return
+            if request is None:
+                break
             if request.error == 0 and request.is_write and server.for_us(request):
                 task = asyncio.create_task(self._write(request), name="modbus write")
                 server._writes.add(task)
                 task.add_done_callback(self._write_done)
                 self.writing = task
-                return
+                break
             self._send(server.answer_read(request))
-        if self.paused and self.transport is not None:
+        transport = self.transport
+        if transport is None or self.frame is None:
+            return
+        waiting = self.writing is not None or self.write_blocked
+        # only a frame the client is still sending has a deadline; requests that wait here
+        # for a write or for the client to read are the server's delay, not the client's
+        self.frame.note(not waiting and self.codec.buffered > 0)
+        if waiting and not self.paused:
+            self.paused = True
+            transport.pause_reading()
+        elif not waiting and self.paused:
             self.paused = False
-            self.transport.resume_reading()
+            transport.resume_reading()
+
+    def _drop(self) -> None:
+        """End the connection: closed once its answers are out, aborted if they cannot be (a
+        client that does not read would hold the connection for ever)."""
+        transport = self.transport
+        if transport is None:
+            return
+        if transport.get_write_buffer_size():
+            transport.abort()
+        else:
+            transport.close()
+
+    def _idle_out(self) -> None:
+        self.server.idle_closed += 1
+        log.info(
+            "Modbus client %s sent nothing for %g s; closing the connection",
+            self.peer or "?",
+            self.server.settings.idle_timeout,
+        )
+        self._drop()
+
+    def _frame_late(self) -> None:
+        self.server.protocol_errors += 1
+        log.warning(
+            "Modbus client %s: a frame begun %g s ago is still incomplete; closing the connection",
+            self.peer or "?",
+            FRAME_TIMEOUT,
+        )
+        if self.transport is not None:
+            self.transport.abort()
 
     async def _write(self, request: Request) -> None:
         self._send(await self.server.answer_write(request, peer=self.peer))
@@ -121,8 +200,7 @@ class _Connection(asyncio.Protocol):
         if not task.cancelled() and task.exception() is not None:
             # answer_write turns every failure into an answer; this is a bug, not a PLC's fault
             log.error("Modbus write task failed", exc_info=task.exception())
-            if self.transport is not None:
-                self.transport.close()
+            self._drop()
             return
         if self.transport is not None:
             self._drain()
@@ -154,6 +232,12 @@ class ModbusServer(AsyncResource):
         self.writes = writes if writes is not None else WritePath(poller)
         self.port = self.settings.port
         self.protocol_errors = 0
+        #: connections closed because the client sent nothing for ``idle_timeout`` seconds
+        self.idle_closed = 0
+        #: clients that stopped reading their answers (each said once in the log)
+        self.slow_clients = 0
+        #: clients at once; ``limit.refused`` counts the ones turned away
+        self.limit = ClientLimit(self.settings.max_clients, "Modbus server", log)
         self._server: asyncio.Server | None = None
         self._connections: set[_Connection] = set()
         self._writes: set[asyncio.Task[None]] = set()
@@ -250,8 +334,7 @@ class ModbusServer(AsyncResource):
         if server is not None:
             server.close()
         for connection in list(self._connections):
-            if connection.transport is not None:
-                connection.transport.close()
+            connection._drop()
         if self._writes:
             await asyncio.gather(*self._writes, return_exceptions=True)
         if server is not None:
