@@ -6,6 +6,7 @@ and the same string works in the CLI, the poller's TOML and the Python API.
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass, field
 from urllib.parse import parse_qsl, urlsplit
 
@@ -45,11 +46,31 @@ class PlcUrl:
         return "serial" if self.scheme == "as511" else "tcp"
 
 
+def _with_scheme(text: object) -> str:
+    """What a URL without its scheme was probably meant as: ``10.0.0.5:5000`` or a port alone
+    is the peer, and the protocol is the part that is missing."""
+    if not isinstance(text, str) or not text or "/" in text:
+        return ""
+    peer = f"127.0.0.1:{text}" if text.isdigit() else text
+    if ":" not in peer or not peer.rsplit(":", 1)[1].isdigit():
+        return ""
+    return f"; did you mean e71+tcp://{peer} or s5lan://{peer}?"
+
+
+def _close_schemes(scheme: str) -> str:
+    """``e71`` -> ``e71+tcp or e71+udp``: the protocol without its transport, or a typo."""
+    close = [s for s in URL_FORMS if s.split("+")[0] == scheme.split("+")[0]]
+    close = close or difflib.get_close_matches(scheme, list(URL_FORMS), n=1, cutoff=0.6)
+    return f" (did you mean {' or '.join(close)}?)" if close else ""
+
+
 def parse_url(url: str) -> PlcUrl:
     """Parse and check a PLC URL; every problem is an :class:`AddressError` naming the URL."""
     if not isinstance(url, str) or "://" not in url:
         raise AddressError(
-            f"not a PLC URL (expected SCHEME://..., schemes: {', '.join(URL_FORMS)})", plc=str(url)
+            f"not a PLC URL (expected SCHEME://..., schemes: {', '.join(URL_FORMS)}"
+            f"{_with_scheme(url)})",
+            plc=str(url),
         )
     try:
         parts = urlsplit(url)
@@ -58,7 +79,9 @@ def parse_url(url: str) -> PlcUrl:
     scheme = parts.scheme.lower()
     if scheme not in URL_FORMS:
         raise AddressError(
-            f"unknown scheme {scheme!r}; known schemes: {', '.join(URL_FORMS)}", plc=url
+            f"unknown scheme {scheme!r}{_close_schemes(scheme)}; known schemes: "
+            f"{', '.join(URL_FORMS)}",
+            plc=url,
         )
     needs_host, needs_path = URL_FORMS[scheme]
     options: dict[str, str] = {}
