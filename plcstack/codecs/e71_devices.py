@@ -186,9 +186,25 @@ def _parse(text: str, last: dict[Device, int] | None) -> DeviceRef:
             raise ValueError
     except ValueError:
         raise AddressError(_bad_number(text, upper, device, digits)) from None
-    if not in_range(device, number, 1, last or WIDEST_RANGES):
-        raise AddressError(f"address {text!r}: device number out of range for {device.letters}")
+    ranges = last or WIDEST_RANGES
+    if not in_range(device, number, 1, ranges):
+        raise AddressError(
+            f"address {text!r}: device number out of range for {device.letters}"
+            f" ({_range_text(device, ranges)})"
+        )
     return DeviceRef(device, number)
+
+
+def _range_text(device: Device, last: dict[Device, int]) -> str:
+    """``D0-D6143, D9000-D9255``: the numbers ``device`` takes, in its own notation, so a
+    refused address shows the valid ones instead of sending the user to a table."""
+    letters, width = device.letters, "X" if device.base == 16 else "d"
+    if last[device] < 0:
+        return f"this CPU has no {letters}"
+    text = f"{letters}0-{letters}{last[device]:{width}}"
+    if device in (Device.M, Device.D):
+        text += f", {letters}{SPECIAL_FIRST}-{letters}{SPECIAL_LAST}"
+    return text
 
 
 #: what a digit typed as a letter usually was (``D1O0``, ``DI00``)
