@@ -405,4 +405,9 @@ def value_type(name: str | ValueType[Any]) -> ValueType[Any]:
     m = _STRING_NAME.match(key)
     if m:
         return string(int(m.group(1)), _PADS[m.group(2) or "nul"])
+    if key.split(":")[0] in ("string", "str", "text"):  # "string" without its length
+        raise AddressError(
+            f"value type {name!r}: a string type says its length in characters, "
+            "string:N (NUL-padded) or string:N:space, e.g. string:20"
+        )
     raise AddressError(f"unknown value type {name!r}; types: {', '.join(TYPES)}, string:N[:space]")
