@@ -586,6 +586,12 @@ class _Loader:
             else connect_timeout
         )
         raw_tags = raw.get("tags")
+        if isinstance(raw_tags, list):  # [[plc.tags]]: one bracket pair too many
+            raise self.error(
+                "tags is an array of tables ([[plc.tags]]); write one table [plc.tags] "
+                'with a line per tag: name = { address = "ADDRESS", type = "TYPE" }',
+                "tags",
+            )
         if not isinstance(raw_tags, dict) or not raw_tags:
             raise self.error('no tags: add a [plc.tags] table (name = "ADDRESS")', "tags")
         tags = tuple(
