@@ -225,3 +225,43 @@ async def test_the_blocking_facade_takes_type_names_too() -> None:
     async with await e71.start() as sim:
         value, high = await asyncio.to_thread(blocking, sim.url)
     assert value == 1.25 and high == 0x3FA0
+
+
+@pytest.mark.parametrize(
+    ("argv", "fragment"),
+    [
+        (["e71://h:5000", "D0"], "unknown scheme 'e71' (did you mean e71+tcp or e71+udp?)"),
+        (["s5lam://h:5010", "DB1.DW0"], "unknown scheme 's5lam' (did you mean s5lan?)"),
+        (["10.0.0.5:5000", "D0"], "mean e71+tcp://10.0.0.5:5000 or s5lan://10.0.0.5:5000?"),
+        (["5000", "D0"], "did you mean e71+tcp://127.0.0.1:5000 or s5lan://127.0.0.1:5000?"),
+        ([f"e71+tcp://{NOWHERE}", "D9999"], "out of range for D (D0-D6143, D9000-D9255)"),
+        ([f"e71+tcp://{NOWHERE}", "X800"], "out of range for X (X0-X7FF)"),
+        ([f"e71+tcp://{NOWHERE}", "D0", "--type", "string"], "string:N:space, e.g. string:20"),
+    ],
+)  # fmt: skip
+async def test_a_newcomers_first_url_address_and_type_get_what_was_meant(
+    argv: list[str], fragment: str
+) -> None:
+    code, out, err = await cli_in_process("read", *argv)
+    assert (code, out, err.count("\n")) == (2, "", 1), err
+    assert err.startswith("plcstack: error: ") and fragment in err, err
+
+
+def test_the_range_a_cpu_group_refuses_is_its_own(tmp_path: Path) -> None:
+    from plcstack.codecs.e71_devices import CpuGroup, device_ranges
+
+    with pytest.raises(AddressError, match=r"out of range for R \(this CPU has no R\)"):
+        parse_address("R0", last=device_ranges(CpuGroup.I))
+    with pytest.raises(AddressError, match=r"out of range for R \(R0-R4095\)"):
+        parse_address("R4096", last=device_ranges(CpuGroup.II))
+
+
+def test_an_array_of_tag_tables_is_named_as_such(tmp_path: Path) -> None:
+    # [[plc.tags]] (one bracket pair too many) got "no tags: add a [plc.tags] table"
+    path = tmp_path / "c.toml"
+    path.write_text(
+        '[[plc]]\nname = "a"\nurl = "e71+tcp://127.0.0.1:5000"\n[[plc.tags]]\nt = "D0"\n'
+    )
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert "tags is an array of tables ([[plc.tags]]); write one table [plc.tags]" in str(err.value)

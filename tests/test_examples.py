@@ -53,7 +53,9 @@ async def test_every_tag_of_the_example_reads_good() -> None:
 def test_write_config(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     target = tmp_path / "plant.toml"
     assert main(["demo", "--write-config", str(target)]) == 0
-    assert target.read_text() == example_config()
+    # the comment's commands name the file they are in, not the default name
+    assert target.read_text() == example_config().replace(" plant.toml", f" {target}")
+    assert f"#   plcstack poll {target} --duration 5" in target.read_text()
     assert "plcstack poll" in capsys.readouterr().err
     assert main(["demo", "--write-config", str(target)]) == 2  # never overwritten
     assert "exists" in capsys.readouterr().err

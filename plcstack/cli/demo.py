@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import os
 import re
+import shlex
 import shutil
 import sys
 import time
@@ -116,6 +117,8 @@ def write_config(target: str, out: TextIO, base_port: int | None = None) -> int:
     if target == "-":
         out.write(text)
         return 0
+    # the comment's commands name the file they are in, so they run as written after a copy
+    text = text.replace(f" {EXAMPLE_CONFIG}", f" {shlex.quote(target)}")
     path = Path(target)
     if path.exists():
         raise UsageError(f"--write-config {target}: the file exists; not overwritten")
