@@ -300,6 +300,11 @@ class _Framed(ErrorState):
         else:
             self._buf.feed(data)
 
+    @property
+    def buffered(self) -> int:
+        """Bytes received and not yet turned into events (part of a frame)."""
+        return self.mk.buffered if self.mk is not None else len(self._buf)
+
     def _frame(self, payload: bytes) -> bytes:
         return self.mk.send_message(payload) if self.mk is not None else payload
 

@@ -47,6 +47,7 @@ from plcstack.sim.s5store import (
     memory_of,
     resolve_store,
 )
+from plcstack.transports.guard import FRAME_TIMEOUT, FrameDeadline
 from plcstack.transports.peer import peer_address
 
 __all__ = ["FetchWriteSimulator", "add_cli_arguments", "default_memory", "serve_cli", "start"]
@@ -122,6 +123,9 @@ class FetchWriteSimulator(TcpSimulator):
         self.life_acks_received = 0
         self.life_acks_sent = 0
         self.dropped_dead = 0
+        #: connections closed because a job was not complete FRAME_TIMEOUT s after its first
+        #: byte (a header trickled byte by byte to hold the connection)
+        self.late_frames = 0
         self.max_connections = DEFAULT_MAX_CONNECTIONS
 
     @property
@@ -159,6 +163,9 @@ class FetchWriteSimulator(TcpSimulator):
             loop.time(),
         )
         idle_at = loop.time() + (self.idle_timeout or 0.0)
+        # measured from a job's first byte: the idle timeout restarts with every byte, so a
+        # header sent one byte at a time held a connection (of max_connections) for ever
+        frame = FrameDeadline(FRAME_TIMEOUT)
         try:
             while True:
                 while (event := codec.next_event()) is not NEED_DATA:
@@ -181,11 +188,23 @@ class FetchWriteSimulator(TcpSimulator):
                 wakeup = timer.next_wakeup()
                 if self.idle_timeout is not None and (wakeup is None or idle_at < wakeup):
                     wakeup = idle_at
+                frame.note(codec.buffered > 0)
+                due = frame.due
+                if due is not None and (wakeup is None or due < wakeup):
+                    wakeup = due
                 try:
                     async with asyncio.timeout_at(wakeup):
                         data = await reader.read(65536)
                 except TimeoutError:
                     now = loop.time()
+                    if due is not None and now >= due:
+                        self.late_frames += 1
+                        log.info(
+                            "fetchwrite: %s: a job begun %s s ago is still incomplete, closing",
+                            peer or "?",
+                            FRAME_TIMEOUT,
+                        )
+                        return
                     if self.idle_timeout is not None and now >= idle_at:
                         self.idle_closed += 1
                         log.info("fetchwrite sim: nothing for %s s, closing", self.idle_timeout)

@@ -44,6 +44,7 @@ from plcstack.sim.base import (
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.sim.s5store import S5Fault, S5Store, Target, memory_of, resolve_store
+from plcstack.transports.guard import FrameDeadline
 from plcstack.transports.peer import peer_address
 
 __all__ = ["DEFAULT_DATA_WORDS", "S5LanSimulator", "add_cli_arguments", "default_memory", "start"]
@@ -96,6 +97,12 @@ class S5LanSimulator(TcpSimulator):
         return self._state.idle_closed
 
     @property
+    def late_frames(self) -> int:
+        """Connections closed because a request was not complete ``data_timeout`` seconds
+        after its first byte (a header trickled byte by byte)."""
+        return self._state.late_frames
+
+    @property
     def refused_connections(self) -> int:  # type: ignore[override]
         """Connections closed at once because ``max_connections`` were already in use."""
         return self._state.refused
@@ -133,6 +140,7 @@ class _State:
         self.refused = 0
         self.idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT
         self.idle_closed = 0
+        self.late_frames = 0
         self.injected: collections.deque[int] = collections.deque()
         self.writers: set[asyncio.StreamWriter] = set()
 
@@ -185,25 +193,31 @@ async def _handle(
     codec = ServerConnection(
         header_byte_order=state.header_byte_order, strict=state.strict, version=state.version
     )
+    # A request begun (header or write data) must be complete within data_timeout of its first
+    # byte (A.7, Err 10 for write data): measured per read, a client sending one byte every
+    # half second held the module's connection for ever.
+    frame = FrameDeadline(state.data_timeout)
     try:
         while True:
-            # Write data are due within data_timeout (A.7, Err 10); an incomplete header is
-            # given as long and then the connection is closed (the module has no error code
-            # for it); an idle connection is closed after idle_timeout, or the one connection
-            # the module accepts would be held by a silent socket for ever.
-            if codec.awaiting_data or codec.buffered:
-                timeout: float | None = state.data_timeout
-            else:
-                timeout = state.idle_timeout
+            # An incomplete header is given as long and then the connection is closed (the
+            # module has no error code for it); an idle connection is closed after
+            # idle_timeout, or the one connection the module accepts would be held by a silent
+            # socket for ever.
+            frame.note(codec.awaiting_data or codec.buffered > 0)
+            due = frame.due
             try:
-                async with asyncio.timeout(timeout):
+                async with (
+                    asyncio.timeout(state.idle_timeout) if due is None else asyncio.timeout_at(due)
+                ):
                     data = await reader.read(65536)
             except TimeoutError:
                 if codec.awaiting_data:
                     if not await _answer(state, codec, writer, codec.data_timeout(), peer):
                         return
                     continue
-                if not codec.buffered:
+                if codec.buffered:
+                    state.late_frames += 1
+                else:
                     state.idle_closed += 1
                 return
             if not data:
