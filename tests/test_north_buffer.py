@@ -74,3 +74,35 @@ def test_without_disk_the_budget_bounds_memory() -> None:
         q.put("t", b"%04d" % i)
     assert q.backlog_bytes <= 1000 and q.dropped == 1000 - len(q)
     assert [int(m.payload) for m in q.peek(5)] == list(range(1000 - len(q), 1000 - len(q) + 5))
+
+
+def test_the_budget_drops_no_message_in_flight() -> None:
+    """A message on the wire may still be acknowledged: dropped by the budget it would count as
+    dropped and as sent (a soak with a broker outage saw submitted < sent + dropped)."""
+    q = StoreAndForward(None, max_bytes=3 * (1 + 4 + OVERHEAD))
+    for i in range(3):
+        q.put("t", b"%04d" % i)
+    q.in_flight_through = q.peek(2)[-1].seq  # the publisher sends 0 and 1
+    q.put("t", b"0003")
+    q.put("t", b"0004")  # over budget: 2 and 3 go, not 0 and 1
+    assert [m.payload for m in q.peek(10)] == [b"0000", b"0001", b"0004"]
+    assert q.dropped == 2
+    q.ack(1)  # their acknowledgement
+    assert [m.payload for m in q.peek(10)] == [b"0004"]
+    assert q.dropped + 2 + len(q) == 5  # each message once: dropped, delivered or waiting
+
+
+def test_messages_in_flight_on_disk_are_kept_too(tmp_path: Path) -> None:
+    cost = 1 + 4 + OVERHEAD
+    q = StoreAndForward(tmp_path / "q.sqlite", memory_bytes=2 * cost, max_bytes=6 * cost)
+    for i in range(6):
+        q.put("t", b"%04d" % i)
+    assert q.on_disk > 0
+    q.in_flight_through = q.peek(3)[-1].seq
+    for i in range(6, 9):
+        q.put("t", b"%04d" % i)
+    assert [m.payload for m in q.peek(3)] == [b"0000", b"0001", b"0002"]
+    assert q.dropped == 3 and len(q) == 6
+    q.ack(2)
+    q.in_flight_through = -1
+    assert [int(m.payload) for m in q.peek(10)] == [6, 7, 8]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import signal
 import socket
 from pathlib import Path
 from typing import Any
@@ -297,3 +298,32 @@ async def test_tls_broker_with_the_configured_ca(tmp_path: Path) -> None:
         await untrusted.aclose(drain=0)
     finally:
         broker.close()
+
+
+async def test_a_message_in_flight_is_counted_once_when_the_budget_overflows(
+    mosquitto: Mosquitto,
+) -> None:
+    """Every queued message ends as exactly one of sent, waiting or dropped, even when the
+    byte budget overflows while the broker holds acknowledgements back."""
+    buffer = StoreAndForward(None, max_bytes=2000)
+    sink = MqttSink(settings(mosquitto), buffer=buffer)
+    await sink.start()
+    broker = mosquitto._proc
+    assert broker is not None
+    try:
+        await sink.wait_connected(10)
+        await sink.wait_drained(10)
+        broker.send_signal(signal.SIGSTOP)  # it reads nothing and acknowledges nothing
+        for n in range(3):
+            sink.submit([scan(sample("p", "n", n))])
+        last = buffer.next_seq - 1
+        await eventually(lambda: buffer.in_flight_through == last, "the publisher sent them")
+        for n in range(3, 200):
+            sink.submit([scan(sample("p", "n", n))])
+        assert buffer.dropped > 0
+        broker.send_signal(signal.SIGCONT)
+        await sink.wait_drained(10)
+    finally:
+        broker.send_signal(signal.SIGCONT)
+        await sink.aclose()
+    assert sink.stats.sent + buffer.dropped == sink.stats.submitted

@@ -14,6 +14,10 @@ Bounds, and why:
 * ``max_bytes``: the whole backlog (memory + disk). Beyond it the oldest messages are dropped
   and counted (``dropped``, ``dropped_bytes``), because for plant data the newest values matter
   most and the budget is what the operator allowed on this disk. Nothing is dropped silently.
+  Messages the publisher has on the wire (``in_flight_through``) are not dropped: their
+  acknowledgement may still come, and a message counted both dropped and sent would make the
+  counters add up to more than was queued. So the backlog may exceed ``max_bytes`` by at most
+  the publisher's window.
 * Without ``path`` (no disk), ``memory_bytes`` is ignored and ``max_bytes`` bounds memory alone.
 
 What survives a restart: what is on disk. :meth:`close` moves the memory part to disk first, so
@@ -82,6 +86,9 @@ class StoreAndForward:
         self._cache_until = -1  # highest seq read into the cache
         self.dropped = 0
         self.dropped_bytes = 0
+        #: the publisher's messages awaiting their acknowledgement: every queued message with
+        #: ``seq`` up to this one (-1: none). The byte budget leaves them alone.
+        self.in_flight_through = -1
         self.spilled = 0
         self._db: sqlite3.Connection | None = None
         self._next_seq = 0
@@ -183,46 +190,51 @@ class StoreAndForward:
 
     def ack(self, seq: int) -> None:
         """Remove every message up to and including ``seq`` (it was delivered)."""
-        self._remove_through(seq, dropped=False)
+        self._remove(-1, seq, dropped=False)
 
-    def _remove_through(self, seq: int, *, dropped: bool) -> None:
+    def _remove(self, after: int, through: int, *, dropped: bool) -> None:
+        """Remove the messages with ``after < seq <= through`` (the oldest, unless messages in
+        flight are kept before them)."""
         removed = removed_bytes = 0
         if self._disk_count and self._db is not None:
+            span = (after, through)
             count, cost = self._db.execute(
                 "SELECT COUNT(*), COALESCE(SUM(LENGTH(CAST(topic AS BLOB)) + LENGTH(payload)), 0)"
-                " FROM queue WHERE seq <= ?",
-                (seq,),
+                " FROM queue WHERE seq > ? AND seq <= ?",
+                span,
             ).fetchone()
             if count:
                 with self._db:
-                    self._db.execute("DELETE FROM queue WHERE seq <= ?", (seq,))
+                    self._db.execute("DELETE FROM queue WHERE seq > ? AND seq <= ?", span)
                 cost = int(cost) + OVERHEAD * int(count)
                 self._disk_count -= int(count)
                 self._disk_bytes -= cost
                 removed += int(count)
                 removed_bytes += cost
-            while self._cache and self._cache[0].seq <= seq:
-                self._cache.popleft()
-        mem = self._mem
-        while mem and mem[0].seq <= seq:
-            m = mem.popleft()
-            self._mem_bytes -= m.cost
+            self._cache = _without(self._cache, after, through, None)
+        counted: list[int] = []
+        self._mem = _without(self._mem, after, through, counted)
+        for cost in counted:
+            self._mem_bytes -= cost
             removed += 1
-            removed_bytes += m.cost
+            removed_bytes += cost
         if dropped:
             self.dropped += removed
             self.dropped_bytes += removed_bytes
 
     def _trim(self) -> None:
-        """Drop the oldest messages until the backlog fits ``max_bytes``."""
+        """Drop the oldest messages not in flight until the backlog fits ``max_bytes``."""
         excess = self._mem_bytes + self._disk_bytes - self.max_bytes
         if excess <= 0:
             return
+        keep = self.in_flight_through
         last = -1
         if self._disk_count and self._db is not None:
             # the oldest rows whose running total covers the excess
             for seq, cost in self._db.execute(
-                "SELECT seq, LENGTH(CAST(topic AS BLOB)) + LENGTH(payload) FROM queue ORDER BY seq"
+                "SELECT seq, LENGTH(CAST(topic AS BLOB)) + LENGTH(payload) FROM queue"
+                " WHERE seq > ? ORDER BY seq",
+                (keep,),
             ):
                 excess -= int(cost) + OVERHEAD
                 last = int(seq)
@@ -230,12 +242,14 @@ class StoreAndForward:
                     break
         if excess > 0:
             for m in self._mem:
+                if m.seq <= keep:
+                    continue
                 excess -= m.cost
                 last = m.seq
                 if excess <= 0:
                     break
         if last >= 0:
-            self._remove_through(last, dropped=True)
+            self._remove(keep, last, dropped=True)
 
     def close(self) -> None:
         """Move what is in memory to disk (so a restart replays it) and close the file."""
@@ -252,3 +266,19 @@ class StoreAndForward:
             self._mem_bytes = 0
         db.close()
         self._db = None
+
+
+def _without(
+    queue: collections.deque[Message], after: int, through: int, costs: list[int] | None
+) -> collections.deque[Message]:
+    """``queue`` (ascending ``seq``) without the messages ``after < seq <= through``; their
+    costs appended to ``costs``. The usual case, a prefix, pops in place."""
+    kept: list[Message] = []
+    while queue and queue[0].seq <= after:
+        kept.append(queue.popleft())
+    while queue and queue[0].seq <= through:
+        m = queue.popleft()
+        if costs is not None:
+            costs.append(m.cost)
+    queue.extendleft(reversed(kept))
+    return queue

@@ -582,13 +582,14 @@ class MqttSink:
             while True:
                 room = window - len(inflight)
                 if room > 0:
-                    # in-flight messages are the oldest in the queue (unless the byte budget
-                    # dropped them meanwhile): skip them by seq
+                    # in-flight messages are the oldest in the queue (the byte budget keeps
+                    # them): skip them by seq
                     for m in buffer.peek(len(inflight) + room):
                         if m.seq > last_started:
                             task = asyncio.ensure_future(self._publish(client, m, prepare))
                             inflight.append((m, task))
                             last_started = m.seq
+                    buffer.in_flight_through = last_started  # kept from the byte budget
                 if not inflight:
                     self._wake.clear()
                     self._idle.set()
@@ -612,6 +613,7 @@ class MqttSink:
                 if m.seq <= self._replay_until:
                     stats.replayed += 1
         finally:
+            buffer.in_flight_through = -1  # not acknowledged: sent again on the next connection
             for _, task in inflight:
                 task.cancel()
 
