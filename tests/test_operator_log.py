@@ -65,4 +65,29 @@ async def test_a_sink_losing_and_regaining_its_broker_says_so_once_each(
     lost = [m for m in messages if "retrying with backoff" in m]
     back = [m for m in messages if "again" in m]
     assert 1 <= len(lost) <= 2 < sink.stats.failures  # the change, not every retry
+    assert not [m for m in lost if "TLS" in m]  # a stopped broker is no configuration question
     assert back == [f"mqtt: connected to {settings.url} again; 0 messages waiting are sent first"]
+
+
+def test_a_session_the_broker_closes_is_not_explained_as_a_wrong_port() -> None:
+    """What a broker stopped with SIGTERM looks like to the sink (seen in a soak, half of the
+    stops): paho's receive error, then aiomqtt's. Said of a session that was up, the meaning
+    of a reset at connect time ("mqtt:// to a TLS port") sent the operator to the config."""
+    import aiomqtt
+
+    from plcstack.errors import ConnectionLost
+    from plcstack.north.mqtt_errors import connect_error
+
+    settings = MqttSettings(host="127.0.0.1", port=1883)
+    paho = ["failed to receive on socket: [Errno 104] Connection reset by peer"]
+    exc = aiomqtt.MqttError("Disconnected during message iteration")
+    lost = connect_error(exc, paho, broker="MQTT broker x", connected=True, settings=settings)
+    assert isinstance(lost, ConnectionLost)
+    assert lost.message == (
+        "connection lost: the broker closed the connection (it stopped or restarted, or it"
+        " dropped this client) (failed to receive on socket: [Errno 104] Connection reset by"
+        " peer; Disconnected during message iteration)"
+    )
+    # the same reset while connecting keeps its connect-time meaning
+    failed = connect_error(exc, paho, broker="MQTT broker x", connected=False, settings=settings)
+    assert "mqtt:// to a TLS port" in failed.message

@@ -84,6 +84,17 @@ _MEANINGS: tuple[tuple[tuple[str, ...], str], ...] = (
 #: what Python's ssl module says when the peer closes the TLS connection without a close alert
 _CLOSED_IN_TLS = "EOF OCCURRED IN VIOLATION OF PROTOCOL"
 
+#: the meaning of a session that was up and then dropped. The meanings above explain a
+#: connection the broker would not take (a wrong port, TLS, a login): said of a session that ran,
+#: "mqtt:// to a TLS port" sent an operator looking at the configuration after every restart of
+#: the broker, whose close arrives as a reset.
+_SESSION_MEANINGS: tuple[tuple[tuple[str, ...], str], ...] = (
+    (
+        ("CONNECTION RESET", "ERRNO 104", "BROKEN PIPE", "ERRNO 32", _CLOSED_IN_TLS),
+        "the broker closed the connection (it stopped or restarted, or it dropped this client)",
+    ),
+)
+
 
 def connect_error(
     exc: BaseException, paho_lines: Any, *, broker: str, connected: bool, settings: Any
@@ -94,12 +105,16 @@ def connect_error(
     text = str(exc) or type(exc).__name__
     detail = "; ".join(dict.fromkeys([*lines, text]))
     probe = detail.upper()
+    if connected:
+        meaning = next((m for keys, m in _SESSION_MEANINGS if any(k in probe for k in keys)), None)
+        message = f"{meaning} ({detail})" if meaning else detail
+        return ConnectionLost(f"connection lost: {message}", plc=broker, request="session")
     meaning = next((m for keys, m in _MEANINGS if any(k in probe for k in keys)), None)
     if meaning == _MEANINGS[0][1] and getattr(settings, "cert_file", None) is None:
         meaning += "; set [mqtt] cert_file and key_file"
     elif meaning == _MEANINGS[0][1]:
         meaning += f"; it did not accept {settings.cert_file!r}"
-    if meaning is None and not connected and _CLOSED_IN_TLS in probe:
+    if meaning is None and _CLOSED_IN_TLS in probe:
         # The broker hung up during or right after the TLS handshake. Under TLS 1.3 it checks
         # our certificate after the handshake and sends its alert as it closes: whether the
         # alert (UNKNOWN_CA, above) or only the close reaches us is a race. A close is what a
@@ -116,8 +131,6 @@ def connect_error(
                 "client certificate, set [mqtt] cert_file and key_file"
             )
     message = f"{meaning} ({detail})" if meaning else detail
-    if connected:
-        return ConnectionLost(f"connection lost: {message}", plc=broker, request="session")
     return ConnectFailed(message, plc=broker, request="connect")
 
 
