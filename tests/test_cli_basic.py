@@ -63,3 +63,21 @@ def test_a_terminal_that_is_not_utf8_gets_escapes_not_a_crash() -> None:
     )
     assert (out.returncode, out.stderr) == (0, b"")
     assert out.stdout.decode("ascii") == text.encode("ascii", "backslashreplace").decode("ascii")
+
+
+@pytest.mark.parametrize("argv", [["docs"], ["docs", "cli"], ["demo", "--write-config", "-"]])
+def test_a_reader_that_went_away_is_exit_0_and_silent(argv: list[str]) -> None:
+    """``plcstack docs | head -3``: head closes the pipe; the command stops as ``poll`` does.
+    The pipe's read end is closed before the command starts, so every write meets EPIPE."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        out = subprocess.run(
+            [sys.executable, "-m", "plcstack", *argv],
+            stdout=write_end,
+            stderr=subprocess.PIPE,
+            check=False,
+        )
+    finally:
+        os.close(write_end)
+    assert (out.returncode, out.stderr) == (0, b"")

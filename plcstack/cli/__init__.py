@@ -6,7 +6,8 @@ Each subcommand lives in its own module with a ``register(subparsers)`` function
 One exit-code rule for every subcommand (``EXIT_CODES``, also in ``plcstack --help``):
 
 ====  ==========================================================================================
-0     success (also ``--help``, ``--version``, and a SIGTERM that ends ``poll``/``demo``/``sim``)
+0     success (also ``--help``, ``--version``, a SIGTERM that ends ``poll``/``demo``/``sim``,
+      and a reader of stdout that went away: ``| head``)
 1     the PLC side failed: error code, timeout, unreachable or lost connection, malformed answer
 2     bad usage: options, URL, address, value, config file, a simulator that cannot start
 130   interrupted with Ctrl-C (SIGINT); ``poll`` and ``demo`` still print their statistics first
@@ -23,6 +24,8 @@ import argparse
 import asyncio
 import importlib
 import logging
+import os
+import select
 import sys
 from collections.abc import Iterator, Sequence
 from io import TextIOWrapper  # not ``import io``: the submodule plcstack.cli.io takes ``io``
@@ -175,6 +178,24 @@ def _tolerant_output() -> None:
             stream.reconfigure(errors="backslashreplace")
 
 
+def _stdout_gone() -> bool:
+    """Whether stdout is a pipe whose reader has closed it (``plcstack docs | head -3``). Then
+    the reader has what it wanted, as for ``poll``, whose samples stop the same way: exit 0,
+    and stdout is pointed at /dev/null so the interpreter's last flush does not complain."""
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        if not any(events & select.POLLERR for _, events in poller.poll(0)):
+            return False
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, fd)
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):  # no file behind stdout, no select.poll
+        return False
+    return True
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     _tolerant_output()
     parser = build_parser()
@@ -185,6 +206,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     unconfigure = configure(_level(args))
     try:
         code: int = asyncio.run(args.func(args))
+        sys.stdout.flush()  # a reader that went away shows here, not as noise at exit
+    except BrokenPipeError:
+        if not _stdout_gone():
+            raise  # a socket's EPIPE that no layer wrapped: the bug it is, below
+        return EXIT_OK
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     except (AddressError, UsageError) as exc:
