@@ -77,3 +77,12 @@ def test_plcstack_docs_lists_and_prints_the_pages(capsys: pytest.CaptureFixture[
     assert main(["docs", "nort"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("plcstack: error: no page nort (did you mean north?)")
+
+
+def test_plcstack_docs_lists_the_files_the_pages_use(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["docs"]) == 0
+    listing = capsys.readouterr().out
+    for path in sorted((DOCS / "tags").iterdir()):
+        assert f"tags/{path.name}" in listing
+    assert main(["docs", "tags/pres.csv"]) == 2
+    assert "no page tags/pres.csv (did you mean tags/press.csv?)" in capsys.readouterr().err

@@ -3,8 +3,11 @@ every ``plcstack tags`` command it shows prints exactly the block that follows i
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -45,3 +48,21 @@ async def test_command_prints_what_the_page_shows(
     assert shown.replace("\r\n", "\n") == body
     if expected:
         assert out == ""
+
+
+def test_the_example_files_copy_out_of_the_package_as_the_page_says(tmp_path: Path) -> None:
+    """A wheel has no docs/tags/ to run the page's commands from: the page's copy block, run as
+    written by /bin/sh with this environment's ``plcstack`` first on PATH, makes the folder
+    with every file the page reads, byte for byte (UTF-16 and Shift-JIS included)."""
+    block = re.search(r"```sh\n(mkdir -p docs/tags\n.*?)```", PAGE, re.S)
+    assert block is not None
+    named = set(re.findall(r"docs/tags/([\w.-]+)", PAGE))
+    scripts = str(Path(sys.executable).parent)
+    env = {**os.environ, "PATH": scripts + os.pathsep + os.environ.get("PATH", "")}
+    subprocess.run(["/bin/sh", "-ec", block.group(1)], cwd=tmp_path, env=env, check=True)
+    copied = {p.name for p in (tmp_path / "docs" / "tags").iterdir()}
+    assert copied == named
+    for name in named:
+        assert (tmp_path / "docs" / "tags" / name).read_bytes() == (
+            ROOT / "docs" / "tags" / name
+        ).read_bytes(), name
