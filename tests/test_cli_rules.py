@@ -10,6 +10,7 @@ import argparse
 import asyncio
 import logging
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -155,6 +156,8 @@ def test_help_texts_are_plain_and_self_contained() -> None:
         text = each.format_help()
         for bad in ("``", "../shared", "DESIGN.md", "spec §", "[R]", "§"):
             assert bad not in text, (each.prog, bad)
+        # an installed wheel has no docs/ folder: a page is named as the command that prints it
+        assert not re.search(r"docs/[\w-]+\.md", text), (each.prog, "plcstack docs PAGE")
 
 
 async def test_frame_trace_at_debug(caplog: pytest.LogCaptureFixture) -> None:

@@ -6,12 +6,12 @@ One AS511 transaction at a time; network requests wait in one bounded, fair queu
 that waits longer than --max-wait is answered with the protocol's timeout error, not executed.
 
 Safe by default: a bare port binds 127.0.0.1 only (give 0.0.0.0:PORT to serve the network), and
-nothing is writable until --writable names it, e.g. --writable "DB10-20, M" (see docs/gateway.md).
+nothing is writable until --writable names it, e.g. --writable "DB10-20, M" (plcstack docs gateway).
 Prints one "... listening on HOST:PORT (TCP)" line per server once it accepts clients.
 Ctrl-C exits 130, SIGTERM 0 (and --duration 0 once it ran out); a start-up failure is one line
 on stderr with exit 2; a run that ends because the gateway failed exits 1 with one line saying
 what. A refused write is one WARNING on stderr; --audit FILE appends one JSON line per write
-attempt (docs/gateway.md).
+attempt (plcstack docs gateway).
 """
 
 from __future__ import annotations

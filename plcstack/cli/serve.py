@@ -1,15 +1,15 @@
 """``plcstack serve opcua CONFIG.toml``: poll the PLCs of a TOML file and serve them over OPC UA.
 
 The ``[opcua]`` table of the same file sets the endpoint (default ``opc.tcp://127.0.0.1:4840/
-plcstack``: loopback only), security policies and logins; see docs/opcua.md. It prints ``OPC UA
-server listening on URL`` on stderr once every PLC's first scan is in (a PLC that does not answer:
-once that scan failed), so a client that connects then reads values. Runs until Ctrl-C or
-SIGTERM (or ``--duration``), then prints the poller's statistics on stderr.
+plcstack``: loopback only), security policies and logins (plcstack docs opcua). It prints ``OPC
+UA server listening on URL`` on stderr once every PLC's first scan is in (a PLC that does not
+answer: once that scan failed), so a client that connects then reads values. Runs until Ctrl-C
+or SIGTERM (or ``--duration``), then prints the poller's statistics on stderr.
 
 With ``[metrics]`` in the file (or ``--metrics-port``) it also serves ``/metrics`` and ``/healthz``
-as ``plcstack poll`` does (the same collector; docs/north.md). ``--metrics-port`` overrides the
-port, so ``plcstack poll`` and this command can run from one file side by side. ``[mqtt]`` and
-``[report]`` are for ``plcstack poll`` and are not used here.
+as ``plcstack poll`` does (the same collector; plcstack docs north). ``--metrics-port`` overrides
+the port, so ``plcstack poll`` and this command can run from one file side by side. ``[mqtt]``
+and ``[report]`` are for ``plcstack poll`` and are not used here.
 
 ``plcstack serve opcua --hash-password`` reads a password from stdin and prints the
 ``password_hash`` to put under ``[opcua.users.NAME]``.

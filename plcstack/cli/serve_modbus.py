@@ -5,7 +5,7 @@ address) are served; ``[modbus]`` sets the endpoint (default ``127.0.0.1:5020``:
 ``unit_id`` (default 1) and ``word_order`` (default ``"big"``: high word first). Reads are
 answered from the latest poll (a PLC that does not answer: exception 0x0B), writes of tags with
 ``writable = true`` only after the PLC confirmed them. Two tags whose registers overlap are
-refused when the file is loaded. See docs/modbus.md.
+refused when the file is loaded. See plcstack docs modbus.
 
 With ``[metrics]`` in the file (or ``--metrics-port``) it also serves ``/metrics`` and
 ``/healthz`` as ``plcstack poll`` does, plus the Modbus requests, exception answers and clients.

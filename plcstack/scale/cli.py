@@ -27,7 +27,7 @@ __all__ = ["add_arguments", "make_worker", "select"]
 
 
 def add_arguments(parser: Any) -> None:
-    group = parser.add_argument_group("scale-out (docs/scale-out.md)")
+    group = parser.add_argument_group("scale-out (plcstack docs scale-out)")
     group.add_argument(
         "--shard",
         metavar="I/N",

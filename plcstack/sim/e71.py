@@ -462,7 +462,8 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         "--cpu-group",
         choices=[g.value for g in CpuGroup],
         default="VII",
-        help="CPU group, which sets the device ranges (default VII = A3A/A3U/A4U; see docs/e71.md)",
+        help="CPU group, which sets the device ranges "
+        "(default VII = A3A/A3U/A4U; plcstack docs e71)",
     )
     parser.add_argument(
         "--state", choices=[s.value for s in CpuState], default="RUN", help="CPU state"
