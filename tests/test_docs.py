@@ -81,7 +81,9 @@ async def test_quickstart_runs(page: str, capsys: pytest.CaptureFixture[str]) ->
             expected_code = int(m.group(1)) if (m := re.match(r"exit (\d)", comment)) else 0
             assert code == expected_code, f"{page}: {line}"
             expected_out = comment.split(" (", 1)[0]
-            if comment and argv[0] == "read" and not comment.startswith("exit"):
+            if argv[0] in ("read", "write", "rab-read") and not comment.startswith("exit"):
+                # a newcomer sees what each command prints before typing it
+                assert comment, f"{page}: {line}: shown without its output"
                 assert shown == expected_out, f"{page}: {line}"
     finally:
         sim.cancel()
