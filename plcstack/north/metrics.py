@@ -42,8 +42,11 @@ Exported (``plc`` label per PLC)::
 
 ``/healthz`` answers 200 ``ok`` while the poller runs, 503 with the reason otherwise. The server
 binds 127.0.0.1 unless ``[metrics] host`` says otherwise: metrics name every PLC of the plant.
-Requests are read with a size limit and a deadline; anything but ``GET`` of these two paths gets
-404/405, never a crash.
+Requests are read with a size limit and a deadline (:data:`REQUEST_TIMEOUT` for the request and
+its answer together); anything but ``GET`` of these two paths gets 404/405, never a crash. A
+client that does not read its answer is dropped at that deadline (before, it held its
+connection, its task and the whole answer for ever), and at most :data:`MAX_CLIENTS` are
+served at once: a scrape takes milliseconds, so more at once is a flood, turned away.
 """
 
 from __future__ import annotations
@@ -51,15 +54,19 @@ from __future__ import annotations
 import asyncio
 import bisect
 import contextlib
+import logging
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from plcstack.errors import ConfigError, ValueDecodeError, check_keys
 from plcstack.poll.samples import Quality, Sample, Scan
+from plcstack.transports.guard import ClientLimit, close_writer
+from plcstack.transports.peer import peer_address
 
 __all__ = [
     "LATENCY_BUCKETS",
+    "MAX_CLIENTS",
     "MetricsServer",
     "MetricsSettings",
     "PlcstackCollector",
@@ -68,8 +75,14 @@ __all__ = [
 
 #: histogram bucket bounds in seconds (PLC requests: a few ms on a LAN, up to the deadline)
 LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
+log = logging.getLogger("plcstack.north")
+
 #: a request head larger than this is refused
 MAX_REQUEST = 8192
+#: seconds for reading a request and sending its answer; a client slower than that is dropped
+REQUEST_TIMEOUT = 5.0
+#: clients served at once (Prometheus and an operator's curl need a few)
+MAX_CLIENTS = 16
 #: failed requests remembered to count each once although all its tags carry it
 SEEN_FAILURES = 4096
 
@@ -304,6 +317,9 @@ class MetricsServer:
         self.registry.register(collector)
         self._server: asyncio.Server | None = None
         self._refresher: asyncio.Task[None] | None = None
+        self._handlers: set[asyncio.Task[Any]] = set()
+        #: clients at once; ``limit.refused`` counts the ones turned away
+        self.limit = ClientLimit(MAX_CLIENTS, "metrics endpoint", log)
         self.port = self.settings.port
 
     async def start(self) -> None:
@@ -332,15 +348,40 @@ class MetricsServer:
                 await self._refresher
         if self._server is not None:
             self._server.close()
+        for task in list(self._handlers):
+            task.cancel()
+        if self._handlers:
+            await asyncio.gather(*self._handlers, return_exceptions=True)
+        if self._server is not None:
             await self._server.wait_closed()
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if not self.limit.admit(peer_address(writer.get_extra_info("peername"))):
+            writer.transport.abort()
+            return
+        task = asyncio.current_task()
+        if task is not None:
+            self._handlers.add(task)
         try:
-            async with asyncio.timeout(5):
-                try:
-                    head = await reader.readuntil(b"\r\n\r\n")
-                except asyncio.LimitOverrunError:
-                    head = b"TOO-LARGE / HTTP/1.1\r\n\r\n"
+            # one deadline for the request and its answer: the answer waits for a client that
+            # does not read it, and before, only the request was under a deadline
+            async with asyncio.timeout(REQUEST_TIMEOUT):
+                await self._answer(reader, writer)
+        except TimeoutError:
+            pass  # a client too slow to send its request or to read its answer
+        except asyncio.CancelledError:
+            pass  # the server stops: end normally (Python 3.11 logs a cancelled handler)
+        finally:
+            self._handlers.discard(task)
+            self.limit.release()
+            await close_writer(writer)  # aborted if the client does not read its answer
+
+    async def _answer(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        try:
+            try:
+                head = await reader.readuntil(b"\r\n\r\n")
+            except asyncio.LimitOverrunError:
+                head = b"TOO-LARGE / HTTP/1.1\r\n\r\n"
             request_line = head.split(b"\r\n", 1)[0].decode("latin-1")
             parts = request_line.split()
             method, path = (parts[0], parts[1]) if len(parts) >= 2 else ("", "")
@@ -373,13 +414,8 @@ class MetricsServer:
                 writer.write(body)
             await writer.drain()
         except (
-            TimeoutError,
             asyncio.IncompleteReadError,
             asyncio.LimitOverrunError,
             ConnectionError,
         ):
             pass
-        finally:
-            writer.close()
-            with contextlib.suppress(ConnectionError):
-                await writer.wait_closed()

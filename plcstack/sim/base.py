@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 from abc import abstractmethod
 from typing import Any
 
 from plcstack.resource import AsyncResource
-from plcstack.transports.guard import IdleWatch
+from plcstack.transports.guard import CLOSE_LINGER, IdleWatch, close_writer
 from plcstack.transports.peer import peer_address
 
 __all__ = [
+    "CLOSE_LINGER",
     "DEFAULT_IDLE_TIMEOUT",
     "DEFAULT_MAX_CONNECTIONS",
     "ConnectionCount",
@@ -40,34 +40,6 @@ DEFAULT_IDLE_TIMEOUT: float | None = 600.0
 #: connections at once of the simulators whose modules have no documented limit (FETCH/WRITE,
 #: AS511 over a serial device server); beyond it a connection is closed at once and counted
 DEFAULT_MAX_CONNECTIONS = 16
-
-
-#: seconds a closing connection may take to send what is still queued for a peer that reads
-#: nothing, before it is aborted
-CLOSE_LINGER = 1.0
-
-
-async def close_writer(writer: asyncio.StreamWriter) -> None:
-    """Close a client's stream and take how it ended.
-
-    asyncio keeps the end of a connection (a reset by the peer, say) in a future that only
-    ``wait_closed()`` reads. Left unread, the garbage collector may report it as "Future
-    exception was never retrieved" (whether it does depends on the order it frees things in):
-    noise that reads like a fault of the simulator. A peer that reads nothing would hold the
-    close for ever (the answer still queued), so after :data:`CLOSE_LINGER` seconds the
-    connection is aborted. A cancel while closing (the simulator stops) aborts too and ends
-    normally, as the handlers that call this end on a cancel.
-    """
-    writer.close()
-    try:
-        async with asyncio.timeout(CLOSE_LINGER):
-            await writer.wait_closed()
-    except (ConnectionError, OSError):
-        pass  # the peer reset or left: the outcome is read, nothing more to do
-    except (TimeoutError, asyncio.CancelledError):
-        writer.transport.abort()
-        with contextlib.suppress(ConnectionError, OSError, asyncio.CancelledError):
-            await writer.wait_closed()
 
 
 def check_idle_timeout(idle_timeout: float | None) -> float | None:

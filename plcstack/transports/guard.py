@@ -10,21 +10,57 @@ Three bounds keep such a client from holding what the others need:
   *first* byte. A per-read timeout does not do it: a client that sends one header byte every
   half second restarts it with every byte and holds its connection for ever (slowloris);
 * :class:`ClientLimit`: at most ``limit`` clients at once; the next one is turned away at once
-  and counted, and the log says so once per burst, not once per connection of a flood.
+  and counted, and the log says so once per burst, not once per connection of a flood;
+* :func:`close_writer`: a stream closed after its answer, aborted if the peer does not read it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import Callable
 
-__all__ = ["FRAME_TIMEOUT", "ClientLimit", "FrameDeadline", "IdleWatch"]
+__all__ = [
+    "CLOSE_LINGER",
+    "FRAME_TIMEOUT",
+    "ClientLimit",
+    "FrameDeadline",
+    "IdleWatch",
+    "close_writer",
+]
 
 #: seconds a request frame may take from its first byte to its last. Frames of these protocols
 #: are at most a few KiB (a FETCH/WRITE write: 128 KiB), sent in one go by every real client;
 #: only a client that trickles them, to hold a connection, takes longer.
 FRAME_TIMEOUT = 5.0
+
+#: seconds a closing connection may take to send what is still queued for a peer that reads
+#: nothing, before it is aborted
+CLOSE_LINGER = 1.0
+
+
+async def close_writer(writer: asyncio.StreamWriter) -> None:
+    """Close a client's stream and take how it ended.
+
+    asyncio keeps the end of a connection (a reset by the peer, say) in a future that only
+    ``wait_closed()`` reads. Left unread, the garbage collector may report it as "Future
+    exception was never retrieved" (whether it does depends on the order it frees things in):
+    noise that reads like a fault of the server. A peer that reads nothing would hold the
+    close for ever (the answer still queued), so after :data:`CLOSE_LINGER` seconds the
+    connection is aborted. A cancel while closing (the server stops) aborts too and ends
+    normally, as the handlers that call this end on a cancel.
+    """
+    writer.close()
+    try:
+        async with asyncio.timeout(CLOSE_LINGER):
+            await writer.wait_closed()
+    except (ConnectionError, OSError):
+        pass  # the peer reset or left: the outcome is read, nothing more to do
+    except (TimeoutError, asyncio.CancelledError):
+        writer.transport.abort()
+        with contextlib.suppress(ConnectionError, OSError, asyncio.CancelledError):
+            await writer.wait_closed()
 
 
 class IdleWatch:

@@ -4,7 +4,9 @@ A north-side sink like the others: ``start()``, ``submit(scans)`` (the state tak
 nothing is sent from there), ``aclose()``. Binds 127.0.0.1 unless ``[web] host`` says otherwise:
 the pages name every PLC of the plant. Every response carries a Content-Security-Policy that
 allows scripts, styles and connections from the console itself only (no inline script), and
-``nosniff``; request bodies are limited to 64 KiB.
+``nosniff``; request bodies are limited to 64 KiB. A connection that sends no complete request
+for :data:`IDLE_TIMEOUT` seconds (silent, or a header trickled byte by byte) is closed, and a
+request that cannot be parsed is answered 400 and logged as one WARNING line naming the client.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from importlib import resources
 from typing import Any
 
 from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from plcstack.errors import ConfigError
 from plcstack.north.supervise import Supervised, Supervisor
@@ -37,6 +40,10 @@ MAX_BODY = 64 * 1024
 SOURCE = "web"
 #: a stream with nothing to say sends a comment this often (finds peers that went away)
 KEEPALIVE = 15.0
+#: seconds a connection may go without a complete request (aiohttp's default is an hour: a
+#: silent socket, or a header sent one byte a minute, held its connection that long); the
+#: event stream is not affected, its request is complete
+IDLE_TIMEOUT = 75.0
 _HEADERS = {
     "Content-Security-Policy": (
         "default-src 'none'; script-src 'self'; style-src 'self'; connect-src 'self';"
@@ -96,7 +103,14 @@ class WebConsole:
                 *routes(self),
             ]
         )
-        runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=1.0)
+        runner = web.AppRunner(
+            app,
+            access_log=None,
+            handle_signals=False,
+            shutdown_timeout=1.0,
+            keepalive_timeout=IDLE_TIMEOUT,
+            logger=_http_log,
+        )
         await runner.setup()
         host, port = self.settings.host, self.settings.port
         site = web.TCPSite(runner, host, port)
@@ -230,6 +244,35 @@ async def _stream(client: EventClient, response: web.StreamResponse) -> None:
         if data is None:
             return
         await response.write(data)
+
+
+class _ClientFaults(logging.Filter):
+    """aiohttp logs a request it cannot parse (garbage, a port scanner, a bad Content-Length)
+    as an ERROR with a traceback, which reads like a fault of the console. It is the client's:
+    one WARNING line naming the client and what was wrong."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, HttpProcessingError):
+            peer = record.args[0] if isinstance(record.args, tuple) and record.args else "?"
+            what = " ".join(str(exc.message).split())[:200]
+            record.msg, record.args = (
+                "web console: bad HTTP request from %s: %s %s",
+                (
+                    peer,
+                    exc.code,
+                    what,
+                ),
+            )
+            record.exc_info = record.exc_text = None
+            if record.levelno > logging.WARNING:
+                record.levelno, record.levelname = logging.WARNING, "WARNING"
+        return True
+
+
+#: the logger aiohttp's connections log to
+_http_log = logging.getLogger("plcstack.web.http")
+_http_log.addFilter(_ClientFaults())
 
 
 def _html(text: str, status: int = 200) -> web.Response:

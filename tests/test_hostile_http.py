@@ -1,0 +1,153 @@
+"""The web console and the metrics endpoint against hostile and broken HTTP clients, over real
+loopback sockets: silent and trickling connections, garbage requests, a client that never
+reads its answer, a flood."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import prometheus_client
+import pytest
+
+from plcstack.north import metrics
+from plcstack.north.metrics import MetricsServer, MetricsSettings, PlcstackCollector
+from plcstack.north.web import server as web_server
+from tests.aio_helpers import eventually
+from tests.web_helpers import running_console
+
+
+async def _ended_by_server(reader: asyncio.StreamReader, bound: float = 5.0) -> bool:
+    """Whether the server closed or reset the connection within ``bound`` seconds."""
+    try:
+        async with asyncio.timeout(bound):
+            while await reader.read(65536):
+                pass
+        return True
+    except ConnectionError:
+        return True
+    except TimeoutError:
+        return False
+
+
+async def test_web_console_ends_silent_and_trickling_connections(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Before: aiohttp's default keep-alive of 3630 s held a socket that never sent a byte, and
+    one sending a header a byte at a time, for an hour. After: IDLE_TIMEOUT (shortened here)."""
+    monkeypatch.setattr(web_server, "IDLE_TIMEOUT", 0.5, raising=False)
+    async with running_console() as console:
+        reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
+        assert await _ended_by_server(reader)
+        writer.transport.abort()
+
+        reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
+
+        async def trickle() -> None:
+            for byte in b"GET /api/tags HTTP/1.1\r\nHost: x\r\n":
+                writer.write(bytes([byte]))
+                await asyncio.sleep(0.2)
+
+        dripping = asyncio.create_task(trickle())
+        try:
+            assert await _ended_by_server(reader)
+            assert not dripping.done()
+        finally:
+            dripping.cancel()
+            await asyncio.gather(dripping, return_exceptions=True)
+            writer.transport.abort()
+
+
+GARBAGE = [
+    b"\x00" * 4096,
+    b"GET /" + b"a" * 70000 + b" HTTP/1.1\r\n\r\n",
+    b"POST /api/plcs/p/tags/t HTTP/1.1\r\nHost: x\r\nContent-Length: -1\r\n\r\n",
+    b"POST /api/plcs/p/tags/t HTTP/1.1\r\nHost: x\r\nContent-Length: 99999999999999999999\r\n\r\n",
+    b"GET / HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\nffffffffffffffffff\r\n",
+    b"GET / HTTP/1.1\r\nContent-Length: 5\r\n\r\n",
+]
+
+
+async def test_web_console_answers_garbage_400_without_a_traceback(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Before: every request aiohttp could not parse was an ERROR with a traceback in the log
+    ("Error handling request"). After: 400 and one WARNING line naming the client."""
+    caplog.set_level(logging.DEBUG)
+    async with running_console() as console:
+        for request in GARBAGE:
+            reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
+            writer.write(request)
+            answer = await asyncio.wait_for(reader.read(64), 5)
+            assert answer.startswith(b"HTTP/1.") and b" 400 " in answer, (request[:40], answer)
+            writer.transport.abort()
+        reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
+        writer.write(b"GET /api/plcs HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        assert b" 200 " in await asyncio.wait_for(reader.read(64), 5)
+        writer.close()
+    errors = [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
+    assert errors == [], [r.getMessage() for r in errors]
+    said = [r.getMessage() for r in caplog.records if "bad HTTP request from" in r.getMessage()]
+    assert len(said) == len(GARBAGE), said
+    assert all("127.0.0.1" in line and " 400 " in line for line in said), said
+
+
+class _Poller:
+    stats: dict[str, object] = {}
+    dropped = 0
+    plcs: list[str] = []
+
+
+def _handlers() -> list[asyncio.Task[object]]:
+    return [
+        t
+        for t in asyncio.all_tasks()
+        if getattr(t.get_coro(), "__qualname__", "") == "MetricsServer._handle"
+    ]
+
+
+async def test_metrics_client_that_never_reads_is_dropped(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: a scrape whose answer the client never read held its connection, its task and the
+    whole answer for ever (the close waited for the answer to be sent), and the task was logged
+    as an error at shutdown. After: dropped at the request deadline (shortened here)."""
+    monkeypatch.setattr(metrics, "REQUEST_TIMEOUT", 0.5, raising=False)
+    big = b"# " + b"x" * (32 * 1024 * 1024) + b"\n"  # beyond what the sockets' buffers hold
+    monkeypatch.setattr(prometheus_client, "generate_latest", lambda registry: big)
+    server = MetricsServer(PlcstackCollector(_Poller()), MetricsSettings(port=0))
+    await server.start()
+    _reader, writer = await asyncio.open_connection("127.0.0.1", server.port, limit=1024)
+    try:
+        writer.write(b"GET /metrics HTTP/1.1\r\n\r\n")
+        await eventually(lambda: _handlers(), "the request is taken")
+        await eventually(lambda: not _handlers(), "the client that does not read is dropped")
+    finally:
+        writer.transport.abort()
+        await server.aclose()
+
+
+async def test_metrics_flood_meets_its_limit() -> None:
+    """Before: no limit (1000 connections: 1000 served). After: MAX_CLIENTS at once, the next
+    ones closed at once and counted; the endpoint answers again once they are gone."""
+    server = MetricsServer(PlcstackCollector(_Poller()), MetricsSettings(port=0))
+    await server.start()
+    try:
+        held = [
+            await asyncio.open_connection("127.0.0.1", server.port)
+            for _ in range(metrics.MAX_CLIENTS)
+        ]
+        await eventually(
+            lambda: server.limit.current == metrics.MAX_CLIENTS, "the first ones are served"
+        )
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        assert await _ended_by_server(reader)
+        assert server.limit.refused == 1
+        writer.transport.abort()
+        for _, w in held:
+            w.transport.abort()
+        await eventually(lambda: server.limit.current == 0, "the held ones are gone")
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(b"GET /healthz HTTP/1.1\r\n\r\n")
+        assert (await asyncio.wait_for(reader.read(), 5)).startswith(b"HTTP/1.1 200 OK")
+        writer.close()
+    finally:
+        await server.aclose()
