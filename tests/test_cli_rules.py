@@ -218,3 +218,15 @@ def test_ctrl_c_works_when_the_parent_ignored_sigint(argv: list[str]) -> None:
     never ended in CI that way. Every subcommand installs its own handlers."""
     rc, _, err = _run_until_first_line(argv, signal.SIGINT, sigint_ignored=True)
     assert rc == 130, err
+
+
+def test_a_refused_connection_says_nothing_listens_there(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    port = free_port()  # nobody listens there: the kernel answers with a reset
+    assert main(["read", f"e71+tcp://127.0.0.1:{port}", "D0"]) == 1
+    assert _one_error_line(capsys.readouterr().err) == (
+        f"plcstack: error: e71+tcp://127.0.0.1:{port}: connect: cannot connect to 127.0.0.1:"
+        f"{port}: connection refused, nothing listens on that port (wrong port, the module's "
+        "connection not open, or the simulator not running)"
+    )

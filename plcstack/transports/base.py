@@ -449,5 +449,12 @@ async def open_with_timeout(peer: str, coro: Awaitable[T], timeout: float | None
             return await coro
     except TimeoutError:
         raise PlcTimeout(f"connect to {peer} timed out after {timeout} s") from None
+    except ConnectionRefusedError:
+        # asyncio's own text ("Connect call failed ('10.0.0.5', 5000)") repeats the address and
+        # hides the one fact the refusal carries: the host is up, the port is not served
+        raise ConnectFailed(
+            f"cannot connect to {peer}: connection refused, nothing listens on that port "
+            "(wrong port, the module's connection not open, or the simulator not running)"
+        ) from None
     except OSError as exc:
         raise ConnectFailed(f"cannot connect to {peer}: {exc.strerror or exc}") from None
