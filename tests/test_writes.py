@@ -233,3 +233,21 @@ path = "writes.jsonl"
     assert memory.read_words("D", 100, 1) == [8]
     # the refused write is said once at the default log level
     assert "write from mqtt refused (bad_request)" in err.decode()
+
+
+async def test_a_misspelt_tag_is_answered_with_the_one_that_was_meant() -> None:
+    sim = await e71.start(MelsecMemory())
+    tags = (TagConfig("setpoint", "D100", INT16, writable=True),)
+    config = PollConfig((PlcConfig("press1", sim.url, tags),), {"default": 60})
+    try:
+        async with Poller(config) as poller:
+            path = WritePath(poller)
+            result = await path.write("web", "anna", "press1", "setpont", 5, peer=ANNA)
+            other = await path.write("web", "anna", "press1", "xyz", 5, peer=ANNA)
+    finally:
+        await sim.aclose()
+    assert (result.code, result.may_have_executed) == ("unknown_tag", False)
+    assert result.message == (
+        "press1: write setpont: no tag named 'setpont' (did you mean setpoint?); not attempted"
+    )
+    assert other.message == "press1: write xyz: no tag named 'xyz'; not attempted"

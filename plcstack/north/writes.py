@@ -36,6 +36,7 @@ audited the same way.
 
 from __future__ import annotations
 
+import difflib
 import logging
 import time
 from collections.abc import Iterable
@@ -194,8 +195,13 @@ class WritePath:
             if known is not None and config is None:
                 element = split_element(tag)
                 if element is None or element[0] not in known or known[element[0]][0].count < 2:
+                    close = difflib.get_close_matches(tag, list(known), n=1)
+                    meant = f" (did you mean {close[0]}?)" if close else ""
                     return WriteResult(
-                        False, "unknown_tag", f"{where}: no tag named {tag!r}; not attempted", False
+                        False,
+                        "unknown_tag",
+                        f"{where}: no tag named {tag!r}{meant}; not attempted",
+                        False,
                     )
                 # one value of an array tag (Sparkplug announces them as "alarms/3")
                 base, bits = known[element[0]]
