@@ -11,6 +11,7 @@ import argparse
 import asyncio
 import pydoc
 import re
+import shlex
 from pathlib import Path
 
 import pytest
@@ -265,3 +266,29 @@ def test_an_array_of_tag_tables_is_named_as_such(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as err:
         load_config(path)
     assert "tags is an array of tables ([[plc.tags]]); write one table [plc.tags]" in str(err.value)
+
+
+async def test_the_examples_of_read_and_write_help_run_as_written() -> None:
+    """``plcstack read --help`` and ``write --help`` show commands against the simulators at
+    their default ports; each runs (on the simulators' free ports instead) and prints a line."""
+    examples = [
+        shlex.split(line.strip())
+        for parser in _all_parsers(build_parser())
+        if parser.prog in ("plcstack read", "plcstack write")
+        for line in (parser.description or "").splitlines()
+        if line.startswith("  plcstack ")
+    ]
+    assert [argv[1] for argv in examples] == ["read", "read", "write", "write"]
+    e71_sim, s5_sim = await e71.start(), await s5lan.start()
+    ports = {"127.0.0.1:5000": e71_sim.url, "127.0.0.1:5010": s5_sim.url}
+    try:
+        for argv in examples:
+            url = argv[2]
+            scheme, hostport = url.split("://")
+            argv[2] = f"{scheme}://{ports[hostport].split('://')[1]}"
+            code, out, err = await cli_in_process(*argv[1:])
+            assert (code, err) == (0, ""), argv
+            assert out.startswith(f"{argv[3]}: "), (argv, out)
+    finally:
+        await e71_sim.aclose()
+        await s5_sim.aclose()

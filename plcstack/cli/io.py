@@ -29,8 +29,40 @@ _WRITE_TYPE_HELP = (
 _NEGATIVE_VALUE = re.compile(r"^-(\d|\.\d|inf(inity)?$|nan$)", re.IGNORECASE)
 
 
+_READ_DESCRIPTION = """\
+plcstack read URL ADDRESS [COUNT]: read COUNT points (values, with --type) from ADDRESS on.
+
+The line is ADDRESS: v1 v2 ... (--json: one JSON object). The address is checked by the rules
+of the PLC family the URL names before anything is sent: MELSEC D100, M0, X1F (hexadecimal),
+S5 DB10.DW5, MB100, IB0 (plcstack docs e71, plcstack docs s5-addresses). Against the
+simulators (plcstack sim e71 & plcstack sim s5lan &):
+
+  plcstack read e71+tcp://127.0.0.1:5000 D100 4
+  plcstack read s5lan://127.0.0.1:5010 DB10.DW0 2 --type float32
+
+Exit 0; 1 when the PLC side failed (error code, timeout, unreachable); 2 for bad usage. A
+failure is one line on stderr."""
+
+_WRITE_DESCRIPTION = """\
+plcstack write URL ADDRESS VALUE...: write the values to the points from ADDRESS on.
+
+Prints ADDRESS: wrote N value(s) once the PLC confirmed the write. A write is never retried:
+after a timeout or a lost connection the error line says whether it may have been executed.
+Against the simulators (plcstack sim e71 & plcstack sim s5lan &):
+
+  plcstack write e71+tcp://127.0.0.1:5000 D100 1 2 -3
+  plcstack write s5lan://127.0.0.1:5010 DB10.DW0 12.5 --type float32
+
+Exit 0; 1 when the PLC side failed; 2 for bad usage, found before anything is sent."""
+
+
 def register(subparsers: Any) -> None:
-    read = subparsers.add_parser("read", help="read points from a PLC")
+    read = subparsers.add_parser(
+        "read",
+        help="read points from a PLC",
+        description=_READ_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     read.add_argument("url", help="PLC URL, e.g. e71+tcp://127.0.0.1:5000 or s5lan://host:5010")
     read.add_argument("address", help="first address, e.g. D100, M0, DB10.DW5, MB100")
     read.add_argument("count", nargs="?", type=int, default=1, help="number of points (default 1)")
@@ -38,7 +70,12 @@ def register(subparsers: Any) -> None:
     _add_common_options(read, _READ_TYPE_HELP)
     read.set_defaults(func=run_read)
 
-    write = subparsers.add_parser("write", help="write points to a PLC")
+    write = subparsers.add_parser(
+        "write",
+        help="write points to a PLC",
+        description=_WRITE_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     write.add_argument("url", help="PLC URL")
     write.add_argument("address", help="first address")
     write.add_argument(
