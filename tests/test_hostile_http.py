@@ -151,3 +151,27 @@ async def test_metrics_flood_meets_its_limit() -> None:
         writer.close()
     finally:
         await server.aclose()
+
+
+async def test_web_console_flood_meets_its_limit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: 1000 connections were 1000 served (2000 descriptors; no limit in aiohttp). After:
+    MAX_CONNECTIONS at once (shortened here), the next answered 503 and closed, said once."""
+    monkeypatch.setattr(web_server, "MAX_CONNECTIONS", 3, raising=False)
+    async with running_console() as console:
+        runner = console.web._runner
+        assert runner is not None and runner.server is not None
+        http = runner.server
+        held = [await asyncio.open_connection("127.0.0.1", console.web.port) for _ in range(3)]
+        await eventually(lambda: len(http.connections) == 3, "three connections are served")
+        reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
+        answer = await asyncio.wait_for(reader.read(), 5)
+        assert answer.startswith(b"HTTP/1.1 503 "), answer
+        writer.transport.abort()
+        for _, w in held:
+            w.transport.abort()
+        await eventually(lambda: not http.connections, "the held connections are gone")
+        reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
+        writer.write(b"GET /api/plcs HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        assert b" 200 " in await asyncio.wait_for(reader.read(64), 5)
+        writer.close()
+        assert console.web.limit.refused == 1

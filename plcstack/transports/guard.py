@@ -164,8 +164,12 @@ class ClientLimit:
         self.refused = 0
         self._said = False
 
-    def admit(self, peer: str | None) -> bool:
-        """Count the client in, or refuse it (False): the caller closes its connection."""
+    def admit(self, peer: str | None, *, current: int | None = None) -> bool:
+        """Count the client in, or refuse it (False): the caller closes its connection.
+        ``current``: the clients connected now, for a server that counts them itself (then
+        :meth:`release` is not called)."""
+        if current is not None:
+            self.current = current
         if self.limit is not None and self.current >= self.limit:
             self.refused += 1
             if not self._said:
@@ -177,13 +181,7 @@ class ClientLimit:
                     peer or "a client",
                 )
             return False
-        self.current += 1
-        return True
-
-    def release(self) -> None:
-        """A client admitted has gone."""
-        self.current -= 1
-        if self.limit is not None and self.current < self.limit and self._said:
+        if self._said:
             self._said = False
             self.log.info(
                 "%s: below its limit of %d clients again (%d refused so far)",
@@ -191,3 +189,9 @@ class ClientLimit:
                 self.limit,
                 self.refused,
             )
+        self.current += 1
+        return True
+
+    def release(self) -> None:
+        """A client admitted has gone."""
+        self.current -= 1

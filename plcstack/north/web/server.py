@@ -5,8 +5,10 @@ nothing is sent from there), ``aclose()``. Binds 127.0.0.1 unless ``[web] host``
 the pages name every PLC of the plant. Every response carries a Content-Security-Policy that
 allows scripts, styles and connections from the console itself only (no inline script), and
 ``nosniff``; request bodies are limited to 64 KiB. A connection that sends no complete request
-for :data:`IDLE_TIMEOUT` seconds (silent, or a header trickled byte by byte) is closed, and a
-request that cannot be parsed is answered 400 and logged as one WARNING line naming the client.
+for :data:`IDLE_TIMEOUT` seconds (silent, or a header trickled byte by byte) is closed, a
+request that cannot be parsed is answered 400 and logged as one WARNING line naming the client,
+and at most :data:`MAX_CONNECTIONS` connections are served at once (the next get 503 and are
+closed: a flood cannot take the file descriptors the PLC connections need).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from plcstack.north.web.settings import WebSettings
 from plcstack.north.web.state import ConsoleState, plc_row
 from plcstack.north.writes import WritePath
 from plcstack.poll.samples import Scan
+from plcstack.transports.guard import ClientLimit
 
 __all__ = ["WebConsole"]
 
@@ -44,6 +47,13 @@ KEEPALIVE = 15.0
 #: silent socket, or a header sent one byte a minute, held its connection that long); the
 #: event stream is not affected, its request is complete
 IDLE_TIMEOUT = 75.0
+#: connections at once: browsers open up to six per console tab, and 64 event streams are
+#: served (:data:`~plcstack.north.web.events.MAX_CLIENTS`); more is a flood
+MAX_CONNECTIONS = 256
+_BUSY = (
+    b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\nContent-Length: 26\r\n"
+    b"Connection: close\r\n\r\ntoo many connections open\n"
+)
 _HEADERS = {
     "Content-Security-Policy": (
         "default-src 'none'; script-src 'self'; style-src 'self'; connect-src 'self';"
@@ -71,6 +81,9 @@ class WebConsole:
         #: the write token, read from the environment at start (None: writes are off)
         self.token: str | None = None
         self._runner: web.AppRunner | None = None
+        self._listener: asyncio.Server | None = None
+        #: connections at once; ``limit.refused`` counts the ones turned away
+        self.limit = ClientLimit(MAX_CONNECTIONS, "web console", log)
         #: runs the push to the browsers; North sets its run's supervisor before ``start``
         self.supervisor: Supervisor | None = None
         self._pusher: Supervised | None = None
@@ -113,17 +126,27 @@ class WebConsole:
         )
         await runner.setup()
         host, port = self.settings.host, self.settings.port
-        site = web.TCPSite(runner, host, port)
+        http = runner.server
+        assert http is not None
+        limit = self.limit
+
+        def accept() -> asyncio.BaseProtocol:
+            # aiohttp's server counts its connections; one beyond the limit is answered 503
+            if limit.admit(None, current=len(http.connections)):
+                return http()
+            return _Busy()
+
         try:
-            await site.start()
+            # not web.TCPSite: aiohttp has no connection limit, so the listener is ours
+            listener = await asyncio.get_running_loop().create_server(accept, host, port)
         except OSError as exc:
             await runner.cleanup()
             raise ConfigError(
                 f"[web] cannot serve the console on {host}:{port}: {exc.strerror or exc}"
                 " (another process on that port? set [web] port or --web-port)"
             ) from None
-        self._runner = runner
-        self.port = runner.addresses[0][1]  # the port taken when [web] port = 0
+        self._runner, self._listener = runner, listener
+        self.port = listener.sockets[0].getsockname()[1]  # the port taken when [web] port = 0
         if self.supervisor is None:
             self.supervisor = Supervisor()
         self._pusher = self.supervisor.start(self.name, self.hub.run)
@@ -144,9 +167,14 @@ class WebConsole:
             task.cancel()
         if self._writes:
             await asyncio.gather(*self._writes, return_exceptions=True)
+        listener, self._listener = self._listener, None
+        if listener is not None:
+            listener.close()
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
+        if listener is not None:
+            await listener.wait_closed()
 
     # -- data -----------------------------------------------------------------------------------
     def plc_rows(self, plc: str | None) -> list[dict[str, Any]]:
@@ -244,6 +272,15 @@ async def _stream(client: EventClient, response: web.StreamResponse) -> None:
         if data is None:
             return
         await response.write(data)
+
+
+class _Busy(asyncio.Protocol):
+    """A connection beyond :data:`MAX_CONNECTIONS`: 503 and closed, nothing read."""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        transport.write(_BUSY)
+        transport.close()
 
 
 class _ClientFaults(logging.Filter):
