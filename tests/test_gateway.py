@@ -95,6 +95,8 @@ async def test_write_outside_the_allow_list_is_refused_without_touching_the_plc(
             with pytest.raises(PlcErrorResponse) as lan_err:
                 await lan.write("DB5.DW0", [1])
             assert lan_err.value.code == FAULT_CODES[FaultKind.WRITE_DENIED][0] == 6
+            # the client's line names the refusal, not only "incorrect request format"
+            assert "gateway refuses so a write outside its --writable" in str(lan_err.value)
             with pytest.raises(PlcErrorResponse) as fw_err:
                 await fw.write("MB0", [1])
             assert fw_err.value.code == FAULT_CODES[FaultKind.WRITE_DENIED][1] == 0x01

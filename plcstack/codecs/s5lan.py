@@ -89,7 +89,9 @@ ERR_MEANINGS: Final[dict[int, str]] = {
     0: "success",
     2: "data area does not exist in the PLC (e.g. the requested DB does not exist)",
     3: "requested area too small (e.g. the DB is too short)",
-    6: "the module detected an incorrect request format",
+    # a software module (plcstack gateway) has no access error in A.7 and answers 6 instead
+    6: "the module detected an incorrect request format, or refused the request (a plcstack "
+    "gateway refuses so a write outside its --writable)",
     7: "too much data sent to the module (max. 2048 bytes)",
     9: "timeout in the communication between the module and the PLC",
     10: "the module received too little data",
