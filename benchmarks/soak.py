@@ -19,8 +19,8 @@ Setup (all on loopback, started here):
 
 Phases: ``--warmup`` seconds quiet, ``--faults`` seconds of faults (one every ``--gap``
 seconds, chosen at random with ``--seed``: cut the connections of some PLCs, stall some for a
-few seconds past the request timeout, restart some simulators, stop the broker for a while),
-then ``--recovery`` seconds quiet. Checks at the end:
+few seconds past the request timeout, restart some simulators, stop the broker for a while;
+``--kinds`` adds ``hang``, the broker frozen with SIGSTOP), then ``--recovery`` seconds quiet. Checks at the end:
 
 * every PLC was read with good quality after the faults stopped, and the subscriber saw
   messages from every PLC after the faults stopped;
@@ -384,6 +384,7 @@ class Faults:
     plcs: list[Plc]
     broker: Any
     rng: random.Random
+    kinds: tuple[str, ...] = ("cut", "cut", "stall", "restart", "restart", "broker")
     log: list[dict[str, Any]] = field(default_factory=list)
     tasks: set[asyncio.Task[None]] = field(default_factory=set)
 
@@ -397,7 +398,7 @@ class Faults:
         return self.rng.sample(pool, max(1, len(pool) // 10))
 
     async def one(self, t: float) -> None:
-        what = self.rng.choice(["cut", "cut", "stall", "restart", "restart", "broker"])
+        what = self.rng.choice(self.kinds)
         tcp = tuple(k for k in KINDS if k != "e71+udp")
         if what == "cut":
             chosen = self._some(tcp)
@@ -420,6 +421,14 @@ class Faults:
             self._later(self._restart(chosen, down))
             self.log.append({"t": t, "fault": "restart", "plcs": [p.name for p in chosen],
                              "seconds": round(down, 1)})  # fmt: skip
+        elif what == "hang":  # the broker process stopped (SIGSTOP): a host that hangs
+            proc = self.broker._proc
+            if proc is None:
+                return
+            hold = self.rng.uniform(8.0, 15.0)
+            proc.send_signal(signal.SIGSTOP)
+            self._later(self._broker_cont(proc, hold))
+            self.log.append({"t": t, "fault": "hang", "seconds": round(hold, 1)})
         else:
             if not self.broker.running:
                 return
@@ -438,6 +447,10 @@ class Faults:
         await asyncio.sleep(after)
         for p in plcs:
             await p.start_sim()
+
+    async def _broker_cont(self, proc: subprocess.Popen[bytes], after: float) -> None:
+        await asyncio.sleep(after)
+        proc.send_signal(signal.SIGCONT)
 
     async def _broker_back(self, after: float) -> None:
         await asyncio.sleep(after)
@@ -533,7 +546,7 @@ async def soak(args: argparse.Namespace) -> dict[str, Any]:
         children.append((mode, *spawn(workdir, mode, config, total, args.every)))
     seen = Seen([p.name for p in plcs])
     watcher = asyncio.create_task(subscribe(broker.port, seen))
-    faults = Faults(plcs, broker, rng)
+    faults = Faults(plcs, broker, rng, kinds=tuple(args.kinds.split(",")))
     t0 = time.monotonic()
     progress(f"soak: {len(plcs)} PLCs, {args.interval} s, faults for {args.faults} s in {workdir}")
     try:
@@ -655,6 +668,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gap", type=float, default=5.0, help="mean seconds between faults")
     parser.add_argument("--every", type=float, default=3.0, help="seconds between samples")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--kinds",
+        default="cut,cut,stall,restart,restart,broker",
+        help="faults to draw from (repeat one to make it likelier); also: hang (the broker"
+        " stopped with SIGSTOP for 8-15 s)",
+    )
     parser.add_argument("--json", default=None, help="write the whole report here")
     parser.add_argument(
         "--trace",
