@@ -20,7 +20,8 @@ Setup (all on loopback, started here):
 Phases: ``--warmup`` seconds quiet, ``--faults`` seconds of faults (one every ``--gap``
 seconds, chosen at random with ``--seed``: cut the connections of some PLCs, stall some for a
 few seconds past the request timeout, restart some simulators, stop the broker for a while;
-``--kinds`` adds ``hang``, the broker frozen with SIGSTOP), then ``--recovery`` seconds quiet. Checks at the end:
+``--kinds`` adds ``hang``, the broker frozen with SIGSTOP), then ``--recovery`` seconds quiet.
+Checks at the end:
 
 * every PLC was read with good quality after the faults stopped, and the subscriber saw
   messages from every PLC after the faults stopped;
