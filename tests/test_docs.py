@@ -27,8 +27,11 @@ QUICKSTARTS = ["e71.md", "s5lan.md", "as511.md", "fetchwrite.md"]
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
 def test_pages_are_self_contained(page: Path) -> None:
     text = page.read_text(encoding="utf-8")
-    for bad in ("../shared", "DESIGN.md", "specs/", "[R]", "§"):
+    for bad in ("../shared", "DESIGN.md", "specs/", "[R]", "§", "tests/"):
         assert bad not in text, f"{page.name} mentions {bad!r}"
+    # a section number of the specifications the code was written from ("(A.7)", "C.6.4"):
+    # a reader of the page has no such document to look it up in
+    assert not re.search(r"\b[A-F]\.\d+(\.\d+)*\b", text), f"{page.name}: a spec section"
     for target in re.findall(r"\]\(([^)#:]+)(?:#[^)]*)?\)", text):
         assert (page.parent / target).exists(), f"{page.name}: broken link {target}"
 
