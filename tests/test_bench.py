@@ -612,3 +612,36 @@ def test_fleet_row_takes_medians_and_the_ratio_of_cpu_per_request() -> None:
     assert row.ratio == pytest.approx(0.8)  # ratios 0.5, 1.0, 0.8
     assert row.us_per_op == 60 and row.floor_us_per_op == 50
     assert "overruns s|f 1|2" in row.note and "ratio 0.50..1.00" in row.note
+
+
+async def test_fleet_window_runs_on_until_a_request_completed() -> None:
+    """A window in which no request completed (the machine stalled the responders through it)
+    is no measurement: it runs on until the first one completes."""
+    from plcstack.bench.cases import fleet
+
+    loop = asyncio.get_running_loop()
+    duration, warmup = 0.1, 0.05
+    held: list[asyncio.Transport] = []
+
+    class Late(asyncio.Protocol):
+        """Answers nothing until well after the window, then every request at once."""
+
+        def connection_made(self, transport: asyncio.BaseTransport) -> None:
+            held.append(cast(asyncio.Transport, transport))
+
+    def answer() -> None:
+        for transport in held:
+            if not transport.is_closing():
+                transport.write(fleet.REPLY * 8)
+
+    server = await loop.create_server(Late, "127.0.0.1", 0)
+    try:
+        port = server.sockets[0].getsockname()[1]
+        loop.call_later(3 * (warmup + duration), answer)
+        run = await fleet._run_kind("floor", [port], duration, warmup)
+    finally:
+        server.close()
+        for transport in held:
+            transport.abort()
+        await server.wait_closed()
+    assert run["requests"] > 0, run
