@@ -486,3 +486,40 @@ async def test_cli_prints_the_hint_on_its_one_error_line() -> None:
     assert proc.returncode == 1
     lines = err.decode().strip().splitlines()
     assert len(lines) == 1 and lines[0].endswith("try ?code=ascii"), lines
+
+
+async def test_no_wrong_port_hint_once_the_port_has_answered() -> None:
+    """A PLC that answered and then closes a fresh connection on its first request (it restarts,
+    a link drops) is no wrong port: seen in a soak, "this port is probably not an E71" on PLCs
+    that had answered thousands of requests."""
+    async with await e71sim.start() as sim:
+        connections = 0
+
+        async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            nonlocal connections
+            connections += 1
+            if connections > 1:  # a fresh connection: the first request, then the close
+                await reader.read(4096)
+                writer.transport.abort()
+                return
+            up_reader, up_writer = await asyncio.open_connection(sim.host, sim.port)
+            try:
+                while data := await reader.read(4096):
+                    up_writer.write(data)
+                    writer.write(await up_reader.read(4096))
+            finally:
+                up_writer.transport.abort()
+                writer.transport.abort()
+
+        server = await asyncio.start_server(ends_quietly(handle), "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+        try:
+            async with connect(f"e71+tcp://127.0.0.1:{port}?{FAST}") as plc:
+                assert await plc.read("D0", 2) == [0, 0]
+                plc.drop()  # the next request reconnects
+                with pytest.raises(ConnectionLost) as info:
+                    await plc.read("D0", 2)
+        finally:
+            server.close()
+            await server.wait_closed()
+    assert "Hint" not in info.value.message, info.value.message

@@ -235,4 +235,4 @@ class As511Link(Client):
 
     def diagnose(self, failure: Failure, reply: bytes) -> str:
         serial = isinstance(self.transport, SerialTransport)
-        return as511_hint(failure, reply, serial=serial, first=self.first_on_connection())
+        return as511_hint(failure, reply, serial=serial, first=self.first_ever())

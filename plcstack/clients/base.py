@@ -158,6 +158,10 @@ class Client(AsyncResource):
         self.unproven = True
         #: connections in a row that closed or garbled before one valid answer
         self._unproven_failures = 0
+        #: no connection of this client has produced a valid answer yet. Only then does a peer
+        #: that closes or stays silent on a first request hint at a wrong port or protocol;
+        #: once the same URL answered, it is a PLC restarting or a network drop
+        self.never_answered = True
         #: why requests fail fast until ``_next_attempt`` ("PLC unreachable", ...)
         self._backoff_reason = "PLC unreachable"
         #: shared by the clients of one poller (None: connect at once). A connect waits for a
@@ -241,6 +245,7 @@ class Client(AsyncResource):
         Callers test :attr:`unproven` first, keeping the hot path at one attribute read."""
         self.unproven = False
         self._unproven_failures = 0
+        self.never_answered = False
         self.backoff.reset()
 
     async def _ensure_open(self, what: str) -> None:
@@ -268,6 +273,13 @@ class Client(AsyncResource):
     def first_on_connection(self) -> bool:
         """Whether the request in flight is the first one on this connection (failure path)."""
         return self.stats.requests - self._requests_at_connect <= 1
+
+    def first_ever(self) -> bool:
+        """Whether the request in flight is the first on this connection and no connection
+        before answered (failure path): only then is a close or silence evidence about the
+        settings (a soak that cut connections saw "this port is probably not an E71" on PLCs
+        that had answered thousands of requests)."""
+        return self.never_answered and self.first_on_connection()
 
     def diagnose(self, failure: Failure, reply: bytes) -> str:
         """Hook for the failure path only: one plain-words sentence on what is probably

@@ -160,7 +160,7 @@ class E71Client(E71CommandsMixin):
     def diagnose(self, failure: Failure, reply: bytes) -> str:
         if self._udp and not reply:
             return ""  # a datagram that was never answered says nothing about the peer
-        return e71_hint(failure, reply, code=self.code.value, first=self.first_on_connection())
+        return e71_hint(failure, reply, code=self.code.value, first=self.first_ever())
 
     def new_codec(self) -> E71ClientConnection:
         codec = E71ClientConnection(self.code, transport="udp" if self._udp else "tcp")

@@ -213,7 +213,7 @@ class FetchWriteClient(S5Access, RequestClient[Response]):
         return cls(url.raw, url.host, url.port, **options)
 
     def diagnose(self, failure: Failure, reply: bytes) -> str:
-        return fetchwrite_hint(failure, reply, mk=self.mk, first=self.first_on_connection())
+        return fetchwrite_hint(failure, reply, mk=self.mk, first=self.first_ever())
 
     # -- connection life cycle ----------------------------------------------------------------
     def new_codec(self) -> ClientConnection:
