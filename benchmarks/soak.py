@@ -4,8 +4,8 @@ Setup (all on loopback, started here):
 
 * ``--plcs`` simulated PLCs in this process, of every kind the poller speaks: E71 over TCP and
   UDP, S5-LAN, FETCH/WRITE and AS511 over TCP. Each TCP PLC sits behind a fault proxy of its
-  own (an asyncio relay that can cut every connection or hold every byte); UDP PLCs are reached
-  directly and only restarted.
+  own (an asyncio relay that can cut every connection or hold every byte), each UDP PLC behind a
+  relay that loses every datagram while stalled.
 * a real mosquitto (``tests/servers.py``), persistent, so queued QoS 1 messages survive its
   restarts;
 * two measured child processes, each a ``plcstack poll CONFIG --format influx`` run (the CLI's
@@ -143,6 +143,48 @@ class FaultProxy:
             await self.server.wait_closed()
 
 
+class UdpRelay:
+    """client -> relay -> simulator for a UDP PLC: while ``stalled`` is clear every datagram is
+    lost, both ways (UDP has no connection to cut)."""
+
+    def __init__(self, upstream_port: int) -> None:
+        self.upstream = ("127.0.0.1", upstream_port)
+        self.port = 0
+        self.stalled = asyncio.Event()  # set = flowing
+        self.stalled.set()
+        self._front: asyncio.DatagramTransport | None = None
+        self._back: asyncio.DatagramTransport | None = None
+        self._client: Any = None
+
+    async def start(self) -> None:
+        relay = self
+
+        class Front(asyncio.DatagramProtocol):
+            def datagram_received(self, data: bytes, addr: Any) -> None:
+                relay._client = addr
+                if relay.stalled.is_set() and relay._back is not None:
+                    relay._back.sendto(data)
+
+        class Back(asyncio.DatagramProtocol):
+            def datagram_received(self, data: bytes, addr: Any) -> None:
+                front, client = relay._front, relay._client
+                if relay.stalled.is_set() and front is not None and client is not None:
+                    front.sendto(data, client)
+
+        loop = asyncio.get_running_loop()
+        self._front, _ = await loop.create_datagram_endpoint(Front, local_addr=("127.0.0.1", 0))
+        self._back, _ = await loop.create_datagram_endpoint(Back, remote_addr=self.upstream)
+        self.port = self._front.get_extra_info("sockname")[1]
+
+    def cut(self) -> int:
+        return 0
+
+    async def aclose(self) -> None:
+        for transport in (self._front, self._back):
+            if transport is not None:
+                transport.close()
+
+
 # -- the simulated plant ---------------------------------------------------------------------------
 @dataclass
 class Plc:
@@ -151,12 +193,10 @@ class Plc:
     memory: Any
     sim: Any = None
     sim_port: int = 0
-    proxy: FaultProxy | None = None
+    proxy: FaultProxy | UdpRelay | None = None
 
     @property
     def url(self) -> str:
-        if self.kind == "e71+udp":
-            return f"e71+udp://127.0.0.1:{self.sim_port}"
         assert self.proxy is not None
         return f"{self.kind}://127.0.0.1:{self.proxy.port}"
 
@@ -406,7 +446,7 @@ class Faults:
             cut = sum(p.proxy.cut() for p in chosen if p.proxy is not None)
             self.log.append({"t": t, "fault": "cut", "plcs": [p.name for p in chosen], "n": cut})
         elif what == "stall":
-            chosen = self._some(tcp)
+            chosen = self._some()
             hold = self.rng.uniform(2.0, 5.0)
             for p in chosen:
                 assert p.proxy is not None
@@ -530,9 +570,8 @@ async def soak(args: argparse.Namespace) -> dict[str, Any]:
     plcs = [new_plc(i) for i in range(args.plcs)]
     for p in plcs:
         await p.start_sim()
-        if p.kind != "e71+udp":
-            p.proxy = FaultProxy(p.sim_port)
-            await p.proxy.start()
+        p.proxy = UdpRelay(p.sim_port) if p.kind == "e71+udp" else FaultProxy(p.sim_port)
+        await p.proxy.start()
     broker = Mosquitto()
     await asyncio.to_thread(broker.start)
     workdir = Path(tempfile.mkdtemp(prefix="plcstack-soak-"))
