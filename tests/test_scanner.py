@@ -270,9 +270,10 @@ async def test_every_scan_gives_what_the_plcs_hold(concurrency: int | None) -> N
     assert [s[2] for s in tasks_tags["multi", "m"]] == [True]
     mute = tasks_tags["mute", "a"]
     # the first timeout on the connection that answered before (the callback path), then the
-    # fresh connections' (the task path: they never answered, so the hint says why)
-    assert [s[3:5] for s in mute] == [("GOOD", None), *[("BAD", "PlcTimeout")] * 2], mute
-    assert "Hint" not in str(mute[1][5]) and "sent nothing" in str(mute[2][5])
+    # fresh connections' (the task path), one and the same: this PLC answered before, so its
+    # silence is a hang, and no hint points at the port or the protocol
+    assert [s[3:5] for s in mute] == [("GOOD", None), ("BAD", "PlcTimeout")], mute
+    assert "Hint" not in str(mute[1][5])
     a, b = tasks_tags["isolate", "a"], tasks_tags["isolate", "b"]
     assert [s[2:5] for s in a] == [
         (5, "GOOD", None),
