@@ -8,7 +8,14 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-__all__ = ["Handler", "blocked_until", "ends_quietly", "eventually", "poll_tasks_left"]
+__all__ = [
+    "Handler",
+    "blocked_until",
+    "ended_by_server",
+    "ends_quietly",
+    "eventually",
+    "poll_tasks_left",
+]
 
 Handler = Callable[[asyncio.StreamReader, asyncio.StreamWriter], Awaitable[None]]
 
@@ -69,3 +76,17 @@ def poll_tasks_left() -> list[asyncio.Task[Any]]:
         for t in asyncio.all_tasks()
         if t is not asyncio.current_task() and "poll" in repr(t.get_coro())
     ]
+
+
+async def ended_by_server(reader: asyncio.StreamReader, bound: float = 5.0) -> bool:
+    """Whether the server closed or reset the connection within ``bound`` seconds (what it
+    sent meanwhile is read and dropped)."""
+    try:
+        async with asyncio.timeout(bound):
+            while await reader.read(65536):
+                pass
+        return True
+    except ConnectionError:
+        return True
+    except TimeoutError:
+        return False

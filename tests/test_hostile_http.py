@@ -13,21 +13,8 @@ import pytest
 from plcstack.north import metrics
 from plcstack.north.metrics import MetricsServer, MetricsSettings, PlcstackCollector
 from plcstack.north.web import server as web_server
-from tests.aio_helpers import eventually
+from tests.aio_helpers import ended_by_server, eventually
 from tests.web_helpers import running_console
-
-
-async def _ended_by_server(reader: asyncio.StreamReader, bound: float = 5.0) -> bool:
-    """Whether the server closed or reset the connection within ``bound`` seconds."""
-    try:
-        async with asyncio.timeout(bound):
-            while await reader.read(65536):
-                pass
-        return True
-    except ConnectionError:
-        return True
-    except TimeoutError:
-        return False
 
 
 async def test_web_console_ends_silent_and_trickling_connections(
@@ -38,7 +25,7 @@ async def test_web_console_ends_silent_and_trickling_connections(
     monkeypatch.setattr(web_server, "IDLE_TIMEOUT", 0.5, raising=False)
     async with running_console() as console:
         reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
-        assert await _ended_by_server(reader)
+        assert await ended_by_server(reader)
         writer.transport.abort()
 
         reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
@@ -50,7 +37,7 @@ async def test_web_console_ends_silent_and_trickling_connections(
 
         dripping = asyncio.create_task(trickle())
         try:
-            assert await _ended_by_server(reader)
+            assert await ended_by_server(reader)
             assert not dripping.done()
         finally:
             dripping.cancel()
@@ -139,7 +126,7 @@ async def test_metrics_flood_meets_its_limit() -> None:
             lambda: server.limit.current == metrics.MAX_CLIENTS, "the first ones are served"
         )
         reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
-        assert await _ended_by_server(reader)
+        assert await ended_by_server(reader)
         assert server.limit.refused == 1
         writer.transport.abort()
         for _, w in held:

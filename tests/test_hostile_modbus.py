@@ -19,7 +19,7 @@ from plcstack.north.modbus.config import ModbusSettings, parse_modbus
 from plcstack.north.modbus.server import ModbusServer
 from plcstack.poll.engine import Poller
 from plcstack.sim import e71
-from tests.aio_helpers import eventually
+from tests.aio_helpers import ended_by_server, eventually
 
 PLANT = """
 [poll]
@@ -69,18 +69,6 @@ async def _answered(port: int) -> bytes:
         writer.close()
 
 
-async def _ended_by_server(reader: asyncio.StreamReader, bound: float = 5.0) -> bool:
-    try:
-        async with asyncio.timeout(bound):
-            while await reader.read(65536):
-                pass
-        return True
-    except ConnectionError:
-        return True
-    except TimeoutError:
-        return False
-
-
 async def test_a_client_that_never_reads_is_not_answered_into_memory(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -123,7 +111,7 @@ async def test_a_flood_of_connections_meets_max_clients(
         await eventually(lambda: server.clients == 3, "three clients are served")
         turned = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(5)]
         for reader, _ in turned:
-            assert await _ended_by_server(reader)
+            assert await ended_by_server(reader)
         assert server.limit.refused == 5 and server.clients == 3
         reader, writer = held[0]
         writer.write(READ_ALL)
@@ -145,7 +133,7 @@ async def test_silent_and_trickling_clients_are_ended(
     monkeypatch.setattr(modbus_server, "FRAME_TIMEOUT", 0.5)
     async with serving(tmp_path, "idle_timeout = 0.3") as server:
         reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
-        assert await _ended_by_server(reader)
+        assert await ended_by_server(reader)
         assert server.idle_closed == 1
         writer.transport.abort()
     async with serving(tmp_path, "idle_timeout = 30") as server:
@@ -158,7 +146,7 @@ async def test_silent_and_trickling_clients_are_ended(
 
         dripping = asyncio.create_task(trickle())
         try:
-            assert await _ended_by_server(reader)
+            assert await ended_by_server(reader)
         finally:
             dripping.cancel()
             await asyncio.gather(dripping, return_exceptions=True)
