@@ -85,7 +85,13 @@ from plcstack.north.opcua_types import (
     write_status,
 )
 from plcstack.north.opcua_types import status as _status
-from plcstack.north.opcua_users import PlcUser, UserManagerOfConfig, session_peer, trust_list
+from plcstack.north.opcua_users import (
+    PlcUser,
+    UserManagerOfConfig,
+    limit_clients,
+    session_peer,
+    trust_list,
+)
 from plcstack.north.supervise import run_until
 from plcstack.north.write_values import parse_write_value
 from plcstack.north.writes import WritePath
@@ -424,6 +430,8 @@ class OpcUaServer:
         self.poller = poller
         self.config = config if config is not None else OpcUaConfig()
         self._server: Server | None = None
+        #: undoes the client limit's log filter (at stop)
+        self._unlimit: Callable[[], None] = lambda: None
         self._bindings: dict[ua.NodeId, _Binding] = {}
         self._by_tag: dict[tuple[str, str], _Binding] = {}
         self._writes: set[asyncio.Future[Any]] = set()
@@ -507,11 +515,13 @@ class OpcUaServer:
             by_node(self._bindings, lambda b: b.tag.writable),
             by_node(self._bindings, lambda b: _eu_span(b.tag)),
         )
+        unlimit = limit_clients(server, config.max_clients)
         try:
             await server.start()
         except OSError as exc:
+            unlimit()
             raise PlcError(f"OPC UA server cannot listen on {config.endpoint}: {exc}") from None
-        self._server = server
+        self._server, self._unlimit = server, unlimit
         self._applier = asyncio.create_task(self._apply_submitted(), name="opcua submitted")
         bound = server.bserver
         if bound is not None:
@@ -547,6 +557,7 @@ class OpcUaServer:
         server, self._server = self._server, None
         if server is not None:
             await server.stop()
+            self._unlimit()
         if self._writes:
             await asyncio.gather(*self._writes, return_exceptions=True)
 

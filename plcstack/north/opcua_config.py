@@ -10,6 +10,7 @@ They live in the ``[opcua]`` table of the poller's TOML file, next to the PLCs t
     private_key = "server-key.pem"
     trusted_client_certificates = "trusted/"   # only these clients' certificates (DER/PEM)
     anonymous = "read"               # "none" | "read" | "write"
+    max_clients = 64                 # connections at once; the next is closed at once
 
     [opcua.users.operator]           # user name / password logins
     password_hash = "pbkdf2_sha256$..."   # plcstack serve opcua --hash-password
@@ -51,6 +52,8 @@ __all__ = [
 
 DEFAULT_ENDPOINT = "opc.tcp://127.0.0.1:4840/plcstack"
 DEFAULT_NAMESPACE = "urn:plcstack"
+#: OPC UA clients at once: a plant has a few (SCADA, historian, engineering laptops)
+DEFAULT_MAX_CLIENTS = 64
 #: the policy names asyncua offers (``ua.SecurityPolicyType``); "None" is accepted for NoSecurity
 SECURITY_POLICIES = (
     "NoSecurity",
@@ -102,6 +105,9 @@ class OpcUaConfig:
     trusted_client_certificates: Path | None = None
     anonymous: str = "read"
     users: tuple[UserConfig, ...] = ()
+    #: connections at once; asyncua closes the next one at once (its own default is 1000,
+    #: enough to take the file descriptors the PLC connections need)
+    max_clients: int = DEFAULT_MAX_CLIENTS
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -135,6 +141,9 @@ def _validate(config: OpcUaConfig) -> None:
         )
     if port is not None and not 0 <= port <= 65535:
         raise ConfigError(f"opcua.endpoint: port {port} is out of range")
+    clients = config.max_clients
+    if isinstance(clients, bool) or not isinstance(clients, int) or not 1 <= clients <= 10_000:
+        raise ConfigError(f"opcua.max_clients must be 1..10000, not {clients!r}")
     if not config.namespace:
         raise ConfigError("opcua.namespace must not be empty")
     if config.anonymous not in ANONYMOUS_MODES:
@@ -244,6 +253,7 @@ _KEYS = {
     "trusted_client_certificates",
     "anonymous",
     "users",
+    "max_clients",
 }
 
 
@@ -290,6 +300,8 @@ def parse_opcua_config(section: Mapping[str, Any], *, base: Path | None = None) 
     if not isinstance(users, Mapping):
         raise ConfigError("[opcua.users] must be a table of [opcua.users.NAME] tables")
     options["users"] = tuple(_user(name, spec) for name, spec in users.items())
+    if "max_clients" in section:
+        options["max_clients"] = section["max_clients"]
     return OpcUaConfig(**options)
 
 

@@ -1,10 +1,13 @@
-"""Who may do what on the OPC UA server: sessions' logins (anonymous per ``anonymous``, user
-names by PBKDF2 password hash), the trust list of client certificates, and where a session's
-client is (the write audit's ``peer``)."""
+"""Who may do what on the OPC UA server: how many clients may connect at once, sessions' logins
+(anonymous per ``anonymous``, user names by PBKDF2 password hash), the trust list of client
+certificates, and where a session's client is (the write audit's ``peer``)."""
 
 from __future__ import annotations
 
 import logging
+import math
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -13,15 +16,67 @@ from asyncua.crypto.permission_rules import User, UserRole
 from asyncua.crypto.truststore import TrustStore
 from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 from asyncua.server.internal_server import InternalServer
+from asyncua.server.server import Server
 from asyncua.server.user_managers import UserManager
 
 from plcstack.north.opcua_config import OpcUaConfig, check_password
 from plcstack.poll.config import ConfigError
 from plcstack.transports.peer import peer_address
 
-__all__ = ["PlcUser", "UserManagerOfConfig", "session_peer", "trust_list"]
+__all__ = [
+    "PlcUser",
+    "RefusalsOnce",
+    "UserManagerOfConfig",
+    "limit_clients",
+    "session_peer",
+    "trust_list",
+]
 
 log = logging.getLogger("plcstack.north.opcua")
+#: where asyncua says that it refused a connection at its limit
+_ASYNCUA_LISTENER = "asyncua.server.binary_server_asyncio"
+
+
+class RefusalsOnce(logging.Filter):
+    """asyncua logs every connection it refuses at its limit as a WARNING: a flood, or a client
+    that reconnects in a loop, would be a line per attempt. The first refusal of a burst passes;
+    the next ones are counted (``refused``) and dropped until no refusal came for ``quiet``
+    seconds. The first line of the next burst says how many the previous one refused after its
+    first line."""
+
+    def __init__(self, quiet: float = 10.0, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__()
+        self.quiet = quiet
+        self.clock = clock
+        self.refused = 0
+        self._last = -math.inf
+        self._unsaid = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not str(record.msg).startswith("Refusing connection"):
+            return True
+        self.refused += 1
+        now, last = self.clock(), self._last
+        self._last = now
+        if now - last < self.quiet:
+            self._unsaid += 1
+            return False
+        if self._unsaid:
+            record.msg = f"{record.msg} (and {self._unsaid} more refused in the burst before)"
+            self._unsaid = 0
+        return True
+
+
+def limit_clients(server: Server, limit: int) -> Callable[[], None]:
+    """At most ``limit`` connections to ``server`` at once (asyncua closes the next one at once;
+    its own default, 1000, would take the file descriptors the PLC connections need), its
+    refusals logged once per burst. Returns what undoes the logging part (at the server's stop).
+    """
+    server.iserver.max_connections = limit
+    refusals = RefusalsOnce()
+    listener = logging.getLogger(_ASYNCUA_LISTENER)
+    listener.addFilter(refusals)
+    return lambda: listener.removeFilter(refusals)
 
 
 @dataclass
