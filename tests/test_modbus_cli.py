@@ -97,6 +97,15 @@ async def test_serve_modbus_answers_and_counts(
             ("modbus", "dead", "level", 3, "not_writable"),
         ]
         assert audit[0]["previous"] == 5
+        # the register shows the written value from the next scan on (interval 0.05 s); until
+        # then it holds the last scan's 5
+        async with asyncio.timeout(10):
+            for _ in range(1000):
+                if await modbus(endpoint, "rh", 0, 1) == ["ok 9"]:
+                    break
+                await asyncio.sleep(0.01)
+            else:
+                raise AssertionError("the written 9 never reached register 0")
 
         host, port = endpoint.rsplit(":", 1)
         reader, writer = await asyncio.open_connection(host, int(port))
@@ -104,7 +113,7 @@ async def test_serve_modbus_answers_and_counts(
         writer.write(mbap(1, bytes.fromhex("0300000001")) + mbap(2, bytes.fromhex("07")))
         first = await reader.readexactly(11)
         second = await reader.readexactly(9)
-        assert first == struct.pack(">HHHBBBH", 1, 0, 5, 1, 3, 2, 5)
+        assert first == struct.pack(">HHHBBBH", 1, 0, 5, 1, 3, 2, 9)
         assert second == struct.pack(">HHHBBB", 2, 0, 3, 1, 0x87, 0x01)
 
         text = await get(metrics, "/metrics")
