@@ -61,6 +61,7 @@ from typing import Any
 
 from plcstack.errors import ConfigError, ValueDecodeError, check_keys
 from plcstack.poll.samples import Quality, Sample, Scan
+from plcstack.resource import cancel_until_done
 from plcstack.transports.guard import ClientLimit, close_writer
 from plcstack.transports.peer import peer_address
 
@@ -348,10 +349,9 @@ class MetricsServer:
                 await self._refresher
         if self._server is not None:
             self._server.close()
-        for task in list(self._handlers):
-            task.cancel()
-        if self._handlers:
-            await asyncio.gather(*self._handlers, return_exceptions=True)
+        handlers = list(self._handlers)
+        await cancel_until_done(handlers)  # a handler may drop one cancel (Python 3.11)
+        await asyncio.gather(*handlers, return_exceptions=True)
         if self._server is not None:
             await self._server.wait_closed()
 
