@@ -1,7 +1,7 @@
 """An independent Modbus client for the server's tests: libmodbus, through tests/modbus_client.c.
 
 The C program is compiled once per test session into a temporary directory. A machine without
-gcc or libmodbus (Debian: ``libmodbus-dev``, installed by ``.ci/run``) makes the tests that need
+gcc or libmodbus (Debian: ``libmodbus-dev``, installed by ``scripts/setup-test-machine``) makes the tests that need
 it *fail* with the reason, never skip.
 """
 

@@ -5,7 +5,7 @@ Tests of the north side talk to the real brokers a plant runs, not to fakes, so 
 one starts it here. If the binary is missing or the server does not come up, the helper raises
 ``ServerUnavailable`` with the reason (and the server's log); the fixtures turn that into a test
 *failure*, never a skip: a CI machine without mosquitto must not pass the MQTT tests silently.
-``.ci/run`` installs the Debian packages.
+``scripts/setup-test-machine`` installs the Debian packages.
 
 Usage (the fixtures ``mosquitto`` and ``influxd`` are registered in ``tests/conftest.py``)::
 
@@ -83,7 +83,7 @@ def _find(binary: str, *extra_dirs: str) -> str:
                 return candidate
         raise ServerUnavailable(
             f"{binary} is not installed (Debian: apt-get install -y "
-            f"{_PACKAGES.get(binary, binary)}); .ci/run installs it"
+            f"{_PACKAGES.get(binary, binary)}); scripts/setup-test-machine installs it"
         )
     return path
 
