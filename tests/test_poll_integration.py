@@ -404,9 +404,13 @@ def test_demo_in_a_pipe_prints_samples_of_every_protocol_and_exits_0() -> None:
     assert "p99 ms" in result.stderr  # the statistics at the end
 
 
-async def test_demo_live_table_on_a_terminal() -> None:
-    """On a terminal the demo redraws a table in place: ANSI escapes, every PLC on a row."""
+async def test_demo_live_table_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a terminal the demo redraws a table in place: ANSI escapes, every PLC on a row.
+    (A terminal that calls itself dumb gets plain lines: whatever TERM the suite runs under,
+    this one is a terminal that draws.)"""
     from plcstack.cli.demo import run_demo
+
+    monkeypatch.setenv("TERM", "xterm")
 
     protocols, _ = available_protocols()
     master, slave = os.openpty()
