@@ -1,8 +1,8 @@
 """An independent Modbus client for the server's tests: libmodbus, through tests/modbus_client.c.
 
 The C program is compiled once per test session into a temporary directory. A machine without
-gcc or libmodbus (Debian: ``libmodbus-dev``, installed by ``scripts/setup-test-machine``) makes the tests that need
-it *fail* with the reason, never skip.
+gcc or libmodbus (Debian: ``libmodbus-dev``, installed by ``scripts/setup-test-machine``) makes
+the tests that need it *fail* with the reason, never skip.
 """
 
 from __future__ import annotations

@@ -28,7 +28,9 @@ pytestmark = pytest.mark.asyncio(loop_scope="module")
 @pytest_asyncio.fixture(loop_scope="module", scope="module")
 async def browser() -> AsyncIterator[Any]:
     if not shutil.which(CHROMIUM):
-        pytest.fail(f"no Chromium at {CHROMIUM} (Debian's package 'chromium': scripts/setup-test-machine)")
+        pytest.fail(
+            f"no Chromium at {CHROMIUM} (Debian's package 'chromium': scripts/setup-test-machine)"
+        )
     async with playwright_api.async_playwright() as p:
         chromium = await p.chromium.launch(executable_path=CHROMIUM)
         try:
