@@ -48,6 +48,7 @@ from plcstack.sim.base import (
     idle_timeout_of,
 )
 from plcstack.sim.s5memory import BLOCK_HEADER_BYTES, BlockType, S5AccessError, S5Memory
+from plcstack.transports import tap
 
 __all__ = [
     "AS511Machine",
@@ -333,7 +334,7 @@ async def start(
         finally:
             await close_writer(writer)
 
-    server = await asyncio.start_server(handle, host, port)
+    server = await tap.start_server(handle, host, port)
     query = f"baud={baud}" if baud else ""
     sim = AS511TcpSimulator(server, "as511+tcp", query)
     sim.machine = machine
@@ -368,6 +369,14 @@ class PtySimulator(Simulator):
         self.received = 0
         self._task: asyncio.Task[None] | None = None
         self._closed = False
+        # recorded when started inside a ``capturing`` block (``plcstack sim as511 --pty
+        # --pcap``): the PG is the far end of this line
+        capture = tap.current_tap()
+        self._wire = (
+            None
+            if capture is None
+            else capture.connection(tap.Endpoints("serial", ("", 0), ("", 0), "remote", self.path))
+        )
 
     def _start(self) -> None:
         loop = asyncio.get_running_loop()
@@ -409,9 +418,13 @@ class PtySimulator(Simulator):
             return  # EIO while no slave is open: nothing to read
         if data:
             self.received += len(data)
+            if self._wire is not None:
+                self._wire.received(data)
             self._queue.put_nowait(data)
 
     def _write(self, data: bytes) -> None:
+        if self._wire is not None and data:
+            self._wire.sent(data)
         self._pending += data
         self._flush()
 
@@ -442,6 +455,9 @@ class PtySimulator(Simulator):
                 await self._task
         os.close(self._master)
         os.close(self._slave)
+        if self._wire is not None:
+            self._wire.ended(by_peer=False)
+            self._wire = None
 
 
 async def start_pty(

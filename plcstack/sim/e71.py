@@ -63,6 +63,7 @@ from plcstack.sim.base import (
 )
 from plcstack.sim.e71_module import execute_extension, module_of
 from plcstack.sim.melsec_memory import CpuState, MelsecAccessError, MelsecMemory
+from plcstack.transports import tap
 
 __all__ = [
     "MAX_CONNECTIONS",
@@ -398,7 +399,7 @@ async def start(
     loop = asyncio.get_running_loop()
     if transport == "udp":
         holder: list[E71UdpSimulator] = []
-        dtransport, _ = await loop.create_datagram_endpoint(
+        dtransport, _ = await tap.create_datagram_endpoint(
             lambda: _UdpEndpoint(holder, code_, lower_ok), local_addr=(host, port)
         )
         usim = E71UdpSimulator(dtransport, mem, code_, abnormal_trailer=abnormal_trailer)
@@ -407,7 +408,7 @@ async def start(
     if transport != "tcp":
         raise ValueError(f"transport must be 'tcp' or 'udp', not {transport!r}")
     sims: list[E71TcpSimulator] = []
-    server = await loop.create_server(lambda: _TcpConnection(sims[0]), host, port)
+    server = await tap.create_server(lambda: _TcpConnection(sims[0]), host, port)
     tsim = E71TcpSimulator(
         server,
         mem,

@@ -47,6 +47,7 @@ from plcstack.sim.s5store import (
     memory_of,
     resolve_store,
 )
+from plcstack.transports import tap
 from plcstack.transports.guard import FRAME_TIMEOUT, FrameDeadline
 from plcstack.transports.peer import peer_address
 
@@ -353,11 +354,11 @@ async def start(
         return run
 
     main_role: _Role = "both" if write_port is None else "fetch"
-    server = await asyncio.start_server(handler(main_role), host, port)
+    server = await tap.start_server(handler(main_role), host, port)
     write_server = None
     if write_port is not None:
         try:
-            write_server = await asyncio.start_server(handler("write"), host, write_port)
+            write_server = await tap.start_server(handler("write"), host, write_port)
         except OSError:
             server.close()
             raise

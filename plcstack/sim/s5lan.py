@@ -44,6 +44,7 @@ from plcstack.sim.base import (
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.sim.s5store import S5Fault, S5Store, Target, memory_of, resolve_store
+from plcstack.transports import tap
 from plcstack.transports.guard import FrameDeadline
 from plcstack.transports.peer import peer_address
 
@@ -302,7 +303,7 @@ async def start(
         else:
             early.append(task)
 
-    server = await asyncio.start_server(on_connect, host, port)
+    server = await tap.start_server(on_connect, host, port)
     sim = S5LanSimulator(server, state)
     for task in early:
         sim.track(task)

@@ -19,6 +19,7 @@ from typing import Any, Protocol, TypeVar
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcTimeout
 from plcstack.transports.deadlines import deadlines_of, future_factory
+from plcstack.transports.tap import ConnectionTap, Tap, recorded_send
 
 __all__ = [
     "MAX_QUEUED",
@@ -125,6 +126,11 @@ class Transport(ABC):
     def stop_delivery(self) -> None:
         """Detach the receiver of :meth:`send_delivering` (nothing when none is attached)."""
 
+    def record_to(self, tap: Tap | None) -> None:
+        """Record this transport's connections in ``tap`` from the next ``open`` on (None:
+        stop recording them); a ``capturing`` block records them as well."""
+        raise NotImplementedError(f"{type(self).__name__} cannot record its connections")
+
 
 #: bytes a connection holds received and unread before it stops reading (TCP, serial) or drops
 #: datagrams (UDP). The largest legal answer of our protocols is a little over 2 KiB (S5-LAN,
@@ -165,6 +171,8 @@ class QueueProtocolMixin:
 
     #: drop datagrams instead of pausing (UDP: a datagram socket cannot push back)
     _drop_when_full = False
+    #: the recorder of this connection's bytes (:mod:`.tap`); set by the tapped subclasses only
+    wire: ConnectionTap | None = None
 
     def _init_queue(self, peer: str, max_queued: int = MAX_QUEUED) -> None:
         self._peer = peer
@@ -302,9 +310,9 @@ class QueueProtocolMixin:
 class ProtocolTransport(Transport):
     """What TCP, UDP and serial share: an asyncio transport plus a :class:`QueueProtocolMixin`.
 
-    Subclasses implement ``open`` (setting ``_transport`` and ``_protocol``) and ``_send``;
-    ``_join`` says whether queued chunks may be merged on read: yes for byte streams, never for
-    datagrams.
+    Subclasses implement ``open``, setting ``_transport``, ``_protocol`` and ``_send`` (through
+    :meth:`_opened`); ``_join`` says whether queued chunks may be merged on read: yes for byte
+    streams, never for datagrams.
     """
 
     _join = True
@@ -313,6 +321,12 @@ class ProtocolTransport(Transport):
         self.peer = peer
         self._transport: asyncio.BaseTransport | None = None
         self._protocol: QueueProtocolMixin | None = None
+        #: the open connection's send: the asyncio transport's ``write`` (``sendto``) itself,
+        #: or that with the tap's record in front (:meth:`_opened`); ``write`` calls it only
+        #: while a transport is open
+        self._send: Callable[[bytes], None] = _not_open
+        #: records this transport's connections (:meth:`record_to`), besides any ``capturing``
+        self._tap: Tap | None = None
         #: a poll object watching the socket while open (:func:`watch_socket`); None when closed
         #: or not a socket (serial)
         self._watch: select.poll | None = None
@@ -377,8 +391,22 @@ class ProtocolTransport(Transport):
             and not self._transport.is_closing()
         )
 
-    @abstractmethod
-    def _send(self, data: bytes) -> None: ...
+    def record_to(self, tap: Tap | None) -> None:
+        """Record this transport's connections in ``tap`` from the next ``open`` on (None:
+        stop recording them); a ``capturing`` block records them as well."""
+        self._tap = tap
+
+    def _opened(
+        self,
+        transport: asyncio.BaseTransport,
+        protocol: QueueProtocolMixin,
+        send: Callable[[bytes], None],
+    ) -> None:
+        """Keep an opened connection: its transport, protocol and send (recorded when the
+        protocol is a tapped one)."""
+        self._transport, self._protocol = transport, protocol
+        wire = protocol.wire
+        self._send = send if wire is None else recorded_send(send, wire)
 
     def write(self, data: bytes) -> None:
         # ``is_open`` spelled out: this runs once per request
@@ -419,6 +447,10 @@ class ProtocolTransport(Transport):
         self._watch = None
         if transport is not None:
             transport.abort()  # type: ignore[attr-defined]
+
+
+def _not_open(data: bytes) -> None:
+    raise ConnectionLost("not connected")
 
 
 #: what makes a socket "have something for the loop": data, end of stream, an error

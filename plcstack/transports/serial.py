@@ -18,6 +18,7 @@ import asyncio
 import logging
 import os
 import stat
+from collections.abc import Callable
 from typing import Any
 
 import serial
@@ -25,6 +26,7 @@ import serial_asyncio
 
 from plcstack.errors import ConnectFailed, PlcTimeout
 from plcstack.transports.base import ProtocolTransport, QueueProtocolMixin
+from plcstack.transports.tap import Endpoints, Tap, combined
 
 __all__ = ["PARITIES", "SerialTransport", "is_pty"]
 
@@ -70,6 +72,27 @@ class _SerialProtocol(QueueProtocolMixin, asyncio.Protocol):
         self._fail(exc or EOFError("serial port closed"))
 
 
+class _TappedSerialProtocol(_SerialProtocol):
+    """A recorded line (:mod:`.tap`): every chunk is told to the tap before it is handled."""
+
+    def __init__(self, peer: str, tap: Tap) -> None:
+        super().__init__(peer)
+        # here, not in ``connection_made``: pyserial-asyncio makes the protocol once the port
+        # is open but calls ``connection_made`` a loop pass later, after the first send
+        self.wire = tap.connection(Endpoints("serial", ("", 0), ("", 0), "local", peer))
+
+    def data_received(self, data: bytes) -> None:
+        if self.wire is not None:
+            self.wire.received(data)
+        super().data_received(data)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        wire, self.wire = self.wire, None
+        if wire is not None:
+            wire.ended(by_peer=exc is not None)
+        super().connection_lost(exc)
+
+
 class SerialTransport(ProtocolTransport):
     """One serial port; ``open()`` again after a close re-opens the device.
 
@@ -106,9 +129,16 @@ class SerialTransport(ProtocolTransport):
 
     async def _create(self, parity: str) -> tuple[Any, _SerialProtocol]:
         loop = asyncio.get_running_loop()
+        tap = combined(self._tap)
+        peer = self.peer
+        factory: Callable[[], _SerialProtocol] = (
+            (lambda: _SerialProtocol(peer))
+            if tap is None
+            else (lambda: _TappedSerialProtocol(peer, tap))
+        )
         result: tuple[Any, _SerialProtocol] = await serial_asyncio.create_serial_connection(
             loop,
-            lambda: _SerialProtocol(self.peer),
+            factory,
             self.path,
             baudrate=self.baudrate,
             bytesize=self.bytesize,
@@ -148,10 +178,7 @@ class SerialTransport(ProtocolTransport):
             except _OPEN_ERRORS as exc2:
                 raise ConnectFailed(f"cannot open serial port {self.path}: {exc2}") from None
             self.parity_fallback = True
-        self._transport, self._protocol = transport, protocol
-
-    def _send(self, data: bytes) -> None:
-        self._transport.write(data)  # type: ignore[union-attr]
+        self._opened(transport, protocol, transport.write)
 
     async def aclose(self) -> None:
         transport = self._transport

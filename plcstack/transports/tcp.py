@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
+from collections.abc import Callable
 
 from plcstack.errors import ConnectionLost
 from plcstack.transports.base import (
@@ -12,6 +13,7 @@ from plcstack.transports.base import (
     open_with_timeout,
     watch_socket,
 )
+from plcstack.transports.tap import Tap, combined, endpoints_of
 
 __all__ = ["TcpTransport"]
 
@@ -52,6 +54,37 @@ class _TcpProtocol(QueueProtocolMixin, asyncio.BufferedProtocol):
         self._fail(exc or EOFError("connection closed"))
 
 
+class _TappedTcpProtocol(_TcpProtocol):
+    """A recorded connection (:mod:`.tap`): every chunk is told to the tap before it is
+    handled as the plain protocol handles it."""
+
+    def __init__(self, peer: str, tap: Tap) -> None:
+        super().__init__(peer)
+        self._tap = tap
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        super().connection_made(transport)
+        self.wire = self._tap.connection(endpoints_of(transport, "tcp", "local"))
+
+    def buffer_updated(self, nbytes: int) -> None:
+        if self.wire is not None:
+            self.wire.received(bytes(self._buffer[:nbytes]))
+        super().buffer_updated(nbytes)
+
+    def eof_received(self) -> bool | None:
+        self._ended(by_peer=True)
+        return super().eof_received()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._ended(by_peer=exc is not None)
+        super().connection_lost(exc)
+
+    def _ended(self, by_peer: bool) -> None:
+        wire, self.wire = self.wire, None
+        if wire is not None:
+            wire.ended(by_peer)
+
+
 class TcpTransport(ProtocolTransport):
     """One TCP connection to ``host:port``; ``open()`` again after a close reconnects."""
 
@@ -63,20 +96,20 @@ class TcpTransport(ProtocolTransport):
     async def open(self, timeout: float | None) -> None:
         self.abort()
         loop = asyncio.get_running_loop()
+        tap = combined(self._tap)
+        peer = self.peer
+        factory: Callable[[], _TcpProtocol] = (
+            (lambda: _TcpProtocol(peer)) if tap is None else (lambda: _TappedTcpProtocol(peer, tap))
+        )
         transport, protocol = await open_with_timeout(
-            self.peer,
-            loop.create_connection(lambda: _TcpProtocol(self.peer), self.host, self.port),
-            timeout,
+            peer, loop.create_connection(factory, self.host, self.port), timeout
         )
         sock = transport.get_extra_info("socket")
         if sock is not None:
             # Requests are small and latency-bound: never let Nagle hold one back.
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self._transport, self._protocol = transport, protocol
+        self._opened(transport, protocol, transport.write)
         self._watch = watch_socket(transport)
-
-    def _send(self, data: bytes) -> None:
-        self._transport.write(data)  # type: ignore[union-attr]
 
     async def aclose(self) -> None:
         self._watch = None

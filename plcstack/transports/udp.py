@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 
 from plcstack.transports.base import (
     ProtocolTransport,
@@ -10,6 +11,7 @@ from plcstack.transports.base import (
     open_with_timeout,
     watch_socket,
 )
+from plcstack.transports.tap import Tap, combined, endpoints_of
 
 __all__ = ["UdpTransport"]
 
@@ -36,6 +38,30 @@ class _UdpProtocol(QueueProtocolMixin, asyncio.DatagramProtocol):
         self._fail(exc or EOFError("socket closed"))
 
 
+class _TappedUdpProtocol(_UdpProtocol):
+    """A recorded endpoint (:mod:`.tap`): each datagram from the peer is told to the tap."""
+
+    def __init__(self, peer: str, tap: Tap) -> None:
+        super().__init__(peer)
+        self._tap = tap
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        super().connection_made(transport)
+        self.wire = self._tap.connection(endpoints_of(transport, "udp", "local"))
+
+    def datagram_received(self, data: bytes, addr: tuple[str | bytes, int]) -> None:
+        wire = self.wire
+        if wire is not None and (self.remote is None or (addr[0], addr[1]) == self.remote):
+            wire.received(data)
+        super().datagram_received(data, addr)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        wire, self.wire = self.wire, None
+        if wire is not None:
+            wire.ended(by_peer=False)
+        super().connection_lost(exc)
+
+
 class UdpTransport(ProtocolTransport):
     """A connected UDP socket to ``host:port``. ``abort()`` + ``open()`` gets a new local port,
     so a reply that arrives after a timeout can never be read as the answer to the next request."""
@@ -50,17 +76,17 @@ class UdpTransport(ProtocolTransport):
     async def open(self, timeout: float | None) -> None:
         self.abort()
         loop = asyncio.get_running_loop()
+        tap = combined(self._tap)
+        peer = self.peer
+        factory: Callable[[], _UdpProtocol] = (
+            (lambda: _UdpProtocol(peer)) if tap is None else (lambda: _TappedUdpProtocol(peer, tap))
+        )
         transport, protocol = await open_with_timeout(
-            self.peer,
-            loop.create_datagram_endpoint(
-                lambda: _UdpProtocol(self.peer), remote_addr=(self.host, self.port)
-            ),
+            peer,
+            loop.create_datagram_endpoint(factory, remote_addr=(self.host, self.port)),
             timeout,
         )
         remote = transport.get_extra_info("peername")
         protocol.remote = (remote[0], remote[1]) if remote else None
-        self._transport, self._protocol = transport, protocol
+        self._opened(transport, protocol, transport.sendto)
         self._watch = watch_socket(transport)
-
-    def _send(self, data: bytes) -> None:
-        self._transport.sendto(data)  # type: ignore[union-attr]
