@@ -33,7 +33,7 @@ Exported (``plc`` label per PLC)::
     plcstack_dropped_samples_total       (no label) samples dropped for a slow consumer
     plcstack_buffer_backlog_messages     store-and-forward backlog, per sink
     plcstack_buffer_backlog_bytes
-    plcstack_buffer_dropped_messages_total  dropped by the byte budget
+    plcstack_buffer_dropped_messages_total  lost: dropped by the byte budget, or refused by the disk
     plcstack_mqtt_connected, plcstack_mqtt_sent_total, plcstack_mqtt_replayed_total,
     plcstack_mqtt_connection_failures_total
     plcstack_rbe_suppressed_total        samples held back by report-by-exception
@@ -262,7 +262,7 @@ class PlcstackCollector:
                 yield g
             totals: dict[str, tuple[str, Callable[[Any], float]]] = {
                 "plcstack_buffer_dropped_messages": (
-                    "messages dropped by the byte budget",
+                    "messages lost: dropped by the byte budget or refused by a full disk",
                     lambda k: k.buffer.dropped,
                 ),
                 "plcstack_mqtt_sent": (

@@ -369,9 +369,16 @@ class MqttSink:
         if waiting:
             path = self.settings.buffer_path
             where = f" (kept in {path} for the next run)" if path else " (lost: no buffer_path)"
+        buffer = self.buffer
+        dropped = f"{buffer.dropped} dropped by buffer_max"
+        if buffer.lost_to_disk:
+            dropped = (
+                f"{buffer.dropped - buffer.lost_to_disk} dropped by buffer_max,"
+                f" {buffer.lost_to_disk} lost because the disk refused them"
+            )
         return (
             f"{self.name} {self.settings.url}: {self.stats.sent} sent, {waiting} not delivered"
-            f"{where}, {self.buffer.dropped} dropped by buffer_max"
+            f"{where}, {dropped}"
         )
 
     # -- lifecycle ------------------------------------------------------------------------------
