@@ -27,6 +27,8 @@ from plcstack.cli.poll import StopEvent, ended_early, install_stop_signals, remo
 from plcstack.errors import AddressError
 from plcstack.north.audit import Audit, AuditSettings
 from plcstack.north.writes import WritePath, WriteResult
+from plcstack.systemd.notify import Notifier
+from plcstack.systemd.service import ServiceNotifier, notifying
 
 
 def register(subparsers: Any) -> None:
@@ -143,21 +145,27 @@ async def run(args: argparse.Namespace) -> int:
     installed = install_stop_signals(stop)
     failure: str | None = None
     try:
+        listening: list[str] = []
         if gw.s5lan is not None:
-            print(f"s5lan listening on {gw.s5lan.host}:{gw.s5lan.port} (TCP)", flush=True)
+            listening.append(f"s5lan listening on {gw.s5lan.host}:{gw.s5lan.port} (TCP)")
         if gw.fetchwrite is not None:
             fw = gw.fetchwrite
-            print(f"fetchwrite listening on {fw.host}:{fw.port} (TCP)", flush=True)
+            listening.append(f"fetchwrite listening on {fw.host}:{fw.port} (TCP)")
+        for line in listening:
+            print(line, flush=True)
         print(f"writable: {gw.store.writable}", flush=True)
-        stopper = asyncio.create_task(stop.wait())
-        watched: set[asyncio.Task[Any]] = {stopper}
-        if gw.store.worker is not None:
-            watched.add(gw.store.worker)  # the AS511 side: its failure ends the run, said
-        done, _ = await asyncio.wait(
-            watched, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
-        )
-        failure = ended_early(done - {stopper}, stop)
-        stopper.cancel()
+        # under systemd: ready now that it listens
+        status = f"gateway to {args.plc}: {'; '.join(listening)}"
+        async with notifying(ServiceNotifier(Notifier.from_environment(), status=lambda: status)):
+            stopper = asyncio.create_task(stop.wait())
+            watched: set[asyncio.Task[Any]] = {stopper}
+            if gw.store.worker is not None:
+                watched.add(gw.store.worker)  # the AS511 side: its failure ends the run, said
+            done, _ = await asyncio.wait(
+                watched, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
+            )
+            failure = ended_early(done - {stopper}, stop)
+            stopper.cancel()
     finally:
         remove_stop_signals(installed)
         await gw.aclose()

@@ -24,14 +24,18 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TextIO
 
 from plcstack.cli import plain_text, print_error
+from plcstack.errors import ConfigError
 from plcstack.north.config import load_config
 from plcstack.north.influx import InfluxFormat
-from plcstack.north.pipeline import North, missing, needs_of
+from plcstack.north.pipeline import North, missing, needs_of, sink_name
 from plcstack.north.web.settings import with_port
+from plcstack.poll.config import PollConfig
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Scan
 from plcstack.poll.sinks import FORMATS, each_line, jsonl_text
 from plcstack.scale import cli as scale_cli
+from plcstack.systemd.notify import Notifier
+from plcstack.systemd.service import FleetStatus, ScanWatch, ServiceNotifier, stall_limit
 
 if TYPE_CHECKING:
     from plcstack.scale.worker import Worker
@@ -170,7 +174,14 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 _write_samples(north, emit, out, stop), name="the sample consumer"
             )
             stopper = asyncio.create_task(stop.wait())
-            helpers = {consumer, stopper}
+            service = poll_service(poller, north, config)
+            notifier = asyncio.create_task(
+                service.run(), name="the notifications to the service manager"
+            )
+            reloads = asyncio.create_task(
+                _reload_on_hangup(args.config, service), name="the reload on SIGHUP"
+            )
+            helpers = {consumer, stopper, notifier, reloads}
             every = getattr(args, "stats_every", None)
             if every is not None:
                 helpers.add(
@@ -180,6 +191,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 helpers, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
             )
             failure = ended_early(done - {stopper}, stop)
+            service.stopping()
             for task in helpers:
                 task.cancel()
             await asyncio.gather(*helpers, return_exceptions=True)
@@ -198,6 +210,53 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         print_error(f"poll: {failure}")
         return 1
     return stop.exit_code()
+
+
+def poll_service(poller: Poller | Worker, north: North, config: PollConfig) -> ServiceNotifier:
+    """What this run tells systemd (nothing without ``NOTIFY_SOCKET``): ready once the faces
+    listen (they did when this is built) and every PLC had its first scan, the PLCs online and
+    offline, watchdog pings while requests keep ending."""
+    limit = stall_limit(config)
+    fleet = FleetStatus(
+        lambda: poller.stats,
+        north.reachability.get,
+        [sink_name(sink) for sink in north.sinks] + (["metrics"] if north.metrics else []),
+    )
+    return ServiceNotifier(
+        Notifier.from_environment(),
+        ready=fleet.ready,
+        status=fleet.status,
+        alive=ScanWatch(lambda: poller.stats, limit),
+        ready_within=limit,
+    )
+
+
+async def _reload_on_hangup(path: str, service: ServiceNotifier) -> None:
+    """SIGHUP (``systemctl reload``) reads the file again, between ``RELOADING=1`` and
+    ``READY=1``: a file that does not load is said in one ERROR line and changes nothing."""
+    hangups = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    loop.add_signal_handler(signal.SIGHUP, hangups.set)
+    try:
+        while True:
+            await hangups.wait()
+            hangups.clear()
+            service.reloading()
+            try:
+                load_config(path)
+            except (ConfigError, OSError) as exc:
+                problem = " ".join(str(exc).split())
+                log.error("reload: %s does not load, nothing changed: %s", path, problem)
+                service.reloaded(problem)
+                continue
+            log.warning(
+                "reload: %s loads; this run keeps the configuration it started with:"
+                " restart it to apply a change",
+                path,
+            )
+            service.reloaded()
+    finally:
+        loop.remove_signal_handler(signal.SIGHUP)
 
 
 def ended_early(done: set[asyncio.Task[Any]], stop: asyncio.Event) -> str | None:

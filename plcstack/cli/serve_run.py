@@ -24,6 +24,8 @@ from plcstack.north.supervise import run_until
 from plcstack.north.writes import WritePath
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Scan
+from plcstack.systemd.notify import Notifier
+from plcstack.systemd.service import ScanWatch, ServiceNotifier, notifying, stall_limit
 
 __all__ = ["FedServer", "add_run_options", "check_run_options", "metrics_settings", "run_fed"]
 
@@ -130,7 +132,17 @@ async def run_fed(
                 print(f"metrics on http://{host}:{port}/metrics", file=sys.stderr, flush=True)
             if not waiting:  # nothing to wait for
                 print(listening(), file=sys.stderr, flush=True)
-            await run_until(server, stop, duration, observe=observe, stored=stored)
+            # under systemd: ready with the line above, pings while requests keep ending
+            limit = stall_limit(poller.config)
+            service = ServiceNotifier(
+                Notifier.from_environment(),
+                ready=lambda: not waiting,
+                status=listening,
+                alive=ScanWatch(lambda: poller.stats, limit),
+                ready_within=limit,
+            )
+            async with notifying(service):
+                await run_until(server, stop, duration, observe=observe, stored=stored)
     finally:
         remove_stop_signals(installed)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)

@@ -20,6 +20,8 @@ import signal
 from typing import Any
 
 from plcstack.cli import EXIT_INTERRUPTED, UsageError
+from plcstack.systemd.notify import Notifier
+from plcstack.systemd.service import ServiceNotifier, notifying
 
 #: simulator name -> module
 SIMULATORS = {
@@ -63,11 +65,10 @@ def check_options(args: argparse.Namespace) -> None:
 def _runner(name: str, module: Any) -> Any:
     async def run(args: argparse.Namespace) -> int:
         check_options(args)
-        started = False
+        started: list[str] = []
 
         def announce(line: str) -> None:
-            nonlocal started
-            started = True
+            started.append(line)
             print(line, flush=True)
 
         task = asyncio.current_task()
@@ -90,8 +91,15 @@ def _runner(name: str, module: Any) -> Any:
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                 loop.add_signal_handler(sig, on_signal, sig)
                 installed.append(sig)
+        # under systemd: ready once listening, the listening lines as its status
+        service = ServiceNotifier(
+            Notifier.from_environment(),
+            ready=lambda: bool(started),
+            status=lambda: f"sim {name}: " + "; ".join(started),
+        )
         try:
-            await module.serve_cli(args, announce)
+            async with notifying(service):
+                await module.serve_cli(args, announce)
         except (OSError, ValueError, OverflowError) as exc:
             if started:
                 raise

@@ -1,0 +1,302 @@
+"""The notify protocol to a stand-in of systemd's socket (tests/systemd_helpers.py), in-process:
+the datagrams, the environment, failures said once, readiness, status, and the watchdog that
+pings at the asked rate only while the loop and the work go on.
+
+The whole command under systemd's variables (READY after the first scans, RELOADING/READY
+around SIGHUP, STOPPING on SIGTERM) is in tests/test_systemd_poll.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import os
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from plcstack.poll.config import parse_config
+from plcstack.poll.stats import PlcStats
+from plcstack.systemd.notify import Notifier, monotonic_usec
+from plcstack.systemd.service import FleetStatus, ScanWatch, ServiceNotifier, stall_limit
+from tests.systemd_helpers import NotifySocket
+
+
+@pytest.fixture
+def sock(tmp_path: Path) -> Iterator[NotifySocket]:
+    with NotifySocket(tmp_path) as s:
+        yield s
+
+
+@pytest.mark.parametrize("abstract", [False, True], ids=["path", "abstract"])
+def test_one_datagram_per_message(tmp_path: Path, abstract: bool) -> None:
+    with NotifySocket(tmp_path, abstract=abstract) as sock:
+        notifier = Notifier(sock.address)
+        assert notifier.enabled
+        assert notifier.ready("3 PLCs: 3 online")
+        assert notifier.status("two\nlines")  # a value never spans lines
+        assert notifier.stopping()
+        sock.wait_for("STOPPING")
+        assert [m.fields for m in sock.received()] == [
+            (("READY", "1"), ("STATUS", "3 PLCs: 3 online")),
+            (("STATUS", "two lines"),),
+            (("STOPPING", "1"),),
+        ]
+        notifier.close()
+
+
+def test_reloading_says_when_it_began(sock: NotifySocket) -> None:
+    notifier = Notifier(sock.address)
+    before = monotonic_usec()
+    notifier.reloading()
+    after = monotonic_usec()
+    message = sock.wait_for("RELOADING")
+    assert message.names == ["RELOADING", "MONOTONIC_USEC"]
+    assert before <= int(message.get("MONOTONIC_USEC") or 0) <= after
+    # the same clock as CLOCK_MONOTONIC, which systemd compares it with
+    assert abs(int(message.get("MONOTONIC_USEC") or 0) - time.monotonic() * 1e6) < 1e6
+
+
+def test_the_environment(caplog: pytest.LogCaptureFixture) -> None:
+    assert not Notifier.from_environment({}).enabled
+    assert not Notifier.from_environment({}).send("READY=1")
+    env = {"NOTIFY_SOCKET": "/run/x", "WATCHDOG_USEC": "30000000"}
+    assert Notifier.from_environment(env).watchdog_interval == 15.0
+    mine = {**env, "WATCHDOG_PID": str(os.getpid())}
+    assert Notifier.from_environment(mine).watchdog_interval == 15.0
+    other = {**env, "WATCHDOG_PID": str(os.getpid() + 1)}  # a parent's watchdog, not ours
+    assert Notifier.from_environment(other).watchdog_interval is None
+    with caplog.at_level(logging.WARNING, "plcstack.systemd"):
+        bad = Notifier.from_environment({**env, "WATCHDOG_USEC": "30s"})
+        vsock = Notifier.from_environment({"NOTIFY_SOCKET": "vsock:2:1234"})
+    assert bad.watchdog_interval is None
+    assert not vsock.enabled
+    assert [r.getMessage() for r in caplog.records] == [
+        "WATCHDOG_USEC=30s is not a positive number: no watchdog pings",
+        "NOTIFY_SOCKET=vsock:2:1234 is neither a socket path nor an abstract socket (@name):"
+        " the service manager will not hear from plcstack",
+    ]
+
+
+def test_a_socket_that_fails_is_said_once_until_it_works(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "notify.sock"
+    notifier = Notifier(str(path))
+    with caplog.at_level(logging.WARNING, "plcstack.systemd"):
+        assert not notifier.watchdog()
+        assert not notifier.watchdog()
+        with NotifySocket(tmp_path) as sock:
+            assert notifier.watchdog()
+            sock.wait_for("WATCHDOG")
+    assert (notifier.sent, notifier.failed) == (1, 2)
+    assert [r.getMessage() for r in caplog.records] == [
+        f"cannot notify the service manager at {path} (WATCHDOG=1): No such file or directory:"
+        " the notifications stop until the socket takes them again",
+        f"the service manager at {path} takes notifications again",
+    ]
+
+
+async def _running(service: ServiceNotifier) -> asyncio.Task[None]:
+    task = asyncio.create_task(service.run())
+    await asyncio.sleep(0)
+    return task
+
+
+async def _stop(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+
+
+async def test_ready_once_ready_then_status_on_each_change(sock: NotifySocket) -> None:
+    state = {"ready": False, "status": "1 PLC: 1 before its first scan (press1)"}
+    service = ServiceNotifier(
+        Notifier(sock.address),
+        ready=lambda: bool(state["ready"]),
+        status=lambda: str(state["status"]),
+    )
+    task = await _running(service)
+    try:
+        await asyncio.sleep(0.2)
+        assert sock.received() == []  # not ready: nothing said
+        state.update(ready=True, status="1 PLC: 1 online")
+        ready = await sock.arrival("READY")
+        assert ready.fields == (("READY", "1"), ("STATUS", "1 PLC: 1 online"))
+        state["status"] = "1 PLC: 0 online, 1 offline (press1)"
+        changed = await sock.arrival("STATUS", "1 PLC: 0 online, 1 offline (press1)")
+        await asyncio.sleep(1.2)  # the status did not change again: not sent again
+        assert sock.received()[-1] is changed
+        assert len(sock.received()) == 2
+    finally:
+        await _stop(task)
+
+
+async def test_ready_all_the_same_after_ready_within(
+    sock: NotifySocket, caplog: pytest.LogCaptureFixture
+) -> None:
+    service = ServiceNotifier(
+        Notifier(sock.address), ready=lambda: False, status=lambda: "x", ready_within=0.1
+    )
+    with caplog.at_level(logging.WARNING, "plcstack.systemd"):
+        task = await _running(service)
+        try:
+            await sock.arrival("READY")
+        finally:
+            await _stop(task)
+    assert "start-up not complete after 0 s (x): telling the service manager" in caplog.text
+
+
+async def test_watchdog_pings_at_half_the_asked_interval(sock: NotifySocket) -> None:
+    """WATCHDOG_USEC=300 ms: a ping every 150 ms, never two further apart than 300 ms."""
+    notifier = Notifier.from_environment({"NOTIFY_SOCKET": sock.address, "WATCHDOG_USEC": "300000"})
+    assert notifier.watchdog_interval == 0.15
+    service = ServiceNotifier(notifier)
+    task = await _running(service)
+    try:
+        await asyncio.sleep(1.0)
+    finally:
+        await _stop(task)
+    pings = [m.at for m in sock.with_field("WATCHDOG")]
+    gaps = [b - a for a, b in itertools.pairwise(pings)]
+    assert 6 <= len(pings) <= 8, gaps  # 1 s / 0.15 s, and the first at once
+    assert max(gaps) < 0.3, gaps
+    assert min(gaps) > 0.1, gaps  # not faster than asked either
+
+
+async def test_a_blocked_loop_sends_no_ping(sock: NotifySocket) -> None:
+    notifier = Notifier.from_environment({"NOTIFY_SOCKET": sock.address, "WATCHDOG_USEC": "200000"})
+    task = await _running(ServiceNotifier(notifier))
+    try:
+        await sock.arrival("WATCHDOG")
+        await asyncio.sleep(0.15)
+        blocked = time.monotonic()
+        time.sleep(0.6)  # noqa: ASYNC251 - the event loop stuck for three watchdog intervals
+        unblocked = time.monotonic()
+        await sock.arrival("WATCHDOG", after=unblocked)
+    finally:
+        await _stop(task)
+    pings = [m.at for m in sock.with_field("WATCHDOG")]
+    # datagrams sent just before the block may land a moment after it began
+    assert [at for at in pings if blocked + 0.05 < at < unblocked] == []
+    assert any(at < blocked for at in pings)
+
+
+async def test_no_ping_while_the_work_stands_still(
+    sock: NotifySocket, caplog: pytest.LogCaptureFixture
+) -> None:
+    stalled: dict[str, str | None] = {"why": None}
+    notifier = Notifier.from_environment({"NOTIFY_SOCKET": sock.address, "WATCHDOG_USEC": "100000"})
+    service = ServiceNotifier(notifier, alive=lambda: stalled["why"])
+    with caplog.at_level(logging.WARNING, "plcstack.systemd"):
+        task = await _running(service)
+        try:
+            await sock.arrival("WATCHDOG")
+            stalled["why"] = "no request ended for 9 s"
+            await asyncio.sleep(0.1)
+            since = time.monotonic()
+            await asyncio.sleep(0.4)
+            assert [m for m in sock.with_field("WATCHDOG") if m.at > since] == []
+            stalled["why"] = None
+            await sock.arrival("WATCHDOG", after=time.monotonic())
+        finally:
+            await _stop(task)
+    assert service.held >= 4
+    assert [r.getMessage() for r in caplog.records] == [
+        "watchdog: no ping to the service manager while no request ended for 9 s: systemd"
+        " restarts the service when its WatchdogSec passes",
+        "watchdog: work goes on again: pinging the service manager again",
+    ]
+
+
+async def test_reload_and_stop_hooks(sock: NotifySocket) -> None:
+    service = ServiceNotifier(Notifier(sock.address), status=lambda: "2 PLCs: 2 online")
+    task = await _running(service)
+    try:
+        await sock.arrival("READY")
+        service.reloading()
+        assert not service.is_ready
+        service.reloaded()
+        service.reloading()
+        service.reloaded("plant.toml:3: [[plc]] needs url")
+        service.stopping()
+        service.stopping()  # once
+        await sock.arrival("STOPPING")
+    finally:
+        await _stop(task)
+    said = [m.names[0] + "=" + (m.get("STATUS") or "") for m in sock.received()]
+    assert said == [
+        "READY=2 PLCs: 2 online",
+        "RELOADING=reloading the configuration",
+        "READY=2 PLCs: 2 online",
+        "RELOADING=reloading the configuration",
+        "READY=reload failed, running as before: plant.toml:3: [[plc]] needs url",
+        "STOPPING=stopping",
+    ]
+
+
+async def test_without_a_socket_nothing_happens() -> None:
+    service = ServiceNotifier(Notifier(None), ready=lambda: True)
+    assert not service.enabled
+    task = await _running(service)
+    await asyncio.sleep(0.05)
+    assert not task.done() and not service.is_ready
+    await _stop(task)
+
+
+def test_scan_watch() -> None:
+    now = [100.0]
+    stats = {"a": PlcStats(), "b": PlcStats()}
+    watch = ScanWatch(lambda: stats, 10.0, clock=lambda: now[0])
+    assert watch() is None
+    now[0] += 10
+    assert watch() is None  # within the limit
+    now[0] += 1
+    assert watch() == (
+        "no request of any of the 2 PLCs has ended (answered or failed) for 11 s (the scans'"
+        " own limit: 10 s)"
+    )
+    stats["b"].requests += 1  # a failed request counts as one that ended
+    assert watch() is None
+    now[0] += 50
+    assert ScanWatch(dict, 10.0, clock=lambda: now[0])() is None  # no PLC: nothing to stall
+
+
+def test_stall_limit_takes_the_slowest_group_and_deadlines() -> None:
+    config = parse_config(
+        """
+[groups]
+slow = 10.0
+[[plc]]
+name = "a"
+url = "e71+tcp://127.0.0.1:5000?timeout=4"
+[plc.tags]
+x = { address = "D0", group = "slow" }
+[[plc]]
+name = "b"
+url = "s5lan://127.0.0.1:5010"
+connect_timeout = 6.5
+[plc.tags]
+y = { address = "DB1.DW0" }
+"""
+    )
+    # 2 x (10 s + the longest timeout + connect timeout of one PLC: b's 2 + 6.5)
+    assert stall_limit(config) == 2 * (10.0 + max(4.0 + 3.0, 2.0 + 6.5))
+
+
+def test_fleet_status() -> None:
+    state: dict[str, bool | None] = {f"p{i}": None for i in range(8)}
+    fleet = FleetStatus(lambda: {name: PlcStats() for name in state}, state.get, ["mqtt", "web"])
+    assert not fleet.ready()
+    assert fleet.status() == (
+        "8 PLCs: 0 online, 8 before their first scan (p0, p1, p2, p3, p4 +3 more); faces: mqtt, web"
+    )
+    state.update({name: True for name in state})
+    state["p3"] = False
+    assert fleet.ready()
+    assert fleet.status() == "8 PLCs: 7 online, 1 offline (p3); faces: mqtt, web"
+    assert FleetStatus(lambda: {"a": PlcStats()}, lambda _: True).status() == "1 PLC: 1 online"
