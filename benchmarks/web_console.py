@@ -154,7 +154,7 @@ async def _sse(port: int, n: int) -> None:
 
 
 # -- the measured side --------------------------------------------------------------------------
-def _helper(*args: str) -> subprocess.Popen[str]:
+def start_helper(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "benchmarks.web_console", *args],
         stdin=subprocess.PIPE,
@@ -163,7 +163,7 @@ def _helper(*args: str) -> subprocess.Popen[str]:
     )
 
 
-def _ready(proc: subprocess.Popen[str], what: str) -> str:
+def ready(proc: subprocess.Popen[str], what: str) -> str:
     assert proc.stdout is not None
     line = proc.stdout.readline()
     if not line:
@@ -171,7 +171,7 @@ def _ready(proc: subprocess.Popen[str], what: str) -> str:
     return line
 
 
-def _finish(proc: subprocess.Popen[str]) -> dict[str, Any]:
+def finish(proc: subprocess.Popen[str]) -> dict[str, Any]:
     assert proc.stdin is not None and proc.stdout is not None
     proc.stdin.close()
     out = proc.stdout.read()
@@ -179,10 +179,31 @@ def _finish(proc: subprocess.Popen[str]) -> dict[str, Any]:
     return json.loads(out) if out.strip() else {}
 
 
+async def all_answered(poller: Poller, timeout: float = 60.0) -> None:
+    """Wait until every PLC answered three requests (connected and polled)."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while min(s.requests for s in poller.stats.values()) < 3:
+        if loop.time() > deadline:
+            raise RuntimeError(f"the PLCs did not all answer within {timeout:.0f} s")
+        await asyncio.sleep(0.5)
+
+
+async def window(poller: Poller, seconds: float) -> tuple[float, float]:
+    """After 2 s to settle, ``seconds`` measured: (process CPU per wall second, requests/s)."""
+    await asyncio.sleep(2.0)
+    requests = sum(s.requests for s in poller.stats.values())
+    c0, w0 = time.process_time(), time.perf_counter()
+    await asyncio.sleep(seconds)
+    c1, w1 = time.process_time(), time.perf_counter()
+    done = sum(s.requests for s in poller.stats.values()) - requests
+    return (c1 - c0) / (w1 - w0), done / (w1 - w0)
+
+
 async def _measure(args: argparse.Namespace) -> dict[str, Any]:
     raise_fd_limit(args.plcs * 2 + 256)
-    plcs = _helper("plcs", str(args.tags))
-    port = json.loads(_ready(plcs, "the PLC process"))["port"]
+    plcs = start_helper("plcs", str(args.tags))
+    port = json.loads(ready(plcs, "the PLC process"))["port"]
     tags = tuple(TagConfig(f"t{i}", f"D{i}", INT16) for i in range(args.tags))
     config = PollConfig(
         tuple(
@@ -201,11 +222,7 @@ async def _measure(args: argparse.Namespace) -> dict[str, Any]:
         async with poller, north:
             await console.start()
             consumer = asyncio.create_task(north.run())
-            deadline = loop.time() + 60
-            while min(s.requests for s in poller.stats.values()) < 3:
-                if loop.time() > deadline:
-                    raise RuntimeError("the PLCs did not all answer within 60 s")
-                await asyncio.sleep(0.5)
+            await all_answered(poller)
             for r in range(args.rounds):
                 order = MODES[r % len(MODES) :] + MODES[: r % len(MODES)]
                 for mode in order:
@@ -215,22 +232,17 @@ async def _measure(args: argparse.Namespace) -> dict[str, Any]:
                     elif console not in north.sinks:
                         north.sinks.append(console)
                     if mode == "console, 1 browser":
-                        helper = _helper("browser", console.url)
-                        await loop.run_in_executor(None, _ready, helper, "the browser")
+                        helper = start_helper("browser", console.url)
+                        await loop.run_in_executor(None, ready, helper, "the browser")
                     elif mode == "console, 10 clients":
-                        helper = _helper("sse", str(console.port), "10")
-                        await loop.run_in_executor(None, _ready, helper, "the stream clients")
-                    await asyncio.sleep(2.0)
-                    requests = sum(s.requests for s in poller.stats.values())
-                    c0, w0 = time.process_time(), time.perf_counter()
-                    await asyncio.sleep(args.window)
-                    c1, w1 = time.process_time(), time.perf_counter()
-                    done = sum(s.requests for s in poller.stats.values()) - requests
-                    cpu[mode].append((c1 - c0) / (w1 - w0))
-                    rates[mode].append(done / (w1 - w0))
+                        helper = start_helper("sse", str(console.port), "10")
+                        await loop.run_in_executor(None, ready, helper, "the stream clients")
+                    share, rate = await window(poller, args.window)
+                    cpu[mode].append(share)
+                    rates[mode].append(rate)
                     if helper is not None:
                         notes.setdefault(mode, []).append(
-                            await loop.run_in_executor(None, _finish, helper)
+                            await loop.run_in_executor(None, finish, helper)
                         )
                     print(
                         f"round {r + 1} {mode:22s} cpu {cpu[mode][-1] * 100:5.1f} % of a core,"
@@ -243,7 +255,7 @@ async def _measure(args: argparse.Namespace) -> dict[str, Any]:
             await console.aclose()
             overruns = sum(s.overruns for s in poller.stats.values())
     finally:
-        _finish(plcs)
+        finish(plcs)
     base = statistics.median(cpu["poller"])
     return {
         "plcs": args.plcs,

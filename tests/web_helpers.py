@@ -18,6 +18,7 @@ from pathlib import Path
 from plcstack import values as vt
 from plcstack.north.audit import AuditSettings
 from plcstack.north.config import NorthConfig
+from plcstack.north.history import HistorySettings
 from plcstack.north.pipeline import North
 from plcstack.north.web.server import WebConsole
 from plcstack.north.web.settings import WebSettings
@@ -75,9 +76,14 @@ def plcs(url: str) -> tuple[PlcConfig, ...]:
 
 @contextlib.asynccontextmanager
 async def running_console(
-    *, token: str | None = TOKEN, trend_seconds: int = 300, audit: Path | None = None
+    *,
+    token: str | None = TOKEN,
+    trend_seconds: int = 300,
+    audit: Path | None = None,
+    history: Path | None = None,
 ) -> AsyncIterator[Console]:
-    """The simulator, the poller, the north side with the console on a free port."""
+    """The simulator, the poller, the north side with the console on a free port (and the
+    embedded history in the file ``history``, if given)."""
     memory = MelsecMemory()
     memory.write_words("D", 100, [1500])
     memory.write_words("D", 200, [7])
@@ -92,7 +98,9 @@ async def running_console(
         config = PollConfig(plcs(sim.url), {"default": 0.1})
         settings = WebSettings(port=0, write_token_env=TOKEN_ENV, trend_seconds=trend_seconds)
         north_config = NorthConfig(
-            web=settings, audit=None if audit is None else AuditSettings(str(audit))
+            web=settings,
+            audit=None if audit is None else AuditSettings(str(audit)),
+            history=None if history is None else HistorySettings(path=history),
         )
         async with Poller(config) as poller, North(poller, north_config) as north:
             consumer = asyncio.create_task(north.run())

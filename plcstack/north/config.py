@@ -1,5 +1,5 @@
 """The north-side tables of the poll TOML: ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``,
-``[opcua]``, ``[web]``, ``[modbus]``, ``[audit]``.
+``[opcua]``, ``[web]``, ``[modbus]``, ``[audit]``, ``[history]``.
 
 They sit next to ``[poll]`` and ``[[plc]]`` in the same file; the poll loader keeps them as raw
 tables (``PollConfig.north``) and checks them here at load time, so a typo is a
@@ -22,6 +22,7 @@ from typing import Any, TypeVar
 
 from plcstack.errors import ConfigError, check_keys
 from plcstack.north.audit import AuditSettings, parse_audit
+from plcstack.north.history.settings import HistorySettings, parse_history
 from plcstack.north.influx import DEFAULT_LAYOUT, DEFAULT_MEASUREMENT, LAYOUTS
 from plcstack.north.metrics import MetricsSettings, parse_metrics
 from plcstack.north.modbus.config import ModbusSettings, parse_modbus
@@ -37,7 +38,9 @@ __all__ = ["NORTH_TABLES", "NorthConfig", "load_config", "parse_north"]
 _T = TypeVar("_T")
 
 #: top-level TOML tables that belong to the north side
-NORTH_TABLES = ("mqtt", "metrics", "report", "influx", "opcua", "web", "modbus", "audit")
+NORTH_TABLES = (
+    "mqtt", "metrics", "report", "influx", "opcua", "web", "modbus", "audit", "history",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,8 @@ class NorthConfig:
     modbus: ModbusSettings | None = None
     #: ``[audit]``: one JSON line per write attempt from any north side (north/audit.py)
     audit: AuditSettings | None = None
+    #: ``[history]``: the embedded history (plcstack.north.history)
+    history: HistorySettings | None = None
 
     @property
     def reports_by_exception(self) -> bool:
@@ -66,7 +71,8 @@ class NorthConfig:
 def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> NorthConfig:
     """The north-side tables; ``base`` = the TOML file's directory, for relative file paths
     (``[mqtt]`` ca_file, cert_file, key_file, buffer_path, state_path; ``[opcua]``
-    certificates). The poll loader checks without it; ``plcstack poll`` passes it."""
+    certificates; ``[history]`` path). The poll loader checks without it; ``plcstack poll``
+    passes it."""
     influx = _parsed(tables, "influx", _influx) or (DEFAULT_MEASUREMENT, DEFAULT_LAYOUT)
     report = _parsed(tables, "report", parse_report)
     return NorthConfig(
@@ -79,6 +85,7 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
         web=_parsed(tables, "web", parse_web),
         modbus=_parsed(tables, "modbus", parse_modbus),
         audit=_parsed(tables, "audit", lambda t: parse_audit(t, base=base)),
+        history=_parsed(tables, "history", lambda t: parse_history(t, base=base)),
     )
 
 

@@ -30,6 +30,7 @@ from typing import Any, Self, cast
 
 from plcstack.north.audit import Audit
 from plcstack.north.config import NorthConfig
+from plcstack.north.history import History
 from plcstack.north.layout import JsonLayout, Reachability
 from plcstack.north.metrics import MetricsServer, PlcstackCollector
 from plcstack.north.mqtt import MqttSink
@@ -130,11 +131,16 @@ class North:
                 writes=self.writes,
             )
             self.sinks.append(self.mqtt)
+        #: the embedded history: a sink, and what the web console's trends read
+        self.history: History | None = None
+        if config.history is not None:
+            self.history = History(config.history, supervisor=self.supervisor)
+            self.sinks.append(self.history)
         self.web: Any = None
         if config.web is not None:  # the web console: a sink, and a server (the web extra)
             from plcstack.north.web.server import WebConsole
 
-            self.web = WebConsole(poller, config.web, writes=self.writes)
+            self.web = WebConsole(poller, config.web, writes=self.writes, history=self.history)
             self.sinks.append(self.web)
         for sink in self.sinks:
             if hasattr(sink, "supervisor"):

@@ -102,7 +102,9 @@ DEFAULT_BATCH_WAIT = 0.01
 MAX_BATCH_WAIT = 1.0
 DEFAULT_MAX_GAP = 8
 #: top-level tables read by north-side servers from the same file (plcstack.north)
-NORTH_SECTIONS = ("opcua", "mqtt", "metrics", "report", "influx", "web", "modbus", "audit")
+NORTH_SECTIONS = (
+    "opcua", "mqtt", "metrics", "report", "influx", "web", "modbus", "audit", "history",
+)  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -60,6 +60,7 @@ _STATUS = {
     "wrong_type": 400,
     "unknown_plc": 404,
     "unknown_tag": 404,
+    "no_history": 404,
     "busy": 503,
     "plc_error": 502,
 }

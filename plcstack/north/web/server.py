@@ -24,9 +24,11 @@ from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from plcstack.errors import ConfigError
+from plcstack.north.history import History
 from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.web.api import MAX_PENDING_WRITES, refusal, routes
 from plcstack.north.web.events import EventClient, EventHub
+from plcstack.north.web.history import history_routes
 from plcstack.north.web.pages import esc, overview_page, plc_page
 from plcstack.north.web.settings import WebSettings
 from plcstack.north.web.state import ConsoleState, plc_row
@@ -69,9 +71,16 @@ class WebConsole:
     """The web console and REST API of one poller (see the package docstring)."""
 
     def __init__(
-        self, poller: Any, settings: WebSettings | None = None, *, writes: WritePath | None = None
+        self,
+        poller: Any,
+        settings: WebSettings | None = None,
+        *,
+        writes: WritePath | None = None,
+        history: History | None = None,
     ) -> None:
         self.poller = poller
+        #: the embedded history the trends and ``/api/history`` read (None: not configured)
+        self.history = history
         #: the run's one write path (North passes its own, which audits)
         self.writes = writes or WritePath(poller if hasattr(poller, "write_tag") else None)
         self.settings = settings or WebSettings()
@@ -114,6 +123,7 @@ class WebConsole:
                 web.get("/events", self._events),
                 web.get("/static/{name}", self._file),
                 *routes(self),
+                *history_routes(self),
             ]
         )
         runner = web.AppRunner(

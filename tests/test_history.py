@@ -1,0 +1,324 @@
+"""The embedded history as a sink: what it keeps across restarts, checkpoints, retention, size,
+a damaged file, a second writer, a full disk (a real 256 KiB tmpfs) and a writer that falls
+behind. The kill -9 of a real ``plcstack poll`` is in tests/test_history_process.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import sqlite3
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from plcstack.errors import ConfigError
+from plcstack.north.config import parse_north
+from plcstack.north.history import History, HistorySettings, parse_history
+from plcstack.north.history.store import HistoryFile
+from plcstack.north.history.writer import Writer
+from plcstack.poll.samples import Quality, Scan, make_sample
+
+T0 = 1_800_000_000.0
+
+
+def scan(t: float, **values: Any) -> list[Scan]:
+    """One scan of PLC ``p`` at ``t`` with a sample per keyword (None: a bad sample)."""
+    samples = tuple(
+        make_sample("p", tag, v, Quality.GOOD, t, t + 0.01, None)
+        if v is not None
+        else make_sample("p", tag, None, Quality.BAD, t, t + 0.01, "p: timeout after 2.0 s")
+        for tag, v in values.items()
+    )
+    return [Scan("p", "default", t, t + 0.01, samples)]
+
+
+class Clock:
+    def __init__(self, now: float = T0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def history(path: Path, clock: Clock, **writer: Any) -> History:
+    settings = HistorySettings(path=path, retention=writer.pop("retention", 7 * 86400.0))
+    return History(settings, clock=clock, writer=Writer(settings, clock=clock, **writer))
+
+
+async def test_points_come_back_after_a_restart(tmp_path: Path) -> None:
+    path, clock = tmp_path / "h.sqlite", Clock()
+    h = history(path, clock)
+    await h.start()
+    for i in range(10):
+        h.submit(scan(T0 + i, temp=20.5 + i, on=i % 2 == 0, count=i * 1000, text=f"s{i}"))
+    h.submit(scan(T0 + 10, temp=None))
+    await h.flush()
+    assert await h.query("p", "count", T0, T0 + 100) == [(T0 + i, i * 1000) for i in range(10)]
+    await h.aclose()
+
+    h = history(path, clock)
+    await h.start()
+    try:
+        temps = await h.query("p", "temp", T0 + 2, T0 + 100)
+        assert temps == [(T0 + 2 + i, 22.5 + i) for i in range(8)] + [(T0 + 10, None)]
+        assert await h.query("p", "on", T0 + 2.5, T0 + 4) == [
+            (T0 + 2, True),  # the value that held at from
+            (T0 + 3, False),
+            (T0 + 4, True),
+        ]
+        assert (await h.query("p", "text", T0, T0 + 1))[-1] == (T0 + 1, "s1")
+        assert await h.query("p", "nothing", T0, T0 + 100) == []
+    finally:
+        await h.aclose()
+
+
+async def test_a_checkpoint_moves_the_journal_into_blocks(tmp_path: Path) -> None:
+    path, clock = tmp_path / "h.sqlite", Clock()
+    h = history(path, clock, checkpoint_every=3600.0, max_open_points=50)
+    await h.start()
+    try:
+        for i in range(40):
+            h.submit(scan(T0 + i, a=float(i), b=i))
+            if i % 10 == 9:
+                await h.flush()  # a commit a "second": four journal rows
+        db = sqlite3.connect(path)
+        # the third commit found 60 points open (more than 50): two blocks, the journal
+        # emptied; the fourth commit's 20 points wait in one journal row
+        assert db.execute("SELECT COUNT(*), SUM(n) FROM blocks").fetchone() == (2, 60)
+        assert db.execute("SELECT COUNT(*) FROM journal").fetchone() == (1,)
+        assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
+        db.close()
+        # a query sees the stored and the open points, each once
+        assert [v for _, v in await h.query("p", "b", T0, T0 + 40)] == list(range(40))
+    finally:
+        await h.aclose()
+
+
+async def test_a_journal_is_replayed_after_a_crash(tmp_path: Path) -> None:
+    """The process died after its last commit: the next start takes the journal back."""
+    path, clock = tmp_path / "h.sqlite", Clock()
+    h = history(path, clock)
+    await h.start()
+    for i in range(5):
+        h.submit(scan(T0 + i, a=i))
+    await h.flush()
+    # what kill -9 leaves: the file as committed, the lock released with the process
+    h.writer.file.db.close()  # type: ignore[union-attr]
+    h.writer.file = None
+    h.writer.close()
+    h._shutdown_pools()
+
+    again = history(path, clock)
+    await again.start()
+    try:
+        assert again.writer.stats.recovered == 5
+        assert [v for _, v in await again.query("p", "a", T0, T0 + 10)] == [0, 1, 2, 3, 4]
+    finally:
+        await again.aclose()
+
+
+async def test_retention_deletes_what_is_older(tmp_path: Path) -> None:
+    path, clock = tmp_path / "h.sqlite", Clock()
+    h = history(path, clock, retention=3600.0, checkpoint_every=0.0)
+    await h.start()
+    try:
+        h.submit(scan(T0, a=1))
+        await h.flush()  # a block ending at T0
+        clock.now = T0 + 7200
+        h.submit(scan(T0 + 7200, a=2))
+        await h.flush()  # the next checkpoint deletes the first block
+        assert h.writer.stats.expired == 1
+        assert await h.query("p", "a", T0 - 10, T0 + 7300) == [(T0 + 7200, 2)]
+    finally:
+        await h.aclose()
+
+
+def test_max_size_deletes_the_oldest_blocks(tmp_path: Path) -> None:
+    file = HistoryFile(tmp_path / "h.sqlite")
+    try:
+        rows = [(1, t, t + 100, 100, bytes(1000)) for t in range(0, 100_000, 100)]
+        file.begin()
+        file.checkpoint(rows)
+        file.commit()
+        before = file.used_bytes()
+        assert before > 1_000_000
+        file.begin()
+        deleted = file.trim(300_000)
+        file.commit()
+        assert file.used_bytes() <= 300_000
+        oldest = file.db.execute("SELECT MIN(t0), COUNT(*) FROM blocks").fetchone()
+        assert oldest == (deleted * 100, 1000 - deleted)  # the oldest went first
+    finally:
+        file.close()
+
+
+async def test_a_damaged_file_is_moved_aside_with_one_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "h.sqlite"
+    path.write_bytes(b"SQLite format 3\x00" + bytes(range(256)) * 20)
+    h = history(path, Clock())
+    with caplog.at_level(logging.WARNING, logger="plcstack.history"):
+        await h.start()
+    try:
+        warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+        assert len(warnings) == 1, warnings
+        assert "was damaged" in warnings[0] and "moved aside to h.sqlite.damaged-" in warnings[0]
+        assert len(moved_aside(tmp_path)) == 1
+        h.submit(scan(T0, a=1))
+        await h.flush()
+        assert await h.query("p", "a", T0, T0 + 1) == [(T0, 1)]
+    finally:
+        await h.aclose()
+
+
+async def test_a_file_of_something_else_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "plant.sqlite"
+    db = sqlite3.connect(path)
+    db.execute("CREATE TABLE recipes (name TEXT)")
+    db.commit()
+    db.close()
+    with pytest.raises(ConfigError, match="SQLite file of something else.*recipes"):
+        await history(path, Clock()).start()
+    assert sqlite3.connect(path).execute("SELECT COUNT(*) FROM recipes").fetchone() == (0,)
+
+
+async def test_a_second_writer_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "h.sqlite"
+    first = history(path, Clock())
+    await first.start()
+    try:
+        with pytest.raises(ConfigError, match=r"in use by process \d+"):
+            await history(path, Clock()).start()
+    finally:
+        await first.aclose()
+
+
+async def test_a_writer_that_falls_behind_drops_and_says_so_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    h = History(HistorySettings(path=tmp_path / "h.sqlite"), queue_limit=10)
+    await h.start()
+    try:
+        with caplog.at_level(logging.WARNING, logger="plcstack.history"):
+            for i in range(5):
+                h.submit(scan(T0 + i, a=1, b=2, c=3, d=4))  # 4 samples each: 2 fit
+            await h.flush()
+        assert h.dropped == 12
+        lines = [r.getMessage() for r in caplog.records]
+        assert len(lines) == 2, lines
+        assert "8 samples wait for the writer" in lines[0] and "dropped" in lines[0]
+        assert lines[1] == "history: writing again after dropping 12 samples"
+        assert "12 dropped" in h.summary()
+    finally:
+        await h.aclose()
+
+
+def moved_aside(directory: Path) -> list[str]:
+    return [p.name for p in directory.iterdir() if ".damaged-" in p.name]
+
+
+def fill(path: Path) -> None:
+    """Write ``path`` until the disk is full."""
+    with contextlib.suppress(OSError), open(path, "wb") as f:
+        while True:
+            f.write(bytes(4096))
+            f.flush()
+
+
+@contextlib.contextmanager
+def tmpfs(where: Path, size: str) -> Iterator[Path]:
+    """A real small file system (the tests run as root)."""
+    where.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode:
+        pytest.fail(f"cannot mount a tmpfs (the tests need root): {done.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+async def test_a_full_disk_keeps_the_points_in_memory_until_it_has_room(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with tmpfs(tmp_path / "small", "256k") as disk:
+        clock = Clock()
+        h = history(disk / "h.sqlite", clock, checkpoint_every=0.0)
+        await h.start()
+        filler = disk / "filler"
+        try:
+            with caplog.at_level(logging.WARNING, logger="plcstack.history"):
+                fill(filler)
+                for i in range(300):
+                    h.submit(scan(T0 + i, **{f"t{k}": float(i * k) for k in range(20)}))
+                    if i % 30 == 29:
+                        await h.flush()
+                failures = h.writer.stats.failures
+                assert failures > 0
+                filler.unlink()
+                await h.flush()
+            lines = [r.getMessage() for r in caplog.records]
+            assert len(lines) == 2, lines
+            assert "cannot write to" in lines[0] and "full" in lines[0]
+            assert "points wait in memory" in lines[0]
+            assert lines[1].startswith("history: writing to ") and "again" in lines[1]
+            got = await h.query("p", "t7", T0, T0 + 300, points=1000)
+            assert [v for _, v in got] == [float(i * 7) for i in range(300)]
+        finally:
+            await h.aclose()
+
+
+def test_history_table() -> None:
+    base = Path("/etc/plant")
+    settings = parse_history({"retention": "12h", "max_size": "20MB"}, base=base)
+    assert settings == HistorySettings(base / "history.sqlite", 43200.0, 20_000_000)
+    assert parse_history({"path": "/var/h.sqlite", "retention": 7200}, base=base).path == Path(
+        "/var/h.sqlite"
+    )
+    assert parse_north({"history": {"path": "x.sqlite"}}, base=base).history == HistorySettings(
+        base / "x.sqlite"
+    )
+
+
+@pytest.mark.parametrize(
+    ("table", "problem"),
+    [
+        ({"retension": "7d"}, "unknown key(s) retension (did you mean retention?)"),
+        ({"retention": "7 days"}, 'retention must be a duration such as "7d"'),
+        ({"retention": "5m"}, "retention must be at least 10 minutes"),
+        ({"retention": -1}, "retention must be a duration"),
+        ({"max_size": "lots"}, 'max_size must be a size such as "1GB"'),
+        ({"max_size": "1MB"}, "max_size must be at least 4 MiB"),
+        ({"path": ""}, "path must name a file"),
+        ({"path": 5}, "path must name a file"),
+    ],
+)
+def test_history_table_errors(table: dict[str, Any], problem: str) -> None:
+    with pytest.raises(ConfigError) as caught:
+        parse_history(table)
+    assert problem in str(caught.value)
+
+
+async def test_a_query_waits_for_no_commit(tmp_path: Path) -> None:
+    """Queries run in their own thread: one during a commit is answered, not refused."""
+    h = history(tmp_path / "h.sqlite", Clock())
+    await h.start()
+    try:
+        for i in range(2000):
+            h.submit(scan(T0 + i, a=float(i)))
+        flush = asyncio.ensure_future(h.flush())
+        got = await h.query("p", "a", T0, T0 + 3000, points=4)
+        await flush
+        assert len(got) <= 4
+    finally:
+        await h.aclose()
