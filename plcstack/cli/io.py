@@ -8,6 +8,7 @@ import math
 import re
 from typing import Any
 
+from plcstack.cli.pcap import add_pcap_options, with_pcap
 from plcstack.clients import connect
 from plcstack.errors import AddressError
 from plcstack.output import float32_short, json_safe
@@ -68,7 +69,8 @@ def register(subparsers: Any) -> None:
     read.add_argument("count", nargs="?", type=int, default=1, help="number of points (default 1)")
     read.add_argument("--json", action="store_true", help='print {"address": ..., "values": [...]}')
     _add_common_options(read, _READ_TYPE_HELP)
-    read.set_defaults(func=run_read)
+    add_pcap_options(read)
+    read.set_defaults(func=with_pcap(run_read))
 
     write = subparsers.add_parser(
         "write",
@@ -87,7 +89,8 @@ def register(subparsers: Any) -> None:
     # argparse takes "-2.5e3" or "-inf" for an option (its own rule knows only -5 and -.5);
     # no option of ``write`` starts with a digit, a dot or these words, so values they are
     write._negative_number_matcher = _NEGATIVE_VALUE
-    write.set_defaults(func=run_write)
+    add_pcap_options(write)
+    write.set_defaults(func=with_pcap(run_write))
 
 
 def _add_common_options(parser: argparse.ArgumentParser, type_help: str) -> None:

@@ -24,6 +24,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TextIO
 
 from plcstack.cli import plain_text, print_error
+from plcstack.cli.pcap import add_pcap_options, with_pcap
 from plcstack.errors import ConfigError
 from plcstack.north.config import load_config
 from plcstack.north.influx import InfluxFormat
@@ -82,7 +83,8 @@ def register(subparsers: Any) -> None:
         help="serve the web console and REST API on PORT (0: any free port), over [web] port",
     )
     scale_cli.add_arguments(poll)
-    poll.set_defaults(func=run_poll)
+    add_pcap_options(poll)
+    poll.set_defaults(func=with_pcap(run_poll))
 
 
 class StopEvent(asyncio.Event):

@@ -20,6 +20,7 @@ import signal
 from typing import Any
 
 from plcstack.cli import EXIT_INTERRUPTED, UsageError
+from plcstack.cli.pcap import add_pcap_options, with_pcap
 from plcstack.systemd.notify import Notifier
 from plcstack.systemd.service import ServiceNotifier, notifying
 
@@ -47,7 +48,8 @@ def register(subparsers: Any) -> None:
             continue  # not built in this version: `plcstack sim NAME` then says invalid choice
         parser = kinds.add_parser(name, help=(module.__doc__ or "").strip().splitlines()[0])
         module.add_cli_arguments(parser)
-        parser.set_defaults(func=_runner(name, module))
+        add_pcap_options(parser)
+        parser.set_defaults(func=with_pcap(_runner(name, module)))
 
 
 def check_options(args: argparse.Namespace) -> None:
