@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import random
 import signal
 import sys
 from pathlib import Path
@@ -66,24 +67,29 @@ def test_bd_seq_continues_in_a_new_process_and_wraps(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     "content",
     [
-        "{not json",
-        "",
-        '{"group_id": "plant", "edge_node_id": "edge1", "bdSeq": 256}',
-        '{"group_id": "plant", "edge_node_id": "edge1", "bdSeq": "7"}',
-        '{"group_id": "plant", "edge_node_id": "edge1", "bdSeq": true}',
-        '{"bdSeq": 7}',
-        "[7]",
-        '{"group_id": "plant", "edge_node_id": "other", "bdSeq": 7}',  # another node's file
+        b"{not json",
+        b"",
+        random.Random(1).randbytes(300),  # before: UnicodeDecodeError ended the start
+        b'{"group_id": "plant", "edge_node_id": "edge1", "bdSeq": 256}',
+        b'{"group_id": "plant", "edge_node_id": "edge1", "bdSeq": "7"}',
+        b'{"group_id": "plant", "edge_node_id": "edge1", "bdSeq": true}',
+        b'{"bdSeq": 7}',
+        b"[7]",
+        b'{"group_id": "plant", "edge_node_id": "other", "bdSeq": 7}',  # another node's file
     ],
 )
 def test_a_corrupt_or_foreign_state_file_starts_at_0_with_a_warning(
-    tmp_path: Path, content: str, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, content: bytes, caplog: pytest.LogCaptureFixture
 ) -> None:
     path = tmp_path / "sparkplug.json"
-    path.write_text(content)
+    path.write_bytes(content)
     with caplog.at_level(logging.WARNING, logger="plcstack.north.sparkplug"):
         fresh = layout(BdSeqStore(path, "plant", "edge1"))
-    assert any(str(path) in r.getMessage() for r in caplog.records), caplog.text
+    # moved aside, not overwritten: one WARNING names both paths
+    [aside] = tmp_path.glob("sparkplug.corrupt-*.json")
+    assert aside.read_bytes() == content
+    [warning] = caplog.records
+    assert str(path) in warning.getMessage() and str(aside) in warning.getMessage()
     assert will_bd_seq(fresh) == 0
     assert json.loads(path.read_text())["bdSeq"] == 0  # and the file is sound again
 

@@ -1,8 +1,10 @@
-"""Damaged state files: moved aside with one WARNING naming both paths, the run starts anew."""
+"""Damaged state files: moved aside with one WARNING naming both paths, the run starts anew;
+the audit, which is only ever appended to, starts each record on a line of its own."""
 
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import os
 import random
@@ -13,9 +15,11 @@ from pathlib import Path
 
 import pytest
 
+from plcstack.north.audit import Audit, AuditSettings
 from plcstack.north.buffer import StoreAndForward
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
+from tests.disk_helpers import fill, small_disk
 from tests.north_helpers import subscriber
 from tests.servers import Mosquitto
 
@@ -177,3 +181,49 @@ buffer_path = "queue.sqlite"
     [aside] = await asyncio.to_thread(lambda: list(tmp_path.glob("queue.corrupt-*.sqlite")))
     assert f"{tmp_path / 'queue.sqlite'} is damaged (file is not a database)" in err
     assert f"moved aside to {aside}" in err
+
+
+def audit_line(audit: Audit, value: object) -> bool:
+    return audit.record(
+        source="api", user=None, plc="p", tag="t", value=value, previous=None,
+        result="ok", may_have_executed=True, peer=None, now=0.0,
+    )  # fmt: skip
+
+
+def records(path: Path) -> list[object]:
+    """The values of the lines that are JSON records; a line that is not counts as None."""
+    out: list[object] = []
+    for line in path.read_text(errors="replace").splitlines():
+        try:
+            out.append(json.loads(line)["value"])
+        except ValueError:
+            out.append(None)
+    return out
+
+
+def test_an_audit_line_cut_short_by_a_crash_does_not_swallow_the_next(tmp_path: Path) -> None:
+    path = tmp_path / "writes.jsonl"
+    path.write_text('{"time": "2026-11-25T21:50:01.123Z", "source": "api", "us')
+    audit = Audit(AuditSettings(str(path)))
+    audit.open()
+    assert audit_line(audit, 1) and audit_line(audit, 2)
+    audit.close()
+    assert records(path) == [None, 1, 2]  # before: [None, 2], the first record glued on
+
+
+def test_an_audit_line_cut_short_by_a_full_disk_does_not_swallow_the_next(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    with small_disk(tmp_path / "disk") as disk:
+        path = disk / "writes.jsonl"
+        audit = Audit(AuditSettings(str(path)))
+        audit.open()
+        assert audit_line(audit, 1)
+        filler = fill(disk)
+        assert not audit_line(audit, "x" * 20_000)  # the page it had is filled, then ENOSPC
+        assert "No space left on device" in caplog.text
+        filler.unlink()
+        assert audit_line(audit, 3)
+        audit.close()
+        got = records(path)
+        assert got[0] == 1 and got[-1] == 3 and set(got[1:-1]) <= {None}

@@ -30,7 +30,9 @@ before a line would take the file past ``max_bytes``, ``FILE.N`` becomes ``FILE.
 oldest beyond ``backups`` is deleted), ``FILE`` becomes ``FILE.1``, and a new ``FILE`` starts. A
 line that cannot be written (disk full, file removed with its directory, permissions) is an
 ERROR in the log and counts in ``plcstack_sink_errors_total{sink="audit"}``; it is never
-skipped silently, and the write it records is not held back for it.
+skipped silently, and the write it records is not held back for it. A line cut short (a crash,
+or a disk that filled in the middle of it) is ended with a newline before the next one, so every
+complete line stays one JSON record; the file is never moved or truncated for what it holds.
 """
 
 from __future__ import annotations
@@ -93,6 +95,16 @@ def parse_audit(table: Any, *, base: Path | None = None) -> AuditSettings:
     return AuditSettings(path, max_bytes, backups)
 
 
+def _ends_a_line(path: Path) -> bool:
+    """Does the file end with a newline (or is it no regular file, like ``/dev/full``)?"""
+    try:
+        with open(path, "rb") as f:
+            f.seek(-1, os.SEEK_END)
+            return f.read(1) == b"\n"
+    except OSError:
+        return True
+
+
 def _iso(now: float) -> str:
     stamp = datetime.datetime.fromtimestamp(now, datetime.UTC)
     return stamp.strftime("%Y-%m-%dT%H:%M:%S.") + f"{stamp.microsecond // 1000:03d}Z"
@@ -113,6 +125,8 @@ class Audit:
         self.failed = 0
         self._file: TextIO | None = None
         self._size = 0
+        #: written before the next line: a newline if the file ends in a line cut short
+        self._start = ""
         self._last_error: str | None = None
 
     def open(self) -> None:
@@ -129,6 +143,9 @@ class Audit:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 - kept open
         self._size = self._file.tell()
+        # a line cut short (a crash, a full disk mid-line) is ended before the next record:
+        # glued to it, that record would be lost to every JSON reader too
+        self._start = "" if not self._size or _ends_a_line(self.path) else "\n"
 
     def close(self) -> None:
         if self._file is not None:
@@ -170,12 +187,13 @@ class Audit:
             elif self._size + size > self.settings.max_bytes and self._size > 0:
                 self._rotate()
             assert self._file is not None
-            self._file.write(line)
+            self._file.write(self._start + line)
             self._file.flush()
         except OSError as exc:
             self._failed(exc, entry)
             return False
-        self._size += size
+        self._size += size + len(self._start)
+        self._start = ""
         self.written += 1
         self._last_error = None
         return True

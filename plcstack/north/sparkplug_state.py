@@ -16,7 +16,9 @@ Written atomically: a temporary file in the same directory, flushed and fsynced,
 over the old one, so a power cut leaves the old or the new number, never half a file. A missing
 file means a node that never connected (start at 0); an unreadable or corrupt one, or one of
 another edge node, starts at 0 too, with a warning: the node must keep publishing, and a host
-that sees bdSeq 0 again treats it as a new session, which is the safe side.
+that sees bdSeq 0 again treats it as a new session, which is the safe side. A corrupt or
+foreign file is moved aside first (``sparkplug.corrupt-TIME.json``, one WARNING naming both
+paths), never overwritten: it may be the only record of what happened.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ import logging
 import os
 import tempfile
 from pathlib import Path
+
+from plcstack.statefiles import move_aside
 
 __all__ = ["BdSeqStore", "default_state_path"]
 
@@ -54,38 +58,52 @@ class BdSeqStore:
 
     def load(self) -> int | None:
         """The ``bdSeq`` of the last CONNECT, or None when there was none (or it cannot be
-        trusted: then a warning says why)."""
+        trusted: then a warning says why).
+
+        A file that is not a bdSeq state file of this edge node (bytes that are not JSON, a
+        number out of range, another node's file) is moved aside (see
+        :mod:`plcstack.statefiles`): kept for whoever wants to look, never read again.
+        """
         try:
-            text = self.path.read_text(encoding="utf-8")
+            raw = self.path.read_bytes()
         except FileNotFoundError:
             return None
         except OSError as exc:
-            log.warning("sparkplug: cannot read %s (%s); bdSeq starts at 0", self.path, exc)
-            return None
-        try:
-            data = json.loads(text)
-            value = data["bdSeq"]
-            owner = (data["group_id"], data["edge_node_id"])
-        except (ValueError, TypeError, KeyError):
             log.warning(
-                "sparkplug: %s is not a bdSeq state file (corrupt?); bdSeq starts at 0", self.path
+                "sparkplug: cannot read %s (%s); bdSeq starts at 0", self.path, exc.strerror or exc
             )
             return None
-        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 255:
-            log.warning(
-                "sparkplug: %s holds bdSeq %r, not 0..255; bdSeq starts at 0", self.path, value
-            )
-            return None
-        if owner != (self.group_id, self.edge_node_id):
-            log.warning(
-                "sparkplug: %s belongs to edge node %s/%s, not %s/%s; bdSeq starts at 0",
+        value, why = self._parse(raw)
+        if why is not None:
+            move_aside(
                 self.path,
-                *owner,
-                self.group_id,
-                self.edge_node_id,
+                why,
+                what="sparkplug: bdSeq state file",
+                then="bdSeq starts at 0",
+                logger=log,
             )
-            return None
         return value
+
+    def _parse(self, raw: bytes) -> tuple[int | None, str | None]:
+        """(the stored bdSeq, None) or (None, why the file cannot be trusted)."""
+        try:
+            data = json.loads(raw.decode("utf-8"))
+        except UnicodeDecodeError:
+            return None, "not UTF-8 text"
+        except ValueError:
+            return None, "not JSON" if raw.strip() else "empty"
+        if not isinstance(data, dict) or not {"bdSeq", "group_id", "edge_node_id"} <= data.keys():
+            return None, "not a bdSeq state file: needs group_id, edge_node_id and bdSeq"
+        value = data["bdSeq"]
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 255:
+            return None, f"bdSeq {value!r} is not 0..255"
+        owner = (data["group_id"], data["edge_node_id"])
+        if owner != (self.group_id, self.edge_node_id):
+            return None, (
+                f"it belongs to edge node {owner[0]}/{owner[1]},"
+                f" not {self.group_id}/{self.edge_node_id}"
+            )
+        return value, None
 
     def save(self, bd_seq: int) -> bool:
         """Store ``bd_seq`` atomically; False (and a warning, once) if the disk refused it.
