@@ -139,3 +139,83 @@ def test_random_schedules_keep_exclusion_order_and_progress(
         assert not lock.locked()
 
     asyncio.run(run())
+
+
+# -- turns: one task's several requests with nothing in between --------------------------------
+
+
+async def test_a_turn_lets_its_own_requests_through_and_holds_off_the_others() -> None:
+    lock = SingleFlight()
+    order: list[str] = []
+    turn_started = asyncio.Event()
+    go_on = asyncio.Event()
+
+    async def request(name: str) -> None:
+        if not lock.try_acquire():
+            await lock.acquire()
+        order.append(name)
+        lock.release()
+
+    async def turn() -> None:
+        await lock.hold()
+        turn_started.set()
+        await request("turn 1")  # its own: at once, and the lock stays held
+        await go_on.wait()
+        await request("turn 2")
+        lock.unhold()
+
+    holder = asyncio.create_task(turn())
+    await turn_started.wait()
+    other = asyncio.create_task(request("other"))
+    await asyncio.sleep(0)
+    assert lock.locked() and not lock.try_acquire()  # held between the turn's requests
+    go_on.set()
+    await asyncio.wait_for(asyncio.gather(holder, other), 5)
+    assert order == ["turn 1", "turn 2", "other"]
+    assert not lock.locked()
+
+
+async def test_a_turn_waits_in_arrival_order_and_gives_up_at_its_deadline() -> None:
+    lock = SingleFlight()
+    assert lock.try_acquire()  # a request in flight
+    loop = asyncio.get_running_loop()
+    late = asyncio.create_task(lock.hold(loop.time() + 0.05))
+    queued = asyncio.create_task(lock.acquire())
+    with pytest.raises(TimeoutError):
+        await asyncio.wait_for(late, 5)
+    # the expired turn left the queue: the next release goes to the request behind it
+    lock.release()
+    assert await asyncio.wait_for(queued, 5)
+    assert lock.locked()
+    lock.release()
+    assert not lock.locked()
+
+
+async def test_a_turn_handed_the_lock_before_its_deadline_holds_it() -> None:
+    lock = SingleFlight()
+    assert lock.try_acquire()
+    loop = asyncio.get_running_loop()
+    turn = asyncio.create_task(lock.hold(loop.time() + 5.0))
+    await asyncio.sleep(0)
+    lock.release()
+    await asyncio.wait_for(turn, 5)
+    assert lock.locked()
+    waiting = asyncio.create_task(lock.acquire())
+    await asyncio.sleep(0)
+    assert not waiting.done()
+    lock.unhold()
+    assert await asyncio.wait_for(waiting, 5)
+    lock.release()
+    with pytest.raises(RuntimeError):
+        lock.unhold()
+
+
+async def test_a_cancelled_turn_leaves_the_queue() -> None:
+    lock = SingleFlight()
+    assert lock.try_acquire()
+    turn = asyncio.create_task(lock.hold())
+    await asyncio.sleep(0)
+    turn.cancel()
+    await asyncio.gather(turn, return_exceptions=True)
+    lock.release()
+    assert not lock.locked()

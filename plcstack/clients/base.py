@@ -8,9 +8,10 @@ each protocol client only says how to build a request and what its reply means.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from abc import abstractmethod
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import AsyncIterator, Callable, Hashable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self, TypeVar, overload
 
@@ -206,6 +207,23 @@ class Client(AsyncResource):
 
     async def aopen(self) -> None:
         await self.open()
+
+    @contextlib.asynccontextmanager
+    async def turn(self, deadline: float | None = None) -> AsyncIterator[None]:
+        """The connection for the calling task alone, for several requests in a row.
+
+        What a native face's request needs when it is more than one request (the value before
+        a write, for the audit; a monitor registration and its monitor): nothing of anyone
+        else's (a scan, a write from the north side) goes between them. Waits for the
+        connection in arrival order like any request; raises ``TimeoutError`` when the event
+        loop's time reaches ``deadline`` first, and then nothing was sent. Inside, only the
+        calling task's requests go through; another task's wait until the turn ends.
+        """
+        await self._lock.hold(deadline)
+        try:
+            yield
+        finally:
+            self._lock.unhold()
 
     def __repr__(self) -> str:
         state = "open" if self.transport.is_open else "closed"
