@@ -274,11 +274,11 @@ def test_allow_list_parsing() -> None:
             WriteAllowList.parse(bad)
 
 
-async def test_gateway_needs_a_server_and_an_as511_url() -> None:
+async def test_gateway_needs_a_server_and_an_s5_plc() -> None:
     with pytest.raises(AddressError, match="--s5lan and/or --fetchwrite"):
         await gateway.start("as511+tcp://127.0.0.1:1")
-    with pytest.raises(AddressError, match="as511"):
-        await gateway.start("s5lan://127.0.0.1:1", s5lan=LOOP)
+    with pytest.raises(AddressError, match="needs an S5 PLC"):
+        await gateway.start("e71+tcp://127.0.0.1:1", s5lan=LOOP)
 
 
 def _env() -> dict[str, str]:
@@ -319,7 +319,7 @@ async def test_cli_gateway_serves_and_exits_cleanly() -> None:
         (["as511+tcp://127.0.0.1:1"], "give --s5lan and/or --fetchwrite"),
         (["as511+tcp://127.0.0.1:1", "--s5lan", "99999"], "a port is 0..65535"),
         (["as511+tcp://127.0.0.1:1", "--s5lan", "0", "--writable", "DB0"], "writable"),
-        (["s5lan://127.0.0.1:1", "--s5lan", "0"], "as511"),
+        (["e71+tcp://127.0.0.1:1", "--s5lan", "0"], "needs an S5 PLC"),
     ],
 )
 def test_cli_gateway_usage_errors_exit_2(args: list[str], message: str) -> None:

@@ -52,12 +52,11 @@ async def test_cli_gateway_logs_a_refused_write_and_audits_every_write(tmp_path:
     (warning,) = [line for line in err.splitlines() if "refused" in line]
     assert "write from gateway refused (write_denied): write DB5+0: writing DB5" in warning
     lines = [json.loads(line) for line in audit.read_text().splitlines()]
-    assert [
-        (x["source"], x["plc"], x["tag"], x["value"], x["result"], x["may_have_executed"])
-        for x in lines
-    ] == [
-        ("gateway", sim.url, "DB4+2", [0x0B, 0xAD], "ok", True),
-        ("gateway", sim.url, "DB5+0", [0, 1], "write_denied", False),
+    fields = ("source", "plc", "tag", "value", "previous", "result", "may_have_executed")
+    assert [tuple(x[k] for k in fields) for x in lines] == [
+        # DB4.DW1 held 0401h before (the simulator's DBn.DWk = n * 100h + k)
+        ("gateway", sim.url, "DB4+2", [0x0B, 0xAD], [0x04, 0x01], "ok", True),
+        ("gateway", sim.url, "DB5+0", [0, 1], None, "write_denied", False),
     ]
 
 

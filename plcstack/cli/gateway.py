@@ -1,9 +1,11 @@
-"""plcstack gateway AS511-URL --s5lan HOST:PORT --fetchwrite HOST:PORT: a software S5-LAN module.
+"""plcstack gateway PLC-URL --s5lan HOST:PORT --fetchwrite HOST:PORT: a software S5-LAN module.
 
 Serves S5-LAN-LINK and/or FETCH/WRITE clients on the network from an S5 CPU reached through its
-programming port (as511:///dev/ttyUSB0, or as511+tcp://HOST:PORT for a serial device server).
-One AS511 transaction at a time; network requests wait in one bounded, fair queue, and a request
-that waits longer than --max-wait is answered with the protocol's timeout error, not executed.
+programming port (as511:///dev/ttyUSB0, or as511+tcp://HOST:PORT for a serial device server),
+an S5-LAN module (s5lan://HOST:PORT) or a FETCH/WRITE CP (fetchwrite://HOST:PORT). One request
+at a time on the PLC's connection; network requests wait in one bounded, fair queue, and a
+request that waits longer than --max-wait is answered with the protocol's timeout error, not
+executed.
 
 Safe by default: a bare port binds 127.0.0.1 only (give 0.0.0.0:PORT to serve the network), and
 nothing is writable until --writable names it, e.g. --writable "DB10-20, M" (plcstack docs gateway).
@@ -24,7 +26,9 @@ from typing import Any
 from plcstack import gateway
 from plcstack.cli import UsageError, plain_text, print_error
 from plcstack.cli.poll import StopEvent, ended_early, install_stop_signals, remove_stop_signals
+from plcstack.clients.as511 import AS511Client
 from plcstack.errors import AddressError
+from plcstack.gateway.record import FaceWrite
 from plcstack.north.audit import Audit, AuditSettings
 from plcstack.north.writes import WritePath, WriteResult
 from plcstack.systemd.notify import Notifier
@@ -34,11 +38,13 @@ from plcstack.systemd.service import ServiceNotifier, notifying
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "gateway",
-        help="serve S5-LAN and FETCH/WRITE from an S5 on its programming port (AS511)",
+        help="serve S5-LAN and FETCH/WRITE from an S5 PLC (AS511 port, S5-LAN module, CP)",
         description=plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("plc", help="as511:///dev/ttyUSB0 or as511+tcp://HOST:PORT")
+    parser.add_argument(
+        "plc", help="as511:///dev/ttyUSB0, as511+tcp://HOST:PORT, s5lan://... or fetchwrite://..."
+    )
     parser.add_argument(
         "--s5lan", metavar="[HOST:]PORT", help="serve S5-LAN-LINK here (host default 127.0.0.1)"
     )
@@ -109,6 +115,24 @@ async def run(args: argparse.Namespace) -> int:
         raise UsageError("gateway: give --s5lan and/or --fetchwrite")
     if args.duration is not None and not args.duration > 0:
         raise UsageError("--duration must be greater than 0")
+    audit = Audit(AuditSettings(args.audit)) if args.audit else None
+    if audit is not None:
+        audit.open()
+    writes = WritePath(None, audit=audit)
+
+    def written(write: FaceWrite) -> None:
+        result = WriteResult(write.ok, write.result, write.message, write.may_have_executed)
+        writes.record(
+            "gateway",
+            None,
+            args.plc,
+            write.address,
+            write.value,
+            result,
+            peer=write.peer,
+            previous=write.previous,
+        )
+
     try:
         gw = await gateway.start(
             args.plc,
@@ -120,27 +144,15 @@ async def run(args: argparse.Namespace) -> int:
             max_wait=args.max_wait,
             cache_max_age=args.cache_max_age,
             s5lan_connections=args.s5lan_connections,
+            read_previous=audit is not None,
+            on_write=written,
         )
-    except AddressError as exc:
-        raise UsageError(f"gateway: {exc}") from None
-    except OSError as exc:
+    except (AddressError, OSError) as exc:
+        if audit is not None:
+            audit.close()
+        if isinstance(exc, AddressError):
+            raise UsageError(f"gateway: {exc}") from None
         raise UsageError(f"gateway cannot start: {exc.strerror or exc}") from None
-    audit = Audit(AuditSettings(args.audit)) if args.audit else None
-    if audit is not None:
-        try:
-            audit.open()
-        except AddressError:
-            await gw.aclose()
-            raise
-    writes = WritePath(None, audit=audit)
-
-    def written(
-        where: str, data: bytes, code: str, may: bool, message: str, peer: str | None
-    ) -> None:
-        result = WriteResult(code == "ok", code, message, may)
-        writes.record("gateway", None, args.plc, where, list(data), result, peer=peer)
-
-    gw.store.on_write = written
     stop = StopEvent()
     installed = install_stop_signals(stop)
     failure: str | None = None
@@ -159,8 +171,8 @@ async def run(args: argparse.Namespace) -> int:
         async with notifying(ServiceNotifier(Notifier.from_environment(), status=lambda: status)):
             stopper = asyncio.create_task(stop.wait())
             watched: set[asyncio.Task[Any]] = {stopper}
-            if gw.store.worker is not None:
-                watched.add(gw.store.worker)  # the AS511 side: its failure ends the run, said
+            if gw.share.worker is not None:
+                watched.add(gw.share.worker)  # the PLC side: its failure ends the run, said
             done, _ = await asyncio.wait(
                 watched, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
             )
@@ -172,8 +184,9 @@ async def run(args: argparse.Namespace) -> int:
         if audit is not None:
             audit.close()
         s = gw.stats
+        line = "AS511" if isinstance(gw.share.client, AS511Client) else "PLC"
         print(
-            f"gateway: {s.reads} reads, {s.writes} writes; AS511 {s.line_reads} reads, "
+            f"gateway: {s.reads} reads, {s.writes} writes; {line} {s.line_reads} reads, "
             f"{s.line_writes} writes; cache hits {s.cache_hits}; busy {s.busy}, "
             f"expired {s.expired}, denied {s.denied}, failed {s.failed}",
             file=sys.stderr,

@@ -14,7 +14,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Awaitable, Callable
-from typing import Final, Literal
+from typing import Literal
 
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.fetchwrite import (
@@ -40,6 +40,7 @@ from plcstack.sim.base import (
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.sim.s5store import (
     ABSOLUTE,
+    PERIPHERAL,
     FaultKind,
     S5Fault,
     S5Store,
@@ -261,12 +262,8 @@ class FetchWriteSimulator(TcpSimulator):
         try:
             if isinstance(event, FetchRequest):
                 target, offset, size = self._span(event.org, event.db, event.start, event.length)
-                if target == _PB:  # [R] peripheral bytes: reads see the input image
-                    target = Area.INPUTS
-                return ack(0, await self.store.read(target, offset, size)), False
+                return ack(0, await self.store.read(target, offset, size, peer=peer)), False
             target, offset, _ = self._span(event.org, event.db, event.start, 0)
-            if target == _PB:  # ... and writes go to the output image
-                target = Area.OUTPUTS
             await self.store.write(target, offset, event.data, peer=peer)
             return ack(0), False
         except S5Fault as exc:
@@ -274,9 +271,7 @@ class FetchWriteSimulator(TcpSimulator):
         except _Unsupported:
             return ack(0x01), False
 
-    def _span(
-        self, org: int, db: int, start: int, length: int
-    ) -> tuple[Target | Literal["PB"], int, int]:
+    def _span(self, org: int, db: int, start: int, length: int) -> tuple[Target, int, int]:
         """Where a job goes: (target, byte offset, byte length)."""
         if org in (Org.DB, Org.DX):
             if db == 0:
@@ -289,15 +284,12 @@ class FetchWriteSimulator(TcpSimulator):
             return _BYTE_AREAS[org], start, length
         if org in _WORD_AREAS:
             return _WORD_AREAS[org], 2 * start, 2 * length
-        if org == Org.PB:
-            return _PB, start, length
+        if org == Org.PB:  # [R] a memory image: reads see the input image, writes the output
+            return PERIPHERAL, start, length
         if org == Org.AS:
             # [R] absolute addressing: start is a byte address in the 64 KiB space, length words.
             return ABSOLUTE, start, 2 * length
         raise _Unsupported(org)  # DE, QB: not modelled (D.C5 allows error 01)
-
-
-_PB: Final = "PB"
 
 
 class _Unsupported(Exception):

@@ -170,7 +170,7 @@ class _State:
                 offset = 2 * h.start if target in (Area.TIMERS, Area.COUNTERS) else h.start
                 swap = h.data_type == "W"
             if h.is_read:
-                raw = await self.store.read(target, offset, n)
+                raw = await self.store.read(target, offset, n, peer=peer)
                 return ERR_OK, swap_words(raw) if swap else raw
             data = swap_words(req.data) if swap else req.data
             await self.store.write(target, offset, data, peer=peer)

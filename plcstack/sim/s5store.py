@@ -27,6 +27,7 @@ from plcstack.sim.s5memory import Area, BlockType, S5AccessError, S5Memory
 __all__ = [
     "ABSOLUTE",
     "FAULT_CODES",
+    "PERIPHERAL",
     "BlockRef",
     "FaultKind",
     "MemoryStore",
@@ -42,8 +43,13 @@ __all__ = [
 BlockRef = tuple[BlockType, int]
 #: the whole 64 KiB address space (FETCH/WRITE ORG 'AS')
 ABSOLUTE: Final = "absolute"
-#: what a request touches: a block, a byte area (I/Q/M/T/C/BS) or absolute memory
-Target = BlockRef | Area | Literal["absolute"]
+#: the peripheral bytes (FETCH/WRITE ORG 'PB'): input modules read, output modules written. [R]
+#: Where only the process images can be reached (a memory image, an AS511 port, an S5-LAN
+#: module), a read sees the input image and a write goes to the output image.
+PERIPHERAL: Final = "peripheral"
+#: what a request touches: a block, a byte area (I/Q/M/T/C/BS), the peripheral bytes or
+#: absolute memory
+Target = BlockRef | Area | Literal["absolute", "peripheral"]
 
 
 class FaultKind(enum.Enum):
@@ -80,10 +86,15 @@ FAULT_CODES: Final[dict[FaultKind, tuple[int, int]]] = {
 
 
 class S5Fault(Exception):
-    """An access a store refused; ``kind`` chooses the protocol's error value."""
+    """An access a store refused; ``kind`` chooses the protocol's error value.
 
-    def __init__(self, kind: FaultKind, message: str) -> None:
+    ``may_have_executed``: for a write, whether it may have reached the PLC all the same (a
+    timeout after it was sent); false when it certainly did not (refused before sending, or
+    answered with an error code)."""
+
+    def __init__(self, kind: FaultKind, message: str, *, may_have_executed: bool = False) -> None:
         self.kind = kind
+        self.may_have_executed = may_have_executed
         super().__init__(message)
 
     @property
@@ -101,7 +112,7 @@ def describe_target(target: Target) -> str:
         return f"{target[0].name}{target[1]}"
     if isinstance(target, Area):
         return target.value
-    return "absolute"
+    return "PB" if target == PERIPHERAL else "absolute"
 
 
 class S5Store(Protocol):
@@ -110,11 +121,14 @@ class S5Store(Protocol):
     Offsets and sizes are bytes; block offsets count from data word 0 (the body, after the
     10-byte header); T and C hold 2 bytes per timer/counter. Data are in PLC byte order
     (big-endian words). A refused access raises :class:`S5Fault`; nothing else may escape.
-    ``write`` returns only once the CPU has taken the data; its ``peer`` is the network client
-    that asked (``host:port``, for the gateway's write audit; None: unknown).
+    ``write`` returns only once the CPU has taken the data. ``peer`` is the network client that
+    asked (``host:port``: a gateway queues each client's requests in a line of its own and
+    audits its writes; None: unknown).
     """
 
-    async def read(self, target: Target, offset: int, size: int) -> bytes: ...
+    async def read(
+        self, target: Target, offset: int, size: int, *, peer: str | None = None
+    ) -> bytes: ...
 
     async def write(
         self, target: Target, offset: int, data: bytes, *, peer: str | None = None
@@ -130,12 +144,16 @@ class MemoryStore:
     def __init__(self, memory: S5Memory) -> None:
         self.memory = memory
 
-    async def read(self, target: Target, offset: int, size: int) -> bytes:
+    async def read(
+        self, target: Target, offset: int, size: int, *, peer: str | None = None
+    ) -> bytes:
         try:
             if isinstance(target, tuple):
                 return self.memory.read_block(target[0], target[1], offset, size)
             if isinstance(target, Area):
                 return self.memory.read_area(target, offset, size)
+            if target == PERIPHERAL:
+                return self.memory.read_area(Area.INPUTS, offset, size)
             return self.memory.read_absolute(offset, size)
         except S5AccessError as exc:
             raise S5Fault(_ACCESS_KINDS.get(exc.code, FaultKind.NO_AREA), str(exc)) from None
@@ -149,6 +167,8 @@ class MemoryStore:
                 self.memory.write_block(target[0], target[1], offset, data)
             elif isinstance(target, Area):
                 self.memory.write_area(target, offset, data)
+            elif target == PERIPHERAL:
+                self.memory.write_area(Area.OUTPUTS, offset, data)
             else:
                 self.memory.write_absolute(offset, data)
         except S5AccessError as exc:
