@@ -2,9 +2,12 @@
 every message with the time it arrived.
 
 It receives in a thread of its own, so the arrival times are true even while the event loop of
-the process under test is blocked (the watchdog test blocks it on purpose). Bound to a file path,
-or with ``abstract=True`` to a name in Linux's abstract namespace (``NOTIFY_SOCKET=@name``), as
-systemd may hand either.
+the process under test is blocked (the watchdog test blocks it on purpose). Each datagram is
+stamped with the time the kernel queued it (``SO_TIMESTAMP``), not the time the thread got to
+read it: on a loaded machine the thread (which needs the GIL the loop holds) read two pings
+sent 150 ms apart in one go, 300 ms after the one before, and a correct ping schedule failed.
+Bound to a file path, or with ``abstract=True`` to a name in Linux's abstract namespace
+(``NOTIFY_SOCKET=@name``), as systemd may hand either.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import os
 import socket
+import struct
 import threading
 import time
 from dataclasses import dataclass
@@ -20,6 +24,9 @@ from types import TracebackType
 from typing import Self
 
 __all__ = ["Message", "NotifySocket"]
+
+#: Linux's SO_TIMESTAMP (asm-generic/socket.h), which Python's socket module does not name
+SO_TIMESTAMP = getattr(socket, "SO_TIMESTAMP", 29)
 
 
 @dataclass(frozen=True)
@@ -50,6 +57,7 @@ class NotifySocket:
             path = directory / "notify.sock"
             self.sock.bind(str(path))
             self.address = str(path)
+        self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMP, 1)
         self.sock.settimeout(0.05)
         self.messages: list[Message] = []
         self._lock = threading.Lock()
@@ -60,12 +68,17 @@ class NotifySocket:
     def _receive(self) -> None:
         while not self._stop.is_set():
             try:
-                data = self.sock.recv(65536)
+                data, ancillary, _, _ = self.sock.recvmsg(65536, socket.CMSG_SPACE(16))
             except TimeoutError:
                 continue
             except OSError:
                 return
             at = time.monotonic()
+            for level, kind, stamp in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMP:
+                    seconds, micros = struct.unpack("@ll", stamp[: struct.calcsize("@ll")])
+                    # the kernel's wall-clock stamp, on the monotonic clock the tests use
+                    at -= time.time() - (seconds + micros / 1e6)
             fields = tuple(
                 (name, value)
                 for line in data.decode().split("\n")
