@@ -45,6 +45,7 @@ def run_tool(
         [_binary(name), *args],
         capture_output=True,
         text=True,
+        errors="backslashreplace",  # a test says what was wrong, not a UnicodeDecodeError
         env=_env(home),
         timeout=timeout,
         check=False,

@@ -18,9 +18,12 @@ __all__ = [
     "FN_READ",
     "FN_SYSTEM_PARAMETERS",
     "FN_WRITE",
+    "FUNCTION_NAMES",
     "MAX_READ_BYTES",
     "MAX_WRITE_BYTES",
+    "OPERATING_MODES",
     "READ_PREFIX",
+    "SYSTEM_ADDRESS_NAMES",
     "BlockInfo",
     "Job",
     "SystemAddresses",
@@ -44,6 +47,48 @@ FN_SYSTEM_PARAMETERS = 0x18
 FN_B_INFO = 0x1A
 FN_BLOCK_LIST = 0x1B
 FN_OPERATING_MODE = 0x1E
+
+#: the function codes of B.7 ([O-PS] as511.h, names translated): what the Wireshark dissector
+#: shows; this library uses 03h, 04h, 18h, 1Ah, 1Bh and 1Eh
+FUNCTION_NAMES: dict[int, str] = {
+    0x03: "write memory (DB_WRITE)",
+    0x04: "read memory (DB_READ)",
+    0x05: "write block",
+    0x06: "read block",
+    0x07: "compress memory",
+    0x08: "write DB (block transfer)",
+    0x09: "delete block",
+    0x0E: "debug start",
+    0x10: "debug continue",
+    0x11: "delete all blocks",
+    0x13: "control outputs",
+    0x14: "status variable",
+    0x15: "status block",
+    0x16: "debug init",
+    0x17: "control outputs init",
+    0x18: "read system parameters",
+    0x19: "read RAM info",
+    0x1A: "read block info (B_INFO)",
+    0x1B: "read block address list",
+    0x1C: "read B-stack",
+    0x1D: "read U-stack",
+    0x1E: "change operating mode",
+    0x80: "online start",
+    0x81: "online stop",
+}
+#: the mode byte of 1Eh (B.7.5)
+OPERATING_MODES: dict[int, str] = {0x00: "stop", 0x01: "restart (Neustart)", 0x02: "warm restart"}
+#: the addresses at the start of the 18h answer (B.7.1), in wire order (:class:`SystemAddresses`)
+SYSTEM_ADDRESS_NAMES: tuple[str, ...] = (
+    "ESF (input signal formers)",
+    "ASF (output signal formers)",
+    "PAE (process image of inputs)",
+    "PAA (process image of outputs)",
+    "flags",
+    "timers",
+    "counters",
+    "system data",
+)
 
 #: [R] B.7.3/B.7.4: the client splits reads and writes into transactions of <= 512 bytes
 MAX_READ_BYTES = 512

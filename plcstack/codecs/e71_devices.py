@@ -17,6 +17,7 @@ from plcstack.s5address import READ_A_BIT, parse_s5_address
 
 __all__ = [
     "DEVICE_BY_CODE",
+    "DEVICE_NAMES",
     "SPECIAL_FIRST",
     "SPECIAL_LAST",
     "WIDEST_RANGES",
@@ -61,6 +62,23 @@ class Device(enum.Enum):
 
 
 DEVICE_BY_CODE: Final[dict[int, Device]] = {d.code: d for d in Device}
+#: the name of each device (§5.1 "Name"), as the Wireshark dissector shows it
+DEVICE_NAMES: Final[dict[Device, str]] = {
+    Device.X: "input",
+    Device.Y: "output",
+    Device.M: "internal, latch or step relay",
+    Device.F: "annunciator",
+    Device.B: "link relay",
+    Device.TS: "timer contact",
+    Device.TC: "timer coil",
+    Device.TN: "timer current value",
+    Device.CS: "counter contact",
+    Device.CC: "counter coil",
+    Device.CN: "counter current value",
+    Device.D: "data register",
+    Device.W: "link register",
+    Device.R: "file register",
+}
 #: L (latch relay) and S (step relay) share the M address space on the A series (§5.1, §13 A9)
 _ALIASES: Final = {"L": Device.M, "S": Device.M}
 _NAMES: Final[dict[str, Device]] = {d.letters: d for d in Device} | _ALIASES

@@ -39,6 +39,7 @@ from plcstack.codecs.e71_wire import Code, Malformed, Reader, count_from, unpack
 from plcstack.errors import RemoteProtocolError
 
 __all__ = [
+    "COMMAND_NAMES",
     "REQUEST_RULES",
     "DatagramRequests",
     "DatagramResponses",
@@ -121,6 +122,52 @@ REQUEST_RULES: Final[dict[int, _Rule]] = {
     0x62: _Rule(6, 4, "u16", 2),
 }
 
+
+#: What each defined subheader does (§2, §7.1 "Function"; §8, §9): the names the Wireshark
+#: dissector shows (``plcstack wireshark``); one entry per key of REQUEST_RULES.
+COMMAND_NAMES: Final[dict[int, str]] = {
+    0x00: "batch read, bit units",
+    0x01: "batch read, word units",
+    0x02: "batch write, bit units",
+    0x03: "batch write, word units",
+    0x04: "test (random write), bit units",
+    0x05: "test (random write), word units",
+    0x06: "register monitor data, bit units",
+    0x07: "register monitor data, word units",
+    0x08: "monitor, bit units",
+    0x09: "monitor, word units",
+    0x0A: "read main sequence program / T,C set values",
+    0x0B: "read sub sequence program / T,C set values",
+    0x0C: "write main sequence program / T,C set values",
+    0x0D: "write sub sequence program / T,C set values",
+    0x0E: "special function module buffer memory batch read",
+    0x0F: "special function module buffer memory batch write",
+    0x10: "read parameters",
+    0x11: "write parameters",
+    0x12: "parameter analysis request",
+    0x13: "remote RUN",
+    0x14: "remote STOP",
+    0x15: "read CPU model code",
+    0x16: "loopback test",
+    0x17: "extended file register batch read",
+    0x18: "extended file register batch write",
+    0x19: "extended file register test (random write)",
+    0x1A: "extended file register monitor registration",
+    0x1B: "extended file register monitor",
+    0x1C: "comment memory read",
+    0x1D: "comment memory write",
+    0x1E: "microcomputer program read (MAIN)",
+    0x1F: "microcomputer program read (SUB)",
+    0x20: "microcomputer program write (MAIN)",
+    0x21: "microcomputer program write (SUB)",
+    0x39: "extended comment read",
+    0x3A: "extended comment write",
+    0x3B: "extended file register direct read",
+    0x3C: "extended file register direct write",
+    0x60: "fixed buffer data (with procedure)",
+    0x61: "random access buffer read",
+    0x62: "random access buffer write",
+}
 
 #: most words one 60H/62H message carries, by wire unit (1: binary, 2: ASCII; §1.5, §9)
 _U16_MAX_WORDS: Final = {1: 1017, 2: 508}
