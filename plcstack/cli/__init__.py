@@ -46,6 +46,7 @@ COMMAND_MODULES = [
     "plcstack.cli.gateway",
     "plcstack.cli.bench",
     "plcstack.cli.tags",
+    "plcstack.cli.wireshark",
     "plcstack.cli.docs",
 ]
 
