@@ -396,6 +396,25 @@ class ProtocolTransport(Transport):
         stop recording them); a ``capturing`` block records them as well."""
         self._tap = tap
 
+    @staticmethod
+    async def _close_flushed(
+        transport: asyncio.BaseTransport, protocol: QueueProtocolMixin, bound: float = 1.0
+    ) -> None:
+        """Close ``transport`` and wait (at most ``bound`` seconds) until it has ended, so
+        what was written reaches the peer first: asyncio flushes a transport's write buffer
+        before it ends it. A peer that never lets it end (no FIN answered, a line that
+        takes nothing) is cut off by an abort."""
+        transport.close()
+        try:
+            async with asyncio.timeout(bound):
+                while protocol._closed_exc is None:
+                    try:
+                        await protocol._next_chunk(join=True)
+                    except ConnectionLost:
+                        break
+        except TimeoutError:
+            transport.abort()  # type: ignore[attr-defined]
+
     def _opened(
         self,
         transport: asyncio.BaseTransport,

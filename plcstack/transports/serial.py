@@ -181,10 +181,12 @@ class SerialTransport(ProtocolTransport):
         self._opened(transport, protocol, transport.write)
 
     async def aclose(self) -> None:
-        transport = self._transport
+        transport, protocol = self._transport, self._protocol
         self._transport = None
         self._protocol = None
-        if transport is None:
+        if transport is None or protocol is None:
             return
-        transport.close()
-        await asyncio.sleep(0)  # let the serial transport run its close callbacks
+        # pyserial-asyncio writes from a writer callback: the last bytes written (an AS511
+        # PG's closing DLE ACK) are still buffered here. Let them go out before the port is
+        # let go; a line that takes nothing for a second is cut off.
+        await self._close_flushed(transport, protocol)

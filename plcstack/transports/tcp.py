@@ -6,7 +6,6 @@ import asyncio
 import socket
 from collections.abc import Callable
 
-from plcstack.errors import ConnectionLost
 from plcstack.transports.base import (
     ProtocolTransport,
     QueueProtocolMixin,
@@ -118,14 +117,5 @@ class TcpTransport(ProtocolTransport):
         self._protocol = None
         if transport is None or protocol is None:
             return
-        transport.close()
         # Give the close a moment to flush; a peer that never answers FIN must not hang us.
-        try:
-            async with asyncio.timeout(1.0):
-                while protocol._closed_exc is None:
-                    try:
-                        await protocol._next_chunk(join=True)
-                    except ConnectionLost:
-                        break
-        except TimeoutError:
-            transport.abort()  # type: ignore[attr-defined]
+        await self._close_flushed(transport, protocol)
