@@ -30,6 +30,7 @@ SIMULATORS = {
     "s5lan": "plcstack.sim.s5lan",
     "as511": "plcstack.sim.as511",
     "fetchwrite": "plcstack.sim.fetchwrite",
+    "replay": "plcstack.wire.replay",
 }
 
 #: port options every simulator may have, checked before anything is bound
