@@ -108,9 +108,12 @@ class Recording:
         return [stream for stream in self._streams if not stream.ended]
 
     # -- events ------------------------------------------------------------------------------
-    def open(self, endpoints: Endpoints, micros: int) -> tuple[Stream, bytes]:
+    def open(
+        self, endpoints: Endpoints, micros: int, *, resumed: bool = False
+    ) -> tuple[Stream, bytes]:
         """A connection opened at ``micros``: its stream, and the blocks that say so (a new
-        serial line's interface; a TCP handshake)."""
+        serial line's interface; a TCP handshake). ``resumed``: it opened before what is
+        recorded here began (a flight recorder's ring), the handshake says so."""
         blocks = b""
         if endpoints.kind == "serial":
             interface = self._serial.get(endpoints.device)
@@ -135,7 +138,7 @@ class Recording:
         stream.remote_seq = _isn(endpoints, salt + 1_000_003)
         self._streams.append(stream)
         if endpoints.kind == "tcp":
-            blocks += self.handshake(stream, micros, resumed=False)
+            blocks += self.handshake(stream, micros, resumed=resumed)
         self._forget_ended()
         return stream, blocks
 
