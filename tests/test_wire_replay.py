@@ -186,7 +186,9 @@ def _series(samples: list[dict[str, object]]) -> Series:
     return series
 
 
-async def test_a_replayed_poll_gives_the_same_samples(tmp_path: Path) -> None:
+async def test_a_replayed_poll_gives_the_same_samples(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     e71 = await e71_sim.start()
     lan = await s5lan_sim.start()
     running = True
@@ -226,7 +228,8 @@ async def test_a_replayed_poll_gives_the_same_samples(tmp_path: Path) -> None:
             f"s5lan://{urls[f'127.0.0.1:{lan_port}']}",
         )
         replayed = _series(await _poll(config))
-        assert sim.mismatches == 0
+        said = [r.getMessage() for r in caplog.records if r.name == "plcstack.wire.replay"]
+        assert sim.mismatches == 0, said
     finally:
         await sim.aclose()
     assert set(replayed) == set(first)

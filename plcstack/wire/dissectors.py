@@ -11,11 +11,10 @@ codec that sends and parses it. Display filter names: ``melsec1e``, ``s5lan``, `
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from importlib import resources
+from importlib import metadata, resources
 from pathlib import Path
 from typing import Final
 
-from plcstack import __version__
 from plcstack.codecs.as511_jobs import FUNCTION_NAMES, OPERATING_MODES, SYSTEM_ADDRESS_NAMES
 from plcstack.codecs.e71_buffers import FIXED_BUFFER_END_CODES
 from plcstack.codecs.e71_command_events import CPU_MODELS, OPAQUE_COMMANDS
@@ -133,9 +132,13 @@ def _lua(name: str) -> str:
 
 def lua_source(protocol: str) -> str:
     """The whole dissector of ``protocol``: a header, its tables, the shared code, its own."""
+    try:
+        version = metadata.version("plcstack")
+    except metadata.PackageNotFoundError:  # a checkout that was never installed
+        version = "(not installed)"
     header = (
         f"-- plcstack_{protocol}.lua: Wireshark/tshark dissector for {protocol}, written by\n"
-        f"-- plcstack {__version__} (plcstack wireshark DIR). Its tables come from plcstack's\n"
+        f"-- plcstack {version} (plcstack wireshark DIR). Its tables come from plcstack's\n"
         "-- codecs; write it again with the same command rather than editing it.\n"
     )
     return "\n\n".join([header, *tables(protocol), _lua("common"), _lua(protocol)])
