@@ -6,11 +6,8 @@ behind. The kill -9 of a real ``plcstack poll`` is in tests/test_history_process
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import sqlite3
-import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +19,7 @@ from plcstack.north.history import History, HistorySettings, parse_history
 from plcstack.north.history.store import HistoryFile
 from plcstack.north.history.writer import Writer
 from plcstack.poll.samples import Quality, Scan, make_sample
+from tests.disk_helpers import fill, small_disk
 
 T0 = 1_800_000_000.0
 
@@ -168,7 +166,8 @@ async def test_a_damaged_file_is_moved_aside_with_one_warning(
     try:
         warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
         assert len(warnings) == 1, warnings
-        assert "was damaged" in warnings[0] and "moved aside to h.sqlite.damaged-" in warnings[0]
+        assert warnings[0].startswith(f"history {path} is damaged (")
+        assert "moved aside to" in warnings[0] and "a new history starts" in warnings[0]
         assert len(moved_aside(tmp_path)) == 1
         h.submit(scan(T0, a=1))
         await h.flush()
@@ -220,45 +219,19 @@ async def test_a_writer_that_falls_behind_drops_and_says_so_once(
 
 
 def moved_aside(directory: Path) -> list[str]:
-    return [p.name for p in directory.iterdir() if ".damaged-" in p.name]
-
-
-def fill(path: Path) -> None:
-    """Write ``path`` until the disk is full."""
-    with contextlib.suppress(OSError), open(path, "wb") as f:
-        while True:
-            f.write(bytes(4096))
-            f.flush()
-
-
-@contextlib.contextmanager
-def tmpfs(where: Path, size: str) -> Iterator[Path]:
-    """A real small file system (the tests run as root)."""
-    where.mkdir()
-    done = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
-        capture_output=True,
-        text=True,
-    )
-    if done.returncode:
-        pytest.fail(f"cannot mount a tmpfs (the tests need root): {done.stderr.strip()}")
-    try:
-        yield where
-    finally:
-        subprocess.run(["umount", "-l", str(where)], check=False)
+    return [p.name for p in directory.iterdir() if p.name.startswith("h.corrupt-")]
 
 
 async def test_a_full_disk_keeps_the_points_in_memory_until_it_has_room(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    with tmpfs(tmp_path / "small", "256k") as disk:
+    with small_disk(tmp_path / "small") as disk:
         clock = Clock()
         h = history(disk / "h.sqlite", clock, checkpoint_every=0.0)
         await h.start()
-        filler = disk / "filler"
         try:
             with caplog.at_level(logging.WARNING, logger="plcstack.history"):
-                fill(filler)
+                filler = fill(disk)
                 for i in range(300):
                     h.submit(scan(T0 + i, **{f"t{k}": float(i * k) for k in range(20)}))
                     if i % 30 == 29:

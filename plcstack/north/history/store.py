@@ -20,7 +20,6 @@ A :class:`HistoryFile` is used by one thread; the writer and the readers each op
 from __future__ import annotations
 
 import contextlib
-import datetime
 import fcntl
 import logging
 import os
@@ -28,6 +27,7 @@ import sqlite3
 from pathlib import Path
 from typing import IO
 
+from plcstack import statefiles
 from plcstack.errors import ConfigError
 
 __all__ = ["FORMAT", "Damaged", "HistoryFile", "damaged", "lock_file", "move_aside"]
@@ -60,27 +60,20 @@ def damaged(exc: sqlite3.Error) -> bool:
     return name.startswith(("SQLITE_CORRUPT", "SQLITE_NOTADB"))
 
 
-def move_aside(path: Path, reason: str) -> Path:
-    """Rename a damaged file (and its ``-wal``/``-shm``) to ``NAME.damaged-TIME`` so a fresh one
-    starts; one WARNING says where the old one went and why. Nothing is deleted."""
-    stamp = datetime.datetime.now().strftime("%Y%m%dT%H%M%S")
-    target = path.with_name(f"{path.name}.damaged-{stamp}")
-    n = 1
-    while target.exists():
-        n += 1
-        target = path.with_name(f"{path.name}.damaged-{stamp}-{n}")
-    path.rename(target)
-    for suffix in ("-wal", "-shm"):
-        side = path.with_name(path.name + suffix)
-        if side.exists():
-            side.rename(target.with_name(target.name + suffix))
-    log.warning(
-        "history: %s was damaged (%s): moved aside to %s, a new history starts",
+def move_aside(path: Path, reason: str) -> None:
+    """Rename a damaged file (and its ``-wal``/``-shm``) aside so a fresh one starts, with one
+    WARNING (the way of every state file: :func:`plcstack.statefiles.move_aside`); nothing is
+    deleted. A :class:`ConfigError` when even the rename fails (the history cannot start)."""
+    moved = statefiles.move_aside(
         path,
         reason,
-        target.name,
+        what="history",
+        then="a new history starts",
+        logger=log,
+        companions=("-wal", "-shm"),
     )
-    return target
+    if moved is None:
+        raise ConfigError(f"[history] {path} is damaged ({reason}) and cannot be moved aside")
 
 
 def lock_file(path: Path) -> IO[bytes]:
