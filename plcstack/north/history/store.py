@@ -27,8 +27,8 @@ import sqlite3
 from pathlib import Path
 from typing import IO
 
-from plcstack import statefiles
 from plcstack.errors import ConfigError
+from plcstack.statefiles import move_aside as move_state_aside
 
 __all__ = ["FORMAT", "Damaged", "HistoryFile", "damaged", "lock_file", "move_aside"]
 
@@ -64,7 +64,7 @@ def move_aside(path: Path, reason: str) -> None:
     """Rename a damaged file (and its ``-wal``/``-shm``) aside so a fresh one starts, with one
     WARNING (the way of every state file: :func:`plcstack.statefiles.move_aside`); nothing is
     deleted. A :class:`ConfigError` when even the rename fails (the history cannot start)."""
-    moved = statefiles.move_aside(
+    moved = move_state_aside(
         path,
         reason,
         what="history",
