@@ -30,12 +30,17 @@ level = { address = "D110", type = "int16", scale = [0, 4000, 0.0, 100.0], unit 
 door = { address = "D120.3", type = "bool" }              # bit 3 of D120 (S5: "DB10.DW5.3")
 setpoint = { address = "D130", type = "int16", writable = true }   # north-side servers may write
 pump = { address = "M10", type = "bool", description = "Feed pump 2 running" }
+valve = { address = "M11", type = "bool", labels = ["closed", "open"] }   # shown as the words
+mode = { address = "D140", type = "int16", labels = { 0 = "stopped", 1 = "running" } }
+flow = { address = "D150", type = "float32", unit = "m³/h", decimals = 1 }
 ```
 
 Tag types are the value types of :mod:`plcstack.values` by name (``int16``, ``float32``, ``kg``,
 ``kt``, ``bcd16``, ``string:10``, ...). ``scale = [raw_lo, raw_hi, eng_lo, eng_hi]`` maps a number
 linearly onto engineering units (writes map back). ``description`` is free text for people (the
-OPC UA Description attribute, a Sparkplug metric property, the web console); the poller ignores it.
+OPC UA Description attribute, a Sparkplug metric property, the web console); the poller ignores it,
+as it ignores ``decimals`` and ``labels`` (how the web console shows a value: see
+:mod:`plcstack.poll.display`).
 
 Other top-level tables (``[opcua]``, ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``,
 ``[web]``, ``[modbus]``) belong to the north side, which parses them itself: this module checks
@@ -57,6 +62,7 @@ from pathlib import Path
 from typing import Any
 
 from plcstack.errors import AddressError, ConfigError, unknown_names
+from plcstack.poll.display import Labels, decimals_problem, labels_problem, parse_labels
 from plcstack.url import parse_url
 from plcstack.values import (
     RAW,
@@ -135,6 +141,10 @@ class TagConfig:
     #: where the Modbus server serves the tag (``"hr:100"``, ``"ir:0"``, ``"co:5"``, ``"di:0"``;
     #: see plcstack.north.modbus); the poller itself does not use it
     modbus: str | None = None
+    #: digits after the point when people see the value (plcstack.poll.display)
+    decimals: int | None = None
+    #: names of the states of a bool or integer tag, ``((0, "stopped"), (1, "running"))``
+    labels: Labels | None = None
     #: the tag's line in the TOML file, when a north side's errors about it need one (a tag
     #: with a ``modbus`` key); None for tags built in Python
     line: int | None = field(default=None, compare=False)
@@ -273,7 +283,11 @@ def validate(config: PollConfig) -> None:
                 raise ConfigError(
                     f"{where}: scale needs a numeric type, not {tag.type.name}", plc=plc.name
                 )
-            problem = text_problem("description", tag.description)
+            problem = (
+                text_problem("description", tag.description)
+                or decimals_problem(tag.decimals)
+                or labels_problem(tag.labels, tag.type)
+            )
             if problem:
                 raise ConfigError(f"{where}: {problem}", plc=plc.name)
             if tag.group not in config.groups:
@@ -663,6 +677,8 @@ class _Loader:
                 "unit",
                 "description",
                 "modbus",
+                "decimals",
+                "labels",
             },
             f"{where}: ",
             name,
@@ -709,9 +725,14 @@ class _Loader:
         if unit is not None and (not isinstance(unit, str) or not unit.strip()):
             raise self.error(f"{where}: unit must be a non-empty string, not {unit!r}", name)
         description = spec.get("description")
-        problem = text_problem("description", description)
+        decimals = spec.get("decimals")
+        problem = text_problem("description", description) or decimals_problem(decimals)
         if problem:
             raise self.error(f"{where}: {problem}", name)
+        try:
+            labels = None if "labels" not in spec else parse_labels(spec["labels"], dtype)
+        except ValueError as exc:
+            raise self.error(f"{where}: {exc}", name) from None
         # the Modbus server's key: its grammar is the north side's to check (with the line:
         # plcstack.north.modbus.config.build_map); here only that it is text
         modbus = spec.get("modbus")
@@ -728,5 +749,7 @@ class _Loader:
             unit=unit,
             description=description,
             modbus=modbus,
+            decimals=decimals,
+            labels=labels,
             line=self._line_of(name) if modbus is not None else None,
         )
