@@ -52,6 +52,10 @@ async def wait_value(console: Console, plc: str, tag: str, value: object) -> dic
     raise AssertionError(f"{plc}/{tag} never read {value!r}; last {row!r}")
 
 
+#: the tags of press1 (tests/web_helpers.py)
+TAGS = ("setpoint", "temp", "counter", "status", "valve", "mode", "flow")
+
+
 async def test_tags_and_plcs_follow_the_simulator() -> None:
     async with running_console() as console:
         row = await wait_value(console, "press1", "setpoint", 1500)
@@ -70,13 +74,19 @@ async def test_tags_and_plcs_follow_the_simulator() -> None:
             await asyncio.sleep(0.02)
         rows = {r["name"]: r for r in await get_json(console, "/api/plcs")}
         assert rows["press1"]["up"] is True and rows["press1"]["requests"] > 0
+        assert rows["press1"]["state"] == "online" and rows["press1"]["tags"] == 7
         assert rows["press1"]["p50_ms"] is not None
-        assert rows["dead"]["up"] is False
+        assert rows["dead"]["up"] is False and rows["dead"]["state"] == "offline"
+        assert rows["dead"]["bad_tags"] == 1 and rows["dead"]["since"] > 0
         assert "cannot connect" in rows["dead"]["last_error"]
         dead = await tag_value(console, "dead", "x")
         assert dead["quality"] == "bad" and dead["value"] is None and dead["error"]
+        assert dead["text"] == "" and dead["stale_since"] > 0  # never read: nothing to show
         only = await get_json(console, "/api/tags?plc=press1")
-        assert {r["tag"] for r in only} == {"setpoint", "temp", "counter"}
+        assert {r["tag"] for r in only} == set(TAGS)
+        texts = {r["tag"]: r["text"] for r in only}
+        assert texts["setpoint"] == "1234 rpm" and texts["status"] == "12AFh"
+        assert texts["valve"] == "open" and texts["mode"] == "running"
         trend = await get_json(console, "/api/plcs/press1/tags/setpoint/trend")
         assert trend and trend[-1][1] == 1234
 
@@ -200,7 +210,9 @@ async def test_pages_escape_every_name() -> None:
             assert HOSTILE not in page
             assert "&lt;script&gt;window.pwned=1&lt;/script&gt;" in page
             assert page.count("<script") == 1  # ours, by src
-            assert "Oil temperature" in page and "°C" in page
+            async with http.get(console.base + "/plc/press1") as r:
+                press = await r.text()
+            assert "Oil temperature" in press and "°C" in press
             hostile = "/plc/%3Cscript%3Ewindow.pwned%3D1%3C%2Fscript%3E"
             async with http.get(console.base + hostile) as r:
                 assert r.status == 200
@@ -233,7 +245,7 @@ async def test_event_stream_sends_a_snapshot_then_changes_only() -> None:
             async with http.get(console.base + "/events?plc=press1") as r:
                 assert r.headers["Content-Type"] == "text/event-stream"
                 snapshot = await asyncio.wait_for(read_event(r.content, "tags"), 10)
-                assert {row[1] for row in snapshot} == {"setpoint", "temp", "counter"}
+                assert {row[1] for row in snapshot} == set(TAGS)
                 console.memory.write_words("D", 100, [99])
                 for _ in range(100):
                     changes = await asyncio.wait_for(read_event(r.content, "tags"), 10)

@@ -140,7 +140,13 @@ class North:
         if config.web is not None:  # the web console: a sink, and a server (the web extra)
             from plcstack.north.web.server import WebConsole
 
-            self.web = WebConsole(poller, config.web, writes=self.writes, history=self.history)
+            self.web = WebConsole(
+                poller,
+                config.web,
+                writes=self.writes,
+                history=self.history,
+                reachable=self.reachability.get,
+            )
             self.sinks.append(self.web)
         for sink in self.sinks:
             if hasattr(sink, "supervisor"):

@@ -13,10 +13,21 @@ control (a write waits for the peer to read). A client whose queue is full does 
 dropped (its connection aborted), never buffered without limit. At most :data:`MAX_CLIENTS`
 streams at once; more get 503.
 
+Three views: ``/events`` (every PLC and every tag, for scripts), ``/events?plc=NAME`` (one
+PLC's page) and ``/events?view=overview`` (the overview page: PLC rows and the counts only, so
+a browser on the overview of a thousand PLCs is not sent ten thousand tags a second).
+
 Event format (``data`` is JSON)::
 
-    event: tags     data: [[plc, tag, value, quality, source_time, error], ...]
-    event: plcs     data: [{name, up, last_error, error_time, requests, errors, ...}, ...]
+    event: tags     data: [[plc, tag, value, quality, source_time, error,
+                            text, changed, stale_since], ...]
+    event: plcs     data: [{name, up, state, since, last_error, error_time, bad_tags,
+                            requests, errors, ...}, ...]
+    event: counts   data: {online, offline, errors, unknown, total}
+
+``value`` is the latest sample's (null while bad); ``text`` is what a person sees: the last
+good value in the tag's display form (with its unit), kept while the tag is bad and marked by
+``stale_since``; ``changed`` is when that value was first read (Unix seconds).
 """
 
 from __future__ import annotations
@@ -47,16 +58,22 @@ def sse(event: str, data: Any) -> bytes:
 
 
 def tag_rows(state: ConsoleState, samples: Iterable[Sample]) -> list[list[Any]]:
-    shown = state.shown
-    return [[s.plc, s.tag, shown(s), s.quality.value, s.source_time, s.error] for s in samples]
+    shown, text = state.shown, state.text
+    return [
+        [s.plc, s.tag, shown(s), s.quality.value, s.source_time, s.error, *text(s)] for s in samples
+    ]
 
 
 class EventClient:
     """One browser's stream: a bounded queue of encoded events."""
 
-    def __init__(self, plc: str | None, limit: int = QUEUE_LIMIT) -> None:
-        #: the PLC whose page this is, None for the overview
+    def __init__(
+        self, plc: str | None, limit: int = QUEUE_LIMIT, *, overview: bool = False
+    ) -> None:
+        #: the PLC whose page this is, None for every PLC
         self.plc = plc
+        #: the overview page's stream: PLC rows and counts, no tags
+        self.overview = overview
         self.limit = limit
         self.dropped = False
         self.closed = False
@@ -125,16 +142,22 @@ class EventHub:
         self.dropped = 0
         self._since_plcs = 0.0
         self._last_plcs: dict[str, dict[str, Any]] = {}
+        self._last_counts: dict[str, int] = {}
 
-    def connect(self, plc: str | None) -> EventClient | None:
+    def connect(self, plc: str | None, *, overview: bool = False) -> EventClient | None:
         """A new client with its snapshot queued; None when :attr:`max_clients` are connected."""
         if len(self.clients) >= self.max_clients:
             return None
-        client = EventClient(plc)
-        latest = self.state.latest.values()
-        samples = latest if plc is None else (s for s in latest if s.plc == plc)
-        client.offer(sse("tags", tag_rows(self.state, samples)))
-        client.offer(sse("plcs", self.plc_rows(plc)))
+        client = EventClient(None if overview else plc, overview=overview)
+        # the PLC rows first: a page shows a PLC's error once, so it needs to know it before
+        # the tags come
+        client.offer(sse("plcs", self.plc_rows(client.plc)))
+        if overview:
+            client.offer(sse("counts", self.state.counts()))
+        else:
+            latest = self.state.latest.values()
+            samples = latest if plc is None else (s for s in latest if s.plc == plc)
+            client.offer(sse("tags", tag_rows(self.state, samples)))
         self.clients.add(client)
         return client
 
@@ -160,10 +183,15 @@ class EventHub:
         clients = [c for c in self.clients if not c.closed]
         if not clients:
             self._last_plcs.clear()  # a client that comes gets a snapshot anyway
+            self._last_counts = {}
             return
         if changes:
             self._fan_out(
-                clients, "tags", changes, lambda s: s.plc, lambda c: tag_rows(self.state, c)
+                [c for c in clients if not c.overview],
+                "tags",
+                changes,
+                lambda s: s.plc,
+                lambda c: tag_rows(self.state, c),
             )
         if plcs_due:
             rows = self.plc_rows(None)
@@ -172,6 +200,13 @@ class EventHub:
             self._last_plcs = {r["name"]: r for r in rows}
             if fresh:
                 self._fan_out(clients, "plcs", fresh, lambda r: r["name"], list)
+            counts = self.state.counts()
+            if counts != self._last_counts:
+                self._last_counts = counts
+                data = sse("counts", counts)
+                for client in clients:
+                    if client.overview:
+                        client.offer(data)
 
     def _fan_out(
         self,

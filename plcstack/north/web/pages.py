@@ -1,57 +1,56 @@
-"""The console's two HTML pages: ``/`` (every PLC, every tag) and ``/plc/NAME`` (one PLC).
+"""The console's HTML: the frame of every page, the overview ``/``, and the parts both pages use.
 
 Rendered on the server with every PLC name, tag name, description, unit, value and error text
 passed through :func:`html.escape` (a name holding ``<script>`` is shown as text, never run) and
-every name in a link percent-encoded. The pages work as a snapshot without JavaScript; the one
-script (``/static/console.js``, no build step, no third-party code) keeps them live from the
-server-sent events, writes only through ``textContent``, draws the trend charts (a step line in
-an SVG, from the ``data-points`` the server renders and the changes that follow) and sends the
-write form as a ``POST`` with the bearer token. The Content-Security-Policy the server sends
-allows no inline script at all.
+every name in a link percent-encoded. The pages work as a snapshot without JavaScript (times in
+UTC, the filter a plain form); the one script (``/static/console.js``, no build step, no
+third-party code) keeps them live from the server-sent events, shows times in the browser's
+time zone with their age, filters and pages the overview, draws the charts and asks before a
+write. It writes into the page only through ``textContent`` and a ``<template>`` of each row the
+server renders, so the layout of a row exists once. The Content-Security-Policy the server
+sends allows no inline script at all.
+
+The overview shows counts of PLCs by state, a filter, and one page of PLC rows (see
+:mod:`.overview`): at a thousand PLCs it stays a few tens of kilobytes.
 """
 
 from __future__ import annotations
 
 import datetime
 import html
-import json
-import math
 from collections.abc import Iterable
 from typing import Any
-from urllib.parse import quote
+from urllib.parse import quote, urlencode
 
+from plcstack.north.web.overview import PAGE_SIZE, SORTS, Selection
 from plcstack.north.web.state import ConsoleState
-from plcstack.output import json_safe
-from plcstack.poll.config import TagConfig
-from plcstack.poll.samples import Sample
 
-__all__ = ["format_time", "format_value", "overview_page", "plc_page"]
+__all__ = [
+    "PLC_HEAD",
+    "PLC_HEAD_NO_ERROR",
+    "document",
+    "error_text",
+    "esc",
+    "format_time",
+    "overview_page",
+    "plc_rows_html",
+    "time_tag",
+]
 
-_PLC_HEAD = (
-    "<tr><th>PLC</th><th>state</th><th>last error</th><th>requests</th><th>errors</th>"
-    "<th>reconnects</th><th>p50 ms</th><th>p99 ms</th></tr>"
+#: the head of a PLC table; the cells of a row have these classes (the script fills them)
+PLC_HEAD = (
+    "<tr><th>PLC</th><th>state</th><th>since</th><th>tags</th><th>error</th>"
+    '<th class="num">requests</th><th class="num">errors</th><th class="num">p99 ms</th></tr>'
 )
-_STAT_CELLS = ("requests", "errors", "reconnects", "p50_ms", "p99_ms")
+#: the same without the error (the PLC's page says it once, above)
+PLC_HEAD_NO_ERROR = PLC_HEAD.replace("<th>error</th>", "")
+_STAT_CELLS = ("requests", "errors", "p99_ms")
+#: the first line of an error shown in a cell; the whole text on demand
+FIRST_LINE = 160
 
 
 def esc(text: object) -> str:
     return html.escape(str(text), quote=True)
-
-
-def format_value(value: Any) -> str:
-    """A value as the page shows it (the script formats the same way)."""
-    if value is None:
-        return ""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            return str(json_safe(value))
-        text = repr(value)
-        return text[:-2] if text.endswith(".0") else text
-    if isinstance(value, list | tuple):
-        return json.dumps(json_safe(list(value)), separators=(",", ":"))
-    return str(value)
 
 
 def format_time(t: float | None) -> str:
@@ -62,8 +61,36 @@ def format_time(t: float | None) -> str:
     return moment.isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
-def _document(title: str, body: str, *, scope: str | None, trend_seconds: int) -> str:
-    scope_attr = "" if scope is None else f' data-plc="{esc(scope)}"'
+def time_tag(t: float | None) -> str:
+    """A time the script shows in the browser's zone, with its age; UTC without the script."""
+    if t is None:
+        return "<time></time>"
+    iso = format_time(t)
+    return f'<time datetime="{iso}" data-t="{t:.3f}">{iso.replace("T", " ")}</time>'
+
+
+def error_text(text: str | None) -> str:
+    """An error as one line, the full text on demand (a dead PLC's error is ten lines)."""
+    if not text:
+        return ""
+    first = text.strip().splitlines()[0] if text.strip() else text
+    if first == text and len(text) <= FIRST_LINE:
+        return f'<span class="err">{esc(text)}</span>'
+    if len(first) > FIRST_LINE:
+        first = first[: FIRST_LINE - 3] + "..."
+    return f'<details class="err"><summary>{esc(first)}</summary><pre>{esc(text)}</pre></details>'
+
+
+def document(
+    title: str,
+    body: str,
+    *,
+    view: str,
+    plc: str | None = None,
+    trend_seconds: int = 300,
+    history: bool = False,
+) -> str:
+    scope = "" if plc is None else f' data-plc="{esc(plc)}"'
     return (
         "<!doctype html>\n"
         '<html lang="en"><head><meta charset="utf-8">'
@@ -71,7 +98,8 @@ def _document(title: str, body: str, *, scope: str | None, trend_seconds: int) -
         f"<title>{esc(title)}</title>"
         '<link rel="stylesheet" href="/static/console.css">'
         '<script src="/static/console.js" defer></script></head>'
-        f'<body{scope_attr} data-trend-seconds="{trend_seconds}">'
+        f'<body data-view="{view}"{scope} data-trend-seconds="{trend_seconds}"'
+        f' data-history="{1 if history else 0}">'
         '<header><a class="home" href="/">plcstack</a>'
         f"<h1>{esc(title)}</h1>"
         '<span id="live" class="live">not live</span></header>\n'
@@ -79,121 +107,101 @@ def _document(title: str, body: str, *, scope: str | None, trend_seconds: int) -
     )
 
 
-def _plc_rows(rows: Iterable[dict[str, Any]], *, link: bool) -> str:
+def plc_rows_html(rows: Iterable[dict[str, Any]], *, link: bool, error: bool = True) -> str:
+    """PLC rows: state, since when, tags (and how many are bad), the error while it matters
+    (offline, or some tags bad; not with ``error=False``), requests, errors, p99."""
     out = []
     for r in rows:
         name = esc(r["name"])
         label = f'<a href="/plc/{esc(quote(r["name"], safe=""))}">{name}</a>' if link else name
-        up = r["up"]
-        state = "unknown" if up is None else ("online" if up else "offline")
+        state = r["state"]
+        bad = r.get("bad_tags") or 0
+        tags = f"{r.get('tags', '')}" + (f" ({bad} bad)" if bad else "")
+        last = r["last_error"] if state in ("offline", "errors") else None
+        error_cell = f'<td class="last_error">{error_text(last)}</td>' if error else ""
         cells = "".join(
             f'<td class="{c} num">{esc("" if r.get(c) is None else r[c])}</td>' for c in _STAT_CELLS
         )
         out.append(
-            f'<tr data-plc="{name}"><td>{label}</td><td class="state {state}">{state}</td>'
-            f'<td class="last_error">{esc(r["last_error"] or "")}</td>{cells}</tr>'
+            f'<tr data-plc="{name}"><td class="name">{label}</td>'
+            f'<td class="state {state}">{state}</td><td class="since">{time_tag(r["since"])}</td>'
+            f'<td class="tags num">{esc(tags)}</td>{error_cell}'
+            f"{cells}</tr>"
         )
     return "".join(out)
 
 
-def _tag_cells(state: ConsoleState, s: Sample | None) -> str:
-    if s is None:
-        return (
-            '<td class="value num"></td><td class="quality"></td>'
-            '<td class="source_time"></td><td class="error"></td>'
-        )
-    quality = esc(s.quality.value)
+def _counts(counts: dict[str, int]) -> str:
+    words = (
+        ("online", "online"),
+        ("offline", "offline"),
+        ("errors", "with errors"),
+        ("unknown", "not polled yet"),
+    )
+    parts = "".join(
+        f'<span class="count {key}"><b id="n-{key}">{counts[key]}</b> {word}</span>'
+        for key, word in words
+    )
+    return f'<p id="counts">{parts}<span class="count total">of {counts["total"]} PLCs</span></p>'
+
+
+def _link(selection: Selection, page: int) -> str:
+    params = {"q": selection.query, "sort": selection.sort, "page": str(page)}
+    return "/?" + urlencode({k: v for k, v in params.items() if v and v != "state"})
+
+
+def pager(selection: Selection) -> str:
+    """ "PLCs 51-100 of 200" with the links to the pages before and after."""
+    last = selection.first + len(selection.names) - 1
+    text = (
+        f"PLCs {selection.first}-{last} of {selection.matched}"
+        if selection.names
+        else "no PLC matches"
+    )
+    prev = (
+        f'<a rel="prev" href="{esc(_link(selection, selection.page - 1))}">previous</a>'
+        if selection.page > 1
+        else ""
+    )
+    nxt = (
+        f'<a rel="next" href="{esc(_link(selection, selection.page + 1))}">next</a>'
+        if selection.page < selection.pages
+        else ""
+    )
     return (
-        f'<td class="value num">{esc(format_value(state.shown(s)))}</td>'
-        f'<td class="quality {quality}">{quality}</td>'
-        f'<td class="source_time">{esc(format_time(s.source_time))}</td>'
-        f'<td class="error">{esc(s.error or "")}</td>'
+        f'<p id="pager" data-page="{selection.page}" data-pages="{selection.pages}">'
+        f'<span class="shown">{text}</span> {prev} {nxt}</p>'
     )
 
 
 def overview_page(
-    state: ConsoleState, plc_rows: list[dict[str, Any]], *, trend_seconds: int
-) -> str:
-    """``/``: every PLC's health and counters, every tag's latest value."""
-    tags = []
-    for (plc, tag), config in state.tags.items():
-        sample = state.latest.get((plc, tag))
-        tags.append(
-            f'<tr data-plc="{esc(plc)}" data-tag="{esc(tag)}">'
-            f'<td><a href="/plc/{esc(quote(plc, safe=""))}">{esc(plc)}</a></td>'
-            f'<td title="{esc(_description(config))}">{esc(tag)}</td>'
-            f"{_tag_cells(state, sample)}<td>{esc(config.unit or '')}</td></tr>"
-        )
-    body = (
-        f'<h2>PLCs</h2><table id="plcs"><thead>{_PLC_HEAD}</thead><tbody>'
-        f"{_plc_rows(plc_rows, link=True)}</tbody></table>\n"
-        '<h2>Tags</h2><table id="tags"><thead><tr><th>PLC</th><th>tag</th><th>value</th>'
-        "<th>quality</th><th>source time</th><th>error</th><th>unit</th></tr></thead><tbody>"
-        + "".join(tags)
-        + "</tbody></table>\n"
-    )
-    return _document("plcstack console", body, scope=None, trend_seconds=trend_seconds)
-
-
-def plc_page(
     state: ConsoleState,
-    plc: str,
-    plc_rows: list[dict[str, Any]],
+    selection: Selection,
+    rows: list[dict[str, Any]],
     *,
     trend_seconds: int,
-    writes_enabled: bool,
+    history: bool,
 ) -> str:
-    """``/plc/NAME``: one PLC's statistics, its tags with trend charts, the write forms."""
-    config = state.plcs[plc]
-    rows = []
-    any_writable = False
-    for tag in config.tags:
-        sample = state.latest.get((plc, tag.name))
-        points = [[round(t, 3), v] for t, v in state.trend(plc, tag.name)]
-        trend = (
-            f'<svg class="trend" viewBox="0 0 300 60" preserveAspectRatio="none" role="img"'
-            f' aria-label="trend of {esc(tag.name)}" data-points="{esc(json.dumps(points))}">'
-            "</svg>"
-        )
-        form = ""
-        if tag.writable:
-            any_writable = True
-            form = (
-                '<form class="write" method="post" autocomplete="off">'
-                f'<input name="value" aria-label="new value of {esc(tag.name)}" required>'
-                '<button type="submit">write</button><output></output></form>'
-            )
-        rows.append(
-            f'<tr data-plc="{esc(plc)}" data-tag="{esc(tag.name)}">'
-            f"<td>{esc(tag.name)}</td><td>{esc(_description(tag))}</td>"
-            f"<td>{esc(tag.address)}</td>{_tag_cells(state, sample)}<td>{esc(tag.unit or '')}</td>"
-            f"<td>{trend}</td><td>{form}</td></tr>"
-        )
-    token = ""
-    if any_writable:
-        token = (
-            '<p class="token"><label>write token <input id="token" type="password"'
-            ' autocomplete="off"></label> '
-            + (
-                "writes go to the PLC through the poller's connection"
-                if writes_enabled
-                else "writes are off: the console was started without a write token"
-            )
-            + "</p>"
-        )
-    body = (
-        f'<table id="plcs"><thead>{_PLC_HEAD}</thead><tbody>'
-        f"{_plc_rows(plc_rows, link=False)}</tbody></table>\n{token}"
-        f'<p class="url">{esc(config.url)}</p>'
-        '<table id="tags"><thead><tr><th>tag</th><th>description</th><th>address</th>'
-        "<th>value</th><th>quality</th><th>source time</th><th>error</th><th>unit</th>"
-        f"<th>trend (last {trend_seconds} s)</th><th>write</th></tr></thead><tbody>"
-        + "".join(rows)
-        + "</tbody></table>\n"
+    """``/``: the counts, the filter, one page of PLC rows (see :mod:`.overview`)."""
+    options = "".join(
+        f'<option value="{key}"{" selected" if key == selection.sort else ""}>{esc(text)}</option>'
+        for key, text in SORTS.items()
     )
-    return _document(plc, body, scope=plc, trend_seconds=trend_seconds)
-
-
-def _description(tag: TagConfig) -> str:
-    """The tag's description where the config has one."""
-    return tag.description or ""
+    template = plc_rows_html(
+        [{"name": "", "state": "unknown", "since": None, "last_error": None}], link=True
+    )
+    body = (
+        f"{_counts(state.counts())}"
+        '<form id="filter" method="get" action="/" role="search">'
+        f'<input name="q" type="search" placeholder="filter: name, address or state"'
+        f' aria-label="filter PLCs" value="{esc(selection.query)}" autocomplete="off">'
+        f'<select name="sort" aria-label="order">{options}</select>'
+        '<button type="submit">filter</button></form>'
+        f"{pager(selection)}"
+        f'<table id="plcs" data-page-size="{PAGE_SIZE}"><thead>{PLC_HEAD}</thead><tbody>'
+        f"{plc_rows_html(rows, link=True)}</tbody></table>"
+        f'<template id="plc-row">{template}</template>\n'
+    )
+    return document(
+        "plcstack console", body, view="overview", trend_seconds=trend_seconds, history=history
+    )

@@ -14,9 +14,11 @@ closed: a flood cannot take the file descriptors the PLC connections need).
 from __future__ import annotations
 
 import asyncio
+import functools
+import json
 import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from importlib import resources
 from typing import Any
 
@@ -29,7 +31,9 @@ from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.web.api import MAX_PENDING_WRITES, refusal, routes
 from plcstack.north.web.events import EventClient, EventHub
 from plcstack.north.web.history import history_routes
-from plcstack.north.web.pages import esc, overview_page, plc_page
+from plcstack.north.web.overview import Selection, select
+from plcstack.north.web.pages import esc, overview_page
+from plcstack.north.web.plc_page import plc_page
 from plcstack.north.web.settings import WebSettings
 from plcstack.north.web.state import ConsoleState, plc_row
 from plcstack.north.writes import WritePath
@@ -65,6 +69,7 @@ _HEADERS = {
     "Referrer-Policy": "no-referrer",
 }
 _STATIC = {"console.js": "text/javascript", "console.css": "text/css"}
+_compact = functools.partial(json.dumps, separators=(",", ":"))
 
 
 class WebConsole:
@@ -77,6 +82,7 @@ class WebConsole:
         *,
         writes: WritePath | None = None,
         history: History | None = None,
+        reachable: Callable[[str], bool | None] | None = None,
     ) -> None:
         self.poller = poller
         #: the embedded history the trends and ``/api/history`` read (None: not configured)
@@ -84,7 +90,9 @@ class WebConsole:
         #: the run's one write path (North passes its own, which audits)
         self.writes = writes or WritePath(poller if hasattr(poller, "write_tag") else None)
         self.settings = settings or WebSettings()
-        self.state = ConsoleState(poller.config.plcs, trend_seconds=self.settings.trend_seconds)
+        self.state = ConsoleState(
+            poller.config.plcs, trend_seconds=self.settings.trend_seconds, reachable=reachable
+        )
         self.hub = EventHub(self.state, self.plc_rows)
         self.port = self.settings.port
         #: the write token, read from the environment at start (None: writes are off)
@@ -119,6 +127,7 @@ class WebConsole:
         app.add_routes(
             [
                 web.get("/", self._overview),
+                web.get("/api/overview", self._overview_api),
                 web.get("/plc/{plc}", self._plc),
                 web.get("/events", self._events),
                 web.get("/static/{name}", self._file),
@@ -188,10 +197,25 @@ class WebConsole:
 
     # -- data -----------------------------------------------------------------------------------
     def plc_rows(self, plc: str | None) -> list[dict[str, Any]]:
+        return self.rows_of(list(self.state.health) if plc is None else [plc])
+
+    def rows_of(self, names: list[str]) -> list[dict[str, Any]]:
+        """The rows of these PLCs (health, counters, how many tags)."""
         stats = getattr(self.poller, "stats", {})
-        health = self.state.health
-        names = list(health) if plc is None else [plc]
-        return [plc_row(name, health[name], stats.get(name)) for name in names]
+        health, plcs = self.state.health, self.state.plcs
+        return [
+            plc_row(name, health[name], stats.get(name), len(plcs[name].tags)) for name in names
+        ]
+
+    def _select(self, request: web.Request) -> Selection:
+        query = request.query
+        return select(
+            self.state.plcs,
+            self.state.health,
+            query=query.get("q", ""),
+            sort=query.get("sort", "state"),
+            page=query.get("page", "1"),
+        )
 
     async def write(self, plc: str, tag: str, value: Any, *, peer: str | None) -> web.Response:
         """One write from the web, after the token was checked (see :mod:`.api`): through the
@@ -219,10 +243,32 @@ class WebConsole:
 
     # -- pages ----------------------------------------------------------------------------------
     async def _overview(self, request: web.Request) -> web.Response:
+        selection = self._select(request)
         return _html(
             overview_page(
-                self.state, self.plc_rows(None), trend_seconds=self.settings.trend_seconds
+                self.state,
+                selection,
+                self.rows_of(selection.names),
+                trend_seconds=self.settings.trend_seconds,
+                history=self.history is not None,
             )
+        )
+
+    async def _overview_api(self, request: web.Request) -> web.Response:
+        """``GET /api/overview?q=&sort=&page=``: what the overview page shows, as JSON."""
+        selection = self._select(request)
+        return web.json_response(
+            {
+                "counts": self.state.counts(),
+                "query": selection.query,
+                "sort": selection.sort,
+                "matched": selection.matched,
+                "page": selection.page,
+                "pages": selection.pages,
+                "first": selection.first,
+                "rows": self.rows_of(selection.names),
+            },
+            dumps=_compact,
         )
 
     async def _plc(self, request: web.Request) -> web.Response:
@@ -236,6 +282,7 @@ class WebConsole:
                 self.plc_rows(plc),
                 trend_seconds=self.settings.trend_seconds,
                 writes_enabled=self.token is not None,
+                history=self.history is not None,
             )
         )
 
@@ -253,7 +300,7 @@ class WebConsole:
         plc = request.query.get("plc") or None
         if plc is not None and plc not in self.state.plcs:
             return refusal("unknown_plc", f"no PLC named {plc!r} here")
-        client = self.hub.connect(plc)
+        client = self.hub.connect(plc, overview=request.query.get("view") == "overview")
         if client is None:
             raise web.HTTPServiceUnavailable(text="too many browsers connected\n")
         transport = request.transport

@@ -1,8 +1,10 @@
-"""What the console knows: each tag's latest sample, each PLC's health, and trend rings.
+"""What the console knows: each tag's latest and last good sample, each PLC's health, trends.
 
 Fed with every batch the north side reports (:meth:`ConsoleState.submit`, on the poller's loop,
-so nothing here locks). Memory is bounded by the configuration, never by time or traffic: one
-latest sample and one trend ring per configured tag (two float32 arrays of ``trend_seconds``
+so nothing here locks). While a tag is bad its last good value stays, marked stale since the
+first bad sample, so an operator keeps the last known value exactly when a PLC goes offline.
+Memory is bounded by the configuration, never by time or traffic: one latest and one last good
+sample and one trend ring per configured tag (two float32 arrays of ``trend_seconds``
 points: 2.4 KB a tag at the default 300), one health record per PLC, and the set of tags that
 changed since the last push to the browsers (at most one entry per tag).
 
@@ -18,12 +20,23 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from plcstack.north.layout import Reachability
+from plcstack.north.web.display import TagDisplay
 from plcstack.output import float32_short, json_safe
 from plcstack.poll.config import PlcConfig, TagConfig
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.poll.stats import LatencyWindow, PlcStats
 
-__all__ = ["TREND_STEP", "ConsoleState", "PlcHealth", "Trend", "plc_row", "tag_row"]
+__all__ = [
+    "STATE_ORDER",
+    "TREND_STEP",
+    "ConsoleState",
+    "PlcHealth",
+    "Trend",
+    "plc_row",
+    "state_of",
+    "tag_row",
+]
 
 #: shortest spacing of two trend points in seconds (a 1 Hz tag's jitter stays above it)
 TREND_STEP = 0.9
@@ -61,13 +74,35 @@ class Trend:
 class PlcHealth:
     #: None until the first sample
     up: bool | None = None
+    #: when ``up`` last changed (Unix seconds)
+    since: float | None = None
     last_error: str | None = None
     #: when the last error was seen (Unix seconds)
     error_time: float | None = None
+    #: tags whose latest sample is bad
+    bad_tags: int = 0
+
+
+#: how the overview orders PLCs by state: the ones that need a look first
+STATE_ORDER = {"offline": 0, "errors": 1, "unknown": 2, "online": 3}
+
+
+def state_of(health: PlcHealth) -> str:
+    """``online``, ``offline``, ``errors`` (online, some tags bad) or ``unknown``."""
+    if health.up is None:
+        return "unknown"
+    if not health.up:
+        return "offline"
+    return "errors" if health.bad_tags else "online"
 
 
 class ConsoleState:
-    """The console's view of one poller's PLCs and tags (see the module's docstring)."""
+    """The console's view of one poller's PLCs and tags (see the module's docstring).
+
+    ``reachable`` is the run's rule of whether a PLC is reachable (North's
+    :class:`~plcstack.north.layout.Reachability`, fed with every scan before report-by-exception
+    drops the unchanged samples); without it the console applies the same rule to the scans it
+    gets."""
 
     def __init__(
         self,
@@ -75,57 +110,93 @@ class ConsoleState:
         *,
         trend_seconds: int = 300,
         clock: Callable[[], float] = time.time,
+        reachable: Callable[[str], bool | None] | None = None,
     ) -> None:
         self.plcs: dict[str, PlcConfig] = {p.name: p for p in plcs}
         self.tags: dict[tuple[str, str], TagConfig] = {
             (p.name, t.name): t for p in plcs for t in p.tags
         }
+        #: how each tag is shown (decimals, labels, hex, unit)
+        self.displays = {key: TagDisplay(t) for key, t in self.tags.items()}
         #: tags whose values are float32 (shown at float32 precision: 59.4669, not the
         #: 59.46688461303711 its bits widen to)
-        self.float32 = frozenset(
-            key
-            for key, t in self.tags.items()
-            if t.type.kind == "float" and t.type.bits == 32 and t.scale is None
-        )
+        self.float32 = frozenset(key for key, d in self.displays.items() if d.float32)
         self.latest: dict[tuple[str, str], Sample] = {}
+        #: the last good sample of each tag: shown, marked stale, while the tag is bad
+        self.good: dict[tuple[str, str], Sample] = {}
+        #: when each tag that is bad now went bad (source time of its first bad sample)
+        self.stale_since: dict[tuple[str, str], float] = {}
+        #: when each tag's good value last changed (source time of the first sample with it)
+        self.changed_at: dict[tuple[str, str], float] = {}
         self.health: dict[str, PlcHealth] = {name: PlcHealth() for name in self.plcs}
         self.trends: dict[tuple[str, str], Trend] = {}
         #: tags whose value, quality or error changed since :meth:`take_changes`
         self.changed: dict[tuple[str, str], Sample] = {}
         self._points = trend_seconds
         self._epoch = clock()
+        self._reachability = Reachability()
+        self._reachable = reachable
 
     def submit(self, scans: Iterable[Scan]) -> None:
         """Take one batch of scans (the north side's sink protocol)."""
         latest, changed, health, trends = self.latest, self.changed, self.health, self.trends
+        good_samples, stale, changed_at = self.good, self.stale_since, self.changed_at
         good = Quality.GOOD
-        for s in (s for scan in scans for s in scan.samples):
-            key = (s.plc, s.tag)
-            prev = latest.get(key)
-            latest[key] = s
-            value = s.value
-            if (
-                prev is None
-                or prev.value != value
-                or prev.quality is not s.quality
-                or prev.error != s.error
-            ):
-                changed[key] = s
-            h = health.get(s.plc)
-            if h is None:
-                continue  # a sample of a PLC this console was not configured with
-            if s.quality is good:
-                h.up = True
-                kind = type(value)
-                if kind is float or kind is int or kind is bool:
-                    trend = trends.get(key)
-                    if trend is None:
-                        trend = trends[key] = Trend(self._points, self._epoch)
-                    trend.add(s.source_time, value)  # type: ignore[arg-type]
-            else:
-                h.up = False
-                h.last_error = s.error
-                h.error_time = s.receive_time
+        for scan in scans:
+            h = health.get(scan.plc)
+            for s in scan.samples:
+                key = (s.plc, s.tag)
+                prev = latest.get(key)
+                latest[key] = s
+                value = s.value
+                if (
+                    prev is None
+                    or prev.value != value
+                    or prev.quality is not s.quality
+                    or prev.error != s.error
+                ):
+                    changed[key] = s
+                if h is None:
+                    continue  # a sample of a PLC this console was not configured with
+                if s.quality is good:
+                    last_good = good_samples.get(key)
+                    if last_good is None or last_good.value != value:
+                        changed_at[key] = s.source_time
+                    good_samples[key] = s
+                    if stale and stale.pop(key, None) is not None:
+                        h.bad_tags -= 1
+                    kind = type(value)
+                    if kind is float or kind is int or kind is bool:
+                        trend = trends.get(key)
+                        if trend is None:
+                            trend = trends[key] = Trend(self._points, self._epoch)
+                        trend.add(s.source_time, value)  # type: ignore[arg-type]
+                else:
+                    if key not in stale:
+                        stale[key] = s.source_time
+                        h.bad_tags += 1
+                    h.last_error = s.error
+                    h.error_time = s.receive_time
+            if h is not None:
+                self._reach(scan, h)
+
+    def _reach(self, scan: Scan, h: PlcHealth) -> None:
+        if self._reachable is None:
+            self._reachability.update(scan)
+            up = self._reachability.get(scan.plc)
+        else:
+            up = self._reachable(scan.plc)
+        if up is not None and up is not h.up:
+            h.up = up
+            h.since = scan.source_time if up else scan.receive_time
+
+    def counts(self) -> dict[str, int]:
+        """PLCs by state (``online`` counts only those without bad tags), and all of them."""
+        out = dict.fromkeys(STATE_ORDER, 0)
+        for h in self.health.values():
+            out[state_of(h)] += 1
+        out["total"] = len(self.health)
+        return out
 
     def take_changes(self) -> list[Sample]:
         """The samples that changed since the last call (latest of each tag), and forget them."""
@@ -142,13 +213,26 @@ class ConsoleState:
             return json_safe([float32_short(v) if type(v) is float else v for v in value])
         return json_safe(value)
 
+    def text(self, s: Sample) -> tuple[str, float | None, float | None]:
+        """What a person sees of a tag: the display text of its last good value, since when
+        it holds that value, and since when it is stale (None while the tag is good)."""
+        key = (s.plc, s.tag)
+        last = s if s.quality is Quality.GOOD else self.good.get(key)
+        display = self.displays.get(key)
+        if last is None:
+            return "", None, self.stale_since.get(key)
+        text = display.text(last.value) if display is not None else str(last.value)
+        return text, self.changed_at.get(key, last.source_time), self.stale_since.get(key)
+
     def trend(self, plc: str, tag: str) -> list[tuple[float, float]]:
         t = self.trends.get((plc, tag))
         return [] if t is None else t.points()
 
 
 def tag_row(state: ConsoleState, s: Sample) -> dict[str, Any]:
-    """One tag as the REST API gets it."""
+    """One tag as the REST API gets it: the latest sample, and what a person sees of it."""
+    text, good_time, stale_since = state.text(s)
+    last = state.good.get((s.plc, s.tag))
     return {
         "plc": s.plc,
         "tag": s.tag,
@@ -156,16 +240,25 @@ def tag_row(state: ConsoleState, s: Sample) -> dict[str, Any]:
         "quality": s.quality.value,
         "source_time": s.source_time,
         "error": s.error,
+        "text": text,
+        "last_good": None if last is None else state.shown(last),
+        "changed": good_time,
+        "stale_since": stale_since,
     }
 
 
-def plc_row(name: str, health: PlcHealth, stats: PlcStats | None) -> dict[str, Any]:
-    """One PLC's health and counters; p50/p99 in ms over its last 256 requests."""
+def plc_row(name: str, health: PlcHealth, stats: PlcStats | None, tags: int = 0) -> dict[str, Any]:
+    """One PLC's health and counters (``tags``: how many it has); p50/p99 in ms over its last
+    256 requests."""
     row: dict[str, Any] = {
         "name": name,
+        "tags": tags,
         "up": health.up,
+        "state": state_of(health),
+        "since": health.since,
         "last_error": health.last_error,
         "error_time": health.error_time,
+        "bad_tags": health.bad_tags,
     }
     if stats is not None:
         p50, p99 = stats.percentiles((50, 99), newest=PERCENTILE_WINDOW)
