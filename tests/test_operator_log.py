@@ -8,13 +8,14 @@ from types import SimpleNamespace
 
 import pytest
 
-from plcstack.errors import ConnectFailed
+from plcstack.errors import ConnectFailed, ValueDecodeError
 from plcstack.north.buffer import StoreAndForward
 from plcstack.north.config import NorthConfig
 from plcstack.north.mqtt import MqttSettings, MqttSink
 from plcstack.north.pipeline import North
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.samples import Quality, Sample, Scan
+from plcstack.values import BCD16
 from tests.scan_helpers import scan
 from tests.servers import Mosquitto
 
@@ -42,6 +43,22 @@ def test_a_plc_going_offline_and_back_is_one_warning_each(
         "PLC press1 is back online",
         "PLC press1 is offline: press1: connect: connection refused",
     ]
+
+
+def test_a_cold_start_whose_failing_group_reports_first_says_nothing_offline(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    tags = (TagConfig("x", "D0"), TagConfig("code", "D1", BCD16, group="slow"))
+    plc = PlcConfig("press1", "e71+tcp://127.0.0.1:1", tags)
+    poller = SimpleNamespace(config=PollConfig((plc,), {"default": 1, "slow": 1}))
+    north = North(poller, NorthConfig())
+    t = 1_800_000_000.0
+    error = "press1: read D1: 00AF is no BCD"
+    failing = Sample("press1", "code", None, Quality.BAD, t, t + 0.1, error, ValueDecodeError)
+    with caplog.at_level(logging.INFO):
+        north.deliver([scan(failing, group="slow")])  # before: "PLC press1 is offline"
+        north.deliver(_scan(True, t + 0.2))
+    assert [r.getMessage() for r in caplog.records] == ["PLC press1 is online"]
 
 
 async def test_a_sink_losing_and_regaining_its_broker_says_so_once_each(

@@ -4,6 +4,8 @@ type on a cold start, a group failing on its own, QoS, DCMD to an array element,
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import logging
 import struct
@@ -14,13 +16,17 @@ import pytest
 
 from plcstack.clients.base import Client
 from plcstack.errors import PlcTimeout, ValueDecodeError
-from plcstack.north.layout import JsonLayout
+from plcstack.north.config import NorthConfig
+from plcstack.north.layout import JsonLayout, scan_groups
 from plcstack.north.mqtt import MqttSettings, MqttSink, parse_mqtt
+from plcstack.north.pipeline import North
 from plcstack.north.sparkplug import SparkplugLayout
 from plcstack.north.sparkplug_pb import Payload
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample
+from plcstack.sim import e71
+from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.values import (
     BCD16,
     BCD32,
@@ -250,6 +256,94 @@ def test_every_group_failing_is_unreachable() -> None:
     layout.messages([as_scan(sample("p", "a", 1), group="default")])
     out = layout.messages([as_scan(bad("p", "a", ValueDecodeError), group="default")])
     assert [t.split("/")[2] for t, *_ in out] == ["DDEATH"]
+
+
+def test_a_cold_start_whose_failing_group_reports_first_declares_nothing_dead() -> None:
+    """The group of a BCD tag on a word holding 00AFH fails every scan; on a cold start its
+    first scan may come in before the good group's (before: DDEATH, then a second DBIRTH, and
+    JSON offline then online, within the first seconds)."""
+    tags = (TagConfig("ok", "D0", UINT16), TagConfig("code", "D1", BCD16, group="slow"))
+    layout = SparkplugLayout("plant", "edge1", {"p": list(tags)})
+    groups = scan_groups([PlcConfig("p", "e71+tcp://127.0.0.1:1", tags)])
+    assert groups == {"p": frozenset({"default", "slow"})}
+    json_layout = JsonLayout("plcstack", "poller", groups=groups)
+    layout.will()  # a session begins: its CONNECT, then the births
+    births = [t.split("/")[2] for t, *_ in layout.births(1.0)]
+    assert births == ["NBIRTH", "DBIRTH"]
+    kinds: list[str] = []
+    statuses: list[str] = []
+    first_bad: bytes = b""
+    for n in range(3):
+        for scan in (
+            as_scan(bad("p", "code", ValueDecodeError), group="slow"),  # the failing one first
+            as_scan(sample("p", "ok", n), group="default"),
+        ):
+            out = layout.messages([scan])
+            kinds += [t.split("/")[2] for t, *_ in out]
+            first_bad = first_bad or out[0][1]
+            statuses += [
+                json.loads(body)["status"]
+                for t, body, *_ in json_layout.messages([scan])
+                if t.endswith("/status")
+            ]
+    assert kinds == ["DDATA"] * 6  # no DDEATH, no second DBIRTH
+    assert statuses == ["online"]
+    code = wire_metrics(first_bad)["code"]  # the bad group's values: null, Quality BAD
+    assert code["is_null"] and code["properties"] == {"Quality": 0}
+
+
+def test_a_cold_start_with_every_group_bad_is_one_death_once_every_group_reported() -> None:
+    tags = [TagConfig("a", "D0", BCD16), TagConfig("b", "D1", BCD16, group="slow")]
+    layout = SparkplugLayout("plant", "edge1", {"p": tags})
+    first = layout.messages([as_scan(bad("p", "a", ValueDecodeError), group="default")])
+    assert [t.split("/")[2] for t, *_ in first] == ["DDATA"]  # "slow" may still read fine
+    second = layout.messages([as_scan(bad("p", "b", ValueDecodeError), group="slow")])
+    assert [t.split("/")[2] for t, *_ in second] == ["DDEATH"]
+    assert layout.messages([as_scan(bad("p", "a", ValueDecodeError), group="default")]) == []
+
+
+async def test_a_host_sees_no_death_when_the_failing_group_is_scanned_first(
+    mosquitto: Mosquitto,
+) -> None:
+    """End to end: a real simulator whose D1 holds 00AFH (no BCD), the failing group scanned
+    first, a real broker, the host's view decoded by the specification's field numbers."""
+    memory = MelsecMemory()
+    memory.write_words("D", 0, [7, 0x00AF])
+    sim = await e71.start(memory)
+    tags = (TagConfig("code", "D1", BCD16, group="slow"), TagConfig("ok", "D0", UINT16))
+    config = PollConfig(
+        (PlcConfig("press1", sim.url, tags),), {"slow": 0.05, "default": 0.05}
+    )  # fmt: skip
+    settings = MqttSettings(
+        host=mosquitto.host, port=mosquitto.port, client_id="edge1", mode="sparkplug",
+        group_id="plant", reconnect_max=0.2,
+    )  # fmt: skip
+    try:
+        async with (
+            subscriber(mosquitto.host, mosquitto.port, "spBv1.0/plant/#") as sub,
+            Poller(config) as poller,
+            North(poller, NorthConfig(mqtt=settings)) as north,
+        ):
+            consumer = asyncio.create_task(north.run())
+            try:
+                await sub.wait_for(
+                    lambda s: sum("/DDATA/" in t for t, _ in s.messages) >= 6, timeout=15
+                )
+            finally:
+                consumer.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await consumer
+    finally:
+        await sim.aclose()
+    device = [(t.split("/")[2], body) for t, body in sub.messages if t.endswith("/press1")]
+    assert [kind for kind, _ in device][:1] == ["DBIRTH"]
+    assert {kind for kind, _ in device} == {"DBIRTH", "DDATA"}, [k for k, _ in device]
+    assert [kind for kind, _ in device].count("DBIRTH") == 1
+    # the failing group did report first, and its metric was null with Quality BAD
+    first = wire_metrics(device[1][1])
+    assert set(first) == {"code"} and first["code"]["is_null"]
+    assert first["code"]["properties"] == {"Quality": 0}
+    assert any(wire_metrics(body).get("ok", {}).get("value") == 7 for _, body in device[2:])
 
 
 # -- on a real broker: QoS, DCMD to an array element, a refused DCMD --------------------------

@@ -21,6 +21,7 @@ from plcstack.north.metrics import MetricsSettings
 from plcstack.north.pipeline import North
 from plcstack.north.sparkplug_pb import Payload
 from plcstack.north.supervise import Supervisor
+from plcstack.poll.config import PollConfig
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
@@ -148,7 +149,7 @@ async def test_healthz_names_a_dead_sink_until_it_runs_again() -> None:
     class P:
         stats: dict[str, Any] = {}
         dropped = 0
-        config = None
+        config = PollConfig(())
 
     sink = Crashing()
     north = North(P(), NorthConfig(metrics=MetricsSettings(port=0)), sinks=[sink])

@@ -34,8 +34,10 @@ reported in ``errors`` (``"non-finite value nan"``), since JSON has no NaN.
 A PLC is ``offline`` when it cannot be reached: a scan failed for want of the PLC (timeout,
 refused or dropped connection), or the latest scan of every scan group came back all bad. A group
 that fails on its own (a value its type cannot decode) while another group reads fine makes only
-its tags bad (in ``errors``); the PLC stays ``online``. The status is published when it changes
-(:class:`Reachability`, the same rule as Sparkplug's DDEATH/DBIRTH).
+its tags bad (in ``errors``); the PLC stays ``online``. A group that has not reported yet is
+unknown, not bad: on a cold start no status is published until a group reads fine or every
+group has reported. The status is published when it changes (:class:`Reachability`, the same
+rule as Sparkplug's DDEATH/DBIRTH).
 
 Write error codes: ``bad_request`` (not JSON, no ``tag`` or ``value``), ``unknown_plc``,
 ``unknown_tag``, ``not_writable`` (the tag lacks ``writable = true``: north-side clients may write
@@ -50,11 +52,12 @@ from __future__ import annotations
 import json
 import math
 import re
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from typing import Any
 
 from plcstack.errors import ConnectionLost, PlcTimeout
 from plcstack.output import shorten
+from plcstack.poll.config import PlcConfig
 from plcstack.poll.samples import Quality, Sample, Scan
 
 __all__ = [
@@ -62,6 +65,7 @@ __all__ = [
     "data_payload",
     "data_topic",
     "poller_status_topic",
+    "scan_groups",
     "status_payload",
     "status_topic",
     "topic_level",
@@ -160,18 +164,30 @@ def write_response_payload(
 _UNREACHABLE = (PlcTimeout, ConnectionLost)
 
 
+def scan_groups(plcs: Iterable[PlcConfig]) -> dict[str, frozenset[str]]:
+    """PLC name -> the scan groups its tags are in: what :class:`Reachability` waits for."""
+    return {plc.name: frozenset(t.group for t in plc.tags) for plc in plcs}
+
+
 class Reachability:
     """Whether each PLC is reachable, by one rule for every north side (JSON status, Sparkplug
     DBIRTH/DDEATH).
 
     A PLC is unreachable when a scan failed for want of the PLC (a timeout, a refused or
-    dropped connection) or when the latest scan of every scan group seen so far came back all
+    dropped connection) or when the latest scan of every one of its scan groups came back all
     bad. A group that keeps failing on its own (a BCD tag on a word holding 00AFH, an address the
     PLC refuses) while another group reads fine only makes its own values bad: the PLC stays
     reachable, so a host does not see it die and be born again every scan.
+
+    A group that has not reported yet is unknown, not bad: until every group of the PLC
+    (``groups``, from the configuration: :func:`scan_groups`) has reported, all-bad scans leave
+    the state as it is (None before any decision), so a cold start whose failing group happens
+    to report first does not declare a PLC dead that another group is about to show alive. A
+    PLC missing from ``groups`` is judged by the groups seen so far.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, groups: Mapping[str, Collection[str]] | None = None) -> None:
+        self._expected = {plc: frozenset(names) for plc, names in (groups or {}).items()}
         self._groups: dict[str, dict[str, bool]] = {}
         self._state: dict[str, bool] = {}
 
@@ -186,10 +202,14 @@ class Reachability:
         elif any(s.error_type is not None and issubclass(s.error_type, _UNREACHABLE)
                  for s in samples):  # fmt: skip
             reachable = False
-            for name in groups:  # every group's next scan has to show the PLC back
+            for name in self._expected.get(plc, groups):  # each has to show the PLC back
                 groups[name] = False
+        elif any(groups.values()):
+            reachable = True
+        elif not self._expected.get(plc, frozenset()) <= groups.keys():
+            return None  # a group not heard from yet may still read fine
         else:
-            reachable = any(groups.values())
+            reachable = False
         if self._state.get(plc) is reachable:
             return None
         self._state[plc] = reachable
@@ -209,13 +229,15 @@ class JsonLayout:
         client_id: str,
         qos: int = 1,
         float32: Collection[tuple[str, str]] = (),
+        groups: Mapping[str, Collection[str]] | None = None,
     ) -> None:
-        """``float32``: (PLC, tag) of the float32 tags (:func:`plcstack.output.float32_tags`)."""
+        """``float32``: (PLC, tag) of the float32 tags (:func:`plcstack.output.float32_tags`);
+        ``groups``: each PLC's scan groups (:func:`scan_groups`), for :class:`Reachability`."""
         self.prefix = prefix
         self.client_id = client_id
         self.qos = qos
         self.float32 = float32
-        self.reachability = Reachability()
+        self.reachability = Reachability(groups)
 
     # what the sink asks of a layout
     def will(self) -> tuple[str, bytes]:

@@ -31,7 +31,7 @@ from typing import Any, Self, cast
 from plcstack.north.audit import Audit
 from plcstack.north.config import NorthConfig
 from plcstack.north.history import History
-from plcstack.north.layout import JsonLayout, Reachability
+from plcstack.north.layout import JsonLayout, Reachability, scan_groups
 from plcstack.north.metrics import MetricsServer, PlcstackCollector
 from plcstack.north.mqtt import MqttSink
 from plcstack.north.rbe import ReportByException
@@ -102,7 +102,7 @@ class North:
         self.sinks: list[ScanSink] = list(sinks)
         self.mqtt: MqttSink | None = None
         #: whether each PLC is reachable, by the rule the MQTT status uses: changes are logged
-        self.reachability = Reachability()
+        self.reachability = Reachability(scan_groups(poller.config.plcs))
         self._offline: set[str] = set()
         if config.mqtt is not None:
             layout: Any = None
@@ -113,7 +113,11 @@ class North:
             else:
                 mqtt = config.mqtt
                 layout = JsonLayout(
-                    mqtt.prefix, mqtt.client_id, mqtt.qos, float32_tags(poller.config.plcs)
+                    mqtt.prefix,
+                    mqtt.client_id,
+                    mqtt.qos,
+                    float32_tags(poller.config.plcs),
+                    scan_groups(poller.config.plcs),
                 )
             writable = {
                 (plc.name, tag.name): bool(getattr(tag, "writable", True))

@@ -199,7 +199,9 @@ class SparkplugLayout:
         self.bd_seq = -1 if last is None else last
         self.seq = 0
         self._last: dict[str, dict[str, Sample]] = {plc: {} for plc in tags}
-        self.reachability = Reachability()
+        self.reachability = Reachability(
+            {plc: {t.group for t in specs} for plc, specs in self.tags.items()}
+        )
         self._dead: set[str] = set()  # PLCs whose last birth/death message was a DDEATH
         bits = point_bits or {}
         self._datatypes = {
