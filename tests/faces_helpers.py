@@ -6,13 +6,34 @@ from __future__ import annotations
 import asyncio
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager, suppress
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
+from plcstack.clients.share import SharedConnection
 from plcstack.codecs._common import NEED_DATA
+from plcstack.codecs.e71 import Code
+from plcstack.gateway import e71server
+from plcstack.gateway.allow import DeviceAllowList, WriteAllowList
+from plcstack.gateway.e71face import E71Executor
+from plcstack.gateway.record import FaceWrite
+from plcstack.gateway.store import ClientStore
 from plcstack.poll.config import parse_config
 from plcstack.poll.engine import Poller
+from plcstack.sim import fetchwrite as fw_sim
+from plcstack.sim import s5lan as lan_sim
+from plcstack.sim.base import TcpSimulator
 
-__all__ = ["RawStream", "polled"]
+__all__ = ["KINDS", "RawDatagrams", "RawStream", "Transport", "e71_faces", "polled", "s5_faces"]
+
+Transport = Literal["tcp", "udp"]
+KINDS: tuple[tuple[Transport, Code], ...] = (
+    ("tcp", Code.BINARY),
+    ("tcp", Code.ASCII),
+    ("udp", Code.BINARY),
+    ("udp", Code.ASCII),
+)
+
+
+E71Face = e71server.E71TcpFace | e71server.E71UdpFace
 
 
 class _Codec(Protocol):
@@ -24,12 +45,15 @@ class _Codec(Protocol):
 
 
 @asynccontextmanager
-async def polled(url: str, tags: str, *, interval: float = 0.02) -> AsyncIterator[Poller]:
+async def polled(
+    url: str, tags: str, *, interval: float = 0.02, timeout: float = 5.0
+) -> AsyncIterator[Poller]:
     """A poller of one PLC ``kiln1`` at ``url``; ``tags``: the body of its ``[plc.tags]``."""
     text = f"""
 [poll]
 interval = {interval}
-timeout = 5.0
+timeout = {timeout}
+backoff_max = 0.2
 
 [[plc]]
 name = "kiln1"
@@ -74,3 +98,88 @@ class RawStream:
         self.writer.close()
         with suppress(ConnectionError, OSError):
             await self.writer.wait_closed()
+
+
+class RawDatagrams:
+    """A UDP socket and a client codec: each :meth:`ask` sends one request datagram and returns
+    the decoded answer and its bytes."""
+
+    def __init__(
+        self, transport: asyncio.DatagramTransport, queue: asyncio.Queue[bytes], codec: _Codec
+    ):
+        self.transport = transport
+        self.queue = queue
+        self.codec = codec
+
+    @classmethod
+    async def open(cls, host: str, port: int, codec: _Codec) -> RawDatagrams:
+        queue: asyncio.Queue[bytes] = asyncio.Queue()
+
+        class _Receiver(asyncio.DatagramProtocol):
+            def datagram_received(self, data: bytes, addr: Any) -> None:
+                queue.put_nowait(data)
+
+        loop = asyncio.get_running_loop()
+        transport, _ = await loop.create_datagram_endpoint(_Receiver, remote_addr=(host, port))
+        return cls(transport, queue, codec)
+
+    async def ask(self, request: Any, timeout: float = 10.0) -> tuple[Any, bytes]:
+        self.transport.sendto(self.codec.send(request))
+        async with asyncio.timeout(timeout):
+            raw = await self.queue.get()
+        self.codec.receive_data(raw)
+        return self.codec.next_event(), raw
+
+    async def aclose(self) -> None:
+        self.transport.close()
+
+
+@asynccontextmanager
+async def s5_faces(
+    poller: Poller, *, writable: str = "", read_previous: bool = False, mk: bool = False
+) -> AsyncIterator[tuple[TcpSimulator, TcpSimulator, ClientStore, list[FaceWrite]]]:
+    """S5-LAN and FETCH/WRITE faces of the poller's PLC ``kiln1``, and the writes they told."""
+    share = SharedConnection(poller.client("kiln1"), name="kiln1")
+    writes: list[FaceWrite] = []
+    store = ClientStore(
+        share,
+        writable=WriteAllowList.parse(writable),
+        read_previous=read_previous,
+        on_write=writes.append,
+    )
+    async with share:
+        lan = await lan_sim.start(store=store, max_connections=64)
+        fw = await fw_sim.start(store=store, mk=mk, max_connections=64)
+        async with lan, fw:
+            yield lan, fw, store, writes
+
+
+@asynccontextmanager
+async def e71_faces(
+    poller: Poller, *, writable: str = "", read_previous: bool = False, max_wait: float = 2.0
+) -> AsyncIterator[
+    tuple[
+        dict[tuple[Transport, Code], E71Face],
+        E71Executor,
+        list[FaceWrite],
+    ]
+]:
+    """One E71 face of each transport and code in front of the poller's PLC ``kiln1``."""
+    share = SharedConnection(poller.client("kiln1"), name="kiln1", max_wait=max_wait)
+    writes: list[FaceWrite] = []
+    executor = E71Executor(
+        share,
+        writable=DeviceAllowList.parse(writable),
+        on_write=writes.append,
+        read_previous=read_previous,
+    )
+    async with share:
+        faces = {
+            (transport, code): await e71server.start(executor, transport=transport, code=code)
+            for transport, code in KINDS
+        }
+        try:
+            yield faces, executor, writes
+        finally:
+            for face in faces.values():
+                await face.aclose()

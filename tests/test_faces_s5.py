@@ -7,50 +7,23 @@ from __future__ import annotations
 
 import asyncio
 import struct
-from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
 
-from plcstack.clients.share import SharedConnection
 from plcstack.codecs import fetchwrite as fw_codec
 from plcstack.codecs import s5lan as lan_codec
 from plcstack.codecs.mk import MkConnection
-from plcstack.gateway.allow import WriteAllowList
-from plcstack.gateway.record import FaceWrite
-from plcstack.gateway.store import ClientStore
 from plcstack.poll.engine import Poller, Quality
 from plcstack.sim import as511 as as511_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as lan_sim
-from plcstack.sim.base import TcpSimulator
 from plcstack.sim.s5memory import S5Memory
 from tests.aio_helpers import eventually
-from tests.faces_helpers import RawStream, polled
+from tests.faces_helpers import RawStream, polled, s5_faces
 
 
 def _patterned(memory: S5Memory) -> S5Memory:
     for db in range(1, 11):
         memory.write_db_words(db, 0, [(db << 8) | (i & 0xFF) for i in range(256)])
     return memory
-
-
-@asynccontextmanager
-async def s5_faces(
-    poller: Poller, *, writable: str = "", read_previous: bool = False, mk: bool = False
-) -> AsyncIterator[tuple[TcpSimulator, TcpSimulator, ClientStore, list[FaceWrite]]]:
-    """S5-LAN and FETCH/WRITE faces of the poller's PLC ``kiln1``, and the writes they told."""
-    share = SharedConnection(poller.client("kiln1"), name="kiln1")
-    writes: list[FaceWrite] = []
-    store = ClientStore(
-        share,
-        writable=WriteAllowList.parse(writable),
-        read_previous=read_previous,
-        on_write=writes.append,
-    )
-    async with share:
-        lan = await lan_sim.start(store=store, max_connections=64)
-        fw = await fw_sim.start(store=store, mk=mk, max_connections=64)
-        async with lan, fw:
-            yield lan, fw, store, writes
 
 
 def _good_scans(poller: Poller) -> int:

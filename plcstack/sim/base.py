@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 from abc import abstractmethod
+from collections.abc import Iterator
 from typing import Any
 
 from plcstack.resource import AsyncResource
@@ -20,6 +22,7 @@ __all__ = [
     "CLOSE_LINGER",
     "DEFAULT_IDLE_TIMEOUT",
     "DEFAULT_MAX_CONNECTIONS",
+    "ClientGone",
     "ConnectionCount",
     "IdleWatch",
     "Simulator",
@@ -88,6 +91,53 @@ class ConnectionCount:
 
     def closed(self) -> None:
         self.current -= 1
+
+
+class ClientGone:
+    """Cancels a connection's handler when its client goes away while the handler waits on the
+    client's behalf (:meth:`waiting`): a gateway's request of a client that closed its
+    connection is then given up where it waits, and a queued write is never sent.
+
+    Gone is: the connection lost (reset, aborted), or the client closed its side with nothing
+    more to read. None of these protocols has a client that half-closes and waits for its
+    answer; a client that closes after a timeout has given up, and it may be sending the same
+    request again on a new connection. Looked at every ``PERIOD`` seconds, and only while a
+    request waits. Start it in the handler's task; :meth:`close` it when the handler ends.
+    """
+
+    PERIOD = 0.05
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        handler = asyncio.current_task()
+        if handler is None:
+            raise RuntimeError("ClientGone is started by a connection's task")
+        self._handler = handler
+        self._reader = reader
+        self._writer = writer
+        self._busy = asyncio.Event()
+        self.gone = False
+        self._task = asyncio.ensure_future(self._watch())
+
+    @contextlib.contextmanager
+    def waiting(self) -> Iterator[None]:
+        """While the handler waits for the answer of a request."""
+        self._busy.set()
+        try:
+            yield
+        finally:
+            self._busy.clear()
+
+    def close(self) -> None:
+        self._task.cancel()
+
+    async def _watch(self) -> None:
+        while True:
+            await self._busy.wait()
+            if self._reader.at_eof() or self._writer.transport.is_closing():
+                self.gone = True
+                self._handler.cancel()
+                return
+            await asyncio.sleep(self.PERIOD)
 
 
 def bound_address(sockname: Any, scheme: str, query: str = "") -> tuple[str, int, str]:

@@ -32,6 +32,7 @@ from plcstack.errors import RemoteProtocolError
 from plcstack.sim.base import (
     DEFAULT_IDLE_TIMEOUT,
     DEFAULT_MAX_CONNECTIONS,
+    ClientGone,
     TcpSimulator,
     add_idle_timeout_argument,
     check_idle_timeout,
@@ -154,6 +155,8 @@ class FetchWriteSimulator(TcpSimulator):
         if task is not None:
             self.track(task)
         self.connections += 1
+        # a gateway's job of a client that went away is given up where it waits (never sent)
+        gone = ClientGone(reader, writer)
         peer = peer_address(writer.get_extra_info("peername"))
         loop = asyncio.get_running_loop()
         # a module is lenient with partners that do not count (only strict checks them)
@@ -171,7 +174,8 @@ class FetchWriteSimulator(TcpSimulator):
         try:
             while True:
                 while (event := codec.next_event()) is not NEED_DATA:
-                    response, close = await self.answer(event, role, peer)
+                    with gone.waiting():
+                        response, close = await self.answer(event, role, peer)
                     if self.silent:
                         continue
                     writer.write(codec.send(response))
@@ -233,6 +237,7 @@ class FetchWriteSimulator(TcpSimulator):
         except (ConnectionError, OSError):
             pass
         finally:
+            gone.close()
             writer.transport.abort()
 
     async def answer(

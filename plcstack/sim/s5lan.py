@@ -36,6 +36,7 @@ from plcstack.codecs.s5lan import (
 )
 from plcstack.sim.base import (
     DEFAULT_IDLE_TIMEOUT,
+    ClientGone,
     TcpSimulator,
     add_idle_timeout_argument,
     check_idle_timeout,
@@ -190,6 +191,8 @@ async def _handle(
         return
     state.active += 1
     state.writers.add(writer)
+    # a gateway's request of a client that went away is given up where it waits (never sent)
+    gone = ClientGone(reader, writer)
     peer = peer_address(writer.get_extra_info("peername"))
     codec = ServerConnection(
         header_byte_order=state.header_byte_order, strict=state.strict, version=state.version
@@ -213,7 +216,7 @@ async def _handle(
                     data = await reader.read(65536)
             except TimeoutError:
                 if codec.awaiting_data:
-                    if not await _answer(state, codec, writer, codec.data_timeout(), peer):
+                    if not await _answer(state, codec, writer, codec.data_timeout(), peer, gone):
                         return
                     continue
                 if codec.buffered:
@@ -225,11 +228,12 @@ async def _handle(
                 return
             codec.receive_data(data)
             while (event := codec.next_event()) is not NEED_DATA:
-                if not await _answer(state, codec, writer, event, peer):
+                if not await _answer(state, codec, writer, event, peer, gone):
                     return
     except (ConnectionError, OSError):
         return
     finally:
+        gone.close()
         state.active -= 1
         state.writers.discard(writer)
         await close_writer(writer)  # not abort(): an Err 6 answer before a close must go out
@@ -241,6 +245,7 @@ async def _answer(
     writer: asyncio.StreamWriter,
     event: object,
     peer: str | None,
+    gone: ClientGone,
 ) -> bool:
     """Answer one event of the client at ``peer``; ``False`` when the connection must be
     closed."""
@@ -249,7 +254,8 @@ async def _answer(
         await writer.drain()
         return not event.close
     assert isinstance(event, Request)
-    err, data = await state.execute(event, peer)
+    with gone.waiting():
+        err, data = await state.execute(event, peer)
     if state.realistic_timing:
         await asyncio.sleep(estimate_seconds(event.header.data_len or 0))
     header: Header = event.header
