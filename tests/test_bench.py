@@ -599,6 +599,22 @@ def test_fleet_alternate_runs_every_kind_per_round_in_abba_order() -> None:
         assert summary["ratio"][base] == pytest.approx(sum(expected) / 2)
 
 
+def test_fleet_ring_kind_polls_with_a_flight_recorder_ring_per_plc() -> None:
+    """The ``ring`` kind is the poller with each PLC recording into a 64-frame ring (the
+    benchmark of ``[trace] ring = 64``): it polls as ``poll`` does and says its ring size."""
+    from plcstack.bench.cases import fleet
+
+    summary = fleet.spawn(
+        "alternate", 2, loop="asyncio", duration=0.3, warmup=0.15,
+        kinds=("ring", "poll"), rounds=1, timeout=20.0,
+    )  # fmt: skip
+    assert "note" not in summary, summary
+    runs = {run["kind"]: run for run in summary["runs"]}
+    assert runs["ring"]["ring"] == 64 and runs["poll"]["ring"] is None
+    assert runs["ring"]["requests"] > 0 and not runs["ring"].get("bad")
+    assert summary["ratios"]["ring"][0] > 0
+
+
 def test_fleet_row_takes_medians_and_the_ratio_of_cpu_per_request() -> None:
     from plcstack.bench.suite import fleet_row
 

@@ -23,7 +23,7 @@ from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.transports.tap import Endpoints, capturing
 from plcstack.transports.tcp import TcpTransport, _TcpProtocol
-from plcstack.wire.capture import PcapngCapture, parse_size
+from plcstack.wire.capture import FLUSH_DELAY, PcapngCapture, parse_size
 from plcstack.wire.packets import (
     IpAddress,
     checksum,
@@ -315,7 +315,10 @@ async def test_a_capture_is_flushed_as_it_goes(tmp_path: Path) -> None:
         with recorded(path) as capture:
             async with plcstack.connect(sim.url) as plc:
                 await plc.read("D0", 1)
-                await asyncio.sleep(0)  # one loop pass: the flush
+                assert len(list(read_capture(path.read_bytes()))) < 5  # still buffered
+                # the flush is a timer FLUSH_DELAY after the first unflushed block: one that
+                # comes due later on the same loop runs after it
+                await asyncio.sleep(2 * FLUSH_DELAY)
                 # read while the capture is still open: the request and its answer are there
                 packets = list(read_capture(path.read_bytes()))
                 assert len(packets) == 5  # handshake (3), request, answer

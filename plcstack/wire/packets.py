@@ -55,6 +55,8 @@ _IPV6: Final = struct.Struct("!IHBB16s16s")
 _TCP: Final = struct.Struct("!HHIIBBHHH")
 _UDP: Final = struct.Struct("!HHHH")
 _TLV: Final = struct.Struct("!HH")
+_PSEUDO4: Final = struct.Struct("!BBH")
+_PSEUDO6: Final = struct.Struct("!I3xB")
 
 #: exported-PDU tags (Wireshark's ``exported_pdu_tlvs.h``): the dissector to call by name,
 #: the direction (P2P_DIR_SENT 0 / P2P_DIR_RECV 1), the end of the tag list
@@ -87,27 +89,31 @@ def checksum(data: bytes | bytearray | memoryview) -> int:
     return ~total & 0xFFFF
 
 
-def _pseudo_header(src: IpAddress, dst: IpAddress, proto: int, length: int) -> bytes:
-    if src.version == 4:
-        return src.packed + dst.packed + struct.pack("!BBH", 0, proto, length)
-    return src.packed + dst.packed + struct.pack("!I3xB", length, proto)
+def _packed(address: IpAddress | bytes) -> bytes:
+    return address if isinstance(address, bytes) else address.packed
 
 
-def _ip(src: IpAddress, dst: IpAddress, proto: int, payload: bytes, ident: int) -> bytes:
-    if src.version != dst.version:
-        raise ValueError(f"source {src} and destination {dst} are not of one IP version")
-    if src.version == 4:
+def _ip(src: bytes, dst: bytes, proto: int, payload: bytes, ident: int) -> bytes:
+    if len(src) != len(dst):
+        raise ValueError("source and destination are not of one IP version")
+    if len(src) == 4:
         header = _IPV4.pack(
-            0x45, 0, 20 + len(payload), ident & 0xFFFF, 0x4000, 64, proto, 0, src.packed, dst.packed
+            0x45, 0, 20 + len(payload), ident & 0xFFFF, 0x4000, 64, proto, 0, src, dst
         )
         sum_ = checksum(header)
         return header[:10] + sum_.to_bytes(2, "big") + header[12:] + payload
-    return _IPV6.pack(6 << 28, len(payload), proto, 64, src.packed, dst.packed) + payload
+    return _IPV6.pack(6 << 28, len(payload), proto, 64, src, dst) + payload
+
+
+def _pseudo_header(src: bytes, dst: bytes, proto: int, length: int) -> bytes:
+    if len(src) == 4:
+        return src + dst + _PSEUDO4.pack(0, proto, length)
+    return src + dst + _PSEUDO6.pack(length, proto)
 
 
 def tcp_packet(
-    src: IpAddress,
-    dst: IpAddress,
+    src: IpAddress | bytes,
+    dst: IpAddress | bytes,
     sport: int,
     dport: int,
     seq: int,
@@ -118,25 +124,33 @@ def tcp_packet(
     ident: int = 0,
     window: int = 65535,
 ) -> bytes:
-    """One IP packet carrying one TCP segment (no options), checksums filled in."""
+    """One IP packet carrying one TCP segment (no options), checksums filled in. Addresses
+    as objects or packed (4 bytes IPv4, 16 IPv6: what a recorder keeps per connection)."""
+    s, d = _packed(src), _packed(dst)
     header = _TCP.pack(
         sport, dport, seq & 0xFFFFFFFF, ack & 0xFFFFFFFF, 5 << 4, flags, window, 0, 0
     )
     segment = header + payload
-    sum_ = checksum(_pseudo_header(src, dst, IPPROTO_TCP, len(segment)) + segment)
-    segment = segment[:16] + sum_.to_bytes(2, "big") + segment[18:]
-    return _ip(src, dst, IPPROTO_TCP, segment, ident)
+    sum_ = checksum(_pseudo_header(s, d, IPPROTO_TCP, len(segment)) + segment)
+    segment = header[:16] + sum_.to_bytes(2, "big") + header[18:] + payload
+    return _ip(s, d, IPPROTO_TCP, segment, ident)
 
 
 def udp_packet(
-    src: IpAddress, dst: IpAddress, sport: int, dport: int, payload: bytes, *, ident: int = 0
+    src: IpAddress | bytes,
+    dst: IpAddress | bytes,
+    sport: int,
+    dport: int,
+    payload: bytes,
+    *,
+    ident: int = 0,
 ) -> bytes:
     """One IP packet carrying one UDP datagram, checksums filled in (0 is sent as FFFFH)."""
+    s, d = _packed(src), _packed(dst)
     length = 8 + len(payload)
-    datagram = _UDP.pack(sport, dport, length, 0) + payload
-    sum_ = checksum(_pseudo_header(src, dst, IPPROTO_UDP, length) + datagram) or 0xFFFF
-    datagram = datagram[:6] + sum_.to_bytes(2, "big") + datagram[8:]
-    return _ip(src, dst, IPPROTO_UDP, datagram, ident)
+    header = _UDP.pack(sport, dport, length, 0)
+    sum_ = checksum(_pseudo_header(s, d, IPPROTO_UDP, length) + header + payload) or 0xFFFF
+    return _ip(s, d, IPPROTO_UDP, header[:6] + sum_.to_bytes(2, "big") + payload, ident)
 
 
 def _tlv(tag: int, value: bytes) -> bytes:

@@ -71,6 +71,7 @@ _IF_TSRESOL: Final = 9
 _EPB_FLAGS: Final = 2
 
 _EPB_HEAD: Final = struct.Struct("<IIIIIII")
+_PADDING: Final = (b"", b"\x00", b"\x00\x00", b"\x00\x00\x00")
 
 
 def _option(code: int, value: bytes) -> bytes:
@@ -81,6 +82,13 @@ def _options(items: list[tuple[int, bytes]]) -> bytes:
     if not items:
         return b""
     return b"".join(_option(code, value) for code, value in items) + _option(_OPT_END, b"")
+
+
+#: the options of a packet block without a comment: its direction flags (none when unknown)
+_DIRECTION_OPTIONS: Final = {
+    direction: _options([(_EPB_FLAGS, struct.pack("<I", direction))]) if direction else b""
+    for direction in (0, DIRECTION_INBOUND, DIRECTION_OUTBOUND, 3)
+}
 
 
 def _block(block_type: int, body: bytes) -> bytes:
@@ -109,12 +117,13 @@ def enhanced_packet(
 ) -> bytes:
     """An Enhanced Packet Block of ``data`` at ``micros`` (microseconds since the epoch), with
     its direction (``DIRECTION_INBOUND``/``OUTBOUND``, 0 = unknown) and an optional comment."""
-    options: list[tuple[int, bytes]] = []
-    if direction:
-        options.append((_EPB_FLAGS, struct.pack("<I", direction)))
     if comment:
-        options.append((_OPT_COMMENT, comment.encode()))
-    tail = b"\x00" * (-len(data) % 4) + _options(options)
+        options = [(_OPT_COMMENT, comment.encode())]
+        if direction:
+            options.insert(0, (_EPB_FLAGS, struct.pack("<I", direction)))
+        tail = _PADDING[-len(data) % 4] + _options(options)
+    else:
+        tail = _PADDING[-len(data) % 4] + _DIRECTION_OPTIONS[direction]
     total = 32 + len(data) + len(tail)
     return (
         _EPB_HEAD.pack(

@@ -70,6 +70,9 @@ class Stream:
     interface: int
     local_ip: IpAddress | None = None
     remote_ip: IpAddress | None = None
+    #: the addresses packed (4 or 16 bytes), as every packet needs them
+    local_packed: bytes = b""
+    remote_packed: bytes = b""
     #: next sequence number of the local and of the remote end (TCP)
     local_seq: int = 0
     remote_seq: int = 0
@@ -132,7 +135,7 @@ class Recording:
                 ip_address(endpoints.local[0] or "0.0.0.0"),
                 ip_address(endpoints.remote[0] or "0.0.0.0"),
             )
-            stream = Stream(endpoints, IP_INTERFACE, local, remote)
+            stream = Stream(endpoints, IP_INTERFACE, local, remote, local.packed, remote.packed)
         salt = next(self._salt)
         stream.local_seq = _isn(endpoints, salt)
         stream.remote_seq = _isn(endpoints, salt + 1_000_003)
@@ -183,6 +186,14 @@ class Recording:
                 udp_packet(src, dst, sport, dport, data, ident=next(stream._ident)),
                 DIRECTION_OUTBOUND if outbound else DIRECTION_INBOUND,
             )
+        if len(data) <= MAX_SEGMENT:  # every PDU of our protocols: one segment
+            if outbound:
+                seq, ack = stream.local_seq, stream.remote_seq
+                stream.local_seq += len(data)
+            else:
+                seq, ack = stream.remote_seq, stream.local_seq
+                stream.remote_seq += len(data)
+            return self._tcp(stream, outbound, micros, seq, ack, PSH | ACK, data, "")
         blocks = []
         for start in range(0, len(data), MAX_SEGMENT):
             part = data[start : start + MAX_SEGMENT]
@@ -233,9 +244,8 @@ class Recording:
         )
 
     # -- helpers -----------------------------------------------------------------------------
-    def _ends(self, stream: Stream, outbound: bool) -> tuple[IpAddress, IpAddress, int, int]:
-        local, remote = stream.local_ip, stream.remote_ip
-        assert local is not None and remote is not None
+    def _ends(self, stream: Stream, outbound: bool) -> tuple[bytes, bytes, int, int]:
+        local, remote = stream.local_packed, stream.remote_packed
         lport, rport = stream.endpoints.local[1], stream.endpoints.remote[1]
         return (local, remote, lport, rport) if outbound else (remote, local, rport, lport)
 

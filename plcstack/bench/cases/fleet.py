@@ -14,6 +14,9 @@ CPU and runs one of:
   ints; the floor's bytes are not yet values). Allocating 64 ints per request in a heap of a
   thousand connections is a cost of its own, so the stack is reported against both;
 * ``clients`` -- the same schedule, each task calling ``plcstack`` ``client.read("D0", 64)``;
+* ``ring``    -- ``poll`` with the flight recorder on: each PLC's connection records its last
+  ``FLEET_RING`` frames (default 64, as ``[trace] ring = 64``) in a
+  :class:`~plcstack.wire.ring.FrameRing`, which is what the recorder costs per request;
 * ``poll``    -- :class:`plcstack.poll.Poller`, one 64-word tag per PLC, interval 0.1 s, and a
   consumer that takes the samples in batches as ``plcstack poll``'s north side does: each
   gathers for ``[poll] batch_wait`` (10 ms) after its first sample. ``FLEET_CONSUMER_WAIT``
@@ -60,7 +63,9 @@ from plcstack.poll.config import DEFAULT_BATCH_WAIT
 
 __all__ = ["KINDS", "REPLY", "REQUEST", "spawn"]
 
-KINDS = ("floor", "decoded", "clients", "poll")
+KINDS = ("floor", "decoded", "clients", "ring", "poll")
+#: frames each PLC's ring keeps in the ``ring`` kind (``FLEET_RING``)
+RING = int(os.environ.get("FLEET_RING") or 64)
 #: 10 Hz
 INTERVAL = 0.1
 #: how long the poll kind's consumer lets a batch gather (``Poller.scans(wait=...)``): the
@@ -404,7 +409,7 @@ async def _run_kind(
         elif kind == "clients":
             tasks, closers = await _client_fleet(ports, counters)
         else:
-            poller, consumer = await _start_poller(ports, bad)
+            poller, consumer = await _start_poller(ports, bad, RING if kind == "ring" else 0)
         if poller is not None:
 
             def requests() -> int:
@@ -532,14 +537,18 @@ async def _run_kind(
         "overruns": o1 - o0,
         "p50_ms": pct(50),
         "p99_ms": pct(99),
-        "consumer_wait": CONSUMER_WAIT if kind == "poll" else None,
+        "consumer_wait": CONSUMER_WAIT if kind in ("poll", "ring") else None,
+        "ring": RING if kind == "ring" else None,
     }
 
 
-async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.Task[None]]:
+async def _start_poller(
+    ports: list[int], bad: list[str], ring: int = 0
+) -> tuple[Any, asyncio.Task[None]]:
     from plcstack.poll.config import DEFAULT_GROUP, PlcConfig, PollConfig, TagConfig
     from plcstack.poll.engine import Poller
     from plcstack.poll.samples import each_sample
+    from plcstack.wire.ring import FlightRecorder
 
     plcs = tuple(
         PlcConfig(
@@ -553,6 +562,10 @@ async def _start_poller(ports: list[int], bad: list[str]) -> tuple[Any, asyncio.
         PollConfig(plcs=plcs, groups={DEFAULT_GROUP: INTERVAL}, queue=max(1000, 4 * len(ports)))
     )
     expected = sample_words()
+    if ring:
+        recorder = FlightRecorder(size=ring)
+        for plc in poller.plcs:
+            poller.client(plc).transport.record_to(recorder.ring(plc))
 
     checked: set[str] = set()
 
