@@ -55,10 +55,13 @@ WALKTHROUGHS = [
     pytest.param("north.md", 2, id="north-influx"),
     pytest.param("opcua.md", 0, id="opcua", marks=pytest.mark.slow),
     pytest.param("scale-out.md", 0, id="scale-out", marks=pytest.mark.slow),
+    pytest.param("wire.md", 0, id="wire"),
 ]
 #: plcstack commands that serve something and say "listening on" when they do
 SERVERS = {"sim", "gateway", "serve"}
-PORT = re.compile(r"(?:127\.0\.0\.1:|--port[ =]|-p |port = |--metrics-port )(\d{4,5})\b")
+PORT = re.compile(
+    r"(?:127\.0\.0\.1:|--port[ =]|-p |port = |--metrics-port |tcp\.port==)(\d{4,5})\b"
+)
 #: bound for one line: a command to end, a server to come up (run() holds every line to it)
 TIMEOUT = 30.0
 #: bound for a whole walkthrough (pytest's timeout is 60 s: the stop must run before it)

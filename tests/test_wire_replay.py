@@ -320,3 +320,27 @@ async def test_an_as511_line_replays_on_a_pseudo_terminal(tmp_path: Path) -> Non
         assert sim.mismatches == 0
     finally:
         await sim.aclose()
+
+
+async def test_port_serves_the_one_server_and_refuses_a_choice_it_cannot_make(
+    tmp_path: Path,
+) -> None:
+    e71 = await e71_sim.start()
+    lan = await s5lan_sim.start()
+    capture = tmp_path / "two.pcapng"
+    try:
+        with PcapngCapture(capture) as file, capturing(file):
+            async with plcstack.connect(e71.url) as plc:
+                await plc.read("D0", 1)
+            async with plcstack.connect(lan.url) as plc:
+                await plc.read("DB1.DW0", 1)
+    finally:
+        await e71.aclose()
+        await lan.aclose()
+    with pytest.raises(ValueError, match="--port serves one server; the capture has 2"):
+        await replay.start(capture, port=0)
+    sim = await replay.start(capture, port=0, servers=[e71.url.removeprefix("e71+tcp://")])
+    try:
+        assert list(sim.listening) == [f"{e71.url.removeprefix('e71+tcp://')} (TCP)"]
+    finally:
+        await sim.aclose()

@@ -315,6 +315,7 @@ async def start(
     *,
     host: str = "127.0.0.1",
     same_ports: bool = False,
+    port: int | None = None,
     servers: list[str] | None = None,
     repeat: bool = True,
     timing: bool = False,
@@ -323,9 +324,11 @@ async def start(
     """Replay the servers of ``capture`` (a file, or its bytes); returns once each listens.
 
     ``same_ports`` binds each TCP/UDP server on its recorded port (on ``host``), else on a
-    free one; ``servers`` limits the replay to these recorded servers (names as
-    :attr:`Recorded.name` or their address). Raises ``ValueError`` for a file that holds no
-    conversation to replay, ``OSError`` for one that cannot be read or a port in use.
+    free one; ``port`` binds the one server of the replay there (``ValueError`` when there
+    are several: choose one with ``servers``); ``servers`` limits the replay to these
+    recorded servers (names as :attr:`Recorded.name` or their address). Raises
+    ``ValueError`` for a file that holds no conversation to replay, ``OSError`` for one that
+    cannot be read or a port in use.
     """
     data = (
         capture if isinstance(capture, bytes) else await asyncio.to_thread(Path(capture).read_bytes)
@@ -339,16 +342,21 @@ async def start(
             raise ValueError(f"the capture has no server {', '.join(sorted(missing))}")
     if not found:
         raise ValueError("the capture holds no TCP, UDP or AS511 conversation to replay")
+    if port is not None and len(found) != 1:
+        names = ", ".join(r.name for r in found)
+        raise ValueError(f"--port serves one server; the capture has {len(found)}: {names}")
     sim = ReplaySimulator()
     try:
         for recorded in found:
             replayer = _Replayer(recorded, repeat=repeat, timing=timing)
             sim._replayers.append(replayer)
-            port = _port_of(recorded.server) if same_ports and recorded.kind != "serial" else 0
+            bind = port if port is not None else 0
+            if same_ports and recorded.kind != "serial":
+                bind = _port_of(recorded.server)
             if recorded.kind == "tcp":
-                where = await sim._serve_tcp(replayer, host, port, idle_timeout)
+                where = await sim._serve_tcp(replayer, host, bind, idle_timeout)
             elif recorded.kind == "udp":
-                where = await sim._serve_udp(replayer, host, port)
+                where = await sim._serve_udp(replayer, host, bind)
             else:
                 line = _PtyLine(replayer, sim)
                 sim._ptys.append(line)
@@ -376,6 +384,12 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         help="serve each server on its recorded port (default: any free port, printed)",
     )
     parser.add_argument(
+        "--port",
+        type=int,
+        default=None,
+        help="serve the capture's one server on this port (default: any free port, printed)",
+    )
+    parser.add_argument(
         "--server",
         action="append",
         metavar="ADDRESS",
@@ -397,6 +411,7 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         args.capture,
         host=args.host,
         same_ports=args.same_ports,
+        port=args.port,
         servers=args.server,
         repeat=not args.once,
         timing=args.timing,
