@@ -187,24 +187,21 @@ class Recording:
                 DIRECTION_OUTBOUND if outbound else DIRECTION_INBOUND,
             )
         if len(data) <= MAX_SEGMENT:  # every PDU of our protocols: one segment
-            if outbound:
-                seq, ack = stream.local_seq, stream.remote_seq
-                stream.local_seq += len(data)
-            else:
-                seq, ack = stream.remote_seq, stream.local_seq
-                stream.remote_seq += len(data)
-            return self._tcp(stream, outbound, micros, seq, ack, PSH | ACK, data, "")
-        blocks = []
-        for start in range(0, len(data), MAX_SEGMENT):
-            part = data[start : start + MAX_SEGMENT]
-            if outbound:
-                seq, ack = stream.local_seq, stream.remote_seq
-                stream.local_seq += len(part)
-            else:
-                seq, ack = stream.remote_seq, stream.local_seq
-                stream.remote_seq += len(part)
-            blocks.append(self._tcp(stream, outbound, micros, seq, ack, PSH | ACK, part, ""))
-        return b"".join(blocks)
+            return self._segment(stream, outbound, micros, data)
+        return b"".join(
+            self._segment(stream, outbound, micros, data[start : start + MAX_SEGMENT])
+            for start in range(0, len(data), MAX_SEGMENT)
+        )
+
+    def _segment(self, stream: Stream, outbound: bool, micros: int, part: bytes) -> bytes:
+        """One data segment from its end, the sequence numbers moved on past it."""
+        if outbound:
+            seq, ack = stream.local_seq, stream.remote_seq
+            stream.local_seq += len(part)
+        else:
+            seq, ack = stream.remote_seq, stream.local_seq
+            stream.remote_seq += len(part)
+        return self._tcp(stream, outbound, micros, seq, ack, PSH | ACK, part, "")
 
     def end(self, stream: Stream, by_peer: bool, micros: int) -> bytes:
         """The connection ended: for TCP, FIN from the end that closed, FIN back, ACK."""

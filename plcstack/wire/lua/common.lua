@@ -30,6 +30,19 @@ local function conversation(pinfo, server_ports)
     return dst .. ">" .. src, false
 end
 
+-- The fields every dissector uses to pair requests and answers, named ABBR.request_in,
+-- ABBR.response_in and ABBR.time (the response time), and the note of an answer without its
+-- request (a capture that began between them).
+local function match_fields(abbr)
+    return ProtoField.framenum(abbr .. ".request_in", "Request in frame", base.NONE,
+            frametype.REQUEST),
+        ProtoField.framenum(abbr .. ".response_in", "Response in frame", base.NONE,
+            frametype.RESPONSE),
+        ProtoField.relative_time(abbr .. ".time", "Time since request"),
+        ProtoExpert.new(abbr .. ".unmatched", "Answer without a request in the capture",
+            expert.group.SEQUENCE, expert.severity.NOTE)
+end
+
 local Track = {}
 Track.__index = Track
 

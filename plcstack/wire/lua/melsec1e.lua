@@ -28,12 +28,9 @@ local f = {
     module = ProtoField.uint8("melsec1e.module", "Module number", base.HEX),
     cpu_model = ProtoField.uint8("melsec1e.cpu_model", "CPU model code", base.HEX, CPU_MODELS),
     fixed = ProtoField.uint8("melsec1e.fixed", "Fixed", base.HEX),
-    request_in = ProtoField.framenum("melsec1e.request_in", "Request in frame", base.NONE,
-        frametype.REQUEST),
-    response_in = ProtoField.framenum("melsec1e.response_in", "Response in frame", base.NONE,
-        frametype.RESPONSE),
-    time = ProtoField.relative_time("melsec1e.time", "Time since request"),
 }
+local unmatched
+f.request_in, f.response_in, f.time, unmatched = match_fields("melsec1e")
 proto.fields = f
 
 local e = {
@@ -41,11 +38,10 @@ local e = {
         expert.group.MALFORMED, expert.severity.ERROR),
     error_code = ProtoExpert.new("melsec1e.error_code", "The E71 answered with an error",
         expert.group.RESPONSE_CODE, expert.severity.WARN),
-    unmatched = ProtoExpert.new("melsec1e.unmatched", "Answer without a request in the capture",
-        expert.group.SEQUENCE, expert.severity.NOTE),
     unsized = ProtoExpert.new("melsec1e.unsized", "Length not known: taken as the rest",
         expert.group.UNDECODED, expert.severity.NOTE),
 }
+e.unmatched = unmatched
 proto.experts = e
 
 proto.prefs.tcp_ports = Pref.string("TCP ports", DEFAULT_PORTS,

@@ -23,12 +23,9 @@ local f = {
     address = ProtoField.string("s5lan.address", "Address"),
     data = ProtoField.bytes("s5lan.data", "Data"),
     word = ProtoField.uint16("s5lan.word", "Word", base.HEX),
-    request_in = ProtoField.framenum("s5lan.request_in", "Request in frame", base.NONE,
-        frametype.REQUEST),
-    response_in = ProtoField.framenum("s5lan.response_in", "Response in frame", base.NONE,
-        frametype.RESPONSE),
-    time = ProtoField.relative_time("s5lan.time", "Time since request"),
 }
+local unmatched
+f.request_in, f.response_in, f.time, unmatched = match_fields("s5lan")
 proto.fields = f
 
 local e = {
@@ -38,9 +35,8 @@ local e = {
         expert.group.RESPONSE_CODE, expert.severity.WARN),
     echo = ProtoExpert.new("s5lan.echo", "The answer does not echo the request",
         expert.group.PROTOCOL, expert.severity.WARN),
-    unmatched = ProtoExpert.new("s5lan.unmatched", "Answer without a request in the capture",
-        expert.group.SEQUENCE, expert.severity.NOTE),
 }
+e.unmatched = unmatched
 proto.experts = e
 
 proto.prefs.tcp_ports = Pref.string("TCP ports", DEFAULT_PORTS,

@@ -14,12 +14,9 @@ local f = {
     message_length = ProtoField.uint32("tanimk.message_length", "Message length", base.DEC),
     telegrams = ProtoField.uint16("tanimk.telegrams", "Telegrams of the message", base.DEC),
     first_frame = ProtoField.framenum("tanimk.first_frame", "Message starts in frame"),
-    request_in = ProtoField.framenum("tanimk.request_in", "Request in frame", base.NONE,
-        frametype.REQUEST),
-    response_in = ProtoField.framenum("tanimk.response_in", "Response in frame", base.NONE,
-        frametype.RESPONSE),
-    time = ProtoField.relative_time("tanimk.time", "Time since request"),
 }
+local unmatched
+f.request_in, f.response_in, f.time, unmatched = match_fields("tanimk")
 proto.fields = f
 
 local e = {
@@ -29,9 +26,8 @@ local e = {
         expert.group.SEQUENCE, expert.severity.NOTE),
     reserved = ProtoExpert.new("tanimk.reserved_flags", "Reserved flag bits set",
         expert.group.PROTOCOL, expert.severity.NOTE),
-    unmatched = ProtoExpert.new("tanimk.unmatched", "Answer without a request in the capture",
-        expert.group.SEQUENCE, expert.severity.NOTE),
 }
+e.unmatched = unmatched
 proto.experts = e
 
 proto.prefs.tcp_ports = Pref.string("TCP ports", DEFAULT_PORTS,
