@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 
 #: frames a ring keeps when ``[trace] ring`` does not say
 DEFAULT_RING: Final = 64
+#: the clock of the frames (wall clock: a capture's timestamps), looked up once
+_now = time.time_ns
+
 #: seconds between two automatic captures of one PLC
 MIN_INTERVAL: Final = 3600.0
 
@@ -58,13 +61,13 @@ class _RingConnection:
 
     def sent(self, data: bytes) -> None:
         ring = self.ring
-        ring.times.append(time.time_ns())
+        ring.times.append(_now())
         ring.keys.append(self.sent_key)
         ring.data.append(data)
 
     def received(self, data: bytes) -> None:
         ring = self.ring
-        ring.times.append(time.time_ns())
+        ring.times.append(_now())
         ring.keys.append(self.received_key)
         ring.data.append(data)
 
