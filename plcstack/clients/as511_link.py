@@ -9,6 +9,10 @@ the next one. On a serial line that rule is the resynchronisation and the port s
 TCP a timeout or malformed answer also closes the connection (a device server may have gone
 away). The PG services (:mod:`plcstack.clients.as511_blocks`) and the client's API
 (:mod:`plcstack.clients.as511`) are built on :meth:`As511Link.transact`.
+
+The character timeout counts from when bytes arrived (the transport's data callback), and a
+gap is only one the event loop saw: bytes that waited while the loop was held up are in time
+(``PGConnection.held_up``).
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from plcstack.errors import (
     RemoteProtocolError,
 )
 from plcstack.transports.backoff import Backoff
-from plcstack.transports.base import Transport
+from plcstack.transports.base import HELD_UP, Transport
 from plcstack.transports.serial import SerialTransport
 
 __all__ = ["BITS_PER_BYTE", "As511Link"]
@@ -143,7 +147,7 @@ class As511Link(Client):
                             if loop.time() >= give_up:
                                 raise
                             continue
-                        pg.receive_data(data, loop.time())
+                        pg.receive_data(data, transport.arrived or loop.time())
                         if loop.time() >= give_up:
                             raise TimeoutError
                     pg.submit(job, max(loop.time(), pg.ready_at))
@@ -156,12 +160,23 @@ class As511Link(Client):
                         except TimeoutError:
                             if capped:
                                 raise
-                            pg.timer(max(loop.time(), deadline or 0.0))
+                            # Silence is what the loop saw: a deadline whose timer ran late
+                            # (the loop was held up and did not watch the line) is granted
+                            # its wait again rather than failing an answer on its way.
+                            now = loop.time()
+                            if now - (deadline or 0.0) > HELD_UP:
+                                pg.held_up(now)
+                            else:
+                                pg.timer(max(now, deadline or 0.0))
                         else:
                             chunks.append(data)
-                            now = loop.time()
+                            # when the bytes arrived, not when this coroutine resumed
+                            now = transport.arrived or loop.time()
                             if now >= give_up:
                                 raise TimeoutError from None
+                            # read before the deadline's timer saw silence, so in time however
+                            # late the loop saw them (a no-op before the deadline)
+                            pg.held_up(now)
                             pg.receive_data(data, now)
                         out = pg.data_to_send()
                         if out:

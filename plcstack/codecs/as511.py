@@ -229,8 +229,9 @@ class ClientConnection:
 
     Drive it like this: ``submit(job, now)`` (only when ``now >= ready_at``), send
     ``data_to_send()``, then until ``next_event()`` is not ``NEED_DATA``: wait for bytes until
-    ``deadline``; pass them to ``receive_data(data, now)`` or, when the deadline passed, call
-    ``timer(now)``; send ``data_to_send()`` after each call.
+    ``deadline``; pass them to ``receive_data(data, now)`` (``now``: when they arrived) or,
+    when the deadline passed in silence, call ``timer(now)``; send ``data_to_send()`` after
+    each call (a driver that could not watch the line calls :meth:`held_up` first).
 
     ``tx_byte_time`` is the line time of one byte (11 / baud for 8E1); deadlines that follow our
     own sending are extended by the time our bytes need on the wire, so a 512-byte write at 9600
@@ -258,6 +259,8 @@ class ClientConnection:
         self.ready_at = 0.0
         #: when the current state times out; ``None`` when idle
         self.deadline: float | None = None
+        #: the wait of the current state (what :meth:`held_up` grants again)
+        self._period = char_timeout
         #: how far the current or last job's parameter frame got (see :class:`Delivery`)
         self.delivery = _NOT_SENT
         self._out = bytearray()
@@ -381,6 +384,15 @@ class ClientConnection:
         self._abort(now)
         self._events.append(Timeout(job.fn, state))
 
+    def held_up(self, now: float) -> None:
+        """The driver could not watch the line until ``now``, past ``deadline`` (its event loop
+        was held up), and saw no silence: the current wait starts again at ``now``. Call it
+        before ``receive_data`` with bytes that waited meanwhile, or instead of ``timer`` when
+        the deadline's timer ran late: a stalled driver must not time out an answer that came.
+        """
+        if self.deadline is not None and now > self.deadline:
+            self.deadline = now + self._period
+
     def reset(self, now: float) -> None:
         """The line was re-opened: forget any transaction; keep (and restart) the back-off."""
         if self.state is not _IDLE:
@@ -396,6 +408,7 @@ class ClientConnection:
         self.state = state
         self._dle = False
         wait = self.response_timeout if slow else self.char_timeout
+        self._period = wait
         self.deadline = now + wait + sent * self.tx_byte_time
 
     def _abort(self, now: float) -> None:
@@ -629,6 +642,12 @@ class ServerConnection:
 
     def next_event(self) -> AGEvent | NeedData:
         return self._events.popleft() if self._events else NEED_DATA
+
+    def held_up(self, now: float) -> None:
+        """The driver could not watch the line until ``now``, past ``deadline``, and saw no
+        silence: the current wait starts again at ``now`` (as :meth:`ClientConnection.held_up`)."""
+        if self.deadline is not None and now > self.deadline:
+            self.deadline = now + self.char_timeout
 
     def timer(self, now: float) -> None:
         if self.deadline is not None and now >= self.deadline and self.state is not _AG_IDLE:

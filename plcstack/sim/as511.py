@@ -21,7 +21,8 @@ import contextlib
 import logging
 import os
 import struct
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
+from typing import cast
 
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.as511 import (
@@ -37,18 +38,20 @@ from plcstack.codecs.as511 import (
     Idled,
     Request,
 )
+from plcstack.errors import ConnectionLost
 from plcstack.sim.base import (
+    CLOSE_LINGER,
     DEFAULT_IDLE_TIMEOUT,
     DEFAULT_MAX_CONNECTIONS,
     Simulator,
     TcpSimulator,
     add_idle_timeout_argument,
     check_idle_timeout,
-    close_writer,
     idle_timeout_of,
 )
 from plcstack.sim.s5memory import BLOCK_HEADER_BYTES, BlockType, S5AccessError, S5Memory
 from plcstack.transports import tap
+from plcstack.transports.base import HELD_UP, QueueProtocolMixin
 
 __all__ = [
     "AS511Machine",
@@ -205,30 +208,47 @@ class AS511Machine:
 
     async def serve_line(
         self,
-        read: Callable[[], Awaitable[bytes]],
+        line: AgLine,
         write: Callable[[bytes], None],
         ag: AGConnection | None = None,
-    ) -> None:
-        """Run the AG (``ag``, or a :meth:`new_line`) on one line until ``read`` returns b""
-        (EOF)."""
+        *,
+        idle_timeout: float | None = None,
+    ) -> bool:
+        """Run the AG (``ag``, or a :meth:`new_line`) on ``line`` until it ends (False) or the
+        PG sent nothing for ``idle_timeout`` seconds between transactions (True).
+
+        A gap is what the AG saw, not what its clock says: bytes the line hands over before
+        its deadline ran out are in time however late the loop saw them, and a deadline
+        whose timer ran late (the loop was held up: :data:`HELD_UP`) is granted its wait
+        again (``AGConnection.held_up``).
+        """
         loop = asyncio.get_running_loop()
         ag = ag if ag is not None else self.new_line()
         while True:
+            deadline = ag.deadline
+            idle_until = None if idle_timeout is None else loop.time() + idle_timeout
             try:
-                async with asyncio.timeout_at(ag.deadline):
-                    data = await read()
+                data = await line.read(deadline if deadline is not None else idle_until)
             except TimeoutError:
-                ag.timer(loop.time())
-                self._drain_events(ag, loop.time())
+                now = loop.time()
+                if deadline is None:
+                    return True  # idle for idle_timeout
+                if now - deadline > HELD_UP:
+                    ag.held_up(now)
+                else:
+                    ag.timer(now)
+                    self._drain_events(ag, now)
                 continue
             if not data:
-                return
+                return False
             if self.mute:
                 continue
             ag.busy = self.busy
             if not self.byte_time:
-                ag.receive_data(data, loop.time())
-                self._drain_events(ag, loop.time())
+                arrived = line.arrived or loop.time()
+                ag.held_up(arrived)  # handed over before the deadline ran out: in time
+                ag.receive_data(data, arrived)
+                self._drain_events(ag, arrived)
                 out = ag.data_to_send()
                 if out:
                     write(out)
@@ -238,8 +258,10 @@ class AS511Machine:
             for i in range(0, len(data), _PACE_PIECE):
                 piece = data[i : i + _PACE_PIECE]
                 await self._line_time(len(piece))
-                ag.receive_data(piece, loop.time())
-                self._drain_events(ag, loop.time())
+                now = loop.time()
+                ag.held_up(now)  # read in time; the emulated line (or a stall) made it late
+                ag.receive_data(piece, now)
+                self._drain_events(ag, now)
                 out = ag.data_to_send()
                 for j in range(0, len(out), _PACE_PIECE):
                     chunk = out[j : j + _PACE_PIECE]
@@ -272,6 +294,87 @@ class AS511Machine:
                 self.transactions += 1
 
 
+# -- the AG's end of a line ---------------------------------------------------------------------
+class AgLine(QueueProtocolMixin, asyncio.Protocol):
+    """What the PG sends on one line (a TCP connection, a pty's master side), as a client's
+    transport receives it: chunks queued with their arrival time (:attr:`arrived`), a read
+    deadline that looks for input waiting in the kernel before it declares silence, and
+    reading paused while a flood is queued."""
+
+    def __init__(
+        self,
+        peer: str,
+        on_made: Callable[[AgLine, asyncio.Transport], None] | None = None,
+        wire: tap.ConnectionTap | None = None,
+    ) -> None:
+        self._init_queue(peer)
+        self._on_made = on_made
+        #: records what is received (a line the capture tap cannot wrap: the pty)
+        self.wire = wire
+        #: bytes received so far
+        self.received = 0
+        #: the AG works through bytes it has read (from a read that returned until the next)
+        self.handling = False
+        self._writable = asyncio.Event()
+        self._writable.set()
+        self._gone = asyncio.Event()
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        super().connection_made(transport)
+        if self._on_made is not None:
+            # a stream transport (uvloop's are not subclasses of asyncio's)
+            self._on_made(self, cast(asyncio.Transport, transport))
+
+    def data_received(self, data: bytes) -> None:
+        self.received += len(data)
+        if self.wire is not None:
+            self.wire.received(data)
+        self._push(data)
+
+    def eof_received(self) -> bool | None:
+        self._fail(EOFError("the PG closed the line"))
+        return None
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._fail(exc or EOFError("line closed"))
+        self._writable.set()
+        self._gone.set()
+
+    def pause_writing(self) -> None:
+        self._writable.clear()
+
+    def resume_writing(self) -> None:
+        self._writable.set()
+
+    async def read(self, deadline: float | None) -> bytes:
+        """The bytes received since the last read (b"" once the line ended); raises
+        ``TimeoutError`` when ``deadline`` passes in silence. A PG that does not read our
+        answers is waited for first, so nothing piles up here."""
+        self.handling = False
+        await self._writable.wait()
+        try:
+            data = await self._next_chunk(True, deadline)
+        except ConnectionLost:
+            return b""
+        self.handling = True
+        return data
+
+    @property
+    def queued(self) -> int:
+        """Bytes received and not read yet."""
+        return self.counters.queued
+
+    async def close(self, transport: asyncio.BaseTransport) -> None:
+        """Close the line; abort it if it has not closed after :data:`CLOSE_LINGER` (a PG that
+        reads nothing keeps our last answer queued)."""
+        transport.close()
+        try:
+            async with asyncio.timeout(CLOSE_LINGER):
+                await self._gone.wait()
+        except (TimeoutError, asyncio.CancelledError):
+            transport.abort()  # type: ignore[attr-defined]
+
+
 # -- TCP -------------------------------------------------------------------------------------
 class AS511TcpSimulator(TcpSimulator):
     """TCP variant; ``machine`` and ``memory`` give tests access to the CPU state."""
@@ -302,39 +405,29 @@ async def start(
     machine = AS511Machine(memory, baud=baud, char_timeout=char_timeout)
     sim: AS511TcpSimulator | None = None
 
-    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        if sim is not None and sim.connection_count.current >= max_connections:
-            sim.refused_connections += 1
-            writer.transport.abort()
-            return
-        task = asyncio.current_task()
-        if sim is not None and task is not None:
-            sim.track(task)
-
-        async def read() -> bytes:
-            # A peer that does not read our answers: wait until it does before reading more
-            # (drain blocks above the write high-water mark), so nothing piles up here.
-            await writer.drain()
-            try:
-                async with asyncio.timeout(idle):
-                    return await reader.read(4096)
-            except TimeoutError:
-                if sim is not None:
-                    sim.idle_closed += 1
-                return b""  # idle for idle_timeout: end the line like an EOF
-
+    async def serve(line: AgLine, transport: asyncio.Transport) -> None:
         try:
-            await machine.serve_line(read, writer.write)
-        except (ConnectionError, asyncio.IncompleteReadError, OSError):
+            idled = await machine.serve_line(line, transport.write, idle_timeout=idle)
+            if idled and sim is not None:
+                sim.idle_closed += 1
+        except (ConnectionError, OSError):
             pass
         except asyncio.CancelledError:
-            # aclose() ended this connection. Finishing normally keeps asyncio's start_server
-            # callback (which calls task.exception()) from logging a spurious error on 3.11.
+            # aclose() ended this connection: end normally, as a handler of start_server would
             pass
         finally:
-            await close_writer(writer)
+            await line.close(transport)
 
-    server = await tap.start_server(handle, host, port)
+    def connected(line: AgLine, transport: asyncio.Transport) -> None:
+        if sim is not None and sim.connection_count.current >= max_connections:
+            sim.refused_connections += 1
+            transport.abort()
+            return
+        task = asyncio.get_running_loop().create_task(serve(line, transport))
+        if sim is not None:
+            sim.track(task)
+
+    server = await tap.create_server(lambda: AgLine(f"{host}:{port}", connected), host, port)
     query = f"baud={baud}" if baud else ""
     sim = AS511TcpSimulator(server, "as511+tcp", query)
     sim.machine = machine
@@ -359,15 +452,10 @@ class PtySimulator(Simulator):
         self.path = os.ttyname(self._slave)
         query = f"?baud={machine.baud}" if machine.baud else ""
         self.url = f"as511://{self.path}{query}"
-        self._queue: asyncio.Queue[bytes] = asyncio.Queue()
+        self._reader: asyncio.ReadTransport | None = None
         self._pending = bytearray()
         self._ag = machine.new_line()
-        self._handling = False  # the AG works through bytes it has read
-        #: bytes read from the PG side so far (a pty passes them on in the kernel's own time:
-        #: a test that wrote N bytes waits for this to count them before it looks at
-        #: :attr:`idle`)
-        self.received = 0
-        self._task: asyncio.Task[None] | None = None
+        self._task: asyncio.Task[bool] | None = None
         self._closed = False
         # recorded when started inside a ``capturing`` block (``plcstack sim as511 --pty
         # --pcap``): the PG is the far end of this line
@@ -377,18 +465,21 @@ class PtySimulator(Simulator):
             if capture is None
             else capture.connection(tap.Endpoints("serial", ("", 0), ("", 0), "remote", self.path))
         )
+        self._line = AgLine(self.path, wire=self._wire)
 
-    def _start(self) -> None:
+    async def _start(self) -> None:
         loop = asyncio.get_running_loop()
-        loop.add_reader(self._master, self._on_readable)
-        self._task = loop.create_task(self.machine.serve_line(self._read, self._write, self._ag))
+        # a duplicate of the master for the read side, which closes it with itself
+        pipe = os.fdopen(os.dup(self._master), "rb", buffering=0)
+        self._reader, _ = await loop.connect_read_pipe(lambda: self._line, pipe)
+        self._task = loop.create_task(self.machine.serve_line(self._line, self._write, self._ag))
 
-    async def _read(self) -> bytes:
-        """The next bytes from the PG; asked for once the AG has handled the ones before."""
-        self._handling = False
-        data = await self._queue.get()
-        self._handling = True
-        return data
+    @property
+    def received(self) -> int:
+        """Bytes read from the PG side so far (a pty passes them on in the kernel's own time:
+        a test that wrote N bytes waits for this to count them before it looks at
+        :attr:`idle`)."""
+        return self._line.received
 
     @property
     def idle(self) -> bool:
@@ -403,24 +494,11 @@ class PtySimulator(Simulator):
         fcntl.ioctl(self._master, termios.FIONREAD, unread)
         return (
             not unread[0]
-            and not self._handling
-            and self._queue.empty()
+            and not self._line.handling
+            and not self._line.queued
             and not self._pending
             and self._ag.state is AGState.IDLE
         )
-
-    def _on_readable(self) -> None:
-        try:
-            data = os.read(self._master, 4096)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:
-            return  # EIO while no slave is open: nothing to read
-        if data:
-            self.received += len(data)
-            if self._wire is not None:
-                self._wire.received(data)
-            self._queue.put_nowait(data)
 
     def _write(self, data: bytes) -> None:
         if self._wire is not None and data:
@@ -447,7 +525,8 @@ class PtySimulator(Simulator):
             return
         self._closed = True
         loop = asyncio.get_running_loop()
-        loop.remove_reader(self._master)
+        if self._reader is not None:
+            self._reader.close()
         loop.remove_writer(self._master)
         if self._task is not None:
             self._task.cancel()
@@ -468,7 +547,7 @@ async def start_pty(
 ) -> PtySimulator:
     """Serve AS511 on a new pseudo-terminal pair; ``.path`` is the end a PG opens."""
     sim = PtySimulator(AS511Machine(memory, baud=baud, char_timeout=char_timeout))
-    sim._start()
+    await sim._start()
     return sim
 
 

@@ -22,6 +22,7 @@ from plcstack.transports.deadlines import deadlines_of, future_factory
 from plcstack.transports.tap import ConnectionTap, Tap, recorded_send
 
 __all__ = [
+    "HELD_UP",
     "MAX_QUEUED",
     "ProtocolTransport",
     "QueueProtocolMixin",
@@ -83,6 +84,15 @@ class Transport(ABC):
         """Close cleanly (flush what was written). The default is an abort."""
         self.abort()
 
+    @property
+    def arrived(self) -> float | None:
+        """Loop time at which the newest chunk handed out by :meth:`read` arrived (when the
+        transport's data callback ran), ``None`` when unknown.
+
+        A driver that times bytes (the AS511 character timeout) counts from here rather than
+        from when its own coroutine resumed: other callbacks may have run in between."""
+        return None
+
     def take_received(self) -> list[bytes]:
         """Chunks (datagrams) received and not yet read, without waiting; empties the queue.
 
@@ -132,6 +142,14 @@ class Transport(ABC):
         raise NotImplementedError(f"{type(self).__name__} cannot record its connections")
 
 
+#: seconds a deadline's timer may run late before the event loop counts as held up: it was
+#: busy (a long callback, the process not scheduled) and did not watch the line, so it saw no
+#: silence. Timers of a loaded but working loop run a few milliseconds late; a driver whose
+#: timeout is short (the AS511 character timeout, 0.5 s) then waits once more (see the codec's
+#: ``held_up``) instead of failing a transaction whose answer was coming.
+HELD_UP = 0.05
+
+
 #: bytes a connection holds received and unread before it stops reading (TCP, serial) or drops
 #: datagrams (UDP). The largest legal answer of our protocols is a little over 2 KiB (S5-LAN,
 #: FETCH/WRITE), so 64 KiB is a small multiple of it; a peer that streams to an idle client
@@ -176,6 +194,8 @@ class QueueProtocolMixin:
 
     def _init_queue(self, peer: str, max_queued: int = MAX_QUEUED) -> None:
         self._peer = peer
+        #: loop time at which the newest queued chunk arrived (``Transport.arrived``)
+        self.arrived: float | None = None
         self._chunks: collections.deque[bytes] = collections.deque()
         self.max_queued = max_queued
         self.counters = ReceiveCounters()
@@ -188,6 +208,12 @@ class QueueProtocolMixin:
         #: whether the one deadline timer is armed, and the loop time it is armed for
         self._timer = False
         self._timer_at = 0.0
+        #: the deadline whose expiry waits for input found in the kernel, and how many times
+        #: it did (:meth:`_input_pending`)
+        self._deferred_for: float | None = None
+        self._deferrals = 0
+        #: a ``poll`` on the connection's descriptor, made when a deadline first expires
+        self._input_watch: select.poll | None = None
         #: takes every chunk as it arrives instead of the queue (:meth:`Transport.send_delivering`)
         self._receiver: Receiver | None = None
         #: ``loop.create_future`` of the connection's loop (``future_factory``): asyncio makes
@@ -223,6 +249,7 @@ class QueueProtocolMixin:
         counters.queued = queued
         if queued > counters.peak:
             counters.peak = queued
+        self.arrived = self._loop.time()
         self._chunks.append(data)
         waiter = self._waiter
         if waiter is not None and not waiter.done():
@@ -299,12 +326,44 @@ class QueueProtocolMixin:
             return
         if deadline > when:
             self._arm(deadline)
+        elif self._input_pending(deadline):
+            # Bytes (or the end of the stream) wait in the kernel: the loop was held up past
+            # the deadline and has not run the data callback yet. The peer was not silent, so
+            # the loop first takes what waits; this timer looks again just after.
+            self._arm(self._loop.time() + _INPUT_GRACE)
         elif receiver is not None:
             self._receiver = None
             self._deadline = None
             receiver.receive_failed(TimeoutError())
         else:
             waiter.set_exception(TimeoutError())  # type: ignore[union-attr]  # checked above
+
+    def _input_pending(self, deadline: float) -> bool:
+        """Whether the kernel holds input for this connection at an expired ``deadline`` that
+        has not already waited :data:`_MAX_DEFERRALS` times for it (a descriptor that stays
+        readable without the loop reading it must not hold a deadline off for ever)."""
+        if self._deferred_for != deadline:
+            self._deferred_for, self._deferrals = deadline, 0
+        if self._deferrals >= _MAX_DEFERRALS or self._flow is None:
+            return False
+        watch = self._input_watch
+        if watch is None:
+            watch = self._input_watch = watch_input(self._flow)
+            if watch is None:
+                return False
+        try:
+            waiting = bool(watch.poll(0))
+        except OSError:
+            return False
+        if waiting:
+            self._deferrals += 1
+        return waiting
+
+
+#: seconds an expired deadline waits for input the kernel holds to reach the loop, and how many
+#: times in a row: one loop pass takes it (the data callbacks run before the timers)
+_INPUT_GRACE = 0.001
+_MAX_DEFERRALS = 8
 
 
 class ProtocolTransport(Transport):
@@ -444,6 +503,11 @@ class ProtocolTransport(Transport):
             raise ConnectionLost(f"not connected to {self.peer}")
         return self._protocol._next_chunk(self._join, deadline)
 
+    @property
+    def arrived(self) -> float | None:
+        protocol = self._protocol
+        return protocol.arrived if protocol is not None else None
+
     def take_received(self) -> list[bytes]:
         protocol = self._protocol
         if protocol is None or not protocol._chunks:
@@ -482,15 +546,31 @@ _READABLE = (
 )
 
 
+def watch_input(
+    transport: asyncio.BaseTransport, kinds: tuple[str, ...] = ("socket", "serial", "pipe")
+) -> select.poll | None:
+    """A ``poll`` object on the descriptor the transport reads: a socket, a serial port
+    (pyserial-asyncio's ``serial``) or a pipe or pseudo-terminal (``pipe``), the first of
+    ``kinds`` it has; None where it has none or there is no ``poll``."""
+    if not hasattr(select, "poll"):
+        return None
+    for kind in kinds:
+        source = transport.get_extra_info(kind)
+        if source is not None:
+            try:
+                fileno = source.fileno()
+            except (AttributeError, OSError, ValueError):
+                return None
+            watch = select.poll()
+            watch.register(fileno, _READABLE)
+            return watch
+    return None
+
+
 def watch_socket(transport: asyncio.BaseTransport) -> select.poll | None:
     """A ``poll`` object on the transport's socket, for ``quiet``/``input_waiting``; None
     where there is no socket or no ``poll`` (those then always take the general path)."""
-    sock = transport.get_extra_info("socket")
-    if sock is None or not hasattr(select, "poll"):
-        return None
-    watch = select.poll()
-    watch.register(sock.fileno(), _READABLE)
-    return watch
+    return watch_input(transport, ("socket",))
 
 
 async def open_with_timeout(peer: str, coro: Awaitable[T], timeout: float | None) -> T:
