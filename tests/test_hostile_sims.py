@@ -174,15 +174,17 @@ async def test_a_peer_that_never_reads_is_not_answered_into_memory(kind: str) ->
 def _server_transports(sim: object) -> list[asyncio.WriteTransport]:
     """The simulator-side transports of its open connections: the E71 keeps its protocol
     objects in ``connections``; the stream-based simulators hold a ``writer`` in the frame of
-    each tracked connection task."""
+    each tracked connection task, the AS511 one (a protocol per line) its ``transport``."""
     out: list[asyncio.WriteTransport] = []
     if isinstance(sim, E71TcpSimulator):
         out += [c.transport for c in sim.connections if c.transport is not None]
     for task in getattr(sim, "_conn_tasks", ()):
         frame = task.get_coro().cr_frame
-        writer = frame.f_locals.get("writer") if frame is not None else None
-        if writer is not None:
-            out.append(writer.transport)
+        names = frame.f_locals if frame is not None else {}
+        if names.get("writer") is not None:
+            out.append(names["writer"].transport)
+        elif names.get("transport") is not None:
+            out.append(names["transport"])
     return out
 
 
