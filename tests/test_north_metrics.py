@@ -183,11 +183,13 @@ async def test_failed_requests_have_their_own_latency_histogram_per_error_type()
     assert count("slow") == stats["slow"].errors >= 2
     assert count("off") == stats["off"].errors >= 1
     assert count("ok") == 0 and stats["ok"].errors == 0
-    # timeouts took the deadline; refused connections next to nothing
+    # timeouts took the deadline (0.2 s), not the answer's 1 s: the bucket above the deadline
+    # leaves a loaded loop 300 ms to run the timer (0.25 failed under a loaded suite);
+    # refused connections next to nothing
     timeouts = series("slow", "PlcTimeout", "_count")
     assert timeouts >= 2
     assert series("slow", "PlcTimeout", "_bucket", le="0.1") == 0
-    assert series("slow", "PlcTimeout", "_bucket", le="0.25") == timeouts
+    assert series("slow", "PlcTimeout", "_bucket", le="0.5") == timeouts
     assert series("slow", "PlcTimeout", "_sum") >= 0.2 * timeouts
     refused = series("off", "ConnectFailed", "_count")
     assert refused >= 1 and series("off", "ConnectFailed", "_bucket", le="0.1") == refused
