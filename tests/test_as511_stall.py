@@ -218,3 +218,27 @@ async def test_a_silent_ag_still_times_out_after_a_stall() -> None:
             stall(STALL)
             with pytest.raises(PlcTimeout, match="DLE ACK after STX"):
                 await reading
+
+
+async def test_a_busy_loop_does_not_slow_the_emulated_line() -> None:
+    """Every sleep of a loaded loop wakes late; the simulator's line-rate emulation counted
+    each piece from then, so 33 pieces of a 512-byte write made the line a second slow and the
+    PG (right to expect 9600 baud) timed out waiting for DLE ACK: the failure of the suite
+    under load. The emulated line runs from when the bytes arrived."""
+    loop = asyncio.get_running_loop()
+    busy = True
+
+    def hog() -> None:  # 40 ms of every 45 the loop is busy elsewhere
+        if busy:
+            stall(0.04)
+            loop.call_later(0.005, hog)
+
+    data = bytes(range(256)) * 2
+    async with await sim_as511.start_pty(baud=9600) as sim, client(sim.url) as plc:
+        loop.call_soon(hog)
+        try:
+            await plc.write_absolute(0x6000, data)
+        finally:
+            busy = False
+        assert sim.memory.read_absolute(0x6000, 512) == data
+        assert plc.stats.errors == 0

@@ -254,25 +254,29 @@ class AS511Machine:
                     write(out)
                 continue
             # Line-rate emulation: bytes take their line time in pieces, as on a real line,
-            # so the peer sees a steady trickle and no artificial gap longer than a piece.
+            # so the peer sees a steady trickle and no artificial gap longer than a piece. The
+            # line's clock runs from when the bytes arrived, not from when this loop got round
+            # to each piece: a loaded loop wakes late from every sleep, and counting from then
+            # made the emulated line slower with every piece (a 512-byte write took a second).
+            at = line.arrived or loop.time()
             for i in range(0, len(data), _PACE_PIECE):
                 piece = data[i : i + _PACE_PIECE]
-                await self._line_time(len(piece))
-                now = loop.time()
-                ag.held_up(now)  # read in time; the emulated line (or a stall) made it late
-                ag.receive_data(piece, now)
-                self._drain_events(ag, now)
+                at = await self._line_time(len(piece), at)
+                ag.held_up(at)  # handed over before the deadline ran out: in time
+                ag.receive_data(piece, at)
+                self._drain_events(ag, at)
                 out = ag.data_to_send()
                 for j in range(0, len(out), _PACE_PIECE):
                     chunk = out[j : j + _PACE_PIECE]
-                    await self._line_time(len(chunk))
+                    at = await self._line_time(len(chunk), at)
                     write(chunk)
 
-    async def _line_time(self, nbytes: int) -> None:
-        """Sleep until ``nbytes`` more bytes have passed the (half-duplex) emulated line."""
-        loop = asyncio.get_running_loop()
-        self._line_free_at = max(loop.time(), self._line_free_at) + nbytes * self.byte_time
-        await asyncio.sleep(max(0.0, self._line_free_at - loop.time()))
+    async def _line_time(self, nbytes: int, start: float) -> float:
+        """Sleep until ``nbytes`` more bytes, on the line from ``start`` (or once the
+        half-duplex line is free), have passed the emulated line; returns when that is."""
+        end = self._line_free_at = max(start, self._line_free_at) + nbytes * self.byte_time
+        await asyncio.sleep(max(0.0, end - asyncio.get_running_loop().time()))
+        return end
 
     def _drain_events(self, ag: AGConnection, now: float) -> None:
         while (event := ag.next_event()) is not NEED_DATA:
