@@ -29,8 +29,9 @@ class _Watch:
     last_connects: int = 0
     #: loop times at which new requests were seen (sampled every ``Fleet.every`` seconds)
     seen: list[float] = field(default_factory=list)
-    #: loop times at which new connections were seen
-    connects: list[float] = field(default_factory=list)
+    #: new connections seen, each as the sample before and the sample that saw it: the
+    #: connection opened somewhere between the two
+    connects: list[tuple[float, float]] = field(default_factory=list)
 
 
 class Fleet:
@@ -62,8 +63,9 @@ class Fleet:
 
     async def _sample(self) -> None:
         loop = asyncio.get_running_loop()
+        now = loop.time()
         while True:
-            now = loop.time()
+            before, now = now, loop.time()
             for w in self.watch.values():
                 if w.sim.requests != w.last_requests:
                     w.last_requests = w.sim.requests
@@ -71,7 +73,7 @@ class Fleet:
                 total = w.sim.connection_count.total
                 if total != w.last_connects:
                     w.last_connects = total
-                    w.connects.append(now)
+                    w.connects.append((before, now))
             await asyncio.sleep(self.every)
 
     def toml(self, path: Path, *, timeout: float = 0.5) -> Path:
@@ -110,10 +112,12 @@ class Fleet:
 
     def reconnected_after(self, t: float) -> dict[str, float | None]:
         """For each PLC, the first request seen on a connection opened after ``t`` (or None):
-        the new owner's first poll, not a late request of the old one."""
+        the new owner's first poll, not a late request of the old one. A connection sampled
+        after ``t`` but perhaps opened before it (the sample before was earlier than ``t``) is
+        not one: the old owner reconnected just before ``t`` (under load, a request timed out)."""
         out: dict[str, float | None] = {}
         for name, w in self.watch.items():
-            connect = next((c for c in w.connects if c > t), None)
+            connect = next((c for b, c in w.connects if b >= t), None)
             if connect is None:
                 out[name] = None
             else:
