@@ -69,7 +69,7 @@ async def test_web_console_answers_garbage_400_without_a_traceback(
             assert answer.startswith(b"HTTP/1.") and b" 400 " in answer, (request[:40], answer)
             writer.transport.abort()
         reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
-        writer.write(b"GET /api/plcs HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        writer.write(b"GET /api/plcs HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
         assert b" 200 " in await asyncio.wait_for(reader.read(64), 5)
         writer.close()
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
@@ -158,7 +158,7 @@ async def test_web_console_flood_meets_its_limit(monkeypatch: pytest.MonkeyPatch
             w.transport.abort()
         await eventually(lambda: not http.connections, "the held connections are gone")
         reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
-        writer.write(b"GET /api/plcs HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        writer.write(b"GET /api/plcs HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
         assert b" 200 " in await asyncio.wait_for(reader.read(64), 5)
         writer.close()
         assert console.web.limit.refused == 1

@@ -240,6 +240,28 @@ async def test_a_hostile_name_is_shown_as_text(page: Any, console: Console) -> N
     assert await page.evaluate("window.pwned") is None
 
 
+async def test_a_page_rebinding_its_name_to_the_console_reads_nothing(console: Console) -> None:
+    """DNS rebinding as a browser on the plant network meets it: ``attacker.example`` resolves
+    to the console's address, so the attacker's page and the console are one origin to the
+    browser. Before: the page and its script read every value (200). Now: 421 for the page and
+    for the script's request; the console's own names still work in the same browser."""
+    port = console.web.port
+    rule = "--host-resolver-rules=MAP attacker.example 127.0.0.1"
+    async with playwright_api.async_playwright() as p:
+        chromium = await p.chromium.launch(executable_path=CHROMIUM, args=[rule])
+        try:
+            page = await chromium.new_page()
+            response = await page.goto(f"http://attacker.example:{port}/")
+            assert response is not None and response.status == 421
+            read = "fetch('/api/tags').then(r => r.status + ' ' + r.headers.get('content-type'))"
+            assert await page.evaluate(read) == "421 text/plain; charset=utf-8"
+            response = await page.goto(f"http://localhost:{port}/")
+            assert response is not None and response.status == 200
+            assert (await page.evaluate("fetch('/api/tags').then(r => r.status)")) == 200
+        finally:
+            await chromium.close()
+
+
 async def test_the_last_value_stays_marked_stale_when_the_simulator_stops(page: Any) -> None:
     async with running_console() as console:
         await page.goto(console.base + "/plc/press1")

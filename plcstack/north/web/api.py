@@ -12,12 +12,15 @@ POST /api/plcs/{plc}/tags/{tag}     {"value": v} with "Authorization: Bearer TOK
 ```
 
 Write refusals, in the order they are checked: writes off (no token configured) 403
-``not_writable``; no or wrong token 401 ``unauthorized``; a body that is not ``{"value": v}``
-400 ``bad_request``; unknown PLC or tag 404 ``unknown_plc``/``unknown_tag``; a tag without
-``writable = true`` 403 ``not_writable``; too many writes waiting 503 ``busy``; a value the tag's
-type cannot take 400 ``wrong_type``; the PLC refused or did not answer 502 ``plc_error`` (with
-``may_have_executed`` true when the request was sent and its outcome is unknown). The codes are
+``not_writable``; no or wrong token (any bytes) 401 ``unauthorized``; a body over 64 KiB 413
+``bad_request``; a body that is not ``{"value": v}`` in UTF-8 JSON 400 ``bad_request``;
+unknown PLC or tag 404 ``unknown_plc``/``unknown_tag``; a tag without ``writable = true`` 403
+``not_writable``; too many writes waiting 503 ``busy``; a value the tag's type cannot take 400
+``wrong_type``; the PLC refused or did not answer 502 ``plc_error`` (with ``may_have_executed``
+true when the request was sent and its outcome is unknown). The codes are
 the MQTT write codes. The token is compared in constant time; nothing writes through ``GET``.
+Every attempt that reaches this route is logged and audited, each refusal above included; no
+malformed header or body is a 500.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from aiohttp import web
 from plcstack.north.web.state import ConsoleState, tag_row
 from plcstack.transports.peer import peer_address
 
-__all__ = ["MAX_PENDING_WRITES", "ConsoleApi", "routes"]
+__all__ = ["MAX_PENDING_WRITES", "ConsoleApi", "json_body", "peer_of", "routes"]
 
 
 class ConsoleApi(Protocol):
@@ -46,7 +49,15 @@ class ConsoleApi(Protocol):
     async def write(self, plc: str, tag: str, value: Any, *, peer: str | None) -> web.Response: ...
 
     def refuse(
-        self, plc: str, tag: str, value: Any, code: str, message: str, *, peer: str | None
+        self,
+        plc: str,
+        tag: str,
+        value: Any,
+        code: str,
+        message: str,
+        *,
+        peer: str | None,
+        status: int | None = None,
     ) -> web.Response: ...
 
 
@@ -74,10 +85,13 @@ def _json(data: Any, status: int = 200) -> web.Response:
     )
 
 
-def refusal(code: str, message: str, may_have_executed: bool = False) -> web.Response:
+def refusal(
+    code: str, message: str, may_have_executed: bool = False, *, status: int | None = None
+) -> web.Response:
+    """A refused request's answer; ``status`` instead of the code's own."""
     response = _json(
         {"ok": False, "error": code, "message": message, "may_have_executed": may_have_executed},
-        _STATUS[code],
+        _STATUS[code] if status is None else status,
     )
     if code == "unauthorized":
         response.headers["WWW-Authenticate"] = 'Bearer realm="plcstack"'
@@ -85,11 +99,37 @@ def refusal(code: str, message: str, may_have_executed: bool = False) -> web.Res
 
 
 def token_matches(header: str | None, token: str) -> bool:
-    """``Authorization: Bearer TOKEN``, compared in constant time."""
+    """``Authorization: Bearer TOKEN``, compared in constant time. Any bytes are a token that
+    does not match (aiohttp hands undecodable header bytes over as surrogates)."""
     if header is None or not header.startswith("Bearer "):
         return False
-    given = header[len("Bearer ") :].strip().encode()
-    return hmac.compare_digest(given, token.encode())
+    given = header[len("Bearer ") :].strip().encode("utf-8", "surrogateescape")
+    return hmac.compare_digest(given, token.encode("utf-8", "surrogateescape"))
+
+
+def json_body(raw: bytes) -> tuple[Any, str | None]:
+    """A write's body ``{"value": v}``: (the object, None), or (None, what is wrong with it).
+
+    UTF-8 whatever the ``Content-Type`` says (JSON between systems is UTF-8, RFC 8259; a
+    charset Python does not know must not turn into a 500), nesting too deep for the decoder
+    is a bad request like any other malformed body."""
+    try:
+        body = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError:
+        return None, "the body is not UTF-8 text; not attempted"
+    except RecursionError:
+        return None, "the body is nested too deeply to be a value; not attempted"
+    except ValueError:
+        body = None
+    if not isinstance(body, dict) or "value" not in body:
+        return None, 'the body must be a JSON object {"value": ...}; not attempted'
+    return body, None
+
+
+def peer_of(request: web.Request) -> str | None:
+    """The HTTP client's address (a reverse proxy's, when one is in front)."""
+    transport = request.transport
+    return peer_address(transport.get_extra_info("peername") if transport else None)
 
 
 def routes(console: ConsoleApi) -> list[web.RouteDef]:
@@ -116,8 +156,7 @@ def routes(console: ConsoleApi) -> list[web.RouteDef]:
     async def write(request: web.Request) -> web.Response:
         plc, tag = request.match_info["plc"], request.match_info["tag"]
         # the HTTP client's address for the audit (a reverse proxy's, when one is in front)
-        transport = request.transport
-        peer = peer_address(transport.get_extra_info("peername") if transport else None)
+        peer = peer_of(request)
         token = console.token
         if token is None:
             return console.refuse(
@@ -140,18 +179,21 @@ def routes(console: ConsoleApi) -> list[web.RouteDef]:
                 peer=peer,
             )
         try:
-            body = await request.json()
-        except (ValueError, UnicodeDecodeError):
-            body = None
-        if not isinstance(body, dict) or "value" not in body:
+            raw = await request.read()
+        except web.HTTPRequestEntityTooLarge:
             return console.refuse(
                 plc,
                 tag,
                 None,
                 "bad_request",
-                'the body must be a JSON object {"value": ...}',
+                f"the body is larger than {request.client_max_size} bytes; not attempted",
                 peer=peer,
+                status=413,
             )
+        body, problem = json_body(raw)
+        if problem is not None:
+            return console.refuse(plc, tag, None, "bad_request", problem, peer=peer)
+        assert isinstance(body, dict)
         return await console.write(plc, tag, body["value"], peer=peer)
 
     return [

@@ -4,11 +4,13 @@ A north-side sink like the others: ``start()``, ``submit(scans)`` (the state tak
 nothing is sent from there), ``aclose()``. Binds 127.0.0.1 unless ``[web] host`` says otherwise:
 the pages name every PLC of the plant. Every response carries a Content-Security-Policy that
 allows scripts, styles and connections from the console itself only (no inline script), and
-``nosniff``; request bodies are limited to 64 KiB. A connection that sends no complete request
-for :data:`IDLE_TIMEOUT` seconds (silent, or a header trickled byte by byte) is closed, a
-request that cannot be parsed is answered 400 and logged as one WARNING line naming the client,
-and at most :data:`MAX_CONNECTIONS` connections are served at once (the next get 503 and are
-closed: a flood cannot take the file descriptors the PLC connections need).
+``nosniff``; request bodies are limited to 64 KiB. A request for a host name the console does
+not serve is answered 421 before any route (DNS rebinding, see :mod:`.hosts`). A connection
+that sends no complete request for :data:`IDLE_TIMEOUT` seconds (silent, or a header trickled
+byte by byte) is closed, a request that cannot be parsed is answered 400 and logged as one
+WARNING line naming the client, and at most :data:`MAX_CONNECTIONS` connections are served at
+once (the next get 503 and are closed: a flood cannot take the file descriptors the PLC
+connections need).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import functools
 import json
 import logging
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from importlib import resources
 from typing import Any
 
@@ -28,9 +30,10 @@ from aiohttp.http_exceptions import HttpProcessingError
 from plcstack.errors import ConfigError
 from plcstack.north.history import History
 from plcstack.north.supervise import Supervised, Supervisor
-from plcstack.north.web.api import MAX_PENDING_WRITES, refusal, routes
+from plcstack.north.web.api import MAX_PENDING_WRITES, peer_of, refusal, routes
 from plcstack.north.web.events import EventClient, EventHub
 from plcstack.north.web.history import history_routes
+from plcstack.north.web.hosts import HostCheck
 from plcstack.north.web.overview import Selection, select
 from plcstack.north.web.pages import esc, overview_page
 from plcstack.north.web.plc_page import plc_page
@@ -41,6 +44,8 @@ from plcstack.poll.samples import Scan
 from plcstack.transports.guard import ClientLimit
 
 __all__ = ["WebConsole"]
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 log = logging.getLogger("plcstack.web")
 
@@ -107,6 +112,8 @@ class WebConsole:
         self._writes: set[asyncio.Task[Any]] = set()
         files = resources.files(__package__ or "plcstack.north.web")
         self._static = {name: (files / name).read_bytes() for name in _STATIC}
+        #: which ``Host`` is served; ``hosts.refused`` counts the requests turned away
+        self.hosts = HostCheck(self.settings.host, self.settings.hosts, log)
 
     #: how logs, metrics and ``/healthz`` name it
     name = "web console"
@@ -122,7 +129,23 @@ class WebConsole:
     async def start(self) -> None:
         """Listen; a :class:`ConfigError` naming the address if that is not possible."""
         self.token = self.settings.write_token()
-        app = web.Application(client_max_size=MAX_BODY)
+        hosts = self.hosts
+
+        @web.middleware
+        async def served_hosts(request: web.Request, handler: Handler) -> web.StreamResponse:
+            # before any route: a page rebinding its own name to ours reads nothing
+            header = request.headers.get("Host")
+            if hosts.serves(header):
+                return await handler(request)
+            assert header is not None
+            hosts.refused_request(header, peer_of(request), request.path)
+            return web.Response(
+                status=421,
+                text="this console does not serve that host name; if it is yours, add it to"
+                " [web] hosts\n",
+            )
+
+        app = web.Application(client_max_size=MAX_BODY, middlewares=[served_hosts])
         app.on_response_prepare.append(_secure)
         app.add_routes(
             [
@@ -235,11 +258,20 @@ class WebConsole:
         return refusal(result.code, result.message, result.may_have_executed)
 
     def refuse(
-        self, plc: str, tag: str, value: Any, code: str, message: str, *, peer: str | None
+        self,
+        plc: str,
+        tag: str,
+        value: Any,
+        code: str,
+        message: str,
+        *,
+        peer: str | None,
+        status: int | None = None,
     ) -> web.Response:
-        """A refusal decided here (token, body, too many): logged and audited as every other."""
+        """A refusal decided here (token, body, too many): logged and audited as every other;
+        ``status`` instead of the code's own (413 for a body too large)."""
         self.writes.refuse(SOURCE, None, plc, tag, value, code, message, peer=peer)
-        return refusal(code, message)
+        return refusal(code, message, status=status)
 
     # -- pages ----------------------------------------------------------------------------------
     async def _overview(self, request: web.Request) -> web.Response:

@@ -6,6 +6,8 @@ port = 8080                       # 0 = any free port (default 8080)
 host = "127.0.0.1"                # default: loopback only (the page names every PLC)
 write_token_env = "PLCSTACK_WEB_TOKEN"   # writes are off unless this variable is set, non-empty
 trend_seconds = 300               # how far back each tag's trend reaches (default 300)
+hosts = ["gateway01", "gateway01.plant.local"]   # names the console answers to besides
+                                  # localhost, IP addresses and this machine's own name
 ```
 
 The token itself never sits in the file: a config is copied, committed and mailed around; an
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,7 +31,9 @@ DEFAULT_PORT = 8080
 #: trend reach: one point per second at most, so this is also the ring's length per tag
 DEFAULT_TREND_SECONDS = 300
 MAX_TREND_SECONDS = 3600
-_KEYS = {"port", "host", "write_token_env", "trend_seconds"}
+_KEYS = {"port", "host", "write_token_env", "trend_seconds", "hosts"}
+#: a host name as a browser sends it in ``Host`` (letters, digits, dots, hyphens, underscores)
+_HOST_NAME = re.compile(r"[A-Za-z0-9_]([A-Za-z0-9_.-]*[A-Za-z0-9_])?")
 
 
 @dataclass(frozen=True)
@@ -38,6 +43,9 @@ class WebSettings:
     #: name of the environment variable holding the bearer token (None: writes are off)
     write_token_env: str | None = None
     trend_seconds: int = DEFAULT_TREND_SECONDS
+    #: more names the console answers to (``Host``), besides localhost, IP addresses, its own
+    #: ``host`` and this machine's name: a request for any other is refused (DNS rebinding)
+    hosts: tuple[str, ...] = ()
 
     def write_token(self) -> str | None:
         """The token from the environment now, or None when writes are off."""
@@ -70,7 +78,15 @@ def parse_web(table: Any) -> WebSettings:
             f"[web] trend_seconds must be a whole number from 10 to {MAX_TREND_SECONDS},"
             f" got {trend!r}"
         )
-    return WebSettings(host, port, env, trend)
+    hosts = table.get("hosts", [])
+    if not isinstance(hosts, list) or not all(
+        isinstance(h, str) and _HOST_NAME.fullmatch(h) for h in hosts
+    ):
+        raise ConfigError(
+            '[web] hosts must be a list of host names (e.g. ["gateway01",'
+            f' "gateway01.plant.local"]), got {hosts!r}'
+        )
+    return WebSettings(host, port, env, trend, tuple(h.lower() for h in hosts))
 
 
 def with_port(settings: WebSettings | None, port: int | None) -> WebSettings | None:
