@@ -160,7 +160,7 @@ def test_no_hint_for_silence_after_the_first_request() -> None:
 
 
 def hostport(sim: Simulator) -> str:
-    return f"{sim.host}:{sim.port}"  # type: ignore[attr-defined]
+    return f"{sim.host}:{sim.port}"
 
 
 async def failure_of(url: str, op: Callable[[object], Awaitable[object]]) -> PlcError:

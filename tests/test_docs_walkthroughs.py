@@ -50,6 +50,7 @@ DOCS = ROOT / "docs"
 #: asyncua clients, each a new interpreter) and scale-out (~3.5 s: two polls of 1 s each)
 WALKTHROUGHS = [
     pytest.param("gateway.md", 0, id="gateway"),
+    pytest.param("gateway.md", 1, id="gateway-e71"),
     pytest.param("north.md", 0, id="north-mqtt"),
     pytest.param("north.md", 1, id="north-sparkplug"),
     pytest.param("north.md", 2, id="north-influx"),

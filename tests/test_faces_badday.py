@@ -174,13 +174,14 @@ async def test_e71_writes_outside_the_allow_list_are_55h_and_the_audit_has_the_v
     plc = await e71_sim.start(memory)
     async with (
         plc,
-        polled(plc.url, 'd = "D0"') as poller,
+        polled(plc.url, 'd = "D0"', interval=30.0) as poller,  # one scan, at the start
         e71_faces(poller, writable="D100-101", read_previous=True) as (faces, executor, writes),
     ):
         face = faces[("tcp", Code.ASCII)]
         mine = await RawStream.open(face.host, face.port, E71ClientConnection(Code.ASCII))
+        await eventually(lambda: poller.stats["kiln1"].requests == 1, "the first scan")
         try:
-            requests = plc.requests
+            requests = plc.requests  # the requests the E71 received: none more for refusals
             denied, _ = await mine.ask(WriteWords(DeviceRef(Device.D, 101), (1, 2)))  # D102 not
             bits, _ = await mine.ask(WriteBits(DeviceRef(Device.Y, 0), (True,)))
             assert denied.end_code == bits.end_code == 0x55

@@ -8,9 +8,14 @@ from __future__ import annotations
 import asyncio
 import struct
 
+import pytest
+
+from plcstack.clients import connect
 from plcstack.codecs import fetchwrite as fw_codec
 from plcstack.codecs import s5lan as lan_codec
 from plcstack.codecs.mk import MkConnection
+from plcstack.errors import AddressError, PlcErrorResponse
+from plcstack.gateway.faces import FaceSettings, PlcFaces
 from plcstack.poll.engine import Poller, Quality
 from plcstack.sim import as511 as as511_sim
 from plcstack.sim import fetchwrite as fw_sim
@@ -139,3 +144,45 @@ async def test_values_reach_the_poller_and_faces_alike() -> None:
                 if sample.value == 0xBEEF:
                     assert sample.quality is Quality.GOOD
                     break
+
+
+async def test_faces_of_one_plc_each_with_its_own_allow_list() -> None:
+    memory = _patterned(lan_sim.default_memory())
+    async with (
+        await lan_sim.start(memory) as module,
+        polled(module.url, 'v = "DB1.DW0"') as poller,
+    ):
+        faces = PlcFaces(
+            "kiln1",
+            poller.client("kiln1"),
+            [
+                FaceSettings("s5lan", "127.0.0.1", 0, "kiln1", writable="DB10"),
+                FaceSettings("fetchwrite", "127.0.0.1", 0, "kiln1", mk=True),  # read-only
+            ],
+        )
+        async with faces:
+            lan, fw = faces.servers
+            async with connect(lan.url) as a, connect(fw.url) as b:
+                await a.write("DB10.DW1", [0x1111])
+                with pytest.raises(PlcErrorResponse) as refused:
+                    await b.write("DB10.DW2", [0x2222])
+                assert refused.value.code == 0x01
+                assert await b.read("DB10.DW1", 2) == [0x1111, 0x0A02]
+        assert faces.servers == []
+        assert memory.read_db_words(10, 1, 2) == [0x1111, 0x0A02]
+
+
+def test_face_settings_are_checked_before_anything_listens() -> None:
+    for bad, message in (
+        (dict(protocol="modbus"), "a face speaks"),
+        (dict(protocol="s5lan", mk=True), "FETCH/WRITE option"),
+        (dict(protocol="s5lan", transport="udp"), "options of the e71 face"),
+        (dict(protocol="s5lan", writable="D100"), "writable"),
+        (dict(protocol="e71", writable="DB10"), "writable"),
+        (dict(protocol="e71", max_connections=0), "at least 1"),
+    ):
+        with pytest.raises(AddressError, match=message):
+            FaceSettings(**{"host": "127.0.0.1", "port": 0, "plc": "p", **bad})  # type: ignore[arg-type]
+    assert FaceSettings("e71", "h", 1, "p", transport="udp", code="ascii").describe() == (
+        "e71 face (udp, ascii) of p"
+    )

@@ -21,6 +21,7 @@ from plcstack.clients.as511 import AS511Client
 from plcstack.errors import AddressError, PlcErrorResponse
 from plcstack.gateway.allow import WriteAllowList
 from plcstack.sim import as511 as sim_as511
+from plcstack.sim import e71 as sim_e71
 from plcstack.sim.base import Simulator
 from plcstack.sim.s5memory import Area, BlockType
 from plcstack.sim.s5store import ABSOLUTE, FAULT_CODES, FaultKind
@@ -279,6 +280,8 @@ async def test_gateway_needs_a_server_and_an_s5_plc() -> None:
         await gateway.start("as511+tcp://127.0.0.1:1")
     with pytest.raises(AddressError, match="needs an S5 PLC"):
         await gateway.start("e71+tcp://127.0.0.1:1", s5lan=LOOP)
+    with pytest.raises(AddressError, match="needs an E71 PLC"):
+        await gateway.start("s5lan://127.0.0.1:1", e71=LOOP)
 
 
 def _env() -> dict[str, str]:
@@ -332,3 +335,35 @@ def test_cli_gateway_usage_errors_exit_2(args: list[str], message: str) -> None:
     )
     assert proc.returncode == 2, proc.stderr
     assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+async def test_cli_gateway_serves_e71_faces_in_the_other_code_and_transport() -> None:
+    async with await sim_e71.start() as sim:  # binary, TCP
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "plcstack", "gateway", sim.url, "--e71", "0",
+            "--e71-udp", "127.0.0.1:0", "--e71-code", "ascii", "--writable", "D100-199",
+            "--duration", "20",
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(),
+        )  # fmt: skip
+        assert proc.stdout is not None
+        try:
+            tcp_line = (await asyncio.wait_for(proc.stdout.readline(), 20)).decode()
+            udp_line = (await asyncio.wait_for(proc.stdout.readline(), 5)).decode()
+            allow_line = (await asyncio.wait_for(proc.stdout.readline(), 5)).decode()
+            tcp = re.fullmatch(r"e71 listening on 127\.0\.0\.1:(\d+) \(TCP\)\n", tcp_line)
+            udp = re.fullmatch(r"e71 listening on 127\.0\.0\.1:(\d+) \(UDP\)\n", udp_line)
+            assert tcp and udp, (tcp_line, udp_line)
+            assert allow_line == "writable: D100-D199\n"
+            async with connect(f"e71+tcp://127.0.0.1:{tcp[1]}?code=ascii") as plc:
+                await plc.write("D100", [0x0BAD])
+                with pytest.raises(PlcErrorResponse) as refused:
+                    await plc.write("D200", [1])
+                assert refused.value.code == 0x55
+            async with connect(f"e71+udp://127.0.0.1:{udp[1]}?code=ascii") as plc:
+                assert await plc.read("D100", 2) == [0x0BAD, 0]
+        finally:
+            proc.terminate()
+            _, err = await asyncio.wait_for(proc.communicate(), 10)
+        assert proc.returncode == 0, err
+        assert sim.memory.read_words("D", 100, 1) == [0x0BAD]
+        assert "answered by the PLC 2; busy 0, expired 0, denied 1" in err.decode()

@@ -1,14 +1,16 @@
-"""plcstack gateway PLC-URL --s5lan HOST:PORT --fetchwrite HOST:PORT: a software S5-LAN module.
+"""plcstack gateway PLC-URL --s5lan HOST:PORT --fetchwrite HOST:PORT: native faces of one PLC.
 
 Serves S5-LAN-LINK and/or FETCH/WRITE clients on the network from an S5 CPU reached through its
 programming port (as511:///dev/ttyUSB0, or as511+tcp://HOST:PORT for a serial device server),
-an S5-LAN module (s5lan://HOST:PORT) or a FETCH/WRITE CP (fetchwrite://HOST:PORT). One request
-at a time on the PLC's connection; network requests wait in one bounded, fair queue, and a
-request that waits longer than --max-wait is answered with the protocol's timeout error, not
-executed.
+an S5-LAN module (s5lan://HOST:PORT) or a FETCH/WRITE CP (fetchwrite://HOST:PORT); or E71
+clients (--e71 TCP, --e71-udp UDP, --e71-code binary or ascii) from an E71 (e71+tcp://...),
+more of them than its eight connections. One request at a time on the PLC's connection; network
+requests wait in one bounded, fair queue, and a request that waits longer than --max-wait is
+answered with the protocol's timeout error, not executed.
 
 Safe by default: a bare port binds 127.0.0.1 only (give 0.0.0.0:PORT to serve the network), and
-nothing is writable until --writable names it, e.g. --writable "DB10-20, M" (plcstack docs gateway).
+nothing is writable until --writable names it, e.g. --writable "DB10-20, M" or "D100-199"
+(plcstack docs gateway).
 Prints one "... listening on HOST:PORT (TCP)" line per server once it accepts clients.
 Ctrl-C exits 130, SIGTERM 0 (and --duration 0 once it ran out); a start-up failure is one line
 on stderr with exit 2; a run that ends because the gateway failed exits 1 with one line saying
@@ -38,12 +40,14 @@ from plcstack.systemd.service import ServiceNotifier, notifying
 def register(subparsers: Any) -> None:
     parser = subparsers.add_parser(
         "gateway",
-        help="serve S5-LAN and FETCH/WRITE from an S5 PLC (AS511 port, S5-LAN module, CP)",
+        help="serve S5-LAN and FETCH/WRITE from an S5 PLC, or E71 faces of an E71",
         description=plain_text(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
-        "plc", help="as511:///dev/ttyUSB0, as511+tcp://HOST:PORT, s5lan://... or fetchwrite://..."
+        "plc",
+        help="as511:///dev/ttyUSB0, as511+tcp://HOST:PORT, s5lan://..., fetchwrite://... or "
+        "e71+tcp://...",
     )
     parser.add_argument(
         "--s5lan", metavar="[HOST:]PORT", help="serve S5-LAN-LINK here (host default 127.0.0.1)"
@@ -53,10 +57,23 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--mk", action="store_true", help="FETCH/WRITE inside the Tani MK header")
     parser.add_argument(
+        "--e71", metavar="[HOST:]PORT", help="serve E71 1E frames on TCP here (an E71 PLC)"
+    )
+    parser.add_argument(
+        "--e71-udp", metavar="[HOST:]PORT", help="serve E71 1E frames on UDP here (an E71 PLC)"
+    )
+    parser.add_argument(
+        "--e71-code",
+        choices=("binary", "ascii"),
+        default="binary",
+        help="the E71 faces' code, whatever the PLC's (default binary)",
+    )
+    parser.add_argument(
         "--writable",
         default="",
         metavar="LIST",
-        help='what network clients may write, e.g. "DB10-20, DX3, M, Q" (default: nothing)',
+        help='what network clients may write, e.g. "DB10-20, DX3, M, Q" or "D100-199, Y"'
+        " (default: nothing)",
     )
     parser.add_argument(
         "--cache-max-age",
@@ -111,8 +128,10 @@ def parse_endpoint(text: str | None, option: str) -> tuple[str, int] | None:
 async def run(args: argparse.Namespace) -> int:
     s5lan = parse_endpoint(args.s5lan, "--s5lan")
     fetchwrite = parse_endpoint(args.fetchwrite, "--fetchwrite")
-    if s5lan is None and fetchwrite is None:
-        raise UsageError("gateway: give --s5lan and/or --fetchwrite")
+    e71 = parse_endpoint(args.e71, "--e71")
+    e71_udp = parse_endpoint(args.e71_udp, "--e71-udp")
+    if s5lan is None and fetchwrite is None and e71 is None and e71_udp is None:
+        raise UsageError("gateway: give --s5lan and/or --fetchwrite (an E71: --e71, --e71-udp)")
     if args.duration is not None and not args.duration > 0:
         raise UsageError("--duration must be greater than 0")
     audit = Audit(AuditSettings(args.audit)) if args.audit else None
@@ -139,6 +158,9 @@ async def run(args: argparse.Namespace) -> int:
             s5lan=s5lan,
             fetchwrite=fetchwrite,
             mk=args.mk,
+            e71=e71,
+            e71_udp=e71_udp,
+            e71_code=args.e71_code,
             writable=args.writable,
             queue_size=args.queue_size,
             max_wait=args.max_wait,
@@ -157,15 +179,13 @@ async def run(args: argparse.Namespace) -> int:
     installed = install_stop_signals(stop)
     failure: str | None = None
     try:
-        listening: list[str] = []
-        if gw.s5lan is not None:
-            listening.append(f"s5lan listening on {gw.s5lan.host}:{gw.s5lan.port} (TCP)")
-        if gw.fetchwrite is not None:
-            fw = gw.fetchwrite
-            listening.append(f"fetchwrite listening on {fw.host}:{fw.port} (TCP)")
+        listening = [
+            f"{face.protocol} listening on {server.host}:{server.port} ({face.transport.upper()})"
+            for face, server in zip(gw.faces.settings, gw.servers, strict=True)
+        ]
         for line in listening:
             print(line, flush=True)
-        print(f"writable: {gw.store.writable}", flush=True)
+        print(f"writable: {gw.faces.settings[0].allow_list()}", flush=True)
         # under systemd: ready now that it listens
         status = f"gateway to {args.plc}: {'; '.join(listening)}"
         async with notifying(ServiceNotifier(Notifier.from_environment(), status=lambda: status)):
@@ -183,15 +203,25 @@ async def run(args: argparse.Namespace) -> int:
         await gw.aclose()
         if audit is not None:
             audit.close()
-        s = gw.stats
-        line = "AS511" if isinstance(gw.share.client, AS511Client) else "PLC"
-        print(
-            f"gateway: {s.reads} reads, {s.writes} writes; {line} {s.line_reads} reads, "
-            f"{s.line_writes} writes; cache hits {s.cache_hits}; busy {s.busy}, "
-            f"expired {s.expired}, denied {s.denied}, failed {s.failed}",
-            file=sys.stderr,
-        )
+        print(_summary(gw), file=sys.stderr)
     if failure is not None:
         print_error(f"gateway: {failure}")
         return 1
     return stop.exit_code()
+
+
+def _summary(gw: gateway.Gateway) -> str:
+    """The counts said on stderr at the end of a run."""
+    if gw.executor is not None:
+        c = gw.executor.counts
+        return (
+            f"gateway: {sum(c.values())} requests; answered by the PLC {c['ok']}; busy "
+            f"{c['busy']}, expired {c['expired']}, denied {c['denied']}, failed {c['failed']}"
+        )
+    s = gw.stats
+    line = "AS511" if isinstance(gw.share.client, AS511Client) else "PLC"
+    return (
+        f"gateway: {s.reads} reads, {s.writes} writes; {line} {s.line_reads} reads, "
+        f"{s.line_writes} writes; cache hits {s.cache_hits}; busy {s.busy}, "
+        f"expired {s.expired}, denied {s.denied}, failed {s.failed}"
+    )

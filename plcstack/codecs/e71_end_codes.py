@@ -18,7 +18,8 @@ END_CODES: Final[dict[int, str]] = {
     "for one message; fixed buffer data count wrong",
     0x54: "ASCII data from the partner could not be converted (non-hex characters)",
     0x55: "write to the CPU refused: CPU in RUN and write during RUN not enabled (or a "
-    "parameter/program write while in RUN)",
+    "parameter/program write while in RUN; a plcstack gateway refuses so a write outside its "
+    "writable list)",
     0x56: "wrong device specification (unknown device code)",
     0x57: "number of points exceeds the per-request limit or the device range, command length "
     "wrong, write data count does not match, or monitor without prior registration",
@@ -26,7 +27,8 @@ END_CODES: Final[dict[int, str]] = {
     "head not a multiple of 16 in a word-unit command",
     0x59: "extended file register access on an A1(N) CPU",
     0x5B: "E71 and CPU cannot communicate / the CPU cannot process the request",
-    0x60: "exchange between E71 and CPU exceeded the ACPU monitoring timer",
+    0x60: "exchange between E71 and CPU exceeded the ACPU monitoring timer (a plcstack gateway "
+    "answers so when the PLC behind it did not answer, or the request waited too long)",
 }
 
 ABNORMAL_CODES: Final[dict[int, str]] = {

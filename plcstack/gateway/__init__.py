@@ -1,10 +1,11 @@
-"""A software S5-LAN module: S5-LAN-LINK and FETCH/WRITE served from any S5 PLC.
+"""Native faces of one PLC: a software S5-LAN module, or more E71 connections.
 
 The hardware S5-LAN module is an AS511 gateway; so is this, and more: in front of one S5 PLC
 (its programming port ``as511:///dev/ttyUSB0`` or ``as511+tcp://device-server:port``, an
 S5-LAN module ``s5lan://``, a FETCH/WRITE CP ``fetchwrite://``), the same S5-LAN and
 FETCH/WRITE servers the simulators use, executing their requests on the PLC through
-:class:`~plcstack.gateway.store.ClientStore` instead of on a memory image::
+:class:`~plcstack.gateway.store.ClientStore` instead of on a memory image; in front of an E71
+(``e71+tcp://``, ``e71+udp://``), an E71 face in either code and on either transport::
 
     async with await plcstack.gateway.start(
         "as511:///dev/ttyUSB0", s5lan=("127.0.0.1", 5010), fetchwrite=("127.0.0.1", 5030),
@@ -14,54 +15,70 @@ FETCH/WRITE servers the simulators use, executing their requests on the PLC thro
 
 Binds 127.0.0.1 unless told otherwise; nothing is writable until ``writable`` names it. The
 same faces run beside the poller in ``plcstack poll`` (``[[gateway]]``), sharing the PLC's one
-connection with the scans.
+connection with the scans (:class:`~plcstack.gateway.faces.PlcFaces`).
 """
 
 from __future__ import annotations
 
 import asyncio
-from typing import Any
+from typing import Any, Literal
 
 from plcstack.clients import connect
 from plcstack.clients.base import Client
 from plcstack.clients.share import SharedConnection
 from plcstack.errors import AddressError
-from plcstack.gateway.allow import WriteAllowList
+from plcstack.gateway.allow import DeviceAllowList, WriteAllowList
+from plcstack.gateway.e71face import E71Executor
+from plcstack.gateway.faces import FaceSettings, PlcFaces
 from plcstack.gateway.record import WriteHook
 from plcstack.gateway.store import ClientStore, GatewayStats
 from plcstack.resource import AsyncResource
-from plcstack.sim import fetchwrite as fetchwrite_server
-from plcstack.sim import s5lan as s5lan_server
-from plcstack.sim.base import TcpSimulator
+from plcstack.sim.base import Simulator
+from plcstack.sim.fetchwrite import FetchWriteSimulator
+from plcstack.sim.s5lan import S5LanSimulator
 
-__all__ = ["ClientStore", "Gateway", "GatewayStats", "WriteAllowList", "start"]
+__all__ = [
+    "ClientStore",
+    "DeviceAllowList",
+    "E71Executor",
+    "FaceSettings",
+    "Gateway",
+    "GatewayStats",
+    "PlcFaces",
+    "WriteAllowList",
+    "start",
+]
 
 #: network connections the S5-LAN side accepts at once (the hardware module: 1)
 DEFAULT_S5LAN_CONNECTIONS = 8
 
+Endpoint = tuple[str, int]
+
 
 class Gateway(AsyncResource):
-    """A running gateway: ``store`` (cache, statistics), the queue of the PLC's connection
-    (``share``) and the servers in front of them. It owns its PLC client and closes it."""
+    """A running gateway: the faces of its PLC (``faces``: the queue of the PLC's connection,
+    each face's store or executor, the servers). It owns its PLC client and closes it."""
 
-    def __init__(
-        self,
-        store: ClientStore,
-        s5lan: s5lan_server.S5LanSimulator | None,
-        fetchwrite: fetchwrite_server.FetchWriteSimulator | None,
-    ) -> None:
-        self.store = store
-        self.share = store.share
-        self.s5lan = s5lan
-        self.fetchwrite = fetchwrite
+    def __init__(self, faces: PlcFaces) -> None:
+        self.faces = faces
+        self.share: SharedConnection = faces.share
+        servers = faces.servers
+        #: the S5-LAN and the FETCH/WRITE server, if it serves them
+        self.s5lan = next((s for s in servers if isinstance(s, S5LanSimulator)), None)
+        self.fetchwrite = next((s for s in servers if isinstance(s, FetchWriteSimulator)), None)
+        #: the S5 faces' store (None in front of an E71)
+        self.store = next((a for a in faces.answering if isinstance(a, ClientStore)), None)
+        #: the E71 faces' executor (None in front of an S5 PLC)
+        self.executor = next((a for a in faces.answering if isinstance(a, E71Executor)), None)
 
     @property
     def stats(self) -> GatewayStats:
-        return self.store.stats
+        """The S5 faces' counters (zeros in front of an E71: see ``executor.counts``)."""
+        return self.store.stats if self.store is not None else GatewayStats()
 
     @property
-    def servers(self) -> list[TcpSimulator]:
-        return [s for s in (self.s5lan, self.fetchwrite) if s is not None]
+    def servers(self) -> list[Simulator]:
+        return list(self.faces.servers)
 
     async def serve_forever(self) -> None:
         """Serve until cancelled, then close."""
@@ -71,19 +88,20 @@ class Gateway(AsyncResource):
             await self.aclose()
 
     async def aclose(self) -> None:
-        for server in self.servers:
-            await server.aclose()
-        await self.share.aclose()
+        await self.faces.aclose()
         await self.share.client.aclose()
 
 
 async def start(
     plc: str | Client,
     *,
-    s5lan: tuple[str, int] | None = None,
-    fetchwrite: tuple[str, int] | None = None,
+    s5lan: Endpoint | None = None,
+    fetchwrite: Endpoint | None = None,
     mk: bool = False,
-    writable: str | WriteAllowList = "",
+    e71: Endpoint | None = None,
+    e71_udp: Endpoint | None = None,
+    e71_code: Literal["binary", "ascii"] = "binary",
+    writable: str = "",
     queue_size: int = 32,
     max_wait: float = 2.0,
     cache_max_age: float | None = None,
@@ -92,45 +110,43 @@ async def start(
     on_write: WriteHook | None = None,
     **client_options: Any,
 ) -> Gateway:
-    """Start a gateway in front of ``plc`` (an S5 PLC's URL, or its client).
+    """Start a gateway in front of ``plc`` (a PLC's URL, or its client).
 
-    ``s5lan``/``fetchwrite``: (host, port) to serve on (port 0 = any free port; at least one);
-    ``mk`` wraps FETCH/WRITE in the Tani header; ``writable``: see
-    :class:`~plcstack.gateway.allow.WriteAllowList` (default: nothing); ``queue_size`` and
+    ``s5lan``/``fetchwrite`` (an S5 PLC) and ``e71``/``e71_udp`` (an E71): (host, port) to
+    serve on (port 0 = any free port; at least one); ``mk`` wraps FETCH/WRITE in the Tani
+    header, ``e71_code`` is the E71 face's code; ``writable``: the allow-list of the PLC's family
+    (:class:`WriteAllowList`, :class:`DeviceAllowList`; default: nothing); ``queue_size`` and
     ``max_wait``: see :class:`~plcstack.clients.share.SharedConnection`; ``cache_max_age``,
     ``read_previous`` and ``on_write`` (told of every write attempt): see :class:`ClientStore`.
     """
-    if s5lan is None and fetchwrite is None:
-        raise AddressError("a gateway needs --s5lan and/or --fetchwrite to serve on")
-    allow = writable if isinstance(writable, WriteAllowList) else WriteAllowList.parse(writable)
+    name = plc if isinstance(plc, str) else plc.name
+    faces: list[FaceSettings] = []
+    if s5lan is not None:
+        faces.append(
+            FaceSettings("s5lan", *s5lan, name, writable, max_connections=s5lan_connections)
+        )
+    if fetchwrite is not None:
+        faces.append(FaceSettings("fetchwrite", *fetchwrite, name, writable, mk=mk))
+    if e71 is not None:
+        faces.append(FaceSettings("e71", *e71, name, writable, code=e71_code))
+    if e71_udp is not None:
+        faces.append(FaceSettings("e71", *e71_udp, name, writable, transport="udp", code=e71_code))
+    if not faces:
+        raise AddressError("a gateway needs --s5lan and/or --fetchwrite (or --e71) to serve on")
     client = plc if isinstance(plc, Client) else connect(plc, **client_options)
     try:
-        share = SharedConnection(client, queue_size=queue_size, max_wait=max_wait)
-        store = ClientStore(
-            share,
-            writable=allow,
+        running = PlcFaces(
+            name,
+            client,
+            faces,
+            queue_size=queue_size,
+            max_wait=max_wait,
             cache_max_age=cache_max_age,
             read_previous=read_previous,
             on_write=on_write,
         )
-    except AddressError:
-        await client.aclose()
-        raise
-    await share.aopen()
-    lan = fw = None
-    try:
-        if s5lan is not None:
-            lan = await s5lan_server.start(
-                host=s5lan[0], port=s5lan[1], store=store, max_connections=s5lan_connections
-            )
-        if fetchwrite is not None:
-            fw = await fetchwrite_server.start(
-                host=fetchwrite[0], port=fetchwrite[1], store=store, mk=mk
-            )
+        await running.aopen()
     except BaseException:
-        if lan is not None:
-            await lan.aclose()
-        await share.aclose()
         await client.aclose()
         raise
-    return Gateway(store, lan, fw)
+    return Gateway(running)

@@ -155,6 +155,9 @@ class Simulator(AsyncResource):
 
     #: the URL a plcstack client uses to reach this simulator, e.g. ``e71+tcp://127.0.0.1:40001``
     url: str
+    #: the address it is bound to
+    host: str
+    port: int
 
     @abstractmethod
     async def aclose(self) -> None: ...

@@ -1,0 +1,202 @@
+"""The native faces of one PLC, on its one connection: what ``[[gateway]]`` and ``plcstack
+gateway`` start.
+
+Each face is one listening server in a protocol of the PLC's family (:class:`FaceSettings`):
+``s5lan`` and ``fetchwrite`` (optionally in the Tani MK header) in front of an S5 PLC (an AS511
+port, an S5-LAN module, a FETCH/WRITE CP), ``e71`` (TCP or UDP, binary or ASCII) in front of an
+E71. :class:`PlcFaces` runs all the faces of one PLC on one
+:class:`~plcstack.clients.share.SharedConnection` of the PLC's client (the poller's, or the
+gateway command's own): one bounded fair queue beside the scans, one write allow-list per face,
+every write told to ``on_write``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Final, Literal
+
+from plcstack.clients.base import Client
+from plcstack.clients.e71 import E71Client
+from plcstack.clients.share import DEFAULT_MAX_WAIT, DEFAULT_QUEUE_SIZE, SharedConnection
+from plcstack.errors import AddressError
+from plcstack.gateway import e71server
+from plcstack.gateway.allow import DeviceAllowList, WriteAllowList
+from plcstack.gateway.e71face import E71Executor
+from plcstack.gateway.record import WriteHook
+from plcstack.gateway.s5backends import backend_for
+from plcstack.gateway.store import ClientStore
+from plcstack.resource import AsyncResource
+from plcstack.sim import fetchwrite as fetchwrite_server
+from plcstack.sim import s5lan as s5lan_server
+from plcstack.sim.base import DEFAULT_MAX_CONNECTIONS, Simulator
+
+__all__ = ["PROTOCOLS", "FaceSettings", "PlcFaces"]
+
+log = logging.getLogger("plcstack.gateway")
+
+Protocol = Literal["s5lan", "fetchwrite", "e71"]
+#: the protocols a face speaks
+PROTOCOLS: Final[tuple[Protocol, ...]] = ("s5lan", "fetchwrite", "e71")
+#: clients at once of each face, unless its settings say otherwise
+DEFAULT_CONNECTIONS: Final[dict[Protocol, int]] = {
+    "s5lan": 8,
+    "fetchwrite": DEFAULT_MAX_CONNECTIONS,
+    "e71": e71server.DEFAULT_MAX_CONNECTIONS,
+}
+
+
+@dataclass(frozen=True)
+class FaceSettings:
+    """One native face: its protocol, where it listens, the PLC it stands in front of, what its
+    clients may write (the allow-list grammar of the PLC's family; nothing by default), and the
+    protocol's options (``mk`` for FETCH/WRITE, ``transport`` and ``code`` for E71)."""
+
+    protocol: Protocol
+    host: str
+    port: int
+    plc: str
+    writable: str = ""
+    mk: bool = False
+    transport: Literal["tcp", "udp"] = "tcp"
+    code: Literal["binary", "ascii"] = "binary"
+    #: clients at once (None: the protocol's default)
+    max_connections: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.protocol not in PROTOCOLS:
+            raise AddressError(f"a face speaks {', '.join(PROTOCOLS)}, not {self.protocol!r}")
+        if self.mk and self.protocol != "fetchwrite":
+            raise AddressError("mk (the Tani MK header) is a FETCH/WRITE option")
+        if self.protocol != "e71" and (self.transport != "tcp" or self.code != "binary"):
+            raise AddressError("transport and code are options of the e71 face")
+        if self.max_connections is not None and self.max_connections < 1:
+            raise AddressError(f"max_connections {self.max_connections} must be at least 1")
+        self.allow_list()  # a bad writable is an error before anything listens
+
+    @property
+    def connections(self) -> int:
+        return self.max_connections or DEFAULT_CONNECTIONS[self.protocol]
+
+    def allow_list(self) -> WriteAllowList | DeviceAllowList:
+        """``writable`` parsed in the grammar of the face's PLC family."""
+        if self.protocol == "e71":
+            return DeviceAllowList.parse(self.writable)
+        return WriteAllowList.parse(self.writable)
+
+    def describe(self) -> str:
+        """``s5lan face of kiln1`` (``e71 face (udp, ascii) of press2``)."""
+        extra = ""
+        if self.protocol == "e71":
+            extra = f" ({self.transport}, {self.code})"
+        elif self.mk:
+            extra = " (MK)"
+        return f"{self.protocol} face{extra} of {self.plc}"
+
+
+class PlcFaces(AsyncResource):
+    """Every face of one PLC on one shared connection of ``client``; ``aopen`` starts them
+    (a port taken is an ``OSError`` naming nothing started), ``aclose`` stops them. It never
+    closes ``client``: that belongs to the poller (or to whoever made it)."""
+
+    def __init__(
+        self,
+        name: str,
+        client: Client,
+        faces: Sequence[FaceSettings],
+        *,
+        queue_size: int = DEFAULT_QUEUE_SIZE,
+        max_wait: float = DEFAULT_MAX_WAIT,
+        cache_max_age: float | None = None,
+        read_previous: bool = False,
+        on_write: WriteHook | None = None,
+    ) -> None:
+        if not faces:
+            raise AddressError(f"{name}: no face to serve")
+        self.name = name
+        self.settings = tuple(faces)
+        self.share = SharedConnection(client, name=name, queue_size=queue_size, max_wait=max_wait)
+        if any(f.protocol != "e71" for f in faces):
+            backend_for(client)  # an S5 face needs an S5 PLC: AddressError naming it
+        if any(f.protocol == "e71" for f in faces) and not isinstance(client, E71Client):
+            raise AddressError(f"{name}: an E71 face needs an E71 PLC (e71+tcp: or e71+udp:)")
+        self.cache_max_age = cache_max_age
+        self.read_previous = read_previous
+        self.on_write = on_write
+        #: each face's store (S5) or executor (E71): its allow-list, its write record; faces
+        #: of one family with the same allow-list share one (an S5 read cache serves both)
+        shared: dict[tuple[bool, str], ClientStore | E71Executor] = {}
+        self.answering: list[ClientStore | E71Executor] = []
+        for face in faces:
+            key = (face.protocol == "e71", str(face.allow_list()))
+            if key not in shared:
+                shared[key] = self._answering(face)
+            self.answering.append(shared[key])
+        #: the running servers, in the order of ``faces``
+        self.servers: list[Simulator] = []
+
+    def _answering(self, face: FaceSettings) -> ClientStore | E71Executor:
+        allow = face.allow_list()
+        if isinstance(allow, DeviceAllowList):
+            return E71Executor(
+                self.share,
+                writable=allow,
+                on_write=self.on_write,
+                read_previous=self.read_previous,
+            )
+        return ClientStore(
+            self.share,
+            writable=allow,
+            cache_max_age=self.cache_max_age,
+            read_previous=self.read_previous,
+            on_write=self.on_write,
+        )
+
+    async def aopen(self) -> None:
+        await self.share.aopen()
+        try:
+            for face, answering in zip(self.settings, self.answering, strict=True):
+                server = await _start(face, answering)
+                self.servers.append(server)
+                log.info(
+                    "%s listening on %s (%s); %d clients at once; writable: %s",
+                    face.describe(),
+                    server.url,
+                    face.transport.upper(),
+                    face.connections,
+                    face.allow_list(),
+                )
+        except BaseException:
+            await self.aclose()
+            raise
+
+    async def aclose(self) -> None:
+        servers, self.servers = self.servers, []
+        for server in servers:
+            await server.aclose()
+        await self.share.aclose()
+
+
+async def _start(face: FaceSettings, answering: ClientStore | E71Executor) -> Simulator:
+    """The server of one face, answering from its store or executor."""
+    if isinstance(answering, E71Executor):
+        return await e71server.start(
+            answering,
+            host=face.host,
+            port=face.port,
+            transport=face.transport,
+            code=face.code,
+            max_connections=face.connections,
+        )
+    if face.protocol == "s5lan":
+        return await s5lan_server.start(
+            host=face.host, port=face.port, store=answering, max_connections=face.connections
+        )
+    return await fetchwrite_server.start(
+        host=face.host,
+        port=face.port,
+        store=answering,
+        mk=face.mk,
+        max_connections=face.connections,
+    )
