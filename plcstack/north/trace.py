@@ -1,0 +1,113 @@
+"""``[trace]``: the flight recorder of a running poller, as a north-side sink.
+
+```toml
+[trace]
+ring = 64            # frames kept per PLC, in memory (default 64)
+dir = "traces"       # where a PLC's frames are written when it goes offline, relative to
+                     # this file (default "traces")
+interval = "1h"      # at most one such file per PLC in this time (default one hour)
+```
+
+Every PLC's connection records its last ``ring`` frames (:class:`~plcstack.wire.ring.FrameRing`,
+what it costs is in ``benchmarks/RESULTS.md``). As a sink the recorder sees every scan and
+decides reachability by the one rule of the north side (:class:`~plcstack.north.layout.
+Reachability`): when a PLC goes offline its frames are written to ``dir`` as pcapng, at most once
+per PLC per ``interval``, and the log line names the file. :meth:`TraceSink.capture` gives a
+PLC's frames on request (the REST route ``GET /api/plcs/NAME/capture.pcapng``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from plcstack.clients.base import Client
+from plcstack.errors import ConfigError, check_keys
+from plcstack.north.history.settings import parse_duration
+from plcstack.north.layout import Reachability
+from plcstack.poll.samples import Scan
+from plcstack.wire.ring import DEFAULT_RING, MIN_INTERVAL, FlightRecorder
+
+__all__ = ["MAX_RING", "TraceSettings", "TraceSink", "parse_trace"]
+
+#: the most frames a ring may keep: a PLC's last few seconds at any poll rate, not a capture
+#: (``--pcap`` is for that); 4096 frames of up to 4 KiB bound a ring at 16 MiB
+MAX_RING = 4096
+_KEYS = ("ring", "dir", "interval")
+
+
+@dataclass(frozen=True)
+class TraceSettings:
+    #: frames kept per PLC
+    ring: int = DEFAULT_RING
+    #: where the automatic captures go (a relative path was taken relative to the TOML file)
+    directory: Path = Path("traces")
+    #: seconds between two automatic captures of one PLC
+    interval: float = MIN_INTERVAL
+
+
+def parse_trace(table: Mapping[str, Any], *, base: Path | None = None) -> TraceSettings:
+    """The ``[trace]`` table; ``base`` = the TOML file's directory, for a relative ``dir``."""
+    check_keys(table, _KEYS, "trace")
+    ring = table.get("ring", DEFAULT_RING)
+    if isinstance(ring, bool) or not isinstance(ring, int) or not 1 <= ring <= MAX_RING:
+        raise ConfigError(
+            f"[trace] ring must be a number of frames from 1 to {MAX_RING}, not {ring!r}",
+            key="trace.ring",
+        )
+    folder = table.get("dir", "traces")
+    if not isinstance(folder, str) or not folder.strip():
+        raise ConfigError(f"[trace] dir must be a folder name, not {folder!r}", key="trace.dir")
+    directory = Path(folder)
+    if base is not None and not directory.is_absolute():
+        directory = base / directory
+    interval = (
+        parse_duration("[trace] interval", table["interval"])
+        if "interval" in table
+        else MIN_INTERVAL
+    )
+    return TraceSettings(ring, directory, interval)
+
+
+class PlcConnections(Protocol):
+    """What the recorder needs of a poller: its PLCs and each one's client."""
+
+    @property
+    def plcs(self) -> list[str]: ...
+
+    def client(self, plc: str) -> Client: ...
+
+
+class TraceSink:
+    """The flight recorder of one poller: rings on its PLCs' connections, a capture file when
+    one goes offline. A sink (``submit(scans)``) of the north side."""
+
+    def __init__(self, settings: TraceSettings) -> None:
+        self.settings = settings
+        self.recorder = FlightRecorder(
+            size=settings.ring, directory=settings.directory, min_interval=settings.interval
+        )
+        self._reachability = Reachability()
+        #: files written because a PLC went offline
+        self.written: list[Path] = []
+
+    def name(self) -> str:
+        return "trace"
+
+    def attach(self, poller: PlcConnections) -> None:
+        """Record every PLC's connection of ``poller`` from its next connect on."""
+        for plc in poller.plcs:
+            poller.client(plc).transport.record_to(self.recorder.ring(plc))
+
+    def submit(self, scans: Sequence[Scan]) -> None:
+        for scan in scans:
+            if self._reachability.update(scan) is False:
+                path = self.recorder.offline(scan.plc)
+                if path is not None:
+                    self.written.append(path)
+
+    def capture(self, plc: str) -> bytes:
+        """``plc``'s last frames as pcapng; ``KeyError`` for a PLC the recorder does not know."""
+        return self.recorder.capture(plc)

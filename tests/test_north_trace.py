@@ -1,0 +1,89 @@
+"""``[trace]``: the flight recorder of a running poller: the table, the rings on each PLC's
+connection, the capture file when a PLC goes offline (once), the capture on request."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from pathlib import Path
+
+import pytest
+
+from plcstack.errors import ConfigError
+from plcstack.north.trace import TraceSettings, TraceSink, parse_trace
+from plcstack.poll.config import DEFAULT_GROUP, PlcConfig, PollConfig, TagConfig
+from plcstack.poll.engine import Poller
+from plcstack.sim import e71 as e71_sim
+from plcstack.wire.streams import conversations, exchanges
+from tests.aio_helpers import eventually
+
+
+def test_the_table_and_its_checks(tmp_path: Path) -> None:
+    assert parse_trace({}) == TraceSettings()
+    settings = parse_trace({"ring": 16, "dir": "t", "interval": "10m"}, base=tmp_path)
+    assert settings == TraceSettings(16, tmp_path / "t", 600.0)
+    cases: list[tuple[dict[str, object], str]] = [
+        ({"ring": 0}, "from 1 to 4096"),
+        ({"ring": True}, "from 1 to 4096"),
+        ({"ring": 5000}, "from 1 to 4096"),
+        ({"dir": ""}, "folder name"),
+        ({"interval": "soon"}, "duration"),
+        ({"rings": 4}, "unknown key(s) rings (did you mean ring?)"),
+    ]
+    for table, message in cases:
+        with pytest.raises(ConfigError) as raised:
+            parse_trace(table)
+        assert message in str(raised.value)
+
+
+async def test_an_offline_plc_leaves_its_last_frames_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    sim = await e71_sim.start()
+    sim.memory.write_words("D", 100, [7])
+    trace = TraceSink(TraceSettings(ring=8, directory=tmp_path / "traces"))
+    config = PollConfig(
+        plcs=(
+            PlcConfig(
+                name="press",
+                url=sim.url,
+                timeout=0.3,
+                connect_timeout=0.3,
+                backoff_max=0.2,
+                tags=(TagConfig(name="strokes", address="D100"),),
+            ),
+        ),
+        groups={DEFAULT_GROUP: 0.05},
+    )
+    poller = Poller(config)
+    trace.attach(poller)
+    seen: list[object] = []
+
+    async def consume() -> None:
+        async for batch in poller.scans():
+            trace.submit(batch)
+            seen.extend(s.value for scan in batch for s in scan.samples)
+
+    await poller.start()
+    consumer = asyncio.create_task(consume())
+    try:
+        await eventually(lambda: seen.count(7) >= 3, "three scans of the PLC")
+        # what the REST route hands out: the ring as pcapng, the last exchanges of the poll
+        (conversation,) = conversations(trace.capture("press"))
+        assert all(e.answers == (bytes.fromhex("8100 0700"),) for e in exchanges(conversation))
+        await sim.aclose()  # the PLC goes away: offline, once
+        await eventually(lambda: trace.written, "the capture of the PLC gone offline")
+        await asyncio.sleep(0.5)  # further failed scans: no second file
+    finally:
+        consumer.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await consumer
+        await poller.aclose()
+    (path,) = trace.written
+    assert path.parent == tmp_path / "traces" and path.suffix == ".pcapng"
+    assert any(e.request for c in conversations(path.read_bytes()) for e in exchanges(c))
+    said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert sum("press went offline: its last" in m for m in said) == 1
+    with pytest.raises(KeyError):
+        trace.capture("oven")
