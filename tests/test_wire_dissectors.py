@@ -589,3 +589,37 @@ def test_fuzzed_frames_are_reported_malformed_never_a_crash_or_a_hang(
     assert out.count("not expected from the") > 20
     frames = len(list(read_capture(path.read_bytes())))
     assert out.count("\nFrame ") + out.startswith("Frame ") == frames  # every frame dissected
+
+
+def test_as511_steps_merged_and_split_over_packets(tmp_path: Path, plugins: Path) -> None:
+    """As a serial device server delivers it: consecutive steps of one side in one packet
+    (DLE ACK + STX, DLE ACK + the parameter frame), and the data frame cut in two between
+    the DLE of a doubled 10h and its second byte: the same 17 steps, the frame whole."""
+    _, steps = AS511[1]  # B.11.2: DB_READ of DB5 DW0..DW3, a data frame with doubled DLEs
+    merged: list[tuple[bool, bytes]] = []
+    for from_pg, text in steps:
+        data = hexbytes(text)
+        if merged and merged[-1][0] == from_pg:
+            merged[-1] = (from_pg, merged[-1][1] + data)
+        else:
+            merged.append((from_pg, data))
+    chunks: list[tuple[bool, bytes]] = []
+    for from_pg, data in merged:
+        cut = data.find(b"\x10\x10")  # inside the data frame: 00 10 | 10 AB ...
+        if not from_pg and len(data) > 8 and cut > 0:
+            chunks += [(from_pg, data[: cut + 1]), (from_pg, data[cut + 1 :])]
+        else:
+            chunks.append((from_pg, data))
+    build = CaptureBuilder()
+    build.conversation("tcp", 5020, chunks)
+    path = tmp_path / "as511-merged.pcapng"
+    path.write_bytes(build.bytes())
+    rows = tshark_fields(
+        path, ["as511.step", "as511.data", "_ws.expert.message"], display_filter="as511",
+        home=plugins,
+    )  # fmt: skip
+    steps_seen = [step for row in rows for step in row[0].split(",") if step]
+    # the data frame's two parts are both step 12 (the first "continues")
+    assert steps_seen == [*map(str, range(1, 13)), "12", *map(str, range(13, 18))]
+    assert [row[1] for row in rows if row[1]] == ["12340010abcd1010"]
+    assert not any("not expected" in row[2] for row in rows), rows
