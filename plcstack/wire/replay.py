@@ -187,7 +187,7 @@ class ReplaySimulator(Simulator):
                         if match.kind == "mismatch" or match.exchange is None:
                             return
                         await replayer.delay(match)
-                        writer.write(b"".join(match.exchange.answers))
+                        writer.write(b"".join(match.answers))
                         await writer.drain()
                         pending = pending[match.taken :]
             except (TimeoutError, ConnectionError, OSError, asyncio.CancelledError):
@@ -215,17 +215,18 @@ class ReplaySimulator(Simulator):
                 match = replayer.decide(data, peer_address(addr) or "?")
                 if match.kind != "answer" or match.exchange is None:
                     return
-                exchange = match.exchange
-                if replayer.timing and exchange.delay > 0:
-                    task = asyncio.get_running_loop().create_task(self._later(exchange, addr))
+                delay = match.exchange.delay
+                if replayer.timing and delay > 0:
+                    later = self._later(delay, match.answers, addr)
+                    task = asyncio.get_running_loop().create_task(later)
                     owner._tasks.add(task)
                     task.add_done_callback(owner._tasks.discard)
                 else:
-                    self._send(exchange.answers, addr)
+                    self._send(match.answers, addr)
 
-            async def _later(self, exchange: Any, addr: Any) -> None:
-                await asyncio.sleep(exchange.delay)
-                self._send(exchange.answers, addr)
+            async def _later(self, delay: float, answers: tuple[bytes, ...], addr: Any) -> None:
+                await asyncio.sleep(delay)
+                self._send(answers, addr)
 
             def _send(self, answers: tuple[bytes, ...], addr: Any) -> None:
                 if self.transport is not None and not self.transport.is_closing():
@@ -280,7 +281,7 @@ class _PtyLine:
                     return
                 await self.replayer.delay(match)
                 self._pending = self._pending[match.taken :]
-                self._write(b"".join(match.exchange.answers))
+                self._write(b"".join(match.answers))
         finally:
             self._busy = False
 
