@@ -431,3 +431,31 @@ def test_a_resumed_recording_starts_each_open_stream_again() -> None:
     packets = [p for p in read_capture(blocks) if p.linktype == LINKTYPE_RAW]
     syn = parse_ip(packets[0].data)
     assert syn is not None and syn.flags == 0x02 and syn.seq == stream.local_seq - 1
+
+
+async def test_an_as511_line_recorded_at_the_plc_says_sent_for_the_programming_device(
+    tmp_path: Path,
+) -> None:
+    """The pty simulator recorded from its side: each frame's exported-PDU direction still
+    names the programming device as the sender of "sent" (so one dissector reads both ends'
+    captures), while the packet flags (and Wireshark's frame.p2p_dir, taken from them) say
+    inbound/outbound as the PLC saw them."""
+    path = tmp_path / "ag.pcapng"
+    capture = PcapngCapture(path).open()
+    try:
+        with capturing(capture):
+            ag = await as511_sim.start_pty()
+        try:
+            async with plcstack.connect(ag.url) as pg:
+                await pg.read("DB1.DW0", 1)
+        finally:
+            await ag.aclose()
+    finally:
+        capture.close()
+    rows = tshark_fields(
+        path, ["exported_pdu.p2p_dir", "frame.packet_flags_direction", "exported_pdu.exported_pdu"]
+    )
+    # the PG's STX: sent by the programming device, inbound at the PLC
+    assert rows[0][0] == "0" and rows[0][1] in ("1", "0x00000001") and rows[0][2] == "02"
+    # the PLC's DLE ACK: received by the programming device, outbound at the PLC
+    assert rows[1][0] == "1" and rows[1][1] in ("2", "0x00000002")
