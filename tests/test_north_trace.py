@@ -6,8 +6,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
+import re
+import sys
 from pathlib import Path
 
+import aiohttp
 import pytest
 
 from plcstack.errors import ConfigError
@@ -17,6 +21,9 @@ from plcstack.poll.engine import Poller
 from plcstack.sim import e71 as e71_sim
 from plcstack.wire.streams import conversations, exchanges
 from tests.aio_helpers import eventually
+from tests.web_helpers import running_console
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_the_table_and_its_checks(tmp_path: Path) -> None:
@@ -85,5 +92,74 @@ async def test_an_offline_plc_leaves_its_last_frames_once(
     assert any(e.request for c in conversations(path.read_bytes()) for e in exchanges(c))
     said = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert sum("press went offline: its last" in m for m in said) == 1
-    with pytest.raises(KeyError):
-        trace.capture("oven")
+    assert conversations(trace.capture("oven")) == []  # no frames: a file without packets
+
+
+async def test_the_console_hands_out_a_plcs_capture(tmp_path: Path) -> None:
+    """GET /api/plcs/NAME/capture.pcapng: the ring of that PLC as a pcapng attachment; an
+    unknown PLC is 404 unknown_plc, a console without [trace] 404 no_trace."""
+    async with running_console(trace=tmp_path / "traces") as console:
+        await eventually(lambda: console.poller.stats["press1"].requests >= 3, "three scans")
+        async with aiohttp.ClientSession() as session:
+            url = f"{console.base}/api/plcs/press1/capture.pcapng"
+            async with session.get(url) as response:
+                assert response.status == 200
+                assert response.headers["Content-Type"] == "application/x-pcapng"
+                assert 'filename="press1-' in response.headers["Content-Disposition"]
+                body = await response.read()
+            async with session.get(f"{console.base}/api/plcs/nosuch/capture.pcapng") as gone:
+                assert gone.status == 404 and (await gone.json())["error"] == "unknown_plc"
+    (conversation,) = conversations(body)
+    assert exchanges(conversation) and all(e.answers for e in exchanges(conversation)[:-1])
+    async with running_console() as console, aiohttp.ClientSession() as session:
+        url = f"{console.base}/api/plcs/press1/capture.pcapng"
+        async with session.get(url) as response:
+            assert response.status == 404 and (await response.json())["error"] == "no_trace"
+
+
+async def test_poll_with_a_trace_table_writes_the_offline_plcs_frames_beside_its_config(
+    tmp_path: Path,
+) -> None:
+    sim = await e71_sim.start()
+    config = tmp_path / "plant.toml"
+    config.write_text(
+        f"""
+[poll]
+interval = 0.05
+timeout = 0.3
+connect_timeout = 0.3
+backoff_max = 0.2
+
+[trace]
+ring = 8
+
+[[plc]]
+name = "press"
+url = "{sim.url}"
+[plc.tags]
+strokes = {{ address = "D100", type = "uint16" }}
+""",
+        encoding="utf-8",
+    )
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "plcstack", "poll", str(config), "--duration", "2.5",
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=env,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        await asyncio.wait_for(proc.stdout.readline(), 30)  # polling: a first sample
+        await sim.aclose()  # the PLC goes away while it is polled
+        _, err = await asyncio.wait_for(proc.communicate(), 30)
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+    assert proc.returncode == 0, err.decode()
+    (written,) = (tmp_path / "traces").iterdir()  # beside the config, once
+    assert written.name.startswith("press-") and written.suffix == ".pcapng"
+    said = err.decode()
+    assert re.search(
+        rf"press went offline: its last \d+ frames are in {re.escape(str(written))}", said
+    ), said
+    assert conversations(written.read_bytes())

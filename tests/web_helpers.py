@@ -22,6 +22,7 @@ from plcstack.north.audit import AuditSettings
 from plcstack.north.config import NorthConfig
 from plcstack.north.history import HistorySettings
 from plcstack.north.pipeline import North
+from plcstack.north.trace import TraceSettings
 from plcstack.north.web.server import WebConsole
 from plcstack.north.web.settings import WebSettings
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
@@ -98,10 +99,11 @@ async def running_console(
     audit: Path | None = None,
     history: Path | None = None,
     more_plcs: int = 0,
+    trace: Path | None = None,
 ) -> AsyncIterator[Console]:
     """The simulator, the poller, the north side with the console on a free port (and the
     embedded history in the file ``history``, if given; ``more_plcs`` PLCs besides the three,
-    see :func:`fleet`)."""
+    see :func:`fleet`; the flight recorder writing into ``trace``, if given)."""
     memory = MelsecMemory()
     memory.write_words("D", 100, [1500])
     memory.write_words("D", 200, [7])
@@ -129,6 +131,7 @@ async def running_console(
             web=settings,
             audit=None if audit is None else AuditSettings(str(audit)),
             history=None if history is None else HistorySettings(path=history),
+            trace=None if trace is None else TraceSettings(directory=trace),
         )
         async with Poller(config) as poller, North(poller, north_config) as north:
             consumer = asyncio.create_task(north.run())

@@ -29,6 +29,7 @@ from plcstack.north.modbus.config import ModbusSettings, parse_modbus
 from plcstack.north.mqtt import MqttSettings, parse_mqtt
 from plcstack.north.opcua_config import OpcUaConfig, parse_opcua_config
 from plcstack.north.rbe import PASS_ALL, parse_report
+from plcstack.north.trace import TraceSettings, parse_trace
 from plcstack.north.web.settings import WebSettings, parse_web
 from plcstack.poll.config import PollConfig
 from plcstack.poll.config import load_config as load_poll_config
@@ -39,7 +40,7 @@ _T = TypeVar("_T")
 
 #: top-level TOML tables that belong to the north side
 NORTH_TABLES = (
-    "mqtt", "metrics", "report", "influx", "opcua", "web", "modbus", "audit", "history",
+    "mqtt", "metrics", "report", "influx", "opcua", "web", "modbus", "audit", "history", "trace",
 )  # fmt: skip
 
 
@@ -62,6 +63,8 @@ class NorthConfig:
     audit: AuditSettings | None = None
     #: ``[history]``: the embedded history (plcstack.north.history)
     history: HistorySettings | None = None
+    #: ``[trace]``: the flight recorder (plcstack.north.trace)
+    trace: TraceSettings | None = None
 
     @property
     def reports_by_exception(self) -> bool:
@@ -86,6 +89,7 @@ def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> North
         modbus=_parsed(tables, "modbus", parse_modbus),
         audit=_parsed(tables, "audit", lambda t: parse_audit(t, base=base)),
         history=_parsed(tables, "history", lambda t: parse_history(t, base=base)),
+        trace=_parsed(tables, "trace", lambda t: parse_trace(t, base=base)),
     )
 
 

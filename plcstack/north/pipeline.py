@@ -36,6 +36,7 @@ from plcstack.north.metrics import MetricsServer, PlcstackCollector
 from plcstack.north.mqtt import MqttSink
 from plcstack.north.rbe import ReportByException
 from plcstack.north.supervise import Supervisor
+from plcstack.north.trace import TraceSink
 from plcstack.north.writes import WritePath
 from plcstack.output import float32_tags
 from plcstack.poll.samples import Scan, ScanSink
@@ -140,6 +141,13 @@ class North:
         if config.history is not None:
             self.history = History(config.history, supervisor=self.supervisor)
             self.sinks.append(self.history)
+        #: the flight recorder: rings on the PLCs' connections, a sink that sees them go
+        #: offline, and what the web console's capture download reads
+        self.trace: TraceSink | None = None
+        if config.trace is not None:
+            self.trace = TraceSink(config.trace)
+            self.trace.attach(poller)
+            self.sinks.append(self.trace)
         self.web: Any = None
         if config.web is not None:  # the web console: a sink, and a server (the web extra)
             from plcstack.north.web.server import WebConsole
@@ -150,6 +158,7 @@ class North:
                 writes=self.writes,
                 history=self.history,
                 reachable=self.reachability.get,
+                trace=self.trace,
             )
             self.sinks.append(self.web)
         for sink in self.sinks:

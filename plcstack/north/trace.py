@@ -84,6 +84,9 @@ class TraceSink:
     """The flight recorder of one poller: rings on its PLCs' connections, a capture file when
     one goes offline. A sink (``submit(scans)``) of the north side."""
 
+    #: how logs, metrics and ``/healthz`` name it
+    name = "flight recorder"
+
     def __init__(self, settings: TraceSettings) -> None:
         self.settings = settings
         self.recorder = FlightRecorder(
@@ -92,9 +95,6 @@ class TraceSink:
         self._reachability = Reachability()
         #: files written because a PLC went offline
         self.written: list[Path] = []
-
-    def name(self) -> str:
-        return "trace"
 
     def attach(self, poller: PlcConnections) -> None:
         """Record every PLC's connection of ``poller`` from its next connect on."""
@@ -109,5 +109,5 @@ class TraceSink:
                     self.written.append(path)
 
     def capture(self, plc: str) -> bytes:
-        """``plc``'s last frames as pcapng; ``KeyError`` for a PLC the recorder does not know."""
-        return self.recorder.capture(plc)
+        """``plc``'s last frames as pcapng (a file without packets before its first)."""
+        return self.recorder.ring(plc).pcapng()

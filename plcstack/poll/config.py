@@ -109,7 +109,7 @@ MAX_BATCH_WAIT = 1.0
 DEFAULT_MAX_GAP = 8
 #: top-level tables read by north-side servers from the same file (plcstack.north)
 NORTH_SECTIONS = (
-    "opcua", "mqtt", "metrics", "report", "influx", "web", "modbus", "audit", "history",
+    "opcua", "mqtt", "metrics", "report", "influx", "web", "modbus", "audit", "history", "trace",
 )  # fmt: skip
 
 

@@ -72,6 +72,7 @@ _STATUS = {
     "unknown_plc": 404,
     "unknown_tag": 404,
     "no_history": 404,
+    "no_trace": 404,
     "busy": 503,
     "plc_error": 502,
 }

@@ -30,7 +30,9 @@ from aiohttp.http_exceptions import HttpProcessingError
 from plcstack.errors import ConfigError
 from plcstack.north.history import History
 from plcstack.north.supervise import Supervised, Supervisor
+from plcstack.north.trace import TraceSink
 from plcstack.north.web.api import MAX_PENDING_WRITES, peer_of, refusal, routes
+from plcstack.north.web.capture import capture_routes
 from plcstack.north.web.events import EventClient, EventHub
 from plcstack.north.web.history import history_routes
 from plcstack.north.web.hosts import HostCheck
@@ -88,10 +90,13 @@ class WebConsole:
         writes: WritePath | None = None,
         history: History | None = None,
         reachable: Callable[[str], bool | None] | None = None,
+        trace: TraceSink | None = None,
     ) -> None:
         self.poller = poller
         #: the embedded history the trends and ``/api/history`` read (None: not configured)
         self.history = history
+        #: the flight recorder the capture download reads (None: no ``[trace]``)
+        self.trace = trace
         #: the run's one write path (North passes its own, which audits)
         self.writes = writes or WritePath(poller if hasattr(poller, "write_tag") else None)
         self.settings = settings or WebSettings()
@@ -156,6 +161,7 @@ class WebConsole:
                 web.get("/static/{name}", self._file),
                 *routes(self),
                 *history_routes(self),
+                *capture_routes(self),
             ]
         )
         runner = web.AppRunner(
