@@ -374,3 +374,40 @@ async def test_a_trend_reaches_back_over_a_restart_of_the_process(
                 proc.terminate()
                 await asyncio.wait_for(proc.wait(), 20)
         await sim.aclose()
+
+
+async def test_a_plcs_page_downloads_its_last_frames_with_a_trace(
+    browser: Any, tmp_path: Path
+) -> None:
+    """With [trace], each PLC's page links its flight recorder's frames; the download is a
+    pcapng file of that PLC's connection. Without [trace] there is no link (the module's
+    console has none)."""
+    from plcstack.wire.streams import conversations, exchanges
+
+    async with running_console(trace=tmp_path / "traces") as running:
+        context = await browser.new_context(accept_downloads=True)
+        try:
+            page = await context.new_page()
+            await page.goto(f"{running.base}/plc/press1")
+            link = page.locator("p.capture a[download]")
+            await link.wait_for(timeout=WAIT_MS)
+            async with page.expect_download(timeout=WAIT_MS) as info:
+                await link.click()
+            download = await info.value
+            saved = tmp_path / download.suggested_filename
+            await download.save_as(saved)
+            # the hostile PLC's name is quoted in its link, never markup
+            await page.goto(f"{running.base}/plc/{HOSTILE.replace('/', '%2F')}")
+            href = await page.locator("p.capture a").get_attribute("href")
+        finally:
+            await context.close()
+    assert saved.name.startswith("press1-") and saved.suffix == ".pcapng"
+    (conversation,) = conversations(saved.read_bytes())
+    assert exchanges(conversation)
+    assert href == "/api/plcs/%3Cscript%3Ewindow.pwned%3D1%3C%2Fscript%3E/capture.pcapng"
+
+
+async def test_without_a_trace_a_plcs_page_has_no_capture_link(page: Any, console: Console) -> None:
+    await page.goto(f"{console.base}/plc/press1")
+    await page.locator("table#tags").wait_for(timeout=WAIT_MS)
+    assert await page.locator("p.capture").count() == 0

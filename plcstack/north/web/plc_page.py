@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 from typing import Any
+from urllib.parse import quote
 
 from plcstack.north.web.pages import (
     PLC_HEAD_NO_ERROR,
@@ -150,6 +151,7 @@ def plc_page(
     trend_seconds: int,
     writes_enabled: bool,
     history: bool,
+    capture: bool = False,
 ) -> str:
     """``/plc/NAME`` (see the module's docstring)."""
     config = state.plcs[plc]
@@ -180,7 +182,13 @@ def plc_page(
         f'<table id="plcs"><thead>{PLC_HEAD_NO_ERROR}</thead><tbody>'
         f"{plc_rows_html(plc_rows, link=False, error=False)}</tbody></table>\n"
         f'<p class="url">{esc(config.url)}</p>'
-        f'<section id="trends">{_ranges(history, trend_seconds)}{charts}</section>\n'
+        + (
+            f'<p class="capture"><a href="/api/plcs/{esc(quote(plc, safe=""))}/capture.pcapng"'
+            " download>the last frames of its connection (pcapng, for Wireshark)</a></p>"
+            if capture
+            else ""
+        )
+        + f'<section id="trends">{_ranges(history, trend_seconds)}{charts}</section>\n'
         f"{token}"
         '<table id="tags"><thead><tr><th>tag</th><th>value</th><th>changed</th>'
         "<th>address</th><th>error</th><th>write</th></tr></thead><tbody>"

@@ -321,6 +321,7 @@ class WebConsole:
                 trend_seconds=self.settings.trend_seconds,
                 writes_enabled=self.token is not None,
                 history=self.history is not None,
+                capture=self.trace is not None,
             )
         )
 
