@@ -214,13 +214,33 @@ def _rows(fields: list[str], rows: list[list[str]]) -> list[dict[str, str]]:
 
 
 @pytest.fixture(scope="module")
-def e71_rows(golden: Path, plugins: Path) -> dict[str, list[dict[str, str]]]:
-    """The E71 rows of each of the four conversations (TCP/UDP x binary/ASCII)."""
-    rows = tshark_fields(
-        golden, E71_FIELDS, display_filter="melsec1e", options=["-2"], home=plugins
+def golden_rows(golden: Path, plugins: Path) -> list[dict[str, str]]:
+    """Every dissected packet of the golden capture with the fields of every test: one
+    tshark run (two passes, so requests know their answers) for all of them."""
+    fields = list(
+        dict.fromkeys(
+            [*E71_FIELDS, *S5LAN_FIELDS, *H1_FIELDS, *AS511_FIELDS, "tcp.srcport", "tcp.dstport"]
+        )
     )
+    rows = tshark_fields(
+        golden,
+        fields,
+        display_filter="melsec1e || s5lan || h1 || tanimk || as511",
+        options=["-2"],
+        home=plugins,
+    )
+    return _rows(fields, rows)
+
+
+def _of(rows: list[dict[str, str]], field: str) -> list[dict[str, str]]:
+    return [row for row in rows if row[field]]
+
+
+@pytest.fixture(scope="module")
+def e71_rows(golden_rows: list[dict[str, str]]) -> dict[str, list[dict[str, str]]]:
+    """The E71 rows of each of the four conversations (TCP/UDP x binary/ASCII)."""
     by: dict[tuple[str, str], list[dict[str, str]]] = {}
-    for row in _rows(E71_FIELDS, rows):
+    for row in _of(golden_rows, "melsec1e.code"):
         by.setdefault((row["tcp.stream"], row["udp.stream"]), []).append(row)
     conversations = list(by.values())
     assert len(conversations) == 4
@@ -303,11 +323,10 @@ S5LAN_FIELDS = [
 ]
 
 
-def test_the_s5lan_golden_vectors_decode_as_the_spec_says(golden: Path, plugins: Path) -> None:
-    rows = _rows(
-        S5LAN_FIELDS,
-        tshark_fields(golden, S5LAN_FIELDS, display_filter="s5lan", options=["-2"], home=plugins),
-    )
+def test_the_s5lan_golden_vectors_decode_as_the_spec_says(
+    golden_rows: list[dict[str, str]],
+) -> None:
+    rows = _of(golden_rows, "s5lan.plc_type")
     req1, resp1, req2, resp2, req3, resp3 = rows[:6]
     common = {"s5lan.plc_type": "0x35", "s5lan.header_length": "26"}
     # A.10-1: read DB10 from DW5, 20 words, UserCode 11 22 33 44; every word low byte first
@@ -342,32 +361,31 @@ def test_the_s5lan_golden_vectors_decode_as_the_spec_says(golden: Path, plugins:
     assert "unknown error -1" in errs[-1]["_ws.col.Info"]
 
 
+H1_FIELDS = [
+    "frame.number",
+    "tcp.dstport",
+    "tcp.srcport",
+    "h1.opcode",
+    "h1.org",
+    "h1.dbnr",
+    "h1.dwnr",
+    "h1.dlen",
+    "h1.resvalue",
+    "tanimk.length",
+    "tanimk.seq",
+    "tanimk.more",
+    "tanimk.life_ack",
+    "tanimk.message_length",
+    "tanimk.telegrams",
+    "tanimk.request_in",
+    "_ws.col.Info",
+]
+
+
 def test_fetchwrite_raw_and_in_the_mk_header_reach_the_sinec_h1_dissector(
-    golden: Path, plugins: Path
+    golden_rows: list[dict[str, str]],
 ) -> None:
-    fields = [
-        "frame.number",
-        "tcp.dstport",
-        "tcp.srcport",
-        "h1.opcode",
-        "h1.org",
-        "h1.dbnr",
-        "h1.dwnr",
-        "h1.dlen",
-        "h1.resvalue",
-        "tanimk.length",
-        "tanimk.seq",
-        "tanimk.more",
-        "tanimk.life_ack",
-        "tanimk.message_length",
-        "tanimk.telegrams",
-        "tanimk.request_in",
-        "_ws.col.Info",
-    ]
-    rows = _rows(
-        fields,
-        tshark_fields(golden, fields, display_filter="h1 || tanimk", options=["-2"], home=plugins),
-    )
+    rows = [r for r in golden_rows if r["h1.opcode"] or r["tanimk.length"]]
     raw = [r for r in rows if "2000" in (r["tcp.dstport"], r["tcp.srcport"])]
     mk = [r for r in rows if "5030" in (r["tcp.dstport"], r["tcp.srcport"])]
     # C.10-1..3 raw: FETCH DB10 DW5 x20, WRITE MB100 x4, FETCH DB99 -> error 02
@@ -421,13 +439,13 @@ AS511_FIELDS = [
 
 @pytest.mark.parametrize("transport", ["serial", "tcp"])
 def test_the_as511_golden_dialogues_decode_step_by_step(
-    golden: Path, plugins: Path, transport: str
+    golden_rows: list[dict[str, str]], transport: str
 ) -> None:
-    where = "frame.interface_id == 1" if transport == "serial" else "tcp.port == 5020"
-    rows = _rows(
-        AS511_FIELDS,
-        tshark_fields(golden, AS511_FIELDS, display_filter=f"as511 && {where}", home=plugins),
-    )
+    rows = [
+        r
+        for r in _of(golden_rows, "as511.direction")
+        if (r["frame.interface_id"] == "1") == (transport == "serial")
+    ]
     # B.11.1: the 17 steps of B.4, one packet each, in order, directions alternating as B.4
     steps = [r["as511.step"] for r in rows[:17]]
     assert steps == [str(n) for n in range(1, 18)]
