@@ -78,6 +78,9 @@ def test_wheel_ships_types_that_mypy_strict_sees(tmp_path: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     assert "plcstack/py.typed" in names
     assert "plcstack/values/__init__.py" in names
+    # the Lua dissectors `plcstack wireshark` writes (package data in a folder of their own)
+    lua = ("common", "melsec1e", "s5lan", "as511", "tanimk")
+    assert {f"plcstack/wire/lua/{name}.lua" for name in lua} <= set(names)
 
     env_dir = tmp_path / "venv"
     venv.EnvBuilder(with_pip=True, system_site_packages=False).create(env_dir)
