@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import signal
 import sys
 import time
@@ -703,3 +704,28 @@ async def test_every_opcua_write_attempt_is_audited_with_the_sessions_login(
     operator, anonymous = local_address(plant.operator), local_address(plant.anonymous)
     assert operator != anonymous
     assert [r["peer"] for r in lines] == [operator, anonymous, operator]
+
+
+async def test_a_second_clients_refused_write_is_said_again(
+    plant: Plant, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before: the repeat suppression keyed on (source, PLC, tag), so a second client refused
+    the same tag was only at DEBUG; now each client (address and login) is said once."""
+    writes = plant.server.writes
+    plant.server.writes = WritePath(plant.poller)
+    try:
+        async with Client(plant.server.url) as second:
+            clients = (plant.anonymous, second, plant.anonymous, second)
+            with caplog.at_level(logging.DEBUG, "plcstack.north.writes"):
+                for client in clients:
+                    with pytest.raises(UaStatusCodeError):
+                        await plant.node(client, "press1", "strokes").write_value(
+                            ua.DataValue(ua.Variant(9, ua.VariantType.UInt16))
+                        )
+            addresses = [local_address(plant.anonymous), local_address(second)]
+    finally:
+        plant.server.writes = writes
+    refused = [r for r in caplog.records if "refused (unauthorized)" in r.getMessage()]
+    assert [r.levelno for r in refused] == [logging.WARNING] * 2 + [logging.DEBUG] * 2
+    for record, address in zip(refused[:2], addresses, strict=True):
+        assert record.getMessage().endswith(f"(client {address})")

@@ -21,7 +21,8 @@ publisher) and does, in this order:
 5. the audit line (:mod:`plcstack.north.audit`), written and flushed before it returns, so
    before the caller answers its client;
 6. the log: a refused or failed write is one WARNING (the first of a run of equal refusals of
-   one tag from one source; the repeats at DEBUG), a confirmed one is INFO.
+   one tag to one client: the same source, peer and user; the repeats at DEBUG), a confirmed
+   one is INFO. A second client, or another login, refused the same tag is said again.
 
 Result codes (the words MQTT write responses carry in ``error``; other sides map them onto their
 own statuses): ``ok``, ``bad_request``, ``unknown_plc``, ``unknown_tag``, ``not_writable``,
@@ -104,7 +105,8 @@ class WritePath:
         self.latest: dict[tuple[str, str], Any] = {}
         self.ok = 0
         self.refused = 0
-        self._last_code: dict[tuple[str, str, str], str] = {}
+        #: (source, peer, user, plc, tag) -> the code of its latest refusal (repeats at DEBUG)
+        self._last_code: dict[tuple[str, str | None, str | None, str, str], str] = {}
 
     def observe(self, scans: Iterable[Any]) -> None:
         """Note the polled values of a batch of scans (the audit's ``previous``); a no-op
@@ -257,7 +259,8 @@ class WritePath:
         who = f"{source}" + (f" user {user}" if user else "")
         # the client's address last, after the message: the wording before it stays as it was
         client = f" (client {peer})" if peer else ""
-        key = (source, plc, tag)
+        # who refused what: another client (peer) or login refused the same tag is a new line
+        key = (source, peer, user, plc, tag)
         if result.ok:
             self.ok += 1
             self._last_code.pop(key, None)
