@@ -14,7 +14,7 @@ from array import array
 from typing import Any
 
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 from plcstack.north.history.blocks import (
@@ -154,6 +154,43 @@ def test_a_segment_round_trip() -> None:
     assert points[3][4] == ["a", float("inf")]
 
 
+def test_a_second_of_words_in_the_journal_costs_eleven_bytes_a_point() -> None:
+    n = 10_000
+    sids = array("I", range(n))
+    times = array("q", [1_700_000_000_000 + i % 1000 for i in range(n)])
+    numbers = array("d", [float(i % 30000) for i in range(n)])
+    data = encode_segment(sids, times, bytearray([2] * n), numbers, [])
+    assert (len(data) - 22) / n == 11  # 2 (series) + 4 (time) + 1 (kind) + 4 (float32)
+    assert decode_segment(data)[1234] == (1234, 1_700_000_000_234, 2, 1234.0, None)
+
+
+@given(
+    points=st.lists(
+        st.tuples(
+            st.integers(0, 2**32 - 1),
+            st.integers(-(2**50), 2**50),
+            st.sampled_from([BAD, 1, 2, 3, OTHER]),
+            st.floats(allow_nan=False) | st.floats(width=32, allow_nan=False),
+        ),
+        max_size=50,
+    )
+)
+def test_any_segment_decodes_to_what_was_encoded(
+    points: list[tuple[int, int, int, float]],
+) -> None:
+    others = [f"v{i}" for i, p in enumerate(points) if p[2] == OTHER]
+    data = encode_segment(
+        array("I", [p[0] for p in points]),
+        array("q", [p[1] for p in points]),
+        bytearray(p[2] for p in points),
+        array("d", [p[3] for p in points]),
+        others,
+    )
+    decoded = decode_segment(data)
+    assert [d[:4] for d in decoded] == points
+    assert [d[4] for d in decoded if d[2] == OTHER] == others
+
+
 # -- downsampling --------------------------------------------------------------------------------
 def test_few_points_come_back_as_they_are() -> None:
     sampler = Downsampler(0, 10_000, 10)
@@ -167,6 +204,8 @@ def test_few_points_come_back_as_they_are() -> None:
     limit=st.integers(4, 200),
     chunk=st.integers(1, 500),
 )
+# every bucket with a gap besides its extremes: the extremes must still all be there
+@example(values=[None, 0.0, None, None, 0.0, 1.0, None, 0.0, -1.0], limit=7, chunk=1)
 def test_downsampling_keeps_every_peak_and_the_limit(
     values: list[float | None], limit: int, chunk: int
 ) -> None:

@@ -53,7 +53,8 @@ _EXACT = 1 << 53
 
 _VERSION = 1
 _HEAD = struct.Struct("<BBBxII")  # version, time code, value code, pad, points, bad points
-_SEG_HEAD = struct.Struct("<BIqI")  # version, points, base time (ms), JSON bytes
+#: version, column codes (series, times, numbers), points, base time (ms), JSON bytes
+_SEG_HEAD = struct.Struct("<BBBBIqI")
 _FIRST = struct.Struct("<q")
 
 #: time columns: array type codes by code byte
@@ -298,17 +299,27 @@ def _decode_values(
 def encode_segment(
     sids: array[int], times: array[int], kinds: bytearray, numbers: array[float], others: list[Any]
 ) -> bytes:
-    """One second's points of every tag, as the journal keeps them until the next checkpoint."""
+    """One second's points of every tag, as the journal keeps them until the next checkpoint:
+    each column in the narrowest width that holds it (series ids in 2 bytes below 65,536,
+    times as milliseconds from the first in 4, numbers as float32 when all of them are one: a
+    second of 16-bit words or REALs costs 11 bytes a point)."""
     n = len(sids)
     base = times[0] if n else 0
     text = json.dumps(_json_values(others), separators=(",", ":"), allow_nan=False).encode()
-    offsets = array("q", (t - base for t in times))
+    offsets = [t - base for t in times]
+    sid_code = "H" if not n or max(sids) < 65536 else "I"
+    fits = not n or (min(offsets) >= -(1 << 31) and max(offsets) < (1 << 31))
+    offset_code = "i" if fits else "q"
+    narrow = array("f", numbers)
+    number_code = "f" if array("d", narrow).tobytes() == numbers.tobytes() else "d"
     return (
-        _SEG_HEAD.pack(_VERSION, n, base, len(text))
-        + sids.tobytes()
-        + offsets.tobytes()
+        _SEG_HEAD.pack(
+            _VERSION, ord(sid_code), ord(offset_code), ord(number_code), n, base, len(text)
+        )
+        + array(sid_code, sids).tobytes()
+        + array(offset_code, offsets).tobytes()
         + bytes(kinds)
-        + numbers.tobytes()
+        + (narrow if number_code == "f" else numbers).tobytes()
         + text
     )
 
@@ -316,29 +327,45 @@ def encode_segment(
 def decode_segment(data: bytes) -> list[tuple[int, int, int, float, Any]]:
     """``(sid, ms, kind, number, value)`` of each point of a segment (value: for OTHER)."""
     try:
-        version, n, base, text_size = _SEG_HEAD.unpack_from(data)
+        version, sid_code, offset_code, number_code, n, base, text_size = _SEG_HEAD.unpack_from(
+            data
+        )
         if version != _VERSION:
             raise BlockError(f"journal format {version}, this version reads {_VERSION}")
+        codes = chr(sid_code), chr(offset_code), chr(number_code)
+        if codes[0] not in "HI" or codes[1] not in "iq" or codes[2] not in "fd":
+            raise BlockError(f"a damaged journal segment: column codes {codes}")
         offset = _SEG_HEAD.size
-        sids, offsets, numbers = array("I"), array("q"), array("d")
-        sids.frombytes(data[offset : offset + 4 * n])
-        offset += 4 * n
-        offsets.frombytes(data[offset : offset + 8 * n])
-        offset += 8 * n
+        columns = []
+        for code in codes[:2]:
+            column = array(code)
+            size = column.itemsize * n
+            column.frombytes(data[offset : offset + size])
+            columns.append(column)
+            offset += size
+        sids, offsets = columns
         kinds = data[offset : offset + n]
         offset += n
-        numbers.frombytes(data[offset : offset + 8 * n])
-        offset += 8 * n
+        numbers = array(codes[2])
+        numbers.frombytes(data[offset : offset + numbers.itemsize * n])
+        offset += numbers.itemsize * n
         others = _from_json(json.loads(data[offset : offset + text_size]))
         offset += text_size
     except (struct.error, ValueError, UnicodeDecodeError, TypeError, KeyError) as exc:
         if isinstance(exc, BlockError):
             raise
         raise BlockError(f"a damaged journal segment: {exc}") from None
-    if offset != len(data) or len(kinds) != n or not isinstance(others, list):
+    if (
+        offset != len(data)
+        or len(kinds) != n
+        or len(sids) != n
+        or len(offsets) != n
+        or len(numbers) != n
+        or not isinstance(others, list)
+    ):
         raise BlockError(f"a damaged journal segment: {len(data)} bytes for {n} points")
     rest = iter(others)
-    points = []
+    points: list[tuple[int, int, int, float, Any]] = []
     for sid, off, kind, number in zip(sids, offsets, kinds, numbers, strict=True):
         value = next(rest, None) if kind == OTHER else None
         points.append((sid, base + off, kind, number, value))

@@ -145,28 +145,50 @@ class Downsampler:
             if any(b[0] < a[0] for a, b in itertools.pairwise(raw)):
                 raw.sort(key=lambda p: p[0])  # blocks that overlap (a clock set back)
             return out + raw
-        chosen = []
-        for b in sorted(self._buckets):
-            lo_t, lo, hi_t, hi, gap_t, gap = self._buckets[b]
-            points = {}
-            if lo_t is not None:
-                points[lo_t] = lo
-                points.setdefault(hi_t, hi)
-            if gap_t is not None:
-                points.setdefault(gap_t, gap)
-            chosen.append(points)
-        # two points a bucket fit; a bucket that also has a gap takes a third while room is left,
-        # else keeps its gap and its largest value
-        room = self.limit - len(out) - sum(min(2, len(p)) for p in chosen)
-        for points in chosen:
-            if len(points) == 3:
-                if room > 0:
-                    room -= 1
-                else:
-                    lo_t = next(iter(points))
-                    del points[lo_t]
-            out += sorted(points.items())
+        buckets = [self._buckets[b] for b in sorted(self._buckets)]
+        room = self.limit - len(out)
+        # two points a bucket fit; buckets with a gap take a third: while that is too many,
+        # neighbours are merged (their extremes and first gap kept), so every peak and a gap
+        # of every stretch stay, at half the resolution
+        while len(buckets) > 1 and sum(len(_points(b)) for b in buckets) > room:
+            buckets = [
+                _merged(buckets[i], buckets[i + 1]) if i + 1 < len(buckets) else buckets[i]
+                for i in range(0, len(buckets), 2)
+            ]
+        for bucket in buckets:
+            out += sorted(_points(bucket).items())
         return out
+
+
+def _points(bucket: list[Any]) -> dict[int, Any]:
+    """A bucket's points by time: its minimum, maximum and first gap (each once)."""
+    lo_t, lo, hi_t, hi, gap_t, gap = bucket
+    points: dict[int, Any] = {}
+    if lo_t is not None:
+        points[lo_t] = lo
+        points.setdefault(hi_t, hi)
+    if gap_t is not None:
+        points.setdefault(gap_t, gap)
+    return points
+
+
+def _merged(a: list[Any], b: list[Any]) -> list[Any]:
+    """Two neighbouring buckets as one: the smaller minimum, the larger maximum (or, for values
+    without order, the first and the last), the first gap."""
+    if a[0] is None:
+        lo_t, lo = b[0], b[1]
+    elif b[0] is None or not (isinstance(a[1], _NUMBERS) and isinstance(b[1], _NUMBERS)):
+        lo_t, lo = a[0], a[1]
+    else:
+        lo_t, lo = (b[0], b[1]) if b[1] < a[1] else (a[0], a[1])
+    if b[2] is None:
+        hi_t, hi = a[2], a[3]
+    elif a[2] is None or not (isinstance(a[3], _NUMBERS) and isinstance(b[3], _NUMBERS)):
+        hi_t, hi = b[2], b[3]
+    else:
+        hi_t, hi = (b[2], b[3]) if b[3] > a[3] else (a[2], a[3])
+    gap_t, gap = (a[4], a[5]) if a[4] is not None else (b[4], b[5])
+    return [lo_t, lo, hi_t, hi, gap_t, gap]
 
 
 def _all_numbers(values: list[Any]) -> bool:
