@@ -5,6 +5,7 @@ its size at 1000 PLCs, and the overview's event stream (no tags)."""
 from __future__ import annotations
 
 import asyncio
+import json
 from typing import Any
 
 import pytest
@@ -165,6 +166,27 @@ async def drain(client: Any) -> list[bytes]:
         except TimeoutError:
             return names
         names.append(data.split(b"\n", 1)[0])
+
+
+def test_the_overview_stream_carries_the_rows_it_shows() -> None:
+    state = fleet(3, tags=2)
+    rows = [{"name": f"line{i:04d}", "n": 0} for i in range(3)]
+    hub = EventHub(state, lambda plc: rows, plcs_every=0.5)
+
+    async def scenario() -> list[Any]:
+        client = hub.connect(None, overview=True, names=["line0001", "line0002"])
+        assert client is not None
+        snapshot = await client.next()
+        for row in rows:
+            row["n"] = 1  # every row changes
+        hub.push()
+        await client.next()  # the snapshot's counts
+        pushed = await client.next()
+        return [json.loads(data.split(b"data: ")[1]) for data in (snapshot, pushed) if data]
+
+    snapshot, pushed = asyncio.run(scenario())
+    assert [r["name"] for r in snapshot] == ["line0001", "line0002"]
+    assert [r["name"] for r in pushed] == ["line0001", "line0002"]
 
 
 def test_the_overview_stream_carries_no_tags() -> None:

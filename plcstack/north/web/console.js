@@ -137,6 +137,7 @@
         fresh.push(tr);
       }
       tbody.replaceChildren(...fresh);
+      openStream(); // the rows of these PLCs from now on
       onCounts(answer.counts);
       showPager(answer, params);
       const url = "/?" + params.toString();
@@ -472,6 +473,27 @@
     }
   }
 
+  // -- the stream: an overview asks for the rows it shows, a PLC's page for that PLC ------------
+  let events = null;
+  function openStream() {
+    if (events) events.close();
+    const live = document.getElementById("live");
+    let url = "/events?plc=" + encodeURIComponent(scope);
+    if (view === "overview") {
+      const names = [...plcRows.keys()]; // none shown: "&show=" alone, no rows
+      url = "/events?view=overview" + (names.length
+        ? names.map((n) => "&show=" + encodeURIComponent(n)).join("") : "&show=");
+    }
+    events = new EventSource(url);
+    events.addEventListener("open", () => { live.textContent = "live"; live.className = "live on"; });
+    events.addEventListener("error", () => {
+      live.textContent = "reconnecting"; live.className = "live off";
+    });
+    events.addEventListener("tags", (e) => { onTags(JSON.parse(e.data)); });
+    events.addEventListener("plcs", (e) => { onPlcs(JSON.parse(e.data)); });
+    events.addEventListener("counts", (e) => { onCounts(JSON.parse(e.data)); });
+  }
+
   // -- start ------------------------------------------------------------------------------------
   tickTimes();
   setInterval(() => { tickTimes(); for (const c of charts) c.draw(); }, 1000);
@@ -482,15 +504,5 @@
     setupRanges();
     setupWrites();
   }
-  const live = document.getElementById("live");
-  const url = view === "overview" ? "/events?view=overview"
-    : "/events?plc=" + encodeURIComponent(scope);
-  const events = new EventSource(url);
-  events.addEventListener("open", () => { live.textContent = "live"; live.className = "live on"; });
-  events.addEventListener("error", () => {
-    live.textContent = "reconnecting"; live.className = "live off";
-  });
-  events.addEventListener("tags", (e) => { onTags(JSON.parse(e.data)); });
-  events.addEventListener("plcs", (e) => { onPlcs(JSON.parse(e.data)); });
-  events.addEventListener("counts", (e) => { onCounts(JSON.parse(e.data)); });
+  openStream();
 })();

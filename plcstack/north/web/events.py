@@ -14,8 +14,9 @@ dropped (its connection aborted), never buffered without limit. At most :data:`M
 streams at once; more get 503.
 
 Three views: ``/events`` (every PLC and every tag, for scripts), ``/events?plc=NAME`` (one
-PLC's page) and ``/events?view=overview`` (the overview page: PLC rows and the counts only, so
-a browser on the overview of a thousand PLCs is not sent ten thousand tags a second).
+PLC's page) and ``/events?view=overview[&show=NAME...]`` (the overview page: the rows of the
+PLCs it shows and the counts, so a browser on a page of 50 of a thousand PLCs is sent neither
+ten thousand tags a second nor a thousand rows every two seconds).
 
 Event format (``data`` is JSON)::
 
@@ -68,12 +69,19 @@ class EventClient:
     """One browser's stream: a bounded queue of encoded events."""
 
     def __init__(
-        self, plc: str | None, limit: int = QUEUE_LIMIT, *, overview: bool = False
+        self,
+        plc: str | None,
+        limit: int = QUEUE_LIMIT,
+        *,
+        overview: bool = False,
+        names: frozenset[str] | None = None,
     ) -> None:
         #: the PLC whose page this is, None for every PLC
         self.plc = plc
         #: the overview page's stream: PLC rows and counts, no tags
         self.overview = overview
+        #: the PLCs whose rows the overview shows (None: all)
+        self.names = names
         self.limit = limit
         self.dropped = False
         self.closed = False
@@ -144,14 +152,21 @@ class EventHub:
         self._last_plcs: dict[str, dict[str, Any]] = {}
         self._last_counts: dict[str, int] = {}
 
-    def connect(self, plc: str | None, *, overview: bool = False) -> EventClient | None:
-        """A new client with its snapshot queued; None when :attr:`max_clients` are connected."""
+    def connect(
+        self, plc: str | None, *, overview: bool = False, names: Iterable[str] | None = None
+    ) -> EventClient | None:
+        """A new client with its snapshot queued; None when :attr:`max_clients` are connected.
+        ``names``: the PLCs an overview shows (their rows only, not a thousand)."""
         if len(self.clients) >= self.max_clients:
             return None
-        client = EventClient(None if overview else plc, overview=overview)
+        shown = frozenset(names) if overview and names is not None else None
+        client = EventClient(None if overview else plc, overview=overview, names=shown)
         # the PLC rows first: a page shows a PLC's error once, so it needs to know it before
         # the tags come
-        client.offer(sse("plcs", self.plc_rows(client.plc)))
+        rows = self.plc_rows(client.plc)
+        if shown is not None:
+            rows = [r for r in rows if r["name"] in shown]
+        client.offer(sse("plcs", rows))
         if overview:
             client.offer(sse("counts", self.state.counts()))
         else:
@@ -221,6 +236,11 @@ class EventHub:
         by_plc: dict[str, list[Any]] | None = None
         encoded: dict[str, bytes] = {}
         for client in clients:
+            if client.names is not None:  # the overview's rows: its page's PLCs only
+                rows = [item for item in items if plc_of(item) in client.names]
+                if rows:
+                    client.offer(sse(event, encode(rows)))
+                continue
             if client.plc is None:
                 if everything is None:
                     everything = sse(event, encode(items))

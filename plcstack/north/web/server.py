@@ -77,6 +77,8 @@ _HEADERS = {
 }
 _STATIC = {"console.js": "text/javascript", "console.css": "text/css"}
 _compact = functools.partial(json.dumps, separators=(",", ":"))
+#: PLC rows an overview's stream may ask for (a page shows 50)
+MAX_SHOWN = 200
 
 
 class WebConsole:
@@ -339,7 +341,9 @@ class WebConsole:
         plc = request.query.get("plc") or None
         if plc is not None and plc not in self.state.plcs:
             return refusal("unknown_plc", f"no PLC named {plc!r} here")
-        client = self.hub.connect(plc, overview=request.query.get("view") == "overview")
+        overview = request.query.get("view") == "overview"
+        shown = request.query.getall("show", [])[:MAX_SHOWN] if "show" in request.query else None
+        client = self.hub.connect(plc, overview=overview, names=shown)
         if client is None:
             raise web.HTTPServiceUnavailable(text="too many browsers connected\n")
         transport = request.transport
