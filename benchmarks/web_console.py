@@ -15,9 +15,10 @@ per second of wall time:
   the poller and its consumer alone);
 * ``console, 0 browsers``: the console takes every batch (state, trend rings), nobody looks;
 * ``console, 1 browser``: a headless Chromium (Debian's, through Playwright, in its own
-  process) shows ``/``: every PLC and all 10,000 tags, kept live by the event stream;
-* ``console, 10 clients``: ten event-stream clients of ``/`` (raw sockets in another process,
-  reading everything) stand in for ten browsers: the server's work per client is the same.
+  process) shows ``/``, the overview: the counts and a page of PLC rows, kept live by its
+  event stream (``/events?view=overview``: rows and counts, no tags);
+* ``console, 10 clients``: ten clients of ``/events`` (every PLC and every tag: raw sockets
+  in another process, reading everything), the heaviest stream a script can ask for.
 
 The console's share = (CPU of the mode - CPU of ``poller``) / CPU of ``poller``, from the
 medians. The PLC process, the browser and the stream clients are other processes: not counted.
@@ -110,15 +111,16 @@ async def _browser(url: str) -> None:
         await page.wait_for_function(
             "() => document.getElementById('live')?.textContent === 'live'", timeout=60_000
         )
-        first = await page.text_content("#tags tbody tr td.value")
+        cell = "#plcs tbody tr td.requests"  # the overview: PLC rows, live
+        first = await page.text_content(cell)
         await page.wait_for_function(
-            "f => document.querySelector('#tags tbody tr td.value').textContent !== f",
-            arg=first,
+            "([s, f]) => document.querySelector(s).textContent !== f",
+            arg=[cell, first],
             timeout=60_000,
         )
         print("ready", flush=True)
         await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
-        last = await page.text_content("#tags tbody tr td.value")
+        last = await page.text_content(cell)
         print(json.dumps({"first": first, "last": last}), flush=True)
         await browser.close()
 
