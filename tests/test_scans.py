@@ -223,12 +223,20 @@ def test_every_sink_implements_the_one_protocol() -> None:
     """Checked by mypy (this list is typed) and here: each sink's ``submit`` takes scans."""
     import inspect
 
+    from plcstack.north.history import History
     from plcstack.north.modbus.server import ModbusServer
     from plcstack.north.opcua import OpcUaServer
     from plcstack.north.web.server import WebConsole
     from plcstack.north.web.state import ConsoleState
 
-    sinks: list[type[ScanSink]] = [MqttSink, WebConsole, ConsoleState, ModbusServer, OpcUaServer]
+    sinks: list[type[ScanSink]] = [
+        MqttSink,
+        WebConsole,
+        ConsoleState,
+        ModbusServer,
+        OpcUaServer,
+        History,
+    ]
     for sink in sinks:
         [param] = list(inspect.signature(sink.submit).parameters.values())[1:]
         assert param.name == "scans", sink
