@@ -51,7 +51,7 @@ def cpu_seconds(pid: int) -> float:
 
 
 def write_config(path: Path, urls: list[str], words: int, interval: float) -> None:
-    lines = [f"[poll]\ninterval = {interval}\n", '[modbus]\nendpoint = "127.0.0.1:0"\n']
+    lines = [f"[poll]\ninterval = {interval}\n", '[modbus]\nlisten = "127.0.0.1:0"\n']
     for i, url in enumerate(urls):
         lines.append(f'[[plc]]\nname = "plc{i}"\nurl = "{url}"\n[plc.tags]')
         lines.append(

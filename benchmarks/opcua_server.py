@@ -53,7 +53,7 @@ def cpu_seconds(pid: int) -> float:
 
 
 def write_config(path: Path, urls: list[str], tags: int, interval: float) -> None:
-    lines = [f"[poll]\ninterval = {interval}\n", '[opcua]\nendpoint = "opc.tcp://127.0.0.1:0/b"\n']
+    lines = [f"[poll]\ninterval = {interval}\n", '[opcua]\nlisten = "127.0.0.1:0"\npath = "/b"\n']
     for i, url in enumerate(urls):
         lines.append(f'[[plc]]\nname = "plc{i}"\nurl = "{url}"\n[plc.tags]')
         lines.extend(f't{j} = {{ address = "D{j}", type = "uint16" }}' for j in range(tags))

@@ -23,7 +23,7 @@ Value types (:mod:`plcstack.values`, :class:`ValueType`): ``INT8`` .. ``UINT32``
 ``BCD16``, ``BCD32``, the S5 formats ``KF``, ``KH``, ``KM``, ``KY``, ``KC``, ``KT``, ``KZ``,
 ``KG``, ``string(n)``, ``BOOL`` (also a bit of a word), ``RAW``.
 
-Many PLCs at once: :class:`Poller` with a :class:`PollConfig` (``load_config("plant.toml")``).
+Many PLCs at once: :class:`Poller` with a :class:`PollConfig` (``load_config("plant.toml").poll``).
 
 Errors: every failure is a :class:`PlcError` (``AddressError``, ``OptionError``,
 ``ValueEncodeError``, ``ValueDecodeError``, ``PlcErrorResponse``, ``PlcTimeout``,
@@ -31,6 +31,7 @@ Errors: every failure is a :class:`PlcError` (``AddressError``, ``OptionError``,
 """
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from plcstack import sync
 from plcstack.clients import (
@@ -57,6 +58,9 @@ from plcstack.errors import (
 )
 from plcstack.poll import PlcConfig, PollConfig, Poller, TagConfig
 from plcstack.url import PlcUrl, parse_url
+
+if TYPE_CHECKING:
+    from plcstack.config import Config
 from plcstack.values import (
     BCD16,
     BCD32,
@@ -141,11 +145,11 @@ __all__ = [
 ]
 
 
-def load_config(path: str | Path) -> PollConfig:
-    """Read a poller TOML file once and check all of it: the poll tables (parsed by
-    :mod:`plcstack.poll.config`) and the north side's (``[mqtt]``, ``[opcua]``, ...: parsed by
-    :mod:`plcstack.north.config`), so a typo anywhere stops before anything is sent. Errors are
-    :class:`ConfigError` with the file and line."""
-    from plcstack.north.config import load_config as load_both  # the north side on demand
+def load_config(path: str | Path) -> "Config":
+    """Read a configuration file once and check all of it: the poll tables (``config.poll``,
+    what :class:`Poller` takes) and every face's table (``config.north.mqtt``, ...), so a typo
+    anywhere stops before anything is sent. Errors are :class:`ConfigError` with the file
+    and line."""
+    from plcstack.config import load_config as load  # the faces' tables on demand
 
-    return load_both(path)[0]
+    return load(path)

@@ -42,8 +42,10 @@ tags = { strokes = "D100" }
         ("[web]\nprot = 8080\n", 2, "[web]: unknown key(s) prot (did you mean port?)"),
         ("[report]\nmax_silence = 60\n[[report.rule]]\ntag = \"t*\"\ndeadbnd = 1\n", 5,
          "[[report.rule]] #1: unknown key(s) deadbnd (did you mean deadband?)"),
+        # a mistake in a value: the key's line
+        ('\n[mqtt]\nurl = "mqtt://h"\nqos = 5\n', 4, "[mqtt] qos must be 0..2, not 5"),
         # a mistake about the table as a whole: its header
-        ('\n[mqtt]\nurl = "mqtt://h"\nqos = 5\n', 2, "[mqtt]"),
+        ('\n[audit]\nmax_bytes = 5000\n', 2, '[audit] needs path = "FILE"'),
         # an inline table: the line that opens it
         ('# the OPC UA side\nopcua = { endpiont = "x" }\n', 2, "endpiont (did you mean endpoint?)"),
     ],

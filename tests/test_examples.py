@@ -10,7 +10,7 @@ import pytest
 
 from plcstack.cli import build_parser, main
 from plcstack.cli.demo import example_config
-from plcstack.poll.config import parse_config
+from plcstack.config import parse_config
 from plcstack.poll.engine import Poller, Quality
 from plcstack.sim import e71, s5lan
 from tests.ports import free_ports_in_a_row
@@ -37,7 +37,7 @@ async def test_every_tag_of_the_example_reads_good() -> None:
         text = text.replace("fast = 0.2", "fast = 0.05").replace(
             "interval = 1.0", "interval = 0.05"
         )
-        config = parse_config(text)
+        config = parse_config(text).poll
         expected = {(p.name, t.name) for p in config.plcs for t in p.tags}
         seen = {}
         async with Poller(config) as poller:
@@ -81,7 +81,7 @@ async def test_base_port_moves_the_config_and_its_sim_commands_together(tmp_path
     assert [c[:2] for c in commands] == [["sim", "e71"], ["sim", "s5lan"]]
     ports = [build_parser().parse_args(c).port for c in commands]
     assert ports == [base, base + 1]
-    config = parse_config(text.replace("fast = 0.2", "fast = 0.05"))
+    config = parse_config(text.replace("fast = 0.2", "fast = 0.05")).poll
     assert [p.url for p in config.plcs] == [
         f"e71+tcp://127.0.0.1:{base}",
         f"s5lan://127.0.0.1:{base + 1}",

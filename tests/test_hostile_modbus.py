@@ -25,7 +25,7 @@ PLANT = """
 [poll]
 interval = 0.2
 [modbus]
-endpoint = "127.0.0.1:0"
+listen = "127.0.0.1:0"
 {extra}
 [[plc]]
 name = "p"
@@ -44,8 +44,9 @@ async def serving(tmp_path: Path, extra: str = "") -> AsyncIterator[ModbusServer
     sim = await e71.start()
     path = tmp_path / "plant.toml"
     path.write_text(PLANT.format(url=sim.url, extra=extra))
-    poller = Poller(load_config(path))
-    server = ModbusServer.from_config(poller)
+    config = load_config(path)
+    poller = Poller(config.poll)
+    server = ModbusServer.from_config(poller, config.north.modbus)
     feed: asyncio.Task[None] | None = None
     try:
         async with poller, server:
@@ -163,8 +164,8 @@ def test_modbus_limits_parse_and_refuse_nonsense() -> None:
     for table, message in [
         ({"max_clients": 0}, "max_clients must be 1..10000"),
         ({"max_clients": True}, "max_clients must be 1..10000"),
-        ({"idle_timeout": -1}, "idle_timeout must be seconds"),
-        ({"idle_timeout": float("inf")}, "idle_timeout must be seconds"),
+        ({"idle_timeout": -1}, "idle_timeout must be a number of seconds"),
+        ({"idle_timeout": float("inf")}, "idle_timeout must be a number of seconds"),
         ({"max_client": 3}, "max_client (did you mean max_clients?)"),
     ]:
         with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace("?)", r"\?\)")):

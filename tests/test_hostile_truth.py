@@ -24,6 +24,7 @@ from plcstack.codecs.as511 import (
     PGConnection,
     write_job,
 )
+from plcstack.config import parse_config
 from plcstack.durations import check_seconds
 from plcstack.errors import (
     AddressError,
@@ -33,7 +34,7 @@ from plcstack.errors import (
     PlcErrorResponse,
     RemoteProtocolError,
 )
-from plcstack.poll.config import MIN_INTERVAL, ConfigError, PollConfig, parse_config
+from plcstack.poll.config import MIN_INTERVAL, ConfigError, PollConfig
 from plcstack.sim import e71 as e71_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.s5memory import Area
@@ -225,7 +226,7 @@ def test_scan_interval_has_a_documented_lower_bound() -> None:
     """Before: 1e-300 was accepted (a dead PLC then yielded 15k bad samples/s)."""
     with pytest.raises(ConfigError, match="at least 0.001 s"):
         parse_config(_config("1e-300"))
-    assert parse_config(_config(str(MIN_INTERVAL))).groups["default"] == MIN_INTERVAL
+    assert parse_config(_config(str(MIN_INTERVAL))).poll.groups["default"] == MIN_INTERVAL
     with pytest.raises(ConfigError, match="at least 0.001"):
         PollConfig(plcs=(), groups={"default": 1e-6})
 

@@ -7,10 +7,11 @@ import json
 
 import pytest
 
+from plcstack.config import parse_config
 from plcstack.north.config import parse_north
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.layout import JsonLayout
-from plcstack.poll.config import ConfigError, PlcConfig, TagConfig, parse_config
+from plcstack.poll.config import ConfigError, PlcConfig, TagConfig
 from plcstack.poll.samples import Quality, Sample, flatten
 from plcstack.poll.sinks import jsonl_line, jsonl_text
 from plcstack.values import BOOL, FLOAT32, INT16, KG, KY, UINT16, string
@@ -94,7 +95,7 @@ def test_float32_at_float32_precision_in_every_output() -> None:
 def test_influx_layout_setting() -> None:
     assert parse_north({}).influx_layout == "fields"
     assert parse_north({"influx": {"layout": "typed"}}).influx_layout == "typed"
-    with pytest.raises(ConfigError, match="layout must be 'fields' or 'typed'"):
+    with pytest.raises(ConfigError, match='layout must be "fields" or "typed"'):
         parse_north({"influx": {"layout": "wide"}})
 
 

@@ -27,7 +27,7 @@ CONFIG = """
 [poll]
 interval = 0.05
 [modbus]
-endpoint = "127.0.0.1:0"
+listen = "127.0.0.1:0"
 [audit]
 path = "writes.jsonl"
 [[plc]]
@@ -173,7 +173,7 @@ async def test_the_listening_line_comes_once_every_plcs_first_scan_is_stored(
 [poll]
 interval = 2
 [modbus]
-endpoint = "127.0.0.1:0"
+listen = "127.0.0.1:0"
 [[plc]]
 name = "dead"
 url = "e71+tcp://127.0.0.1:{free_port()}?timeout=0.2"

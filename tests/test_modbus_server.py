@@ -28,7 +28,7 @@ PLANT = """
 [poll]
 interval = 0.05
 [modbus]
-endpoint = "127.0.0.1:0"
+listen = "127.0.0.1:0"
 word_order = "{order}"
 [[plc]]
 name = "press1"
@@ -81,8 +81,9 @@ async def plant(tmp_path: Path, order: str = "big") -> AsyncIterator[Plant]:
     sim = await e71.start(memory)
     path = tmp_path / "plant.toml"
     path.write_text(PLANT.format(order=order, url=sim.url, dead=free_port()))
-    poller = Poller(load_config(path))
-    server = ModbusServer.from_config(poller)
+    config = load_config(path)
+    poller = Poller(config.poll)
+    server = ModbusServer.from_config(poller, config.north.modbus)
     feed: asyncio.Task[None] | None = None
     try:
         async with poller, server:
@@ -293,12 +294,15 @@ async def test_a_write_whose_outcome_is_unknown_is_an_exception_and_logged(
     port = silent.sockets[0].getsockname()[1]
     path = tmp_path / "silent.toml"
     path.write_text(
-        '[modbus]\nendpoint = "127.0.0.1:0"\n[[plc]]\nname = "mute"\n'
+        '[modbus]\nlisten = "127.0.0.1:0"\n[[plc]]\nname = "mute"\n'
         f'url = "e71+tcp://127.0.0.1:{port}?timeout=0.3"\n[plc.tags]\n'
         'set = { address = "D0", type = "uint16", modbus = "hr:0", writable = true }\n'
     )
-    poller = Poller(load_config(path))
-    server = ModbusServer.from_config(poller)  # not polling: only the write goes out
+    config = load_config(path)
+    poller = Poller(config.poll)
+    server = ModbusServer.from_config(
+        poller, config.north.modbus
+    )  # not polling: only the write goes out
     try:
         async with server:
             with caplog.at_level(logging.WARNING, logger="plcstack.north.modbus"):
@@ -321,7 +325,7 @@ def test_overlapping_tags_are_refused_naming_both_with_lines(tmp_path: Path) -> 
         'speed = { address = "D0", type = "uint16", modbus = "hr:11" }\n'
         'other = { address = "D1", type = "uint16", modbus = "ir:11" }\n'
     )
-    poller = Poller(load_config(path))
+    poller = Poller(load_config(path).poll)
     with pytest.raises(ConfigError) as caught:
         ModbusServer.from_config(poller)
     text = str(caught.value)
@@ -347,7 +351,7 @@ def test_bad_modbus_keys_are_config_errors_with_the_line(
         f'x = {{ address = "D0", {spec} }}\n'
     )
     with pytest.raises(ConfigError, match=message) as caught:
-        ModbusServer.from_config(Poller(load_config(path)))
+        ModbusServer.from_config(Poller(load_config(path).poll))
     assert f"{path}:5" in str(caught.value)
 
 
@@ -381,7 +385,7 @@ def test_the_file_is_read_once_and_errors_still_name_its_lines(tmp_path: Path) -
         'x = { address = "D0", modbus = "hr:0" }\n'
         'y = { address = "D1", modbus = "hr:0" }\n'
     )
-    poller = Poller(load_config(path))
+    poller = Poller(load_config(path).poll)
     path.unlink()
     with pytest.raises(ConfigError) as caught:
         ModbusServer.from_config(poller)
@@ -398,7 +402,7 @@ def test_the_image_takes_scans(tmp_path: Path) -> None:
         'x = { address = "D0", type = "uint16", modbus = "hr:0" }\n'
         'y = { address = "D1", type = "uint16", modbus = "hr:1" }\n'
     )
-    server = ModbusServer.from_config(Poller(load_config(path)))
+    server = ModbusServer.from_config(Poller(load_config(path).poll))
     samples = (
         Sample("a", "x", 7, Quality.GOOD, 1.0, 1.1),
         Sample("a", "y", 9, Quality.GOOD, 1.0, 1.1),
@@ -412,4 +416,4 @@ def test_a_config_without_modbus_keys_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "none.toml"
     path.write_text('[[plc]]\nname = "a"\nurl = "e71+tcp://127.0.0.1:1"\n[plc.tags]\nx = "D0"\n')
     with pytest.raises(ConfigError, match="no tag has a modbus key"):
-        ModbusServer.from_config(Poller(load_config(path)))
+        ModbusServer.from_config(Poller(load_config(path).poll))

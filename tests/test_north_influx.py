@@ -18,8 +18,8 @@ from typing import Any
 
 import pytest
 
+from plcstack.config import parse_config
 from plcstack.north.influx import influx_line, measurement_text, tag_text
-from plcstack.poll.config import parse_config
 from plcstack.poll.engine import Poller, Quality, Sample
 from plcstack.poll.samples import Scan, flatten
 from plcstack.sim import e71, s5lan
@@ -63,7 +63,7 @@ async def poll_example(scans: int = 7) -> list[Scan]:
             "interval = 1.0", "interval = 0.05"
         )
         out: list[Scan] = []
-        async with Poller(parse_config(text)) as poller:
+        async with Poller(parse_config(text).poll) as poller:
             async with asyncio.timeout(10):
                 async for batch in poller.scans():
                     out.extend(batch)

@@ -13,9 +13,10 @@ from typing import Any
 import pytest
 
 from plcstack.cli import main
+from plcstack.config import load_config
 from plcstack.errors import ConnectFailed
 from plcstack.north.mqtt import MqttSink, parse_mqtt
-from plcstack.poll.config import ConfigError, load_config
+from plcstack.poll.config import ConfigError
 from tests.aio_helpers import eventually
 from tests.north_certs import Authority
 from tests.north_helpers import sample, subscriber
@@ -285,7 +286,8 @@ def test_loading_a_config_needs_no_credentials_but_polling_does(
     port = free_port()
     path.write_text(CONFIG.format(url=f"mqtt://127.0.0.1:{port}"))
     config = load_config(path)  # a tool that only reads the file needs no secrets
-    assert config.north["mqtt"]["username_env"] == "PLCSTACK_TEST_MQTT_USER"
+    assert config.north.mqtt is not None
+    assert config.north.mqtt.username_env == "PLCSTACK_TEST_MQTT_USER"
     code = main(["poll", str(path), "--format", "none", "--duration", "5"])
     err = capsys.readouterr().err
     assert code == 2, err

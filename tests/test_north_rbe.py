@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from plcstack.north.rbe import ReportByException, ReportPolicy, parse_report
+from plcstack.north.rbe import ReportByException, ReportPolicy, ReportRules, parse_report
 from plcstack.poll.config import ConfigError
 from tests.north_helpers import sample
 
@@ -19,6 +19,12 @@ def run(policy: ReportPolicy, values: list[object], dt: float = 1.0) -> list[obj
         if rbe.accept(s):
             out.append(v)
     return out
+
+
+RULES = (
+    {"plc": "oven*", "tag": "temp", "deadband": 0.5},
+    {"plc": "*", "tag": "raw*", "on_change": False},
+)
 
 
 def test_absolute_deadband_compares_with_the_last_reported_value() -> None:
@@ -60,12 +66,11 @@ def test_rules_from_the_report_table() -> None:
     lookup = parse_report(
         {
             "max_silence": 60,
-            "rule": [
-                {"plc": "oven*", "tag": "temp", "deadband": 0.5},
-                {"plc": "*", "tag": "raw*", "on_change": False},
-            ],
+            "rule": [dict(r) for r in RULES],
         }
     )
+    assert isinstance(lookup, ReportRules)  # compared by value: a reload sees no change
+    assert lookup == parse_report({"max_silence": 60, "rule": [dict(r) for r in RULES]})
     assert lookup("oven2", "temp") == ReportPolicy(deadband=0.5, max_silence=60.0)
     assert lookup("press", "raw1") == ReportPolicy(on_change=False, max_silence=60.0)
     assert lookup("press", "temp") == ReportPolicy(max_silence=60.0)

@@ -31,11 +31,11 @@ def test_the_table_and_its_checks(tmp_path: Path) -> None:
     settings = parse_trace({"ring": 16, "dir": "t", "interval": "10m"}, base=tmp_path)
     assert settings == TraceSettings(16, tmp_path / "t", 600.0)
     cases: list[tuple[dict[str, object], str]] = [
-        ({"ring": 0}, "from 1 to 4096"),
-        ({"ring": True}, "from 1 to 4096"),
-        ({"ring": 5000}, "from 1 to 4096"),
-        ({"dir": ""}, "folder name"),
-        ({"interval": "soon"}, "duration"),
+        ({"ring": 0}, "[trace] ring must be 1..4096, not 0"),
+        ({"ring": True}, "[trace] ring must be 1..4096, not True"),
+        ({"ring": 5000}, "[trace] ring must be 1..4096, not 5000"),
+        ({"dir": ""}, "[trace] dir must name a file, not ''"),
+        ({"interval": "soon"}, "[trace] interval must be a number of seconds (greater than 0)"),
         ({"rings": 4}, "unknown key(s) rings (did you mean ring?)"),
     ]
     for table, message in cases:

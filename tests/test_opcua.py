@@ -489,7 +489,7 @@ async def test_serve_opcua_command_serves_and_writes_until_sigterm(tmp_path: Pat
 interval = 0.05
 
 [opcua]
-endpoint = "opc.tcp://127.0.0.1:0/plcstack"
+listen = "127.0.0.1:0"
 anonymous = "write"
 
 [audit]

@@ -24,9 +24,9 @@ CONFIG = """
 [poll]
 interval = 0.05
 [opcua]
-endpoint = "opc.tcp://127.0.0.1:0/plcstack"
+listen = "127.0.0.1:0"
 [metrics]
-port = {port}
+listen = "127.0.0.1:{port}"
 [[plc]]
 name = "press1"
 url = "{url}"

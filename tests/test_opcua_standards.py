@@ -14,8 +14,9 @@ pytest.importorskip("asyncua")  # the optional extra; CI installs it with [test]
 
 from asyncua import Client, ua
 
+from plcstack.config import parse_config
 from plcstack.north.opcua_services import apply_index_range, software_version
-from plcstack.poll.config import ConfigError, parse_config
+from plcstack.poll.config import ConfigError
 from tests.test_opcua import Plant, good, plant, wait_for, with_login
 
 __all__ = ["plant"]  # the module-scoped plant of test_opcua, one of its own here

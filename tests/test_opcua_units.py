@@ -14,6 +14,7 @@ pytest.importorskip("asyncua")  # the optional extra; CI installs it with [test]
 from asyncua import ua
 
 from plcstack import values as vt
+from plcstack.config import parse_config
 from plcstack.errors import (
     AddressError,
     ConnectFailed,
@@ -42,7 +43,7 @@ from plcstack.north.opcua_config import (
     load_opcua_config,
     parse_opcua_config,
 )
-from plcstack.poll.config import ConfigError, TagConfig, parse_config
+from plcstack.poll.config import ConfigError, TagConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 S = ua.StatusCodes
@@ -204,7 +205,8 @@ def test_password_hashes_check_the_password_and_never_contain_it() -> None:
 def test_the_poll_config_takes_writable_tags_and_an_opcua_table(tmp_path: Path) -> None:
     text = """
 [opcua]
-endpoint = "opc.tcp://127.0.0.1:4841/plant"
+listen = "127.0.0.1:4841"
+path = "/plant"
 anonymous = "write"
 
 [[plc]]
@@ -227,7 +229,7 @@ force = { address = "D102", unit = "kN" }
     with pytest.raises(ConfigError, match="writable must be true or false"):
         parse_config(text.replace("writable = true", 'writable = "yes"'))
     with pytest.raises(ConfigError, match=r"\[opcua\] must be a table"):
-        parse_config("opcua = 3\n" + text.split("[opcua]", 1)[1].split("\n", 3)[3])
+        parse_config("opcua = 3\n" + text.split("[opcua]", 1)[1].split("\n", 4)[4])
 
 
 # -- the command line ---------------------------------------------------------------------------

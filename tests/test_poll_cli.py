@@ -9,7 +9,6 @@ import pytest
 
 from plcstack.cli import build_parser, main
 from plcstack.cli.demo import clip, plain_line, run_demo
-from plcstack.cli.poll import run_poll
 from plcstack.poll.engine import Quality, Sample
 
 
@@ -39,12 +38,19 @@ def test_commands_are_registered() -> None:
 async def test_bad_arguments_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
     assert await run_demo(Namespace(plcs=0, duration=None, interval=0.25)) == 2
     assert await run_demo(Namespace(plcs=None, duration=-1.0, interval=0.25)) == 2
-    assert await run_poll(Namespace(config="x.toml", format="jsonl", duration=0.0)) == 2
-    assert (
-        await run_poll(Namespace(config="x.toml", format="jsonl", duration=1.0, stats_every=0.0))
-        == 2
-    )
     assert "must be" in capsys.readouterr().err
+    # the options every running command shares are checked by the parser, before the file
+    for argv, option in [
+        (["poll", "x.toml", "--duration", "0"], "--duration"),
+        (["poll", "x.toml", "--stats-every", "0"], "--stats-every"),
+        (["poll", "x.toml", "--web-port", "70000"], "--web-port"),
+        (["poll", "x.toml", "--metrics-port", "-1"], "--metrics-port"),
+        (["serve", "modbus", "x.toml", "--duration", "-1"], "--duration"),
+        (["serve", "opcua", "x.toml", "--metrics-port", "70000"], "--metrics-port"),
+    ]:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "must be" in err and option in err, err
 
 
 def test_missing_or_invalid_config_exits_2(

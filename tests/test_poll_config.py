@@ -8,16 +8,25 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from plcstack import config as whole
 from plcstack import values as vt
 from plcstack.poll.config import (
     ConfigError,
     PlcConfig,
     PollConfig,
     TagConfig,
-    load_config,
-    parse_config,
 )
 from plcstack.values import WordOrder
+
+
+def parse_config(text: str, *, source: str = "<config>") -> PollConfig:
+    """The poll part of a configuration text, read by the one loader."""
+    return whole.parse_config(text, source=source).poll
+
+
+def load_config(path: object) -> PollConfig:
+    return whole.load_config(str(path)).poll
+
 
 GOOD = """
 [poll]

@@ -16,13 +16,14 @@ from typing import Any
 
 import pytest
 
+from plcstack.config import parse_config
 from plcstack.north.config import NorthConfig
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.layout import JsonLayout
 from plcstack.north.mqtt import MqttSink, parse_mqtt
 from plcstack.north.pipeline import North
 from plcstack.north.rbe import ReportByException, ReportPolicy
-from plcstack.poll.config import PlcConfig, PollConfig, TagConfig, parse_config
+from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample, Scan, ScanQueue, ScanSink, flatten
 from plcstack.poll.sinks import jsonl_text
@@ -99,7 +100,7 @@ async def test_a_scans_group_is_what_the_config_says() -> None:
     (the slow group is two requests: D1..D2 and D500)."""
     from tests.poll_fakes import FakeClient
 
-    config = parse_config(PLANT)
+    config = parse_config(PLANT).poll
     groups = {t.name: t.group for t in config.plcs[0].tags}
     poller = Poller(config, client_factory=lambda plc: FakeClient("fake://press"))
     async with poller:

@@ -284,7 +284,7 @@ def test_serve_opcua_with_metrics_but_without_its_library_exits_2(tmp_path: Path
     config = tmp_path / "plant.toml"
     config.write_text(
         '[[plc]]\nname = "press1"\nurl = "e71+tcp://127.0.0.1:1"\n'
-        '[plc.tags]\nstrokes = { address = "D100" }\n[metrics]\nport = 0\n'
+        '[plc.tags]\nstrokes = { address = "D100" }\n[metrics]\nlisten = "127.0.0.1:0"\n'
     )
     script = (
         "import sys; sys.modules['prometheus_client'] = None\n"

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from plcstack.poll.config import parse_config
+from plcstack.poll.config import parse_poll_config as parse_config
 from plcstack.poll.stats import PlcStats
 from plcstack.systemd.notify import Notifier, monotonic_usec
 from plcstack.systemd.service import FleetStatus, ScanWatch, ServiceNotifier, stall_limit

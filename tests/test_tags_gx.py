@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from plcstack import values as vt
-from plcstack.poll.config import parse_config
+from plcstack.config import parse_config
 from plcstack.tags import TagListError, read_gx, tag_names, to_toml
 from plcstack.tags.gx import Skipped
 from plcstack.tags.names import MAX_NAME, derive_name

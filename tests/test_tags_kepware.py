@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from plcstack import values as vt
-from plcstack.poll.config import parse_config
+from plcstack.config import parse_config
 from plcstack.tags import TagListError, read_kepware, to_toml
 from plcstack.tags.addresses import native_address
 from tests.cli_helpers import cli_in_process
@@ -26,7 +26,7 @@ def _import(path: Path, plc: str, url: str) -> str:
 def test_press_file_becomes_the_golden_toml() -> None:
     text = _import(PRESS, "press1", E71)
     assert text == (DATA / "press.toml").read_text(encoding="utf-8")
-    config = parse_config(text)
+    config = parse_config(text).poll
     tags = {t.name: t for t in config.plcs[0].tags}
     assert tags["level"].scale is not None and tags["level"].scale.eng_hi == 100
     assert tags["level"].unit == "%" and tags["level"].description == "Tank 1 level, radar"

@@ -10,7 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plcstack import values as vt
-from plcstack.poll.config import PlcConfig, PollConfig, TagConfig, parse_config
+from plcstack.config import parse_config
+from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.tags import read_kepware, to_toml, write_kepware
 from plcstack.values import Scale
 
@@ -124,7 +125,7 @@ def test_import_of_export_gives_the_same_tags(config: PollConfig) -> None:
     plc = config.plcs[0]
     csv_text = write_kepware(plc, config.groups)
     imported = read_kepware(csv_text.encode("utf-8"), "t.csv", plc=plc.name, url=plc.url)
-    again = parse_config(to_toml(imported))
+    again = parse_config(to_toml(imported)).poll
     tags = again.plcs[0].tags
     assert [_same(t) for t in tags] == [_same(t) for t in plc.tags]
     # the scan group's interval survives; its name follows the rate (Kepware has no column for it)
@@ -139,6 +140,6 @@ def test_group_names_survive_when_they_follow_the_rule() -> None:
     )
     config = PollConfig((PlcConfig("p", E71, tags),), {"default": 1.0, "scan_100ms": 0.1})
     text = write_kepware(config.plcs[0], config.groups)
-    again = parse_config(to_toml(read_kepware(text.encode(), "t.csv", plc="p", url=E71)))
+    again = parse_config(to_toml(read_kepware(text.encode(), "t.csv", plc="p", url=E71))).poll
     assert [t.group for t in again.plcs[0].tags] == ["scan_100ms", "default"]
     assert again.groups == config.groups

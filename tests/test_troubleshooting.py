@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 
 import plcstack
+from plcstack.config import load_config
 from plcstack.errors import PlcError
-from plcstack.poll.config import load_config
 from plcstack.sim import e71
 from tests.cli_helpers import cli_in_process
 

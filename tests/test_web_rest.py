@@ -14,8 +14,10 @@ from typing import Any
 import aiohttp
 import pytest
 
+from plcstack.config import parse_config
+from plcstack.config.overrides import Overrides, apply_overrides
 from plcstack.north.web.events import EventClient, EventHub
-from plcstack.north.web.settings import WebSettings, parse_web, with_port
+from plcstack.north.web.settings import WebSettings, parse_web
 from plcstack.north.web.state import ConsoleState
 from plcstack.poll.config import ConfigError, PlcConfig, TagConfig
 from plcstack.poll.samples import Quality, Sample
@@ -320,11 +322,15 @@ def test_web_table_errors(table: dict[str, Any], problem: str) -> None:
 
 def test_web_table_defaults_and_port_override() -> None:
     assert parse_web({}) == WebSettings("127.0.0.1", 8080, None, 300)
-    assert with_port(None, None) is None
-    assert with_port(None, 0) == WebSettings(port=0)
-    assert with_port(WebSettings(host="0.0.0.0", port=1), 2) == WebSettings("0.0.0.0", 2)
-    with pytest.raises(ValueError, match="--web-port"):
-        with_port(None, -1)
+    plc = '[[plc]]\nname = "p"\nurl = "e71+tcp://127.0.0.1:1"\ntags = { t = "D0" }\n'
+    bare = parse_config(plc)
+    assert apply_overrides(bare, Overrides()) is bare
+    assert apply_overrides(bare, Overrides(web_port=0)).north.web == WebSettings(port=0)
+    placed = parse_config('[web]\nlisten = "0.0.0.0:1"\n' + plc)
+    moved = apply_overrides(placed, Overrides(web_port=2))
+    assert moved.north.web == WebSettings("0.0.0.0", 2)
+    with pytest.raises(ConfigError, match="--web-port must be 0..65535"):
+        Overrides(web_port=-1)
 
 
 async def test_poll_command_serves_the_console(
@@ -337,7 +343,8 @@ async def test_poll_command_serves_the_console(
     try:
         config = tmp_path / "plant.toml"
         config.write_text(
-            f'[web]\nport = 1\n\n[[plc]]\nname = "p"\nurl = "{sim.url}"\n[plc.tags]\nt = "D0"\n',
+            f'[web]\nlisten = "127.0.0.1:1"\n\n[[plc]]\nname = "p"\nurl = "{sim.url}"\n'
+            '[plc.tags]\nt = "D0"\n',
             encoding="utf-8",
         )
         args = build_parser().parse_args(
@@ -346,8 +353,8 @@ async def test_poll_command_serves_the_console(
         assert await args.func(args) == 0
         err = capsys.readouterr().err
         assert "plcstack: web console on http://127.0.0.1:" in err
-        assert ":1/" not in err  # --web-port won over [web] port
-        bad = build_parser().parse_args(["poll", str(config), "--web-port", "70000"])
-        assert await bad.func(bad) == 2
+        assert ":1/" not in err  # --web-port won over [web] listen's port
+        with pytest.raises(SystemExit):  # the parser refuses it, one line, exit 2
+            build_parser().parse_args(["poll", str(config), "--web-port", "70000"])
     finally:
         await sim.aclose()

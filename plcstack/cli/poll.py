@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import dataclasses
 import functools
 import logging
 import os
@@ -25,11 +24,12 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from plcstack.cli import plain_text, print_error
 from plcstack.cli.pcap import add_pcap_options, with_pcap
+from plcstack.cli.run_options import add_run_options, overrides_of, seconds
+from plcstack.config import load_config
+from plcstack.config.overrides import apply_overrides
 from plcstack.errors import ConfigError
-from plcstack.north.config import load_config
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.pipeline import North, missing, needs_of, sink_name
-from plcstack.north.web.settings import with_port
 from plcstack.poll.config import PollConfig
 from plcstack.poll.engine import Poller, format_stats
 from plcstack.poll.samples import Scan
@@ -62,25 +62,13 @@ def register(subparsers: Any) -> None:
         help="output format on stdout (default jsonl; none: only the sinks of the config, e.g."
         " [mqtt])",
     )
-    poll.add_argument(
-        "--duration",
-        type=float,
-        default=None,
-        help="stop after SECONDS (default: run until Ctrl-C)",
-    )
+    add_run_options(poll)
     poll.add_argument(
         "--stats-every",
-        type=float,
+        type=seconds,
         default=None,
         metavar="SECONDS",
         help="also print the statistics on stderr every SECONDS (for long runs)",
-    )
-    poll.add_argument(
-        "--web-port",
-        type=int,
-        default=None,
-        metavar="PORT",
-        help="serve the web console and REST API on PORT (0: any free port), over [web] port",
     )
     scale_cli.add_arguments(poll)
     add_pcap_options(poll)
@@ -123,20 +111,9 @@ def remove_stop_signals(installed: list[signal.Signals]) -> None:
 
 async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     out = out if out is not None else sys.stdout
-    for option in ("duration", "stats_every"):
-        value = getattr(args, option, None)
-        if value is not None and not value > 0:
-            name = option.replace("_", "-")
-            print_error(f"poll: --{name} must be greater than 0")
-            return 2
     # read once; relative file paths in [mqtt] are taken relative to the TOML file
-    config, north_config = load_config(args.config)
-    try:
-        web = with_port(north_config.web, getattr(args, "web_port", None))
-    except ValueError as exc:
-        print_error(f"poll: {exc}")
-        return 2
-    north_config = dataclasses.replace(north_config, web=web)
+    whole = apply_overrides(load_config(args.config), overrides_of(args))
+    config, north_config = whole.poll, whole.north
     needs = needs_of(north_config)
     if getattr(args, "mqtt", None) is not None:
         needs.append(("--mqtt (scale-out)", "aiomqtt", "scale"))

@@ -23,13 +23,14 @@ import argparse
 import getpass
 import importlib.util
 import sys
-from pathlib import Path
 from typing import Any
 
 from plcstack.cli import plain_text, print_error, serve_modbus
-from plcstack.cli.serve_run import add_run_options, check_run_options, metrics_settings, run_fed
-from plcstack.north.config import load_config
-from plcstack.north.opcua_config import hash_password, parse_opcua_config
+from plcstack.cli.run_options import add_run_options, overrides_of
+from plcstack.cli.serve_run import metrics_settings, run_fed
+from plcstack.config import load_config
+from plcstack.config.overrides import apply_overrides
+from plcstack.north.opcua_config import OpcUaConfig, hash_password
 from plcstack.poll.engine import Poller
 
 
@@ -47,7 +48,7 @@ def register(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     opcua.add_argument("config", nargs="?", help="TOML file with [[plc]] tables and [opcua]")
-    add_run_options(opcua)
+    add_run_options(opcua, faces=("metrics",))
     opcua.add_argument(
         "--hash-password",
         action="store_true",
@@ -70,17 +71,16 @@ async def run_opcua(args: argparse.Namespace) -> int:
     if args.config is None:
         print_error("serve opcua: CONFIG is required")
         return 2
-    if not check_run_options(args, "serve opcua"):
-        return 2
     if importlib.util.find_spec("asyncua") is None:
         print_error("serve opcua: asyncua is not installed; pip install 'plcstack[opcua]'")
         return 2
     # -v (INFO) logs every write; the log options are the ones every subcommand has
-    config, north_config = load_config(args.config)  # read once
-    opcua_config = north_config.opcua or parse_opcua_config({}, base=Path(args.config).parent)
+    whole = apply_overrides(load_config(args.config), overrides_of(args))  # read once
+    config, north_config = whole.poll, whole.north
+    opcua_config = north_config.opcua or OpcUaConfig()
     from plcstack.north.opcua import OpcUaServer  # asyncua: only when serving
 
-    metrics, ok = metrics_settings(args, north_config, "serve opcua")
+    metrics, ok = metrics_settings(north_config, "serve opcua")
     if not ok:
         return 2
     poller = Poller(config)  # every URL and address checked before anything is sent

@@ -21,8 +21,10 @@ import argparse
 from typing import Any
 
 from plcstack.cli import plain_text
-from plcstack.cli.serve_run import add_run_options, check_run_options, metrics_settings, run_fed
-from plcstack.north.config import load_config
+from plcstack.cli.run_options import add_run_options, overrides_of
+from plcstack.cli.serve_run import metrics_settings, run_fed
+from plcstack.config import load_config
+from plcstack.config.overrides import apply_overrides
 from plcstack.north.modbus.server import ModbusServer
 from plcstack.poll.engine import Poller
 
@@ -35,19 +37,19 @@ def register(servers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     modbus.add_argument("config", help="TOML file with [[plc]] tables, modbus keys and [modbus]")
-    add_run_options(modbus)
+    add_run_options(modbus, faces=("metrics",))
     modbus.set_defaults(func=run_modbus)
 
 
 async def run_modbus(args: argparse.Namespace) -> int:
-    if not check_run_options(args, "serve modbus"):
-        return 2
-    config, north_config = load_config(args.config)  # read once
-    metrics, ok = metrics_settings(args, north_config, "serve modbus")
+    whole = apply_overrides(load_config(args.config), overrides_of(args))  # read once
+    config, north_config = whole.poll, whole.north
+    metrics, ok = metrics_settings(north_config, "serve modbus")
     if not ok:
         return 2
     poller = Poller(config)  # every URL and address checked before anything is sent
-    server = ModbusServer.from_config(poller)  # overlaps refused here (the file read once)
+    # overlaps refused here (the file read once)
+    server = ModbusServer.from_config(poller, north_config.modbus)
     return await run_fed(
         poller,
         server,

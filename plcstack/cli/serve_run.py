@@ -9,7 +9,6 @@ drift apart in what their options mean or in what a write's audit line holds.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Callable, Iterable
 from contextlib import AbstractAsyncContextManager
@@ -27,7 +26,7 @@ from plcstack.poll.samples import Scan
 from plcstack.systemd.notify import Notifier
 from plcstack.systemd.service import ScanWatch, ServiceNotifier, notifying, stall_limit
 
-__all__ = ["FedServer", "add_run_options", "check_run_options", "metrics_settings", "run_fed"]
+__all__ = ["FedServer", "metrics_settings", "run_fed"]
 
 
 class FedServer(AbstractAsyncContextManager[Any], Protocol):
@@ -42,41 +41,12 @@ class FedServer(AbstractAsyncContextManager[Any], Protocol):
     ) -> None: ...
 
 
-def add_run_options(parser: argparse.ArgumentParser) -> None:
-    """``--duration`` and ``--metrics-port``, the same for every fed server."""
-    parser.add_argument(
-        "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
-    )
-    parser.add_argument(
-        "--metrics-port",
-        type=int,
-        default=None,
-        metavar="PORT",
-        help="serve /metrics and /healthz on this port (overrides [metrics] port; 0 = any free"
-        " port; host from [metrics], default 127.0.0.1)",
-    )
-
-
-def check_run_options(args: argparse.Namespace, command: str) -> bool:
-    """Whether ``--duration`` and ``--metrics-port`` are in range (else one error line)."""
-    if args.duration is not None and not args.duration > 0:
-        print_error(f"{command}: --duration must be greater than 0")
-        return False
-    port = args.metrics_port
-    if port is not None and not 0 <= port <= 65535:
-        print_error(f"{command}: --metrics-port must be 0..65535")
-        return False
-    return True
-
-
 def metrics_settings(
-    args: argparse.Namespace, north_config: NorthConfig, command: str
+    north_config: NorthConfig, command: str
 ) -> tuple[MetricsSettings | None, bool]:
-    """The metrics endpoint of the run (``[metrics]``, its port replaced by ``--metrics-port``),
-    and whether it can be served (prometheus_client installed; else one error line)."""
+    """The metrics endpoint of the run (``[metrics]``, with ``--metrics-port`` applied), and
+    whether it can be served (prometheus_client installed; else one error line)."""
     metrics = north_config.metrics
-    if args.metrics_port is not None:
-        metrics = MetricsSettings(metrics.host if metrics else "127.0.0.1", args.metrics_port)
     if metrics is not None:
         problem = missing([("[metrics]", "prometheus_client", "metrics")])
         if problem is not None:

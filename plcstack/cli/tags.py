@@ -18,8 +18,9 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from plcstack.cli import plain_text
+from plcstack.config import load_config
 from plcstack.errors import AddressError
-from plcstack.poll.config import PlcConfig, PollConfig, load_config
+from plcstack.poll.config import PlcConfig, PollConfig
 from plcstack.tags import TagListError, read_gx, read_kepware, to_toml, write_kepware
 from plcstack.tags.gx import Skipped
 from plcstack.values import UINT16, value_type
@@ -119,7 +120,7 @@ def _plcs(config: PollConfig, name: str | None, source: str) -> list[PlcConfig]:
 
 
 async def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
-    config = load_config(args.config)
+    config = load_config(args.config).poll
     plcs = _plcs(config, args.plc, args.config)
     if len(plcs) > 1:
         names = ", ".join(plc.name for plc in plcs)
@@ -133,7 +134,7 @@ async def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int
 
 
 async def run_list(args: argparse.Namespace, out: TextIO | None = None) -> int:
-    config = load_config(args.config)
+    config = load_config(args.config).poll
     lines = []
     for plc in _plcs(config, args.plc, args.config):
         for tag in plc.tags:

@@ -47,7 +47,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from plcstack.errors import ConfigError, check_keys
+from plcstack.checks import Table
+from plcstack.errors import ConfigError
 from plcstack.output import json_safe
 
 __all__ = ["Audit", "AuditSettings", "parse_audit"]
@@ -75,23 +76,18 @@ class AuditSettings:
     backups: int = 5
 
 
-def parse_audit(table: Any, *, base: Path | None = None) -> AuditSettings:
+def parse_audit(table: object, *, base: Path | None = None) -> AuditSettings:
     """The ``[audit]`` table; a relative ``path`` is taken relative to ``base`` (the TOML
     file's directory)."""
-    if not isinstance(table, dict):
-        raise ConfigError("[audit] must be a table")
-    check_keys(table, ("path", "max_bytes", "backups"), "audit")
-    path = table.get("path")
-    if not isinstance(path, str) or not path:
-        raise ConfigError('[audit] needs path = "FILE" (one JSON line per write attempt)')
-    if base is not None and not Path(path).is_absolute():
-        path = str(base / path)
-    max_bytes = table.get("max_bytes", 10 << 20)
-    if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or max_bytes < 4096:
-        raise ConfigError(f"[audit] max_bytes must be an integer >= 4096, got {max_bytes!r}")
-    backups = table.get("backups", 5)
-    if isinstance(backups, bool) or not isinstance(backups, int) or not 0 <= backups <= 1000:
-        raise ConfigError(f"[audit] backups must be an integer in 0..1000, got {backups!r}")
+    t = Table.of(table, "audit", base=base)
+    t.keys(("path", "max_bytes", "backups"))
+    path = t.file("path")
+    if path is None:
+        raise ConfigError(
+            '[audit] needs path = "FILE" (one JSON line per write attempt)', key="audit"
+        )
+    max_bytes = t.size("max_bytes", 10 << 20, 4096, 1 << 40)
+    backups = t.integer("backups", 5, 0, 1000)
     return AuditSettings(path, max_bytes, backups)
 
 

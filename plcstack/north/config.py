@@ -1,10 +1,12 @@
-"""The north-side tables of the poll TOML: ``[mqtt]``, ``[metrics]``, ``[report]``, ``[influx]``,
-``[opcua]``, ``[web]``, ``[modbus]``, ``[audit]``, ``[history]``.
+"""The north side's tables of the configuration file: ``[mqtt]``, ``[metrics]``, ``[report]``,
+``[influx]``, ``[opcua]``, ``[web]``, ``[modbus]``, ``[audit]``, ``[history]``, ``[trace]``.
 
-They sit next to ``[poll]`` and ``[[plc]]`` in the same file; the poll loader keeps them as raw
-tables (``PollConfig.north``) and checks them here at load time, so a typo is a
-:class:`ConfigError` before anything is sent. Each table is optional: without ``[mqtt]`` there is
-no MQTT sink, without ``[metrics]`` no HTTP server, without ``[report]`` every sample is reported.
+They sit next to ``[poll]`` and ``[[plc]]`` in the same file, which
+:func:`plcstack.config.load_config` reads once; each table is a field of :class:`NorthConfig`
+whose metadata names the table and the function reading it
+(:func:`plcstack.checks.toml_table`), so a table added here is one field. Each table is
+optional: without ``[mqtt]`` there is no MQTT sink, without ``[metrics]`` no HTTP server,
+without ``[report]`` every sample is reported.
 
 ```toml
 [influx]
@@ -15,124 +17,83 @@ layout = "fields"          # a field per tag (default); "typed": a field per val
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
 
-from plcstack.errors import ConfigError, check_keys
+from plcstack.checks import Notice, read_tables, table_names, toml_table
 from plcstack.north.audit import AuditSettings, parse_audit
 from plcstack.north.history.settings import HistorySettings, parse_history
-from plcstack.north.influx import DEFAULT_LAYOUT, DEFAULT_MEASUREMENT, LAYOUTS
+from plcstack.north.influx import InfluxSettings, parse_influx
 from plcstack.north.metrics import MetricsSettings, parse_metrics
 from plcstack.north.modbus.config import ModbusSettings, parse_modbus
 from plcstack.north.mqtt import MqttSettings, parse_mqtt
 from plcstack.north.opcua_config import OpcUaConfig, parse_opcua_config
-from plcstack.north.rbe import PASS_ALL, parse_report
+from plcstack.north.rbe import PASS_ALL, Report, parse_report
 from plcstack.north.trace import TraceSettings, parse_trace
 from plcstack.north.web.settings import WebSettings, parse_web
-from plcstack.poll.config import PollConfig
-from plcstack.poll.config import load_config as load_poll_config
 
-__all__ = ["NORTH_TABLES", "NorthConfig", "load_config", "parse_north"]
-
-_T = TypeVar("_T")
-
-#: top-level TOML tables that belong to the north side
-NORTH_TABLES = (
-    "mqtt", "metrics", "report", "influx", "opcua", "web", "modbus", "audit", "history", "trace",
-)  # fmt: skip
+__all__ = ["NORTH_TABLES", "NorthConfig", "parse_north"]
 
 
 @dataclass(frozen=True)
 class NorthConfig:
-    mqtt: MqttSettings | None = None
-    metrics: MetricsSettings | None = None
-    report: Any = PASS_ALL
-    influx_measurement: str = DEFAULT_MEASUREMENT
-    #: ``[influx] layout``: "fields" (a field per tag) or "typed" (a field per value type)
-    influx_layout: str = DEFAULT_LAYOUT
-    #: ``[opcua]``: the settings of ``plcstack serve opcua`` (relative certificate paths taken
-    #: relative to the TOML file)
-    opcua: OpcUaConfig | None = None
-    #: the web console and REST API (plcstack.north.web)
-    web: WebSettings | None = None
-    #: ``[modbus]``: the settings of ``plcstack serve modbus``
-    modbus: ModbusSettings | None = None
+    """The north side's tables, typed; a table not in the file is its default (None: the
+    face or sink is not run)."""
+
+    mqtt: MqttSettings | None = field(default=None, metadata=toml_table("mqtt", parse_mqtt))
+    metrics: MetricsSettings | None = field(
+        default=None, metadata=toml_table("metrics", parse_metrics)
+    )
+    #: ``[report]``: report-by-exception (every sample without the table)
+    report: Report = field(default=PASS_ALL, metadata=toml_table("report", parse_report))
+    #: ``[influx]``: the line protocol of ``--format influx``
+    influx: InfluxSettings = field(
+        default=InfluxSettings(), metadata=toml_table("influx", parse_influx)
+    )
+    #: ``[opcua]``: the OPC UA server (relative certificate paths taken relative to the file)
+    opcua: OpcUaConfig | None = field(
+        default=None, metadata=toml_table("opcua", parse_opcua_config)
+    )
+    #: ``[web]``: the web console and REST API (plcstack.north.web)
+    web: WebSettings | None = field(default=None, metadata=toml_table("web", parse_web))
+    #: ``[modbus]``: the Modbus TCP server
+    modbus: ModbusSettings | None = field(default=None, metadata=toml_table("modbus", parse_modbus))
     #: ``[audit]``: one JSON line per write attempt from any north side (north/audit.py)
-    audit: AuditSettings | None = None
+    audit: AuditSettings | None = field(default=None, metadata=toml_table("audit", parse_audit))
     #: ``[history]``: the embedded history (plcstack.north.history)
-    history: HistorySettings | None = None
+    history: HistorySettings | None = field(
+        default=None, metadata=toml_table("history", parse_history)
+    )
     #: ``[trace]``: the flight recorder (plcstack.north.trace)
-    trace: TraceSettings | None = None
+    trace: TraceSettings | None = field(default=None, metadata=toml_table("trace", parse_trace))
 
     @property
     def reports_by_exception(self) -> bool:
         return self.report is not PASS_ALL
 
+    @property
+    def influx_measurement(self) -> str:
+        return self.influx.measurement
 
-def parse_north(tables: Mapping[str, Any], *, base: Path | None = None) -> NorthConfig:
-    """The north-side tables; ``base`` = the TOML file's directory, for relative file paths
-    (``[mqtt]`` ca_file, cert_file, key_file, buffer_path, state_path; ``[opcua]``
-    certificates; ``[history]`` path). The poll loader checks without it; ``plcstack poll``
-    passes it."""
-    influx = _parsed(tables, "influx", _influx) or (DEFAULT_MEASUREMENT, DEFAULT_LAYOUT)
-    report = _parsed(tables, "report", parse_report)
-    return NorthConfig(
-        mqtt=_parsed(tables, "mqtt", lambda t: parse_mqtt(t, base=base)),
-        metrics=_parsed(tables, "metrics", parse_metrics),
-        report=PASS_ALL if report is None else report,
-        influx_measurement=influx[0],
-        influx_layout=influx[1],
-        opcua=_parsed(tables, "opcua", lambda t: parse_opcua_config(t, base=base)),
-        web=_parsed(tables, "web", parse_web),
-        modbus=_parsed(tables, "modbus", parse_modbus),
-        audit=_parsed(tables, "audit", lambda t: parse_audit(t, base=base)),
-        history=_parsed(tables, "history", lambda t: parse_history(t, base=base)),
-        trace=_parsed(tables, "trace", lambda t: parse_trace(t, base=base)),
-    )
+    @property
+    def influx_layout(self) -> str:
+        return self.influx.layout
 
 
-def _parsed(tables: Mapping[str, Any], name: str, parse: Callable[[Any], _T]) -> _T | None:
-    """``parse(tables[name])``, None without the table. A :class:`ConfigError` that does not
-    say where it is gets the table as its ``key``, so the file loader points at least at the
-    table's header line."""
-    if name not in tables:
-        return None
-    try:
-        return parse(tables[name])
-    except ConfigError as exc:
-        if exc.key is None:
-            exc.key = name
-        raise
+#: top-level TOML tables that belong to the north side
+NORTH_TABLES = table_names(NorthConfig)
 
 
-def _influx(influx: Any) -> tuple[str, str]:
-    """``[influx]``: (measurement, layout)."""
-    if not isinstance(influx, dict):
-        raise ConfigError("[influx] must be a table")
-    check_keys(influx, ("measurement", "layout"), "influx")
-    measurement = influx.get("measurement", DEFAULT_MEASUREMENT)
-    if not isinstance(measurement, str) or not measurement.strip():
-        raise ConfigError("[influx] measurement must be a non-empty string")
-    influx_layout = influx.get("layout", DEFAULT_LAYOUT)
-    if influx_layout not in LAYOUTS:
-        raise ConfigError(
-            f"[influx] layout must be {' or '.join(repr(x) for x in LAYOUTS)},"
-            f" not {influx_layout!r}"
-        )
-    return measurement, influx_layout
-
-
-def load_config(path: str | Path) -> tuple[PollConfig, NorthConfig]:
-    """Read a poller TOML file once: the poll tables parsed by the poll layer, the north
-    tables here (relative file paths taken relative to the file). A mistake in either is a
-    :class:`ConfigError` with the file and line."""
-    path = Path(path)
-    parsed: list[NorthConfig] = []
-
-    def north_tables(tables: Mapping[str, Any]) -> None:
-        parsed.append(parse_north(tables, base=path.parent))
-
-    poll = load_poll_config(path, tables=north_tables)
-    return poll, parsed[0]
+def parse_north(
+    tables: Mapping[str, object],
+    *,
+    base: Path | None = None,
+    notices: list[Notice] | None = None,
+) -> NorthConfig:
+    """The north-side tables of a parsed file (``tables``: the whole file or just those
+    tables); ``base`` = the TOML file's directory, for relative file paths (``[mqtt]``
+    ca_file, cert_file, key_file, buffer_path, state_path; ``[opcua]`` certificates;
+    ``[audit]`` and ``[history]`` path, ``[trace]`` dir). A
+    :class:`~plcstack.errors.ConfigError` carries the key it is about."""
+    return NorthConfig(**read_tables(NorthConfig, tables, base=base, notices=notices))

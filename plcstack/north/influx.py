@@ -53,8 +53,10 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
+from plcstack.checks import Table
 from plcstack.output import FLOAT32_TYPES, float32_short
 from plcstack.poll.config import PlcConfig, TagConfig
 from plcstack.poll.samples import Quality, Sample, Scan
@@ -65,8 +67,10 @@ __all__ = [
     "ERROR_FIELD",
     "LAYOUTS",
     "InfluxFormat",
+    "InfluxSettings",
     "influx_line",
     "measurement_text",
+    "parse_influx",
     "tag_text",
 ]
 
@@ -76,6 +80,25 @@ LAYOUTS = ("fields", "typed")
 DEFAULT_LAYOUT = LAYOUTS[0]
 #: the string field of the fields layout that names the bad tags of a line and why
 ERROR_FIELD = "plcstack_error"
+
+
+@dataclass(frozen=True)
+class InfluxSettings:
+    """The ``[influx]`` table: the measurement and the layout of the lines."""
+
+    measurement: str = DEFAULT_MEASUREMENT
+    #: "fields" (a field per tag) or "typed" (a field per value type)
+    layout: str = DEFAULT_LAYOUT
+
+
+def parse_influx(table: object) -> InfluxSettings:
+    """``[influx]``: ``measurement`` (default "plc"), ``layout`` ("fields" or "typed")."""
+    t = Table.of(table, "influx")
+    t.keys(("measurement", "layout"))
+    return InfluxSettings(
+        t.text("measurement", DEFAULT_MEASUREMENT), t.choice("layout", DEFAULT_LAYOUT, LAYOUTS)
+    )
+
 
 _BAD_BACKSLASH_TAG = re.compile(r"\\+(?=[,= ]|$)")
 _BAD_BACKSLASH_MEAS = re.compile(r"\\+(?=[, ]|$)")

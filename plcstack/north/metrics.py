@@ -41,7 +41,7 @@ Exported (``plc`` label per PLC)::
                                          take and deaths of its task (logged at ERROR)
 
 ``/healthz`` answers 200 ``ok`` while the poller runs, 503 with the reason otherwise. The server
-binds 127.0.0.1 unless ``[metrics] host`` says otherwise: metrics name every PLC of the plant.
+binds 127.0.0.1 unless ``[metrics] listen`` says otherwise: metrics name every PLC of the plant.
 Requests are read with a size limit and a deadline (:data:`REQUEST_TIMEOUT` for the request and
 its answer together); anything but ``GET`` of these two paths gets 404/405, never a crash. A
 client that does not read its answer is dropped at that deadline (before, it held its
@@ -59,7 +59,8 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from plcstack.errors import ConfigError, ValueDecodeError, check_keys
+from plcstack.checks import Listen, Table
+from plcstack.errors import ConfigError, ValueDecodeError
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.resource import cancel_until_done
 from plcstack.transports.guard import ClientLimit, close_writer
@@ -88,24 +89,28 @@ MAX_CLIENTS = 16
 SEEN_FAILURES = 4096
 
 
+#: where ``/metrics`` and ``/healthz`` listen unless ``[metrics] listen`` says otherwise: loopback
+#: only, since metrics name every PLC of the plant
+DEFAULT_LISTEN = Listen("127.0.0.1", 9108)
+
+
 @dataclass(frozen=True)
 class MetricsSettings:
-    host: str = "127.0.0.1"
-    port: int = 9108
+    host: str = DEFAULT_LISTEN.host
+    port: int = DEFAULT_LISTEN.port
+
+    @property
+    def listen(self) -> Listen:
+        return Listen(self.host, self.port)
 
 
-def parse_metrics(table: Any) -> MetricsSettings:
-    """``[metrics]``: ``host`` (default 127.0.0.1), ``port`` (default 9108; 0 = any free port)."""
-    if not isinstance(table, dict):
-        raise ConfigError("[metrics] must be a table")
-    check_keys(table, ("host", "port"), "metrics")
-    host = table.get("host", "127.0.0.1")
-    port = table.get("port", 9108)
-    if not isinstance(host, str) or not host:
-        raise ConfigError("[metrics] host must be a non-empty string")
-    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
-        raise ConfigError(f"[metrics] port must be 0..65535, got {port!r}")
-    return MetricsSettings(host, port)
+def parse_metrics(table: object) -> MetricsSettings:
+    """``[metrics]``: ``listen = "HOST:PORT"`` (default 127.0.0.1:9108; port 0 = any free
+    port). The old ``host`` and ``port`` keys still load, with a notice."""
+    t = Table.of(table, "metrics")
+    t.keys(("listen", "host", "port"))
+    listen = t.listen(DEFAULT_LISTEN)
+    return MetricsSettings(listen.host, listen.port)
 
 
 class _Histogram:
@@ -331,8 +336,8 @@ class MetricsServer:
             self._server = await asyncio.start_server(self._handle, host, port, limit=MAX_REQUEST)
         except OSError as exc:
             raise ConfigError(
-                f"[metrics] cannot serve /metrics on {host}:{port}: {exc.strerror or exc}"
-                " (another process on that port? set [metrics] port)"
+                f"[metrics] cannot serve /metrics on {self.settings.listen}: "
+                f"{exc.strerror or exc} (another process on that port? set [metrics] listen)"
             ) from None
         self.port = self._server.sockets[0].getsockname()[1]
         self._refresher = asyncio.create_task(self._refresh_loop())

@@ -41,7 +41,8 @@ from pathlib import Path
 from typing import Any, Protocol
 from urllib.parse import urlsplit
 
-from plcstack.errors import ConfigError, PlcError, check_keys
+from plcstack.checks import Table
+from plcstack.errors import ConfigError, PlcError
 from plcstack.north.buffer import Message, StoreAndForward
 from plcstack.north.layout import (
     JsonLayout,
@@ -147,7 +148,14 @@ class MqttSettings:
         return out[0], out[1]
 
 
-def parse_mqtt(table: Any, *, base: Path | None = None) -> MqttSettings:
+_MQTT_KEYS = frozenset({
+    "url", "client_id", "prefix", "qos", "mode", "group_id", "username_env", "password_env",
+    "ca_file", "cert_file", "key_file", "keepalive", "buffer_path", "buffer_memory",
+    "buffer_max", "inflight", "reconnect_max", "state_path", "timeout", "sparkplug_qos",
+})  # fmt: skip
+
+
+def parse_mqtt(table: object, *, base: Path | None = None) -> MqttSettings:
     """The ``[mqtt]`` table of the poll TOML (``base``: the file's directory, against which
     relative ``ca_file``, ``cert_file``, ``key_file``, ``buffer_path`` and ``state_path`` are
     taken, as ``[opcua]`` takes its certificates; None: as written)::
@@ -172,82 +180,46 @@ def parse_mqtt(table: Any, *, base: Path | None = None) -> MqttSettings:
     state_path = "/var/lib/plcstack/sparkplug.json"  # Sparkplug bdSeq across restarts
                                     # (default: next to buffer_path, e.g. mqtt.sparkplug.json)
     """
-    if not isinstance(table, dict):
-        raise ConfigError("[mqtt] must be a table")
-    allowed = {
-        "url", "client_id", "prefix", "qos", "mode", "group_id", "username_env", "password_env",
-        "ca_file", "cert_file", "key_file", "keepalive", "buffer_path", "buffer_memory",
-        "buffer_max", "inflight", "reconnect_max", "state_path", "timeout", "sparkplug_qos",
-    }  # fmt: skip
-    check_keys(table, allowed, "mqtt")
-
-    def text(key: str, default: str | None) -> str | None:
-        value = table.get(key, default)
-        if value is not None and (not isinstance(value, str) or not value):
-            raise ConfigError(f"[mqtt] {key} must be a non-empty string")
-        return value
-
-    def integer(key: str, default: int, lo: int, hi: int) -> int:
-        value = table.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-            raise ConfigError(f"[mqtt] {key} must be an integer in {lo}..{hi}, got {value!r}")
-        return value
-
-    url = text("url", "mqtt://127.0.0.1:1883") or ""
+    t = Table.of(table, "mqtt", base=base)
+    t.keys(_MQTT_KEYS)
+    url = t.text("url", "mqtt://127.0.0.1:1883")
     parts = urlsplit(url)
     if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
-        raise ConfigError(f"[mqtt] url must be mqtt://HOST[:PORT] or mqtts://..., got {url!r}")
+        raise t.error("url", f"must be mqtt://HOST[:PORT] or mqtts://..., not {url!r}")
     tls = parts.scheme == "mqtts"
     try:
         port = parts.port or (8883 if tls else 1883)
     except ValueError:
-        raise ConfigError(f"[mqtt] url has a bad port: {url!r}") from None
-    mode = text("mode", "json")
-    if mode not in ("json", "sparkplug"):
-        raise ConfigError(f"[mqtt] mode must be json or sparkplug, got {mode!r}")
-    prefix = text("prefix", "plcstack") or "plcstack"
+        raise t.error("url", f"has a bad port: {url!r}") from None
+    mode = t.choice("mode", "json", ("json", "sparkplug"))
+    prefix = t.text("prefix", "plcstack")
     if any(c in prefix for c in "+#\x00"):
-        raise ConfigError("[mqtt] prefix must not contain + # or NUL")
-    if table.get("key_file") is not None and table.get("cert_file") is None:
-        raise ConfigError("[mqtt] key_file needs cert_file (the client certificate it belongs to)")
-
-    def seconds(key: str, default: float, lo: float, hi: float) -> float:
-        value = table.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
-            raise ConfigError(f"[mqtt] {key} must be {lo}..{hi} seconds, got {value!r}")
-        return float(value)
-
-    def file(key: str) -> str | None:
-        value = text(key, None)
-        if value is None or base is None or Path(value).is_absolute():
-            return value
-        return str(base / value)
-
-    reconnect_max = seconds("reconnect_max", 30.0, 0.1, 3600)
-    timeout = seconds("timeout", 10.0, 0.5, 300)
+        raise t.error("prefix", "must not contain + # or NUL")
+    if "key_file" in t and "cert_file" not in t:
+        raise t.error("key_file", "needs cert_file (the client certificate it belongs to)")
     return MqttSettings(
         host=parts.hostname,
         port=port,
-        tls=tls or any(table.get(k) for k in ("ca_file", "cert_file")),
-        client_id=text("client_id", "plcstack") or "plcstack",
+        tls=tls or "ca_file" in t or "cert_file" in t,
+        client_id=t.text("client_id", "plcstack"),
         prefix=prefix,
-        qos=integer("qos", 1, 0, 2),
-        sparkplug_qos=integer("sparkplug_qos", 0, 0, 1),
-        mode=mode or "json",
-        group_id=text("group_id", "plcstack") or "plcstack",
-        username_env=text("username_env", None),
-        password_env=text("password_env", None),
-        ca_file=file("ca_file"),
-        cert_file=file("cert_file"),
-        key_file=file("key_file"),
-        keepalive=integer("keepalive", 30, 5, 3600),
-        timeout=timeout,
-        buffer_path=file("buffer_path"),
-        state_path=file("state_path"),
-        buffer_memory=integer("buffer_memory", 4 << 20, 0, 1 << 40),
-        buffer_max=integer("buffer_max", 256 << 20, 1024, 1 << 44),
-        inflight=integer("inflight", 64, 1, 65535),
-        reconnect_max=reconnect_max,
+        qos=t.integer("qos", 1, 0, 2),
+        sparkplug_qos=t.integer("sparkplug_qos", 0, 0, 1),
+        mode=mode,
+        group_id=t.text("group_id", "plcstack"),
+        username_env=t.optional_text("username_env"),
+        password_env=t.optional_text("password_env"),
+        ca_file=t.file("ca_file"),
+        cert_file=t.file("cert_file"),
+        key_file=t.file("key_file"),
+        keepalive=t.integer("keepalive", 30, 5, 3600),
+        timeout=t.seconds("timeout", 10.0, lo=0.5, hi=300),
+        buffer_path=t.file("buffer_path"),
+        state_path=t.file("state_path"),
+        buffer_memory=t.size("buffer_memory", 4 << 20, 0, 1 << 40),
+        buffer_max=t.size("buffer_max", 256 << 20, 1024, 1 << 44),
+        inflight=t.integer("inflight", 64, 1, 65535),
+        reconnect_max=t.seconds("reconnect_max", 30.0, lo=0.1, hi=3600),
     )
 
 

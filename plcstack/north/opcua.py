@@ -1,11 +1,12 @@
 """An OPC UA server in front of the poller: SCADA, MES and historians see the old PLCs as OPC UA.
 
 ```python
-from plcstack.north.opcua import OpcUaServer, load_opcua_config
-from plcstack.poll import Poller, load_config
+from plcstack import Poller, load_config
+from plcstack.north.opcua import OpcUaConfig, OpcUaServer
 
-async with Poller(load_config("plant.toml")) as poller:
-    async with OpcUaServer(poller, load_opcua_config("plant.toml")) as server:
+config = load_config("plant.toml")
+async with Poller(config.poll) as poller:
+    async with OpcUaServer(poller, config.north.opcua or OpcUaConfig()) as server:
         await server.run()          # feeds every sample of the poller into the address space
 ```
 

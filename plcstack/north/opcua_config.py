@@ -3,7 +3,8 @@
 They live in the ``[opcua]`` table of the poller's TOML file, next to the PLCs they serve::
 
     [opcua]
-    endpoint = "opc.tcp://127.0.0.1:4840/plcstack"   # the default: loopback only
+    listen = "127.0.0.1:4840"        # the default: loopback only ("0.0.0.0:4840": every address)
+    path = "/plcstack"               # the endpoint is opc.tcp://LISTEN/PATH
     namespace = "urn:plcstack"
     security_policies = ["None"]     # or e.g. ["Basic256Sha256_SignAndEncrypt"] with a certificate
     certificate = "server-cert.der"  # needed by every policy but None
@@ -16,7 +17,7 @@ They live in the ``[opcua]`` table of the poller's TOML file, next to the PLCs t
     password_hash = "pbkdf2_sha256$..."   # plcstack serve opcua --hash-password
     write = true                     # may write tags marked writable = true
 
-Secure by default: the server binds 127.0.0.1 unless the endpoint names another address,
+Secure by default: the server binds 127.0.0.1 unless ``listen`` names another address,
 anonymous sessions may read but not write, tags are read-only unless ``writable = true``, and
 passwords are stored only as salted PBKDF2 hashes. A configuration that would send passwords in
 plain text to a non-loopback address (users configured, no encrypting policy) is refused.
@@ -29,15 +30,15 @@ import hashlib
 import hmac
 import ipaddress
 import os
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from plcstack.errors import ConfigError, check_keys
-from plcstack.poll.config import toml_line
+from plcstack.checks import Listen, Table
+from plcstack.errors import ConfigError
+from plcstack.tomlfile import TomlFile
 
 __all__ = [
     "DEFAULT_ENDPOINT",
@@ -134,61 +135,78 @@ def _validate(config: OpcUaConfig) -> None:
         parts = urlsplit(config.endpoint)
         port = parts.port
     except ValueError as exc:
-        raise ConfigError(f"opcua.endpoint {config.endpoint!r}: {exc}") from None
+        raise ConfigError(
+            f"opcua.endpoint {config.endpoint!r}: {exc}", key="opcua.endpoint"
+        ) from None
     if parts.scheme != "opc.tcp" or not parts.hostname:
         raise ConfigError(
-            f'opcua.endpoint must look like "opc.tcp://HOST:PORT/PATH", not {config.endpoint!r}'
+            f'opcua.endpoint must look like "opc.tcp://HOST:PORT/PATH", not {config.endpoint!r}',
+            key="opcua.endpoint",
         )
     if port is not None and not 0 <= port <= 65535:
-        raise ConfigError(f"opcua.endpoint: port {port} is out of range")
+        raise ConfigError(f"opcua.endpoint: port {port} is out of range", key="opcua.endpoint")
     clients = config.max_clients
     if isinstance(clients, bool) or not isinstance(clients, int) or not 1 <= clients <= 10_000:
-        raise ConfigError(f"opcua.max_clients must be 1..10000, not {clients!r}")
+        raise ConfigError(
+            f"opcua.max_clients must be 1..10000, not {clients!r}", key="opcua.max_clients"
+        )
     if not config.namespace:
-        raise ConfigError("opcua.namespace must not be empty")
+        raise ConfigError("opcua.namespace must not be empty", key="opcua.namespace")
     if config.anonymous not in ANONYMOUS_MODES:
         raise ConfigError(
-            f"opcua.anonymous must be one of {', '.join(ANONYMOUS_MODES)}, not {config.anonymous!r}"
+            f"opcua.anonymous must be one of {', '.join(ANONYMOUS_MODES)},"
+            f" not {config.anonymous!r}",
+            key="opcua.anonymous",
         )
     policies = config.policies
     if not policies:
-        raise ConfigError("opcua.security_policies must name at least one policy")
+        raise ConfigError(
+            "opcua.security_policies must name at least one policy", key="opcua.security_policies"
+        )
     for policy in policies:
         if policy not in SECURITY_POLICIES:
             raise ConfigError(
                 f"opcua.security_policies: unknown policy {policy!r} "
-                f"(known: None, {', '.join(SECURITY_POLICIES[1:])})"
+                f"(known: None, {', '.join(SECURITY_POLICIES[1:])})",
+                key="opcua.security_policies",
             )
     if (config.certificate is None) != (config.private_key is None):
-        raise ConfigError("opcua: certificate and private_key go together")
+        raise ConfigError("opcua: certificate and private_key go together", key="opcua.certificate")
     needs_certificate = any(p != "NoSecurity" for p in policies)
     if needs_certificate and (config.certificate is None or config.private_key is None):
         raise ConfigError(
-            "opcua: security policies other than None need certificate and private_key"
+            "opcua: security policies other than None need certificate and private_key", key="opcua"
         )
     if config.trusted_client_certificates is not None:
         if not needs_certificate:
-            raise ConfigError("opcua: trusted_client_certificates needs a security policy but None")
+            raise ConfigError(
+                "opcua: trusted_client_certificates needs a security policy but None",
+                key="opcua.trusted_client_certificates",
+            )
         if "NoSecurity" in policies:
             raise ConfigError(
                 "opcua: trusted_client_certificates with the None policy offered: a client on it "
-                "sends no certificate, so the trust list would not apply; drop None"
+                "sends no certificate, so the trust list would not apply; drop None",
+                key="opcua",
             )
     if config.anonymous == "none" and not config.users:
-        raise ConfigError('opcua: anonymous = "none" and no [opcua.users]: nobody could log in')
+        raise ConfigError(
+            'opcua: anonymous = "none" and no [opcua.users]: nobody could log in', key="opcua"
+        )
     names = [u.name for u in config.users]
     if len(set(names)) != len(names):
-        raise ConfigError("opcua.users: a user name is used twice")
+        raise ConfigError("opcua.users: a user name is used twice", key="opcua.users")
     for user in config.users:
         if not user.name:
-            raise ConfigError("opcua.users: a user name must not be empty")
+            raise ConfigError("opcua.users: a user name must not be empty", key="opcua.users")
         _parse_hash(user.password_hash, user.name)
     encrypting = any(p.endswith("SignAndEncrypt") for p in policies)
     if config.users and not encrypting and not _is_loopback(parts.hostname):
         raise ConfigError(
             f"opcua: users are configured but no SignAndEncrypt policy is offered, so passwords "
             f"would cross the network to {parts.hostname} in plain text; add a certificate and "
-            f'e.g. security_policies = ["Basic256Sha256_SignAndEncrypt"]'
+            f'e.g. security_policies = ["Basic256Sha256_SignAndEncrypt"]',
+            key="opcua",
         )
 
 
@@ -236,7 +254,8 @@ def _parse_hash(text: str, user: str | None) -> tuple[int, bytes, bytes]:
     except ValueError:
         raise ConfigError(
             f"{where}password_hash is not a {_HASH_SCHEME}$ITERATIONS$SALT$HASH string "
-            "(make one with: plcstack serve opcua --hash-password)"
+            "(make one with: plcstack serve opcua --hash-password)",
+            key=f"opcua.users.{user}.password_hash" if user else None,
         ) from None
     return iterations, salt, digest
 
@@ -244,6 +263,8 @@ def _parse_hash(text: str, user: str | None) -> tuple[int, bytes, bytes]:
 # -- TOML ---------------------------------------------------------------------------------------
 
 _KEYS = {
+    "listen",
+    "path",
     "endpoint",
     "namespace",
     "server_name",
@@ -255,73 +276,100 @@ _KEYS = {
     "users",
     "max_clients",
 }
+DEFAULT_LISTEN = Listen("127.0.0.1", 4840)
+DEFAULT_PATH = "/plcstack"
 
 
 def load_opcua_config(path: str | Path) -> OpcUaConfig:
     """The ``[opcua]`` table of a poller TOML file (defaults if there is none).
 
-    Relative certificate and key paths are taken relative to the file's directory.
+    Relative certificate and key paths are taken relative to the file's directory. The whole
+    file, every table checked: ``plcstack.load_config(path).north.opcua``.
     """
-    path = Path(path)
+    file = TomlFile.read(path)
     try:
-        text = path.read_text(encoding="utf-8")
-        data = tomllib.loads(text)
-    except OSError as exc:
-        raise ConfigError(f"cannot read {path}: {exc.strerror or exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    try:
-        return parse_opcua_config(data.get("opcua", {}), base=path.parent)
+        return parse_opcua_config(
+            Table.of(file.data.get("opcua", {}), "opcua", base=file.base, notices=None)
+        )
     except ConfigError as exc:
-        line = toml_line(text.splitlines(), exc.key or "opcua")
-        where = f"{path}:{line}" if line else str(path)
-        raise ConfigError(f"{exc.message} ({where})", key=exc.key) from None
+        raise file.error(exc if exc.key else ConfigError(exc.message, key="opcua")) from None
 
 
-def parse_opcua_config(section: Mapping[str, Any], *, base: Path | None = None) -> OpcUaConfig:
+def parse_opcua_config(section: object, *, base: Path | None = None) -> OpcUaConfig:
     """Build an :class:`OpcUaConfig` from the ``[opcua]`` table's contents."""
-    if not isinstance(section, Mapping):
-        raise ConfigError("[opcua] must be a table")
-    check_keys(section, _KEYS, "opcua")
-    options: dict[str, Any] = {}
-    for key in ("endpoint", "namespace", "server_name", "anonymous"):
-        if key in section:
-            options[key] = _string(section, key)
-    if "security_policies" in section:
-        raw = section["security_policies"]
+    t = Table.of(section, "opcua", base=base)
+    t.keys(_KEYS)
+    options: dict[str, Any] = {"endpoint": _endpoint(t)}
+    for key in ("namespace", "server_name", "anonymous"):
+        if key in t:
+            options[key] = _string(t, key)
+    if "security_policies" in t:
+        raw = t.raw("security_policies")
         if not isinstance(raw, list) or not all(isinstance(p, str) for p in raw):
-            raise ConfigError('opcua.security_policies must be a list of names, e.g. ["None"]')
+            raise t.error("security_policies", 'must be a list of names, e.g. ["None"]')
         options["security_policies"] = tuple("NoSecurity" if p == "None" else p for p in raw)
     for key in ("certificate", "private_key", "trusted_client_certificates"):
-        if key in section:
-            file = Path(_string(section, key))
-            options[key] = file if base is None or file.is_absolute() else base / file
-    users = section.get("users", {})
-    if not isinstance(users, Mapping):
-        raise ConfigError("[opcua.users] must be a table of [opcua.users.NAME] tables")
-    options["users"] = tuple(_user(name, spec) for name, spec in users.items())
-    if "max_clients" in section:
-        options["max_clients"] = section["max_clients"]
+        if key in t:
+            _string(t, key)
+            options[key] = Path(t.file(key) or "")
+    users = t.sub("users", t.raw("users", {}))
+    options["users"] = tuple(_user(users, name, spec) for name, spec in users.values.items())
+    if "max_clients" in t:
+        options["max_clients"] = t.raw("max_clients")
     return OpcUaConfig(**options)
 
 
-def _string(table: Mapping[str, Any], key: str) -> str:
-    value = table[key]
+def _endpoint(t: Table) -> str:
+    """``opc.tcp://LISTEN/PATH`` from ``listen`` and ``path``, or from the old ``endpoint``
+    (a notice names the new spelling)."""
+    if "endpoint" in t:
+        for new in ("listen", "path"):
+            if new in t:
+                raise t.error(
+                    "endpoint", f"and {new} both say where to listen: keep {new}, drop endpoint"
+                )
+        endpoint = _string(t, "endpoint")
+        try:
+            parts = urlsplit(endpoint)
+            port = parts.port
+        except ValueError as exc:
+            raise t.error("endpoint", f"{endpoint!r}: {exc}") from None
+        if parts.scheme != "opc.tcp" or not parts.hostname:
+            raise t.error(
+                "endpoint", f'must look like "opc.tcp://HOST:PORT/PATH", not {endpoint!r}'
+            )
+        listen = Listen(parts.hostname, DEFAULT_LISTEN.port if port is None else port)
+        path = parts.path or "/"
+        new = f'listen = "{listen}"' + (f' and path = "{path}"' if path != DEFAULT_PATH else "")
+        t.notice("endpoint", t.deprecated("endpoint", new))
+        return f"opc.tcp://{listen}{path}"
+    listen = t.listen(DEFAULT_LISTEN) if "listen" in t else DEFAULT_LISTEN
+    path = t.text("path", DEFAULT_PATH)
+    if not path.startswith("/") or any(c.isspace() or c in "?#" for c in path):
+        raise t.error("path", f'must be a URL path such as "/plcstack", not {path!r}')
+    return f"opc.tcp://{listen}{path}"
+
+
+def _string(t: Table, key: str) -> str:
+    value = t.raw(key)
     if not isinstance(value, str):
-        raise ConfigError(f"opcua.{key} must be a string, not {value!r}")
+        raise t.error(key, f"must be a string, not {value!r}")
     return value
 
 
-def _user(name: str, spec: Any) -> UserConfig:
+def _user(users: Table, name: str, spec: object) -> UserConfig:
     where = f"opcua.users.{name}"
     if not isinstance(spec, Mapping):
-        raise ConfigError(f"{where} must be a table with password_hash and write")
-    hint = "; store a hash: plcstack serve opcua --hash-password" if "password" in spec else ""
-    check_keys(spec, ("password_hash", "write"), where, hint=hint)
-    password_hash = spec.get("password_hash")
+        raise ConfigError(f"{where} must be a table with password_hash and write", key=where)
+    t = users.sub(name, spec)
+    hint = "; store a hash: plcstack serve opcua --hash-password" if "password" in t else ""
+    t.keys(("password_hash", "write"), hint=hint)
+    password_hash = t.raw("password_hash")
     if not isinstance(password_hash, str):
-        raise ConfigError(f"{where}: missing password_hash (plcstack serve opcua --hash-password)")
-    write = spec.get("write", False)
+        raise ConfigError(
+            f"{where}: missing password_hash (plcstack serve opcua --hash-password)", key=where
+        )
+    write = t.raw("write", False)
     if not isinstance(write, bool):
-        raise ConfigError(f"{where}: write must be true or false, not {write!r}")
+        raise t.error("write", f"must be true or false, not {write!r}")
     return UserConfig(name, password_hash, write)

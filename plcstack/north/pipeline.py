@@ -1,7 +1,7 @@
 """From the poller to every sink: one consumer, report-by-exception once, then fan-out.
 
 ```python
-async with Poller(config) as poller, North(poller, parse_north(config.north)) as north:
+async with Poller(config.poll) as poller, North(poller, config.north) as north:
     await north.run(emit=lambda batch: ...)   # optional extra sink, e.g. lines on stdout
 ```
 

@@ -24,14 +24,15 @@ from __future__ import annotations
 
 import fnmatch
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from plcstack.checks import Table
 from plcstack.errors import ConfigError, check_keys
 from plcstack.poll.samples import Quality, Sample, Scan
 
-__all__ = ["ReportByException", "ReportPolicy", "parse_report"]
+__all__ = ["PASS_ALL", "Report", "ReportByException", "ReportPolicy", "ReportRules", "parse_report"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,7 +78,12 @@ def _moved(old: Any, new: Any, policy: ReportPolicy) -> bool:
 class ReportByException:
     """Filters samples per tag by its :class:`ReportPolicy` (see the module docstring)."""
 
-    def __init__(self, policy: ReportPolicy | Mapping[tuple[str, str], ReportPolicy] | Any) -> None:
+    def __init__(
+        self,
+        policy: ReportPolicy
+        | Mapping[tuple[str, str], ReportPolicy]
+        | Callable[[str, str], ReportPolicy],
+    ) -> None:
         self._policy_of = policy
         self._policies: dict[tuple[str, str], ReportPolicy] = {}
         self._last: dict[tuple[str, str], _Last] = {}
@@ -163,8 +169,29 @@ def _policy(table: Mapping[str, Any], base: ReportPolicy, where: str) -> ReportP
     return ReportPolicy(**values)
 
 
-def parse_report(table: Mapping[str, Any] | None) -> Any:
-    """The ``[report]`` table -> a policy lookup ``(plc, tag) -> ReportPolicy``.
+@dataclass(frozen=True, slots=True)
+class ReportRules:
+    """``[[report.rule]]``s: the first rule whose globs match a tag gives its policy, else
+    ``base`` (the ``[report]`` table's own keys). Compared by value, so a reload can tell
+    whether the table changed."""
+
+    base: ReportPolicy
+    #: (plc glob, tag glob, policy), in the file's order
+    rules: tuple[tuple[str, str, ReportPolicy], ...]
+
+    def __call__(self, plc: str, tag: str) -> ReportPolicy:
+        for plc_glob, tag_glob, policy in self.rules:
+            if fnmatch.fnmatchcase(plc, plc_glob) and fnmatch.fnmatchcase(tag, tag_glob):
+                return policy
+        return self.base
+
+
+#: what ``[report]`` sets: one policy for every tag, or rules
+Report = ReportPolicy | ReportRules
+
+
+def parse_report(table: object) -> Report:
+    """The ``[report]`` table -> one policy, or rules ``(plc, tag) -> ReportPolicy``.
 
     ```toml
     [report]                     # defaults for every tag
@@ -180,10 +207,9 @@ def parse_report(table: Mapping[str, Any] | None) -> Any:
     """
     if table is None:
         return PASS_ALL
-    if not isinstance(table, Mapping):
-        raise ConfigError("[report] must be a table")
-    rules_raw = table.get("rule", [])
-    base = _policy({k: v for k, v in table.items() if k != "rule"}, ReportPolicy(), "[report]")
+    values = Table.of(table, "report").values
+    rules_raw = values.get("rule", [])
+    base = _policy({k: v for k, v in values.items() if k != "rule"}, ReportPolicy(), "[report]")
     if not isinstance(rules_raw, list):
         raise ConfigError("[report] rule must be an array of tables ([[report.rule]])")
     rules: list[tuple[str, str, ReportPolicy]] = []
@@ -197,11 +223,4 @@ def parse_report(table: Mapping[str, Any] | None) -> Any:
         rules.append((plc, tag, _policy(rule, base, where)))
     if not rules:
         return base
-
-    def lookup(plc: str, tag: str) -> ReportPolicy:
-        for plc_glob, tag_glob, policy in rules:
-            if fnmatch.fnmatchcase(plc, plc_glob) and fnmatch.fnmatchcase(tag, tag_glob):
-                return policy
-        return base
-
-    return lookup
+    return ReportRules(base, tuple(rules))

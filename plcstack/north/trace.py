@@ -18,14 +18,14 @@ PLC's frames on request (the REST route ``GET /api/plcs/NAME/capture.pcapng``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
+from plcstack.checks import Table
 from plcstack.clients.base import Client
-from plcstack.errors import ConfigError, check_keys
-from plcstack.north.history.settings import parse_duration
 from plcstack.north.layout import Reachability
 from plcstack.poll.samples import Scan
 from plcstack.wire.ring import DEFAULT_RING, MIN_INTERVAL, FlightRecorder
@@ -48,27 +48,14 @@ class TraceSettings:
     interval: float = MIN_INTERVAL
 
 
-def parse_trace(table: Mapping[str, Any], *, base: Path | None = None) -> TraceSettings:
+def parse_trace(table: object, *, base: Path | None = None) -> TraceSettings:
     """The ``[trace]`` table; ``base`` = the TOML file's directory, for a relative ``dir``."""
-    check_keys(table, _KEYS, "trace")
-    ring = table.get("ring", DEFAULT_RING)
-    if isinstance(ring, bool) or not isinstance(ring, int) or not 1 <= ring <= MAX_RING:
-        raise ConfigError(
-            f"[trace] ring must be a number of frames from 1 to {MAX_RING}, not {ring!r}",
-            key="trace.ring",
-        )
-    folder = table.get("dir", "traces")
-    if not isinstance(folder, str) or not folder.strip():
-        raise ConfigError(f"[trace] dir must be a folder name, not {folder!r}", key="trace.dir")
-    directory = Path(folder)
-    if base is not None and not directory.is_absolute():
-        directory = base / directory
-    interval = (
-        parse_duration("[trace] interval", table["interval"])
-        if "interval" in table
-        else MIN_INTERVAL
-    )
-    return TraceSettings(ring, directory, interval)
+    t = Table.of(table, "trace", base=base)
+    t.keys(_KEYS)
+    ring = t.integer("ring", DEFAULT_RING, 1, MAX_RING)
+    directory = t.file("dir", "traces") or "traces"
+    interval = t.seconds("interval", MIN_INTERVAL, hi=math.inf)
+    return TraceSettings(ring, Path(directory), interval)
 
 
 class PlcConnections(Protocol):

@@ -5,8 +5,7 @@ from plcstack.poll.config import (
     PlcConfig,
     PollConfig,
     TagConfig,
-    load_config,
-    parse_config,
+    parse_poll_config,
 )
 from plcstack.poll.engine import PlcStats, Poller, Quality, Sample, Scan, format_stats
 from plcstack.poll.plan import ReadRequest, ScanPlan, build_plan
@@ -29,7 +28,6 @@ __all__ = [
     "WordOrder",
     "build_plan",
     "format_stats",
-    "load_config",
-    "parse_config",
+    "parse_poll_config",
     "value_type",
 ]

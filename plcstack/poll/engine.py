@@ -1,7 +1,7 @@
 """The Poller: many PLCs, scan groups on intervals, scans (or samples) out as async iterators.
 
 ```python
-async with Poller(load_config("plant.toml")) as poller:
+async with Poller(load_config("plant.toml").poll) as poller:
     async for s in poller:
         print(s.plc, s.tag, s.value, s.quality)
 ```

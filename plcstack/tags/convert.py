@@ -4,7 +4,7 @@ The address check is the poller's own: the tags are planned on the client of ``-
 never connected), so an address the PLC family cannot hold (``DB10.DW5`` on a MELSEC URL,
 ``D99999``, ``int16`` on a bit device) is refused here with the row it came from, not later by
 ``poll``.
-The TOML written is parsed back with :func:`plcstack.poll.config.parse_config` before anyone
+The TOML written is parsed back with :func:`plcstack.poll.config.parse_poll_config` before anyone
 sees it: what the import prints is a config ``plcstack poll`` accepts.
 """
 
@@ -22,7 +22,7 @@ from plcstack.poll.config import (
     ConfigError,
     PlcConfig,
     TagConfig,
-    parse_config,
+    parse_poll_config,
 )
 from plcstack.poll.engine import default_client_factory
 from plcstack.poll.plan import build_plan
@@ -170,7 +170,7 @@ def to_toml(imported: ImportedTags) -> str:
     ]
     text = "\n".join(parts) + "\n"
     try:
-        parse_config(text, source=imported.source)
+        parse_poll_config(text, source=imported.source)
     except ConfigError as exc:
         raise TagListError(
             f"{imported.source}: the converted tags are not a valid config: {exc}"

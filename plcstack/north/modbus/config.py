@@ -2,7 +2,7 @@
 
 ```toml
 [modbus]
-endpoint = "127.0.0.1:5020"   # the default: loopback only ("0.0.0.0:502" for the plant network)
+listen = "127.0.0.1:5020"     # the default: loopback only ("0.0.0.0:502" for the plant network)
 unit_id = 1                   # the unit identifier answered; requests to another get 0x0A
 word_order = "big"            # two-register values: high word first ("little": low word first)
 max_clients = 32              # clients at once; the next one is closed at once (logged once)
@@ -29,9 +29,9 @@ import itertools
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
-from plcstack.errors import ConfigError, check_keys
+from plcstack.checks import Listen, Table
+from plcstack.errors import ConfigError
 from plcstack.north.modbus.registers import TABLES, Layout, layout_for
 from plcstack.poll.config import TagConfig
 from plcstack.values import WordOrder
@@ -39,6 +39,7 @@ from plcstack.values import WordOrder
 __all__ = [
     "DEFAULT_ENDPOINT",
     "DEFAULT_IDLE_TIMEOUT",
+    "DEFAULT_LISTEN",
     "DEFAULT_MAX_CLIENTS",
     "MapEntry",
     "ModbusSettings",
@@ -47,7 +48,8 @@ __all__ = [
     "parse_modbus",
 ]
 
-DEFAULT_ENDPOINT = "127.0.0.1:5020"
+DEFAULT_LISTEN = Listen("127.0.0.1", 5020)
+DEFAULT_ENDPOINT = str(DEFAULT_LISTEN)
 #: clients at once: enough for the panels and SCADA of a line; a flood of connections (a scan, a
 #: client that leaks sockets) is turned away at the limit instead of taking the process's files
 DEFAULT_MAX_CLIENTS = 32
@@ -55,15 +57,14 @@ DEFAULT_MAX_CLIENTS = 32
 #: and its connection would count against ``max_clients`` for ever. Longer than any sane poll.
 DEFAULT_IDLE_TIMEOUT = 600.0
 _ADDRESS = re.compile(r"^\s*(hr|ir|co|di)\s*:\s*(\d{1,5})\s*$", re.IGNORECASE)
-_ENDPOINT = re.compile(r"^(?:\[([^\]]+)\]|([^:\[\]]+)):(\d{1,5})$")
 
 
 @dataclass(frozen=True)
 class ModbusSettings:
     """Everything ``[modbus]`` sets."""
 
-    host: str = "127.0.0.1"
-    port: int = 5020
+    host: str = DEFAULT_LISTEN.host
+    port: int = DEFAULT_LISTEN.port
     unit_id: int = 1
     word_order: WordOrder = WordOrder.BIG
     max_clients: int = DEFAULT_MAX_CLIENTS
@@ -71,9 +72,12 @@ class ModbusSettings:
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT
 
     @property
+    def listen(self) -> Listen:
+        return Listen(self.host, self.port)
+
+    @property
     def endpoint(self) -> str:
-        host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"{host}:{self.port}"
+        return str(self.listen)
 
 
 def parse_address(text: object) -> tuple[str, int]:
@@ -86,44 +90,30 @@ def parse_address(text: object) -> tuple[str, int]:
     return m.group(1).lower(), int(m.group(2))
 
 
-def parse_modbus(table: Any) -> ModbusSettings:
-    """``[modbus]``: endpoint, unit_id, word_order, max_clients, idle_timeout; ConfigError
-    naming the key otherwise."""
-    if not isinstance(table, dict):
-        raise ConfigError("[modbus] must be a table")
-    check_keys(
-        table, ("endpoint", "unit_id", "word_order", "max_clients", "idle_timeout"), "modbus"
+def parse_modbus(table: object) -> ModbusSettings:
+    """``[modbus]``: listen, unit_id, word_order, max_clients, idle_timeout; ConfigError
+    naming the key otherwise. The old ``endpoint = "HOST:PORT"`` still loads, with a notice."""
+    t = Table.of(table, "modbus")
+    t.keys(("listen", "endpoint", "unit_id", "word_order", "max_clients", "idle_timeout"))
+    if "endpoint" in t:
+        if "listen" in t:
+            raise t.error(
+                "endpoint", "and listen both say where to listen: keep listen, drop endpoint"
+            )
+        try:
+            listen = Listen.parse(t.raw("endpoint"))
+        except ValueError as exc:
+            raise t.error("endpoint", str(exc)) from None
+        t.notice("endpoint", t.deprecated("endpoint", f'listen = "{listen}"'))
+    else:
+        listen = t.listen(DEFAULT_LISTEN)
+    unit_id = t.integer("unit_id", 1, 0, 255)
+    word_order = WordOrder(t.choice("word_order", "big", ("big", "little")))
+    clients = t.integer("max_clients", DEFAULT_MAX_CLIENTS, 1, 10_000)
+    idle = t.seconds(
+        "idle_timeout", DEFAULT_IDLE_TIMEOUT, hi=1e9, zero="never drop a silent client"
     )
-    endpoint = table.get("endpoint", DEFAULT_ENDPOINT)
-    m = _ENDPOINT.match(endpoint) if isinstance(endpoint, str) else None
-    if m is None or int(m.group(3)) > 65535:
-        raise ConfigError(
-            f'[modbus] endpoint must be "HOST:PORT" (port 0..65535), not {endpoint!r}'
-        )
-    unit_id = table.get("unit_id", 1)
-    if isinstance(unit_id, bool) or not isinstance(unit_id, int) or not 0 <= unit_id <= 255:
-        raise ConfigError(f"[modbus] unit_id must be 0..255, not {unit_id!r}")
-    order = table.get("word_order", "big")
-    try:
-        word_order = WordOrder(order)
-    except ValueError:
-        raise ConfigError(f'[modbus] word_order must be "big" or "little", not {order!r}') from None
-    clients = table.get("max_clients", DEFAULT_MAX_CLIENTS)
-    if isinstance(clients, bool) or not isinstance(clients, int) or not 1 <= clients <= 10_000:
-        raise ConfigError(f"[modbus] max_clients must be 1..10000, not {clients!r}")
-    idle = table.get("idle_timeout", DEFAULT_IDLE_TIMEOUT)
-    if isinstance(idle, bool) or not isinstance(idle, int | float) or not 0 <= idle < 1e9:
-        raise ConfigError(
-            f"[modbus] idle_timeout must be seconds (0: never drop a silent client), not {idle!r}"
-        )
-    return ModbusSettings(
-        m.group(1) or m.group(2),
-        int(m.group(3)),
-        unit_id,
-        word_order,
-        clients,
-        float(idle) or None,
-    )
+    return ModbusSettings(listen.host, listen.port, unit_id, word_order, clients, idle or None)
 
 
 @dataclass(frozen=True, slots=True)

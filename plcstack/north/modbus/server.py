@@ -1,11 +1,12 @@
 """The Modbus TCP server in front of the poller: HMI panels and SCADA see the old PLCs as Modbus.
 
 ```python
+from plcstack import Poller, load_config
 from plcstack.north.modbus import ModbusServer
-from plcstack.poll import Poller, load_config
 
 config = load_config("plant.toml")
-async with Poller(config) as poller, ModbusServer.from_config(poller) as server:
+poller = Poller(config.poll)
+async with poller, ModbusServer.from_config(poller, config.north.modbus) as server:
     print(server.endpoint)   # the address actually bound (port 0 picks a free one)
     await server.run()       # feeds the poller's scans into the register image
 ```
@@ -38,7 +39,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from plcstack.errors import ConfigError, PlcError, RemoteProtocolError
-from plcstack.north.modbus.config import MapEntry, ModbusSettings, build_map, parse_modbus
+from plcstack.north.modbus.config import MapEntry, ModbusSettings, build_map
 from plcstack.north.modbus.frames import (
     ModbusServerConnection,
     Request,
@@ -243,18 +244,12 @@ class ModbusServer(AsyncResource):
         self._writes: set[asyncio.Task[None]] = set()
 
     @classmethod
-    def from_config(cls, poller: Poller) -> ModbusServer:
-        """The server of the poller's configuration: its ``[modbus]`` table and ``modbus``
-        keys, as the one read of the TOML file parsed them, with file and line in its
-        errors."""
-        source = poller.config.source or "<config>"
-        table = poller.config.north.get("modbus", {})
-        try:
-            settings = parse_modbus(table)
-        except ConfigError as exc:
-            raise ConfigError(f"{exc.message} ({source})") from None
+    def from_config(cls, poller: Poller, settings: ModbusSettings | None = None) -> ModbusServer:
+        """The server of the poller's tags (their ``modbus`` keys, with file and line in its
+        errors) and the ``[modbus]`` table (``settings``; None: the defaults)."""
         tags = {plc: poller.tags(plc) for plc in poller.plcs}
-        return cls(poller, settings, build_map(tags, source=poller.config.source))
+        map_ = build_map(tags, source=poller.config.source)
+        return cls(poller, settings or ModbusSettings(), map_)
 
     @property
     def endpoint(self) -> str:
