@@ -16,7 +16,7 @@ from plcstack.gateway.allow import DeviceAllowList, WriteAllowList
 from plcstack.gateway.e71face import E71Executor
 from plcstack.gateway.record import FaceWrite
 from plcstack.gateway.store import ClientStore
-from plcstack.poll.config import parse_config
+from plcstack.poll.config import parse_poll_config
 from plcstack.poll.engine import Poller
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as lan_sim
@@ -62,7 +62,7 @@ url = "{url}"
 [plc.tags]
 {tags}
 """
-    async with Poller(parse_config(text)) as poller:
+    async with Poller(parse_poll_config(text)) as poller:
         yield poller
 
 
