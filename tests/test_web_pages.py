@@ -11,13 +11,14 @@ from typing import Any
 import pytest
 
 from plcstack import values as vt
+from plcstack.config import parse_config
 from plcstack.errors import ConfigError
 from plcstack.north.web.display import TagDisplay
 from plcstack.north.web.events import EventHub
 from plcstack.north.web.overview import PAGE_SIZE, select
 from plcstack.north.web.pages import overview_page
 from plcstack.north.web.state import ConsoleState, plc_row
-from plcstack.poll.config import PlcConfig, PollConfig, TagConfig, parse_config
+from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.samples import Quality, Scan, make_sample
 from plcstack.values import Scale
 

@@ -16,7 +16,6 @@ from collections.abc import Collection, Mapping
 from typing import Any
 
 from plcstack.errors import AddressError, ConfigError, unknown_names
-from plcstack.poll.display import decimals_problem, parse_labels
 from plcstack.poll.config.model import (
     DEFAULT_BATCH_WAIT,
     DEFAULT_CONCURRENCY,
@@ -31,6 +30,7 @@ from plcstack.poll.config.model import (
     batch_wait_problem,
     text_problem,
 )
+from plcstack.poll.display import decimals_problem, parse_labels
 from plcstack.tomlfile import TomlFile
 from plcstack.url import parse_url
 from plcstack.values import TYPES, Scale, WordOrder, value_type
