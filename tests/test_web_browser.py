@@ -335,7 +335,8 @@ async def test_a_trend_reaches_back_over_a_restart_of_the_process(
     sim = await e71_sim.start(memory)
     config = tmp_path / "plant.toml"
     config.write_text(
-        '[poll]\ninterval = 0.1\n\n[web]\nport = 0\n\n[history]\npath = "history.sqlite"\n\n'
+        '[poll]\ninterval = 0.1\n\n[web]\nlisten = "127.0.0.1:0"\n\n'
+        '[history]\npath = "history.sqlite"\n\n'
         f'[[plc]]\nname = "press1"\nurl = "{sim.url}"\n[plc.tags]\n'
         'setpoint = { address = "D100", type = "int16", unit = "rpm" }\n',
         encoding="utf-8",

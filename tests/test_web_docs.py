@@ -86,7 +86,7 @@ def test_web_quickstart_runs(tmp_path: Path, background: list[subprocess.Popen[s
             background.append(proc)
             where = _wait_line(proc, "stdout", "listening on").split("listening on ")[1].split()[0]
             replace["127.0.0.1:5000"] = where
-            config = substitute(toml).replace("port = 8080", f"port = {web_port}")
+            config = substitute(toml).replace("127.0.0.1:8080", f"127.0.0.1:{web_port}")
             (tmp_path / "plant.toml").write_text(config, encoding="utf-8")
         elif argv[:2] == ["plcstack", "poll"]:
             proc = subprocess.Popen(
