@@ -39,7 +39,7 @@ from plcstack.clients.share import SharedConnection
 from plcstack.gateway import e71server
 from plcstack.gateway.e71face import E71Executor
 from plcstack.gateway.store import ClientStore
-from plcstack.poll.config import parse_config
+from plcstack.poll.config import parse_poll_config
 from plcstack.poll.engine import Poller
 from plcstack.sim import fetchwrite as fw_server
 from plcstack.sim import s5lan as lan_server
@@ -211,7 +211,7 @@ url = "{url}"
 [plc.tags]
 words = {{ address = "{kind.address}", count = {WORDS} }}
 """
-        async with Poller(parse_config(text)) as poller:
+        async with Poller(parse_poll_config(text)) as poller:
             await asyncio.sleep(1.0)  # connected, the first scans done
             alone = await poll_window(poller, seconds)
             print(poll_report("poll alone", alone))
