@@ -378,14 +378,15 @@ class Table:
             raise self.error(key, f"must be {listed}, not {value!r}")
         return value  # type: ignore[return-value]  # one of the choices
 
-    def file(self, key: str, default: str | None = None) -> str | None:
-        """A path (``~`` for the home directory), relative ones taken relative to the TOML
-        file's directory; ``default`` (taken the same way) without the key."""
+    def file(self, key: str, default: str | None = None, *, what: str = "a file") -> str | None:
+        """A path (``~`` for the home directory) to ``what`` (a file, a folder), relative ones
+        taken relative to the TOML file's directory; ``default`` (taken the same way) without
+        the key."""
         value = self.values.get(key, default)
         if value is None:
             return None
         if not isinstance(value, str) or not value.strip() or "\x00" in value:
-            raise self.error(key, f"must name a file, not {value!r}")
+            raise self.error(key, f"must name {what}, not {value!r}")
         path = Path(value).expanduser()
         if self.base is None or path.is_absolute():
             return str(path)

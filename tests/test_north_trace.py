@@ -34,7 +34,7 @@ def test_the_table_and_its_checks(tmp_path: Path) -> None:
         ({"ring": 0}, "[trace] ring must be 1..4096, not 0"),
         ({"ring": True}, "[trace] ring must be 1..4096, not True"),
         ({"ring": 5000}, "[trace] ring must be 1..4096, not 5000"),
-        ({"dir": ""}, "[trace] dir must name a file, not ''"),
+        ({"dir": ""}, "[trace] dir must name a folder, not ''"),
         ({"interval": "soon"}, "[trace] interval must be a number of seconds (greater than 0)"),
         ({"rings": 4}, "unknown key(s) rings (did you mean ring?)"),
     ]

@@ -53,7 +53,7 @@ def parse_trace(table: object, *, base: Path | None = None) -> TraceSettings:
     t = Table.of(table, "trace", base=base)
     t.keys(_KEYS)
     ring = t.integer("ring", DEFAULT_RING, 1, MAX_RING)
-    directory = t.file("dir", "traces") or "traces"
+    directory = t.file("dir", "traces", what="a folder") or "traces"
     interval = t.seconds("interval", MIN_INTERVAL, hi=math.inf)
     return TraceSettings(ring, Path(directory), interval)
 
