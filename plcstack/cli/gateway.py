@@ -2,7 +2,8 @@
 
 Serves S5-LAN-LINK and/or FETCH/WRITE clients on the network from an S5 CPU reached through its
 programming port (as511:///dev/ttyUSB0, or as511+tcp://HOST:PORT for a serial device server),
-an S5-LAN module (s5lan://HOST:PORT) or a FETCH/WRITE CP (fetchwrite://HOST:PORT); or E71
+an S5-LAN module (s5lan://HOST:PORT) or a FETCH/WRITE CP (fetchwrite://HOST:PORT); the
+programming port itself on TCP for PG software (--as511, writes with --writable AS); or E71
 clients (--e71 TCP, --e71-udp UDP, --e71-code binary or ascii) from an E71 (e71+tcp://...),
 more of them than its eight connections. One request at a time on the PLC's connection; network
 requests wait in one bounded, fair queue, and a request that waits longer than --max-wait is
@@ -56,6 +57,11 @@ def register(subparsers: Any) -> None:
         "--fetchwrite", metavar="[HOST:]PORT", help="serve FETCH/WRITE here (default 127.0.0.1)"
     )
     parser.add_argument("--mk", action="store_true", help="FETCH/WRITE inside the Tani MK header")
+    parser.add_argument(
+        "--as511",
+        metavar="[HOST:]PORT",
+        help="serve the programming port (AS511) on TCP here, for PG software (an AS511 PLC)",
+    )
     parser.add_argument(
         "--e71", metavar="[HOST:]PORT", help="serve E71 1E frames on TCP here (an E71 PLC)"
     )
@@ -130,7 +136,8 @@ async def run(args: argparse.Namespace) -> int:
     fetchwrite = parse_endpoint(args.fetchwrite, "--fetchwrite")
     e71 = parse_endpoint(args.e71, "--e71")
     e71_udp = parse_endpoint(args.e71_udp, "--e71-udp")
-    if s5lan is None and fetchwrite is None and e71 is None and e71_udp is None:
+    as511 = parse_endpoint(args.as511, "--as511")
+    if all(x is None for x in (s5lan, fetchwrite, e71, e71_udp, as511)):
         raise UsageError("gateway: give --s5lan and/or --fetchwrite (an E71: --e71, --e71-udp)")
     if args.duration is not None and not args.duration > 0:
         raise UsageError("--duration must be greater than 0")
@@ -161,6 +168,7 @@ async def run(args: argparse.Namespace) -> int:
             e71=e71,
             e71_udp=e71_udp,
             e71_code=args.e71_code,
+            as511=as511,
             writable=args.writable,
             queue_size=args.queue_size,
             max_wait=args.max_wait,
@@ -220,6 +228,9 @@ def _summary(gw: gateway.Gateway) -> str:
         )
     s = gw.stats
     line = "AS511" if isinstance(gw.share.client, AS511Client) else "PLC"
+    pg = gw.pg
+    if gw.store is None and pg is not None:
+        return f"gateway: {pg.transactions} PG transactions, {pg.refused} refused"
     return (
         f"gateway: {s.reads} reads, {s.writes} writes; {line} {s.line_reads} reads, "
         f"{s.line_writes} writes; cache hits {s.cache_hits}; busy {s.busy}, "

@@ -28,6 +28,7 @@ from plcstack.clients.base import Client
 from plcstack.clients.share import SharedConnection
 from plcstack.errors import AddressError
 from plcstack.gateway.allow import DeviceAllowList, WriteAllowList
+from plcstack.gateway.as511face import As511Executor
 from plcstack.gateway.e71face import E71Executor
 from plcstack.gateway.faces import FaceSettings, PlcFaces
 from plcstack.gateway.record import WriteHook
@@ -70,6 +71,8 @@ class Gateway(AsyncResource):
         self.store = next((a for a in faces.answering if isinstance(a, ClientStore)), None)
         #: the E71 faces' executor (None in front of an S5 PLC)
         self.executor = next((a for a in faces.answering if isinstance(a, E71Executor)), None)
+        #: the AS511 face's executor (None without one)
+        self.pg = next((a for a in faces.answering if isinstance(a, As511Executor)), None)
 
     @property
     def stats(self) -> GatewayStats:
@@ -101,6 +104,7 @@ async def start(
     e71: Endpoint | None = None,
     e71_udp: Endpoint | None = None,
     e71_code: Literal["binary", "ascii"] = "binary",
+    as511: Endpoint | None = None,
     writable: str = "",
     queue_size: int = 32,
     max_wait: float = 2.0,
@@ -112,8 +116,9 @@ async def start(
 ) -> Gateway:
     """Start a gateway in front of ``plc`` (a PLC's URL, or its client).
 
-    ``s5lan``/``fetchwrite`` (an S5 PLC) and ``e71``/``e71_udp`` (an E71): (host, port) to
-    serve on (port 0 = any free port; at least one); ``mk`` wraps FETCH/WRITE in the Tani
+    ``s5lan``/``fetchwrite`` (an S5 PLC), ``as511`` (an AS511 port: the PG's face) and
+    ``e71``/``e71_udp`` (an E71): (host, port) to serve on (port 0 = any free port; at least
+    one); ``mk`` wraps FETCH/WRITE in the Tani
     header, ``e71_code`` is the E71 face's code; ``writable``: the allow-list of the PLC's family
     (:class:`WriteAllowList`, :class:`DeviceAllowList`; default: nothing); ``queue_size`` and
     ``max_wait``: see :class:`~plcstack.clients.share.SharedConnection`; ``cache_max_age``,
@@ -131,6 +136,8 @@ async def start(
         faces.append(FaceSettings("e71", *e71, name, writable, code=e71_code))
     if e71_udp is not None:
         faces.append(FaceSettings("e71", *e71_udp, name, writable, transport="udp", code=e71_code))
+    if as511 is not None:
+        faces.append(FaceSettings("as511", *as511, name, writable))
     if not faces:
         raise AddressError("a gateway needs --s5lan and/or --fetchwrite (or --e71) to serve on")
     client = plc if isinstance(plc, Client) else connect(plc, **client_options)

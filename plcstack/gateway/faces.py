@@ -3,8 +3,9 @@ gateway`` start.
 
 Each face is one listening server in a protocol of the PLC's family (:class:`FaceSettings`):
 ``s5lan`` and ``fetchwrite`` (optionally in the Tani MK header) in front of an S5 PLC (an AS511
-port, an S5-LAN module, a FETCH/WRITE CP), ``e71`` (TCP or UDP, binary or ASCII) in front of an
-E71. :class:`PlcFaces` runs all the faces of one PLC on one
+port, an S5-LAN module, a FETCH/WRITE CP), ``as511`` (the programming port on TCP, for an
+engineer's PG software) in front of an AS511 port, ``e71`` (TCP or UDP, binary or ASCII) in
+front of an E71. :class:`PlcFaces` runs all the faces of one PLC on one
 :class:`~plcstack.clients.share.SharedConnection` of the PLC's client (the poller's, or the
 gateway command's own): one bounded fair queue beside the scans, one write allow-list per face,
 every write told to ``on_write``.
@@ -17,12 +18,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Final, Literal
 
+from plcstack.clients.as511 import AS511Client
 from plcstack.clients.base import Client
 from plcstack.clients.e71 import E71Client
 from plcstack.clients.share import DEFAULT_MAX_WAIT, DEFAULT_QUEUE_SIZE, SharedConnection
 from plcstack.errors import AddressError
-from plcstack.gateway import e71server
+from plcstack.gateway import as511face, e71server
 from plcstack.gateway.allow import DeviceAllowList, WriteAllowList
+from plcstack.gateway.as511face import As511Executor
 from plcstack.gateway.e71face import E71Executor
 from plcstack.gateway.record import WriteHook
 from plcstack.gateway.s5backends import backend_for
@@ -36,15 +39,18 @@ __all__ = ["PROTOCOLS", "FaceSettings", "PlcFaces"]
 
 log = logging.getLogger("plcstack.gateway")
 
-Protocol = Literal["s5lan", "fetchwrite", "e71"]
+Protocol = Literal["s5lan", "fetchwrite", "e71", "as511"]
 #: the protocols a face speaks
-PROTOCOLS: Final[tuple[Protocol, ...]] = ("s5lan", "fetchwrite", "e71")
+PROTOCOLS: Final[tuple[Protocol, ...]] = ("s5lan", "fetchwrite", "e71", "as511")
 #: clients at once of each face, unless its settings say otherwise
 DEFAULT_CONNECTIONS: Final[dict[Protocol, int]] = {
     "s5lan": 8,
     "fetchwrite": DEFAULT_MAX_CONNECTIONS,
     "e71": e71server.DEFAULT_MAX_CONNECTIONS,
+    "as511": as511face.DEFAULT_MAX_CONNECTIONS,
 }
+#: what answers a face's clients: an S5 store, the E71 or the AS511 executor
+Answering = ClientStore | E71Executor | As511Executor
 
 
 @dataclass(frozen=True)
@@ -119,6 +125,8 @@ class PlcFaces(AsyncResource):
         self.share = SharedConnection(client, name=name, queue_size=queue_size, max_wait=max_wait)
         if any(f.protocol != "e71" for f in faces):
             backend_for(client)  # an S5 face needs an S5 PLC: AddressError naming it
+        if any(f.protocol == "as511" for f in faces) and not isinstance(client, AS511Client):
+            raise AddressError(f"{name}: an AS511 face needs an AS511 PLC (as511:, as511+tcp:)")
         if any(f.protocol == "e71" for f in faces) and not isinstance(client, E71Client):
             raise AddressError(f"{name}: an E71 face needs an E71 PLC (e71+tcp: or e71+udp:)")
         self.cache_max_age = cache_max_age
@@ -126,18 +134,27 @@ class PlcFaces(AsyncResource):
         self.on_write = on_write
         #: each face's store (S5) or executor (E71): its allow-list, its write record; faces
         #: of one family with the same allow-list share one (an S5 read cache serves both)
-        shared: dict[tuple[bool, str], ClientStore | E71Executor] = {}
-        self.answering: list[ClientStore | E71Executor] = []
+        shared: dict[tuple[str, str], Answering] = {}
+        self.answering: list[Answering] = []
         for face in faces:
-            key = (face.protocol == "e71", str(face.allow_list()))
+            family = face.protocol if face.protocol in ("e71", "as511") else "s5"
+            key = (family, str(face.allow_list()))
             if key not in shared:
                 shared[key] = self._answering(face)
             self.answering.append(shared[key])
         #: the running servers, in the order of ``faces``
         self.servers: list[Simulator] = []
 
-    def _answering(self, face: FaceSettings) -> ClientStore | E71Executor:
+    def _answering(self, face: FaceSettings) -> Answering:
         allow = face.allow_list()
+        if face.protocol == "as511":
+            assert isinstance(allow, WriteAllowList)
+            return As511Executor(
+                self.share,
+                writable=allow,
+                on_write=self.on_write,
+                read_previous=self.read_previous,
+            )
         if isinstance(allow, DeviceAllowList):
             return E71Executor(
                 self.share,
@@ -178,8 +195,12 @@ class PlcFaces(AsyncResource):
         await self.share.aclose()
 
 
-async def _start(face: FaceSettings, answering: ClientStore | E71Executor) -> Simulator:
+async def _start(face: FaceSettings, answering: Answering) -> Simulator:
     """The server of one face, answering from its store or executor."""
+    if isinstance(answering, As511Executor):
+        return await as511face.start(
+            answering, host=face.host, port=face.port, max_connections=face.connections
+        )
     if isinstance(answering, E71Executor):
         return await e71server.start(
             answering,
