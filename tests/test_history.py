@@ -187,6 +187,19 @@ async def test_a_file_of_something_else_is_refused(tmp_path: Path) -> None:
     assert sqlite3.connect(path).execute("SELECT COUNT(*) FROM recipes").fetchone() == (0,)
 
 
+@pytest.mark.parametrize(
+    ("path", "reason"),
+    [
+        ("/proc/nowhere/h.sqlite", "No such file or directory (/proc/nowhere)"),
+        ("/sys/h.sqlite", "Permission denied (/sys/h.sqlite.lock)"),
+    ],
+)
+async def test_a_place_that_cannot_hold_a_file_is_said_at_start(path: str, reason: str) -> None:
+    with pytest.raises(ConfigError) as caught:
+        await history(Path(path), Clock()).start()
+    assert str(caught.value) == f"[history] cannot keep the history in {path}: {reason}"
+
+
 async def test_a_second_writer_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "h.sqlite"
     first = history(path, Clock())

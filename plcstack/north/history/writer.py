@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+from plcstack.errors import ConfigError
 from plcstack.north.history.blocks import (
     BAD,
     OTHER,
@@ -117,9 +118,15 @@ class Writer:
     def open(self) -> None:
         """Open (or create) the file, replay its journal. A :class:`ConfigError` if the file
         cannot be used at all (a directory that cannot be written, another process has it)."""
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self._lock_handle is None:
-            self._lock_handle = lock_file(self.path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self._lock_handle is None:
+                self._lock_handle = lock_file(self.path)
+        except OSError as exc:
+            raise ConfigError(
+                f"[history] cannot keep the history in {self.path}:"
+                f" {exc.strerror or exc} ({exc.filename or self.path.parent})"
+            ) from None
         try:
             self.file = HistoryFile(self.path)
         except Damaged as exc:
