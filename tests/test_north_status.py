@@ -13,9 +13,15 @@ from typing import Any
 
 import aiomqtt
 
+from plcstack.errors import PlcTimeout
+from plcstack.north.layout import JsonLayout
+from plcstack.north.mqtt import MqttSettings, MqttSink
+from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
+from tests.aio_helpers import eventually
 from tests.north_helpers import subscriber
+from tests.scan_helpers import scan
 from tests.servers import Mosquitto
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -88,3 +94,47 @@ async def test_a_clean_stop_takes_every_plc_offline_and_the_will_is_dated(
     finally:
         for sim in sims:
             await sim.aclose()
+
+
+def _status_scan(plc: str, online: bool, t: float) -> Scan:
+    if online:
+        return scan(Sample(plc, "x", 1, Quality.GOOD, t, t + 0.01))
+    error = f"{plc}: read D0 x1: no answer within 0.2 s"
+    return scan(Sample(plc, "x", None, Quality.BAD, t, t + 0.2, error, PlcTimeout))
+
+
+async def test_every_plcs_retained_status_is_there_again_after_a_broker_restart() -> None:
+    """A broker restarted without its retained messages (no persistence, or killed before it
+    saved them). Before: only the poller's own status was published again on the reconnect, so
+    a late subscriber found no status for any PLC that had not changed since (19 of 21)."""
+    online = {f"press{i}": i % 3 != 0 for i in range(7)}
+    topics = [f"plcstack/{plc}/status" for plc in online]
+    with Mosquitto(persistence=False) as broker:
+        layout = JsonLayout("plcstack", "restart-test", groups={p: ["default"] for p in online})
+        sink = MqttSink(
+            MqttSettings(host=broker.host, port=broker.port, reconnect_max=0.2),
+            layout=layout,
+            plcs=list(online),
+        )
+        await sink.start()
+        try:
+            await sink.wait_connected(5)
+            t = 1_800_000_000.0
+            sink.submit([_status_scan(p, up, t + i) for i, (p, up) in enumerate(online.items())])
+            await sink.wait_drained(5)
+            assert len(await _retained(broker.host, broker.port, topics)) == len(topics)
+            broker.restart()  # the retained messages are gone with it
+            await eventually(lambda: not sink.connected or sink.stats.connects > 1, "drop seen")
+            await sink.wait_connected(10)
+            await sink.wait_drained(5)
+            retained = await _retained(broker.host, broker.port, topics)
+        finally:
+            await sink.aclose(drain=0)
+    assert {t.split("/")[1]: s["status"] for t, s in retained.items()} == {
+        plc: "online" if up else "offline" for plc, up in online.items()
+    }
+    # each as it was said: the time of the change, not of the reconnect
+    assert [retained[t]["timestamp"] for t in topics] == [
+        round((1_800_000_000.0 + i) * 1000) + (10 if up else 200)
+        for i, up in enumerate(online.values())
+    ]

@@ -238,15 +238,23 @@ class JsonLayout:
         self.qos = qos
         self.float32 = float32
         self.reachability = Reachability(groups)
+        #: each PLC's latest status message, published again on every (re)connect
+        self._statuses: dict[str, bytes] = {}
 
     # what the sink asks of a layout
     def will(self) -> tuple[str, bytes]:
         return poller_status_topic(self.prefix, self.client_id), status_payload(False, 0.0)
 
     def on_connect(self, now: float) -> list[tuple[str, bytes, int, bool]]:
-        """Messages published first on every (re)connect, before the backlog."""
-        return [
-            (poller_status_topic(self.prefix, self.client_id), status_payload(True, now), 1, True)
+        """Messages published first on every (re)connect, before the backlog: the poller's
+        status, and every PLC's latest status again (retained): a broker that was restarted
+        without its retained messages has none for a late subscriber, and the backlog holds
+        only the changes made while it was away. Each keeps the time of its change; a status
+        still in the backlog comes after and is the same or newer."""
+        poller = poller_status_topic(self.prefix, self.client_id)
+        return [(poller, status_payload(True, now), 1, True)] + [
+            (status_topic(self.prefix, plc), payload, 1, True)
+            for plc, payload in self._statuses.items()
         ]
 
     def on_close(self, now: float) -> list[tuple[str, bytes, int, bool]]:
@@ -266,7 +274,8 @@ class JsonLayout:
             online = self.reachability.update(scan)
             if online is not None:
                 when = max(s.receive_time for s in samples)
-                out.append((status_topic(self.prefix, plc), status_payload(online, when), 1, True))
+                status = self._statuses[plc] = status_payload(online, when)
+                out.append((status_topic(self.prefix, plc), status, 1, True))
             out.append(
                 (
                     data_topic(self.prefix, plc, group),
