@@ -275,14 +275,12 @@ class QueueFile:
         """The oldest ``limit`` messages after ``after`` that are not in ``gone``."""
         assert self.db is not None
         sql, args = self._excluding(gone)
-        return [
-            (int(seq), str(topic), bytes(payload), int(qos), int(retain))
-            for seq, topic, payload, qos, retain in self.db.execute(
-                "SELECT seq, topic, payload, qos, retain FROM queue WHERE seq > ?"
-                f"{sql} ORDER BY seq LIMIT ?",
-                (after, *args, limit),
-            )
-        ]
+        rows: list[Row] = self.db.execute(  # INTEGER, TEXT and BLOB come as int, str, bytes
+            f"SELECT seq, topic, payload, qos, retain FROM queue WHERE seq > ?{sql}"
+            " ORDER BY seq LIMIT ?",
+            (after, *args, limit),
+        ).fetchall()
+        return rows
 
     def span(self, after: int, through: int, gone: Ranges) -> tuple[int, int]:
         """(messages, payload + topic bytes) with ``after < seq <= through``, not in ``gone``."""
