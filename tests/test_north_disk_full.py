@@ -6,11 +6,15 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
+import os
 import sqlite3
+import tempfile
 from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from plcstack.north.buffer import StoreAndForward
 from plcstack.north.mqtt import MqttSettings, MqttSink
@@ -24,6 +28,8 @@ from tests.servers import Mosquitto
 
 PAYLOAD = "x" * 900  # about 1 KB a message: a 256 KiB disk is full after a few hundred
 TOTAL = 1500  # more than the disk and the memory it leaves (1 MiB) take
+#: a memory file system for the many small files of the property test, where there is one
+SHM = "/dev/shm" if os.path.isdir("/dev/shm") else None
 
 
 class Clock:
@@ -248,3 +254,86 @@ async def test_a_full_disk_loses_counted_messages_and_recovers_when_the_broker_r
             assert rows_in(disk / "q.sqlite") == 0
             await sink.aclose()
             await supervisor.aclose()
+
+
+class _Flaky:
+    """A connection to the queue's file whose writes fail while ``refusing`` is set, as a full
+    disk's do (reads go on working)."""
+
+    refusing = False
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+
+    def execute(self, sql: str, args: Any = ()) -> Any:
+        if _Flaky.refusing and not sql.lstrip().upper().startswith(("SELECT", "PRAGMA")):
+            raise sqlite3.OperationalError("database or disk is full")
+        return self._db.execute(sql, args)
+
+    def executemany(self, sql: str, rows: Any) -> Any:
+        if _Flaky.refusing:
+            raise sqlite3.OperationalError("database or disk is full")
+        return self._db.executemany(sql, rows)
+
+    def __enter__(self) -> _Flaky:
+        self._db.__enter__()
+        return self
+
+    def __exit__(self, *exc: Any) -> Any:
+        return self._db.__exit__(*exc)
+
+    def close(self) -> None:
+        self._db.close()
+
+
+ops = st.lists(
+    st.one_of(
+        st.tuples(st.just("put"), st.integers(0, 120)),
+        st.tuples(st.just("ack"), st.integers(0, 40)),
+        st.tuples(st.just("disk"), st.booleans()),
+        st.tuples(st.just("later"), st.sampled_from([0.5, RETRY_SECONDS, SETTLE_SECONDS])),
+    ),
+    max_size=80,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(ops=ops, memory=st.integers(0, 500), budget=st.integers(2000, 20_000))
+def test_whatever_the_disk_refuses_each_message_is_delivered_waiting_or_counted_once(
+    ops: list[tuple[str, Any]], memory: int, budget: int
+) -> None:
+    """Any interleaving of puts, acknowledgements and a disk that refuses and takes writes
+    again: the queue stays FIFO, never hands out a delivered message again, its figures agree,
+    and every message put is exactly one of delivered, waiting or dropped (counted)."""
+    clock = Clock()
+    _Flaky.refusing = False
+    with tempfile.TemporaryDirectory(dir=SHM) as d, pytest.MonkeyPatch.context() as patch:
+        connect = sqlite3.connect
+        patch.setattr(sqlite3, "connect", lambda path: _Flaky(connect(path)))  # queue_file.py's
+        q = StoreAndForward(
+            Path(d) / "q.sqlite", memory_bytes=memory, max_bytes=budget, clock=clock
+        )
+        put = 0
+        delivered: list[int] = []
+        for op, arg in ops:
+            if op == "put":
+                q.put("t/x", b"." * arg)
+                put += 1
+            elif op == "ack":
+                head = q.peek(arg)
+                if head:
+                    q.ack(head[-1].seq)
+                    delivered += [m.seq for m in head]
+            elif op == "disk":
+                _Flaky.refusing = arg
+            else:
+                clock.now += arg
+            waiting = [m.seq for m in q.peek(len(q) + 1)]
+            assert waiting == sorted(waiting) and len(waiting) == len(q)
+            assert not set(waiting) & set(delivered)
+            agree(q)
+            assert len(delivered) + len(q) + q.dropped == put
+            assert q.backlog_bytes <= max(budget, 1 << 20) + 64 * 200  # plus an in-flight window
+        assert len(set(delivered)) == len(delivered)
+        _Flaky.refusing = False
+        q.close()

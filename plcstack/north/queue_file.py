@@ -79,9 +79,11 @@ class _Foreign(Exception):
 
 
 def _is_damage(exc: sqlite3.Error) -> bool:
-    """A damaged file (not a database, a malformed page), not a disk that refuses to write."""
-    return exc.sqlite_errorname in ("SQLITE_CORRUPT", "SQLITE_NOTADB") or (
-        type(exc) is sqlite3.DatabaseError
+    """A damaged file (not a database, a malformed page: SQLite says so with a plain
+    ``DatabaseError``), not a disk that refuses to write (``OperationalError``: full, an I/O
+    error, read-only, locked)."""
+    return isinstance(exc, sqlite3.DatabaseError) and not isinstance(
+        exc, sqlite3.OperationalError | sqlite3.IntegrityError
     )
 
 
