@@ -35,6 +35,7 @@ __all__ = [
     "parse_size",
     "read_tables",
     "table_names",
+    "toml_array",
     "toml_table",
 ]
 
@@ -228,7 +229,7 @@ class Table:
     ``key`` set to the key's dotted path, so the file loader points at the key's line.
     """
 
-    __slots__ = ("base", "notices", "path", "values")
+    __slots__ = ("base", "label", "notices", "path", "values")
 
     def __init__(
         self,
@@ -237,9 +238,12 @@ class Table:
         *,
         base: Path | None = None,
         notices: list[Notice] | None = None,
+        label: str | None = None,
     ) -> None:
         self.values = values
         self.path = path
+        #: how messages name the table (``[[gateway]] #2``); default ``[path]``
+        self.label = label
         #: the TOML file's directory (relative paths), None: as written
         self.base = base
         #: where deprecation notices go (the loader logs them with their lines); None: logged
@@ -254,14 +258,15 @@ class Table:
         *,
         base: Path | None = None,
         notices: list[Notice] | None = None,
+        label: str | None = None,
     ) -> Table:
         """``raw`` (a table as tomllib reads it, or a Table already) as a :class:`Table`;
         ConfigError ``[path] must be a table`` for anything else."""
         if isinstance(raw, Table):
             return raw
         if not isinstance(raw, Mapping):
-            raise ConfigError(f"[{path}] must be a table", key=path)
-        return cls(raw, path, base=base, notices=notices)
+            raise ConfigError(f"{label or f'[{path}]'} must be a table", key=path)
+        return cls(raw, path, base=base, notices=notices, label=label)
 
     def sub(self, key: str, raw: object | None = None) -> Table:
         """The nested table at ``key`` (or ``raw``, a table found under it), same base and
@@ -272,7 +277,7 @@ class Table:
     # -- errors, keys and notices --------------------------------------------------------------
     @property
     def where(self) -> str:
-        return f"[{self.path}]"
+        return self.label or f"[{self.path}]"
 
     def error(self, key: str | None, message: str) -> ConfigError:
         """``[path] KEY MESSAGE`` as a ConfigError pointing at ``key`` (the table itself: None)."""
@@ -283,7 +288,7 @@ class Table:
     def keys(self, known: Iterable[str], *, hint: str = "", where: str | None = None) -> None:
         """Every key is one of ``known``; else one error naming each unknown key with the
         known one it is closest to."""
-        check_keys(self.values, known, self.path, where=where, hint=hint)
+        check_keys(self.values, known, self.path, where=where or self.label, hint=hint)
 
     def notice(self, key: str, message: str) -> None:
         """Say ``message`` once about ``key`` (an old spelling that still loads)."""
@@ -432,10 +437,12 @@ class Table:
 
 @dataclass(frozen=True, slots=True)
 class TableSpec(Generic[_T]):
-    """A top-level TOML table and the function that reads it (``parse(Table) -> settings``)."""
+    """A top-level TOML table and the function that reads it (``parse(Table) -> settings``);
+    ``array``: an array of tables (``[[name]]``), each read by ``parse``, the field a tuple."""
 
     name: str
     parse: Callable[[Table], _T]
+    array: bool = False
 
 
 def toml_table(name: str, parse: Callable[[Table], Any]) -> Mapping[str, TableSpec[Any]]:
@@ -444,6 +451,12 @@ def toml_table(name: str, parse: Callable[[Table], Any]) -> Mapping[str, TableSp
     parse_mqtt))``. Adding a table to the configuration is one such field: the loader, the
     "unknown table" message and the reload diff follow it."""
     return {"table": TableSpec(name, parse)}
+
+
+def toml_array(name: str, parse: Callable[[Table], Any]) -> Mapping[str, TableSpec[Any]]:
+    """:func:`toml_table` for an array of tables ``[[name]]``: the field is the tuple of what
+    ``parse`` reads from each (``[[gateway]] #2`` in its messages, its own lines)."""
+    return {"table": TableSpec(name, parse, array=True)}
 
 
 def _specs(cls: type[Any]) -> list[tuple[str, TableSpec[Any]]]:
@@ -470,6 +483,9 @@ def read_tables(
         if spec.name not in data:
             continue
         try:
+            if spec.array:
+                values[field_name] = _read_array(spec, data[spec.name], base, notices)
+                continue
             table = Table.of(data[spec.name], spec.name, base=base, notices=notices)
             values[field_name] = spec.parse(table)
         except ConfigError as exc:
@@ -477,3 +493,18 @@ def read_tables(
                 exc.key = spec.name
             raise
     return values
+
+
+def _read_array(
+    spec: TableSpec[Any], raw: object, base: Path | None, notices: list[Notice] | None
+) -> tuple[Any, ...]:
+    """Each table of the array ``[[spec.name]]`` read by ``spec.parse``, as a tuple."""
+    name = spec.name
+    if not isinstance(raw, list):
+        raise ConfigError(f"{name} must be an array of tables: write [[{name}]]", key=name)
+    items = []
+    for index, item in enumerate(raw):
+        label = f"[[{name}]] #{index + 1}"
+        path = f"{name}[{index}]"
+        items.append(spec.parse(Table.of(item, path, base=base, notices=notices, label=label)))
+    return tuple(items)

@@ -22,6 +22,8 @@ __all__ = ["MAX_TOML_DEPTH", "TomlFile", "toml_line"]
 MAX_TOML_DEPTH: Final = 32
 _HEADER: Final = re.compile(r"\s*\[\[?([^\[\]]+)\]\]?\s*(?:#.*)?$")
 _KEY: Final = re.compile(r"\s*([\w\-\s.\"']+?)\s*=")
+#: ``name[N]``: the N-th table (from 0) of the array of tables ``[[name]]``
+_INDEXED: Final = re.compile(r"(.+)\[(\d+)\]")
 
 
 @dataclass(frozen=True)
@@ -96,17 +98,29 @@ def toml_line(lines: list[str], path: str) -> int | None:
     ``[[table]]`` header that names it exactly, else the one that names the longest part of it
     (the table of an unknown key, or the line that opens an inline table). tomllib keeps no
     positions; every table's "unknown key" error (:class:`ConfigError` ``key``) is pointed at
-    its line with this."""
+    its line with this.
+
+    The first part may name one table of an array of tables by its index: ``"gateway[1].listen"``
+    is the ``listen`` of the second ``[[gateway]]``, found between its header and the next
+    ``[[gateway]]``."""
     want = _toml_path(path)
+    index: int | None = None
+    if want and (m := _INDEXED.fullmatch(want[0])):
+        want[0], index = m.group(1), int(m.group(2))
     best, best_len = None, 0
     table: list[str] = []
+    seen = -1  # the [[array]] tables of want[0] met so far
     for i, line in enumerate(lines):
         if header := _HEADER.match(line):
             table = _toml_path(header.group(1))
+            if index is not None and line.strip().startswith("[[") and table == want[:1]:
+                seen += 1
             names = table
         elif key := _KEY.match(line):
             names = table + _toml_path(key.group(1))
         else:
+            continue
+        if index is not None and seen != index:
             continue
         if names == want:
             return i + 1

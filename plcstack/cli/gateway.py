@@ -23,17 +23,18 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import sys
 from typing import Any
 
 from plcstack import gateway
 from plcstack.cli import UsageError, plain_text, print_error
+from plcstack.cli.faces import face_written
 from plcstack.cli.poll import StopEvent, ended_early, install_stop_signals, remove_stop_signals
 from plcstack.clients.as511 import AS511Client
 from plcstack.errors import AddressError
-from plcstack.gateway.record import FaceWrite
 from plcstack.north.audit import Audit, AuditSettings
-from plcstack.north.writes import WritePath, WriteResult
+from plcstack.north.writes import WritePath
 from plcstack.systemd.notify import Notifier
 from plcstack.systemd.service import ServiceNotifier, notifying
 
@@ -145,19 +146,7 @@ async def run(args: argparse.Namespace) -> int:
     if audit is not None:
         audit.open()
     writes = WritePath(None, audit=audit)
-
-    def written(write: FaceWrite) -> None:
-        result = WriteResult(write.ok, write.result, write.message, write.may_have_executed)
-        writes.record(
-            "gateway",
-            None,
-            args.plc,
-            write.address,
-            write.value,
-            result,
-            peer=write.peer,
-            previous=write.previous,
-        )
+    written = functools.partial(face_written, writes, args.plc)
 
     try:
         gw = await gateway.start(

@@ -23,11 +23,13 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TextIO
 
 from plcstack.cli import plain_text, print_error
+from plcstack.cli.faces import gateway_faces
 from plcstack.cli.pcap import add_pcap_options, with_pcap
 from plcstack.cli.run_options import add_run_options, overrides_of, seconds
 from plcstack.config import load_config
 from plcstack.config.overrides import apply_overrides
 from plcstack.errors import ConfigError
+from plcstack.gateway.faces import GatewayFaces
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.pipeline import North, missing, needs_of, sink_name
 from plcstack.poll.config import PollConfig
@@ -129,6 +131,12 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     except ValueError as exc:
         print_error(f"poll: {exc}")
         return 2
+    if whole.gateway and worker is not None:
+        print_error(
+            "poll: [[gateway]] faces stand on their PLC's one connection in this process; a"
+            " scale-out worker (--mqtt, --nats) does not hold every PLC of the file"
+        )
+        return 2
     # every URL and address checked here, before anything is sent
     poller: Poller | Worker = worker if worker is not None else Poller(config)
     text: Callable[[list[Scan]], str] | None = None
@@ -147,8 +155,18 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     installed = install_stop_signals(stop)
     north = North(poller, north_config)
     failure: str | None = None
+    faces: GatewayFaces | None = None
     try:
         async with poller, north:
+            if whole.gateway and isinstance(poller, Poller):
+                faces = gateway_faces(whole.gateway, poller.client, north.writes)
+                try:
+                    await faces.aopen()
+                except OSError as exc:
+                    print_error(f"poll: a [[gateway]] face cannot listen: {exc.strerror or exc}")
+                    return 2
+                for line in faces.listening():
+                    print(line, file=sys.stderr, flush=True)
             consumer = asyncio.create_task(
                 _write_samples(north, emit, out, stop), name="the sample consumer"
             )
@@ -161,6 +179,8 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 _reload_on_hangup(args.config, service), name="the reload on SIGHUP"
             )
             helpers = {consumer, stopper, notifier, reloads}
+            if faces is not None:
+                helpers.update(faces.workers)  # a PLC's face queue that ends ends the run
             every = getattr(args, "stats_every", None)
             if every is not None:
                 helpers.add(
@@ -171,6 +191,8 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
             )
             failure = ended_early(done - {stopper}, stop)
             service.stopping()
+            if faces is not None:
+                await faces.aclose()  # before the poller closes the PLCs' connections
             for task in helpers:
                 task.cancel()
             await asyncio.gather(*helpers, return_exceptions=True)
@@ -183,7 +205,7 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     finally:
         remove_stop_signals(installed)
     print(format_stats(poller.stats, dropped_total=poller.dropped), file=sys.stderr)
-    for summary in north.summary():
+    for summary in north.summary() + (faces.summary() if faces is not None else []):
         print(summary, file=sys.stderr)
     if failure is not None:
         print_error(f"poll: {failure}")

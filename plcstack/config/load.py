@@ -16,6 +16,7 @@ from pathlib import Path
 from plcstack.checks import Notice, read_tables
 from plcstack.config.model import TABLES, Config
 from plcstack.errors import ConfigError
+from plcstack.gateway.faces import check_faces
 from plcstack.north.config import parse_north
 from plcstack.poll.config import PollTables
 from plcstack.tomlfile import TomlFile
@@ -49,6 +50,10 @@ def read_config(file: TomlFile) -> Config:
     except ConfigError as exc:
         raise file.error(exc) from None
     poll = poll_tables.load()
+    try:
+        check_faces(own.get("gateway", ()), [(plc.name, plc.url) for plc in poll.plcs])
+    except ConfigError as exc:
+        raise file.error(exc) from None
     said = tuple(f"{n.message} ({file.at(file.line(n.key))})" for n in notices)
     for line in said:
         log.warning("%s", line)

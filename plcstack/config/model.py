@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from plcstack.checks import table_names
+from plcstack.checks import table_names, toml_array
+from plcstack.gateway.faces import FaceSettings, parse_gateway
 from plcstack.north.config import NorthConfig
 from plcstack.poll.config import PlcConfig, PollConfig
 
@@ -25,6 +26,11 @@ class Config:
 
     poll: PollConfig
     north: NorthConfig = field(default_factory=NorthConfig)
+    #: ``[[gateway]]``: the native faces (S5-LAN, FETCH/WRITE, E71, AS511) in front of the
+    #: file's PLCs, on each PLC's one connection (plcstack.gateway.faces)
+    gateway: tuple[FaceSettings, ...] = field(
+        default=(), metadata=toml_array("gateway", parse_gateway)
+    )
     #: the file it was read from (None: built in Python)
     source: str | None = field(default=None, compare=False)
     #: what the loader said about the file while it loaded (an old spelling, connections it

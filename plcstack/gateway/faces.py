@@ -13,21 +13,24 @@ every write told to ``on_write``.
 
 from __future__ import annotations
 
+import asyncio
+import functools
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Final, Literal
 
+from plcstack.checks import Listen, Table
 from plcstack.clients.as511 import AS511Client
 from plcstack.clients.base import Client
 from plcstack.clients.e71 import E71Client
 from plcstack.clients.share import DEFAULT_MAX_WAIT, DEFAULT_QUEUE_SIZE, SharedConnection
-from plcstack.errors import AddressError
+from plcstack.errors import AddressError, ConfigError
 from plcstack.gateway import as511face, e71server
 from plcstack.gateway.allow import DeviceAllowList, WriteAllowList
 from plcstack.gateway.as511face import As511Executor
 from plcstack.gateway.e71face import E71Executor
-from plcstack.gateway.record import WriteHook
+from plcstack.gateway.record import FaceWrite, WriteHook
 from plcstack.gateway.s5backends import backend_for
 from plcstack.gateway.store import ClientStore
 from plcstack.resource import AsyncResource
@@ -35,7 +38,7 @@ from plcstack.sim import fetchwrite as fetchwrite_server
 from plcstack.sim import s5lan as s5lan_server
 from plcstack.sim.base import DEFAULT_MAX_CONNECTIONS, Simulator
 
-__all__ = ["PROTOCOLS", "FaceSettings", "PlcFaces"]
+__all__ = ["PROTOCOLS", "FaceSettings", "GatewayFaces", "PlcFaces", "check_faces", "parse_gateway"]
 
 log = logging.getLogger("plcstack.gateway")
 
@@ -69,8 +72,14 @@ class FaceSettings:
     code: Literal["binary", "ascii"] = "binary"
     #: clients at once (None: the protocol's default)
     max_connections: int | None = None
+    #: requests that may wait for the PLC's connection, from all its faces (None: the
+    #: default, 32) and the seconds one may wait (None: 2); faces of one PLC share them
+    queue: int | None = None
+    max_wait: float | None = None
 
     def __post_init__(self) -> None:
+        if self.queue is not None and self.queue < 1:
+            raise AddressError(f"queue {self.queue} must be at least 1")
         if self.protocol not in PROTOCOLS:
             raise AddressError(f"a face speaks {', '.join(PROTOCOLS)}, not {self.protocol!r}")
         if self.mk and self.protocol != "fetchwrite":
@@ -221,3 +230,194 @@ async def _start(face: FaceSettings, answering: Answering) -> Simulator:
         mk=face.mk,
         max_connections=face.connections,
     )
+
+
+# -- [[gateway]]: the faces of the configuration file ----------------------------------------------
+#: the URL schemes of the PLCs each face can stand in front of
+_SCHEMES: Final[dict[Protocol, tuple[str, ...]]] = {
+    "s5lan": ("as511", "as511+tcp", "s5lan", "fetchwrite"),
+    "fetchwrite": ("as511", "as511+tcp", "s5lan", "fetchwrite"),
+    "as511": ("as511", "as511+tcp"),
+    "e71": ("e71+tcp", "e71+udp"),
+}
+_TRANSPORTS: Final[tuple[Literal["tcp", "udp"], ...]] = ("tcp", "udp")
+_TCP: Final[Literal["tcp", "udp"]] = "tcp"
+_CODES: Final[tuple[Literal["binary", "ascii"], ...]] = ("binary", "ascii")
+_BINARY: Final[Literal["binary", "ascii"]] = "binary"
+_KEYS: Final = (
+    "protocol",
+    "listen",
+    "plc",
+    "writable",
+    "mk",
+    "transport",
+    "code",
+    "max_connections",
+    "queue",
+    "max_wait",
+)
+
+
+def parse_gateway(table: Table) -> FaceSettings:
+    """One ``[[gateway]]`` table: a native face of a PLC of the same file (which PLC exists,
+    and that the face fits it, :func:`check_faces` says once the PLCs are read)::
+
+        [[gateway]]
+        protocol = "s5lan"           # "s5lan" | "fetchwrite" | "e71" | "as511"
+        listen = "0.0.0.0:2000"
+        plc = "kiln1"                # a [[plc]] of this file
+        writable = "DB10-20, M"      # nothing writable by default
+    """
+    table.keys(_KEYS)
+    if "protocol" not in table:
+        raise table.error(None, f"needs protocol = one of {', '.join(PROTOCOLS)}")
+    protocol = table.choice("protocol", PROTOCOLS[0], PROTOCOLS)
+    if "listen" not in table:
+        raise table.error(None, 'needs listen = "HOST:PORT" (where the face listens)')
+    listen = table.listen(Listen("127.0.0.1", 0))
+    writable = table.raw("writable", "")
+    if not isinstance(writable, str):
+        raise table.error("writable", f'must be a string such as "DB10-20, M", not {writable!r}')
+    mk = table.boolean("mk", False)
+    transport = table.choice("transport", _TCP, _TRANSPORTS)
+    code = table.choice("code", _BINARY, _CODES)
+    connections = (
+        table.integer("max_connections", 1, 1, 4096) if "max_connections" in table else None
+    )
+    queue = table.integer("queue", 1, 1, 65536) if "queue" in table else None
+    max_wait = table.seconds("max_wait", 2.0, hi=3600.0) if "max_wait" in table else None
+    plc = table.text("plc", "")
+    try:  # what FaceSettings itself checks: writable's grammar, options of the wrong face
+        return FaceSettings(
+            protocol,
+            listen.host,
+            listen.port,
+            plc,
+            writable,
+            mk=mk,
+            transport=transport,
+            code=code,
+            max_connections=connections,
+            queue=queue,
+            max_wait=max_wait,
+        )
+    except AddressError as exc:
+        key = next((k for k in ("writable", "mk", "transport", "code") if k in exc.message), None)
+        message = exc.message
+        if key is not None:  # said after the key: "[[gateway]] #2 mk ... is a FETCH/WRITE ..."
+            message = message.removeprefix(f"{key}: ").removeprefix(f"{key} ")
+        raise table.error(key, message) from None
+
+
+def check_faces(faces: Sequence[FaceSettings], plcs: Sequence[tuple[str, str]]) -> None:
+    """Every face names a PLC of the file (``(name, url)`` pairs) that it can stand in front
+    of, no two faces listen on one address, and the faces of one PLC agree on its queue.
+    :class:`ConfigError` naming the ``[[gateway]]`` (its key, for the line) otherwise."""
+    urls = dict(plcs)
+    listening: dict[tuple[str, str, int], int] = {}
+    #: (PLC, key) -> (the value, the index of the face that gave it first)
+    shared: dict[tuple[str, str], tuple[float, int]] = {}
+    for index, face in enumerate(faces):
+        where, path = f"[[gateway]] #{index + 1}", f"gateway[{index}]"
+        url = urls.get(face.plc)
+        if url is None:
+            known = ", ".join(urls) or "none"
+            raise ConfigError(
+                f"{where} plc {face.plc!r} is no [[plc]] of this file (PLCs: {known})",
+                key=f"{path}.plc",
+            )
+        scheme = url.partition("://")[0].lower()
+        if scheme not in _SCHEMES[face.protocol]:
+            raise ConfigError(
+                f"{where}: a {face.protocol} face stands in front of "
+                f"{' or '.join(_SCHEMES[face.protocol])} PLCs, and {face.plc} is {scheme}:",
+                key=f"{path}.protocol",
+            )
+        at = (face.transport, face.host, face.port)
+        if face.port and at in listening:
+            raise ConfigError(
+                f"{where} listens on {face.host}:{face.port} ({face.transport}) as "
+                f"[[gateway]] #{listening[at] + 1} does",
+                key=f"{path}.listen",
+            )
+        listening[at] = index
+        for key, mine in (("queue", face.queue), ("max_wait", face.max_wait)):
+            if mine is None:
+                continue
+            theirs, first = shared.setdefault((face.plc, key), (mine, index))
+            if mine != theirs:
+                raise ConfigError(
+                    f"{where} {key} {mine:g} differs from [[gateway]] #{first + 1}'s "
+                    f"({theirs:g}): the faces of {face.plc} share one queue",
+                    key=f"{path}.{key}",
+                )
+
+
+class GatewayFaces(AsyncResource):
+    """Every face of a run: a :class:`PlcFaces` per PLC with faces, on the PLC's client
+    (``client_of(name)``: the poller's). ``on_write(plc, write)`` is told of each write."""
+
+    def __init__(
+        self,
+        faces: Sequence[FaceSettings],
+        client_of: Callable[[str], Client],
+        *,
+        read_previous: bool = False,
+        on_write: Callable[[str, FaceWrite], None] | None = None,
+    ) -> None:
+        by_plc: dict[str, list[FaceSettings]] = {}
+        for face in faces:
+            by_plc.setdefault(face.plc, []).append(face)
+        self.plcs: list[PlcFaces] = []
+        for name, settings in by_plc.items():
+            queue = next((f.queue for f in settings if f.queue is not None), DEFAULT_QUEUE_SIZE)
+            wait = next((f.max_wait for f in settings if f.max_wait is not None), DEFAULT_MAX_WAIT)
+            hook = None if on_write is None else functools.partial(on_write, name)
+            self.plcs.append(
+                PlcFaces(
+                    name,
+                    client_of(name),
+                    settings,
+                    queue_size=queue,
+                    max_wait=wait,
+                    read_previous=read_previous,
+                    on_write=hook,
+                )
+            )
+
+    @property
+    def workers(self) -> list[asyncio.Task[None]]:
+        """The task of each PLC's queue (watched: one that ends ends the run)."""
+        return [p.share.worker for p in self.plcs if p.share.worker is not None]
+
+    def listening(self) -> list[str]:
+        """``s5lan face of kiln1 listening on 127.0.0.1:2000 (TCP)``, one line per face."""
+        return [
+            f"{face.describe()} listening on {server.host}:{server.port} ({face.transport.upper()})"
+            for plc in self.plcs
+            for face, server in zip(plc.settings, plc.servers, strict=True)
+        ]
+
+    def summary(self) -> list[str]:
+        """One line per PLC with faces: its queue's counts."""
+        lines = []
+        for plc in self.plcs:
+            s = plc.share.stats
+            lines.append(
+                f"faces of {plc.name}: {s.executed} requests on its connection, busy {s.busy},"
+                f" waited too long {s.expired}, client gone {s.skipped}, most waiting"
+                f" {s.queue_peak}"
+            )
+        return lines
+
+    async def aopen(self) -> None:
+        try:
+            for plc in self.plcs:
+                await plc.aopen()
+        except BaseException:
+            await self.aclose()
+            raise
+
+    async def aclose(self) -> None:
+        for plc in self.plcs:
+            await plc.aclose()
