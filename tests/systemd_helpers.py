@@ -95,6 +95,16 @@ class NotifySocket:
     def with_field(self, name: str) -> list[Message]:
         return [m for m in self.received() if m.get(name) is not None]
 
+    async def count(self, name: str, n: int, timeout: float = 5.0) -> list[Message]:
+        """The messages with ``name`` once ``n`` of them have arrived (the receiving thread may
+        be a moment behind the sender)."""
+        deadline = time.monotonic() + timeout
+        while len(got := self.with_field(name)) < n:
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{len(got)} of {n} {name} messages within {timeout} s")
+            await asyncio.sleep(0.01)
+        return got
+
     def _first(self, name: str, value: str | None, after: float) -> Message | None:
         for m in self.received():
             got = m.get(name)

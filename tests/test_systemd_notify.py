@@ -23,7 +23,6 @@ from plcstack.poll.config import parse_poll_config as parse_config
 from plcstack.poll.stats import PlcStats
 from plcstack.systemd.notify import Notifier, monotonic_usec
 from plcstack.systemd.service import FleetStatus, ScanWatch, ServiceNotifier, stall_limit
-from tests.aio_helpers import eventually
 from tests.systemd_helpers import NotifySocket
 
 
@@ -166,11 +165,13 @@ class _SendTimes(Notifier):
 
 
 async def test_watchdog_pings_at_half_the_asked_interval(sock: NotifySocket) -> None:
-    """WATCHDOG_USEC=300 ms: a ping every 150 ms, never two further apart than 300 ms."""
+    """WATCHDOG_USEC=600 ms: a ping every 300 ms (the first at once), never two further apart
+    than the 600 ms systemd allows, and none before its time. Timed where the pings are sent
+    (the receiving thread of a loaded machine may stamp them late)."""
     assert Notifier.from_environment(
-        {"NOTIFY_SOCKET": sock.address, "WATCHDOG_USEC": "300000"}
-    ).watchdog_interval == 0.15  # fmt: skip
-    notifier = _SendTimes(sock.address, 300_000)
+        {"NOTIFY_SOCKET": sock.address, "WATCHDOG_USEC": "600000"}
+    ).watchdog_interval == 0.3  # fmt: skip
+    notifier = _SendTimes(sock.address, 600_000)
     reads: list[float] = []
 
     def clock() -> float:
@@ -180,38 +181,41 @@ async def test_watchdog_pings_at_half_the_asked_interval(sock: NotifySocket) -> 
     service = ServiceNotifier(notifier, clock=clock)
     task = await _running(service)
     try:
-        await asyncio.sleep(1.0)
+        await asyncio.sleep(1.35)  # pings at 0, 0.3, 0.6, 0.9 and 1.2 s
     finally:
         await _stop(task)
     pings = notifier.ping_times
     gaps = [b - a for a, b in itertools.pairwise(pings)]
-    # each one went out (the socket's thread may not have read the last one yet)
-    await eventually(lambda: len(sock.with_field("WATCHDOG")) == len(pings), "every ping read")
-    assert 6 <= len(pings) <= 8, gaps  # 1 s / 0.15 s, and the first at once
-    assert max(gaps) < 0.3, gaps
+    assert len(await sock.count("WATCHDOG", len(pings))) == len(pings)  # each one went out
+    assert 4 <= len(pings) <= 6, gaps
+    assert max(gaps) < 0.6, gaps
     # not faster than asked either: the k-th ping never before its time, counted from the
-    # start (one woken late is followed by the next on schedule: two may be closer than 150 ms)
+    # start (one woken late is followed by the next on schedule: two may be closer than 300 ms)
     start = reads[0]
     for k, at in enumerate(pings):
-        assert at >= start + k * 0.15, (k, gaps)
+        assert at >= start + k * 0.3, (k, gaps)
 
 
 async def test_a_blocked_loop_sends_no_ping(sock: NotifySocket) -> None:
+    """The pings come from the event loop: none is sent, and none arrives, while it is stuck
+    for three watchdog intervals; they come again once it runs."""
     notifier = Notifier.from_environment({"NOTIFY_SOCKET": sock.address, "WATCHDOG_USEC": "200000"})
-    task = await _running(ServiceNotifier(notifier))
+    service = ServiceNotifier(notifier)
+    task = await _running(service)
     try:
         await sock.arrival("WATCHDOG")
         await asyncio.sleep(0.15)
-        blocked = time.monotonic()
+        before = service.pings
         time.sleep(0.6)  # noqa: ASYNC251 - the event loop stuck for three watchdog intervals
+        assert service.pings == before
         unblocked = time.monotonic()
         await sock.arrival("WATCHDOG", after=unblocked)
     finally:
         await _stop(task)
+    # what had arrived by the end of the block was sent before it
     pings = [m.at for m in sock.with_field("WATCHDOG")]
-    # datagrams sent just before the block may land a moment after it began
-    assert [at for at in pings if blocked + 0.05 < at < unblocked] == []
-    assert any(at < blocked for at in pings)
+    assert 1 <= len([at for at in pings if at < unblocked]) <= before
+    assert service.pings > before
 
 
 async def test_no_ping_while_the_work_stands_still(
