@@ -23,7 +23,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
-__all__ = ["Message", "NotifySocket"]
+from tests.ports import free_port
+
+__all__ = ["Message", "NotifySocket", "two_plcs"]
 
 #: Linux's SO_TIMESTAMP (asm-generic/socket.h), which Python's socket module does not name
 SO_TIMESTAMP = getattr(socket, "SO_TIMESTAMP", 29)
@@ -158,3 +160,16 @@ class NotifySocket:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def two_plcs(directory: Path, url: str, interval: float) -> Path:
+    """``plant.toml`` in ``directory``: ``press1`` at ``url`` (a simulator that answers) and
+    ``oven2`` on a port where nothing listens, both scanned every ``interval`` seconds."""
+    config = directory / "plant.toml"
+    config.write_text(
+        f"[poll]\ninterval = {interval}\n"
+        f'[[plc]]\nname = "press1"\nurl = "{url}"\n[plc.tags]\nx = {{ address = "D0" }}\n'
+        f'[[plc]]\nname = "oven2"\nurl = "e71+tcp://127.0.0.1:{free_port()}"\n'
+        '[plc.tags]\ny = { address = "D0" }\n'
+    )
+    return config

@@ -8,7 +8,8 @@ each a test of its own. The ``toml`` blocks of a page's walkthroughs whose first
 - a ``plcstack`` line runs in this process (the same ``args.func`` as the command line). An
   ``&`` line of a server (``sim``, ``gateway``, ``serve``) is started and waited for until it
   says ``listening on`` (on stdout or stderr); any other ``&`` line (``poll``) is started.
-- ``plcstack ... | CMD``: what plcstack printed is CMD's stdin.
+- ``plcstack ... | CMD``: what plcstack printed is CMD's stdin; ``plcstack ... > FILE``: it is
+  written to FILE.
 - any other line runs in ``/bin/sh`` in the working directory, with this Python's scripts first
   on PATH (``python``, ``uaread``). An ``&`` line (a broker, a database) is started and waited
   for until every port it names, on the line or in a file it names, accepts connections.
@@ -54,6 +55,7 @@ WALKTHROUGHS = [
     pytest.param("north.md", 0, id="north-mqtt"),
     pytest.param("north.md", 1, id="north-sparkplug"),
     pytest.param("north.md", 2, id="north-influx"),
+    pytest.param("systemd.md", 0, id="systemd"),
     pytest.param("opcua.md", 0, id="opcua", marks=pytest.mark.slow),
     pytest.param("scale-out.md", 0, id="scale-out", marks=pytest.mark.slow),
     pytest.param("wire.md", 0, id="wire"),
@@ -196,9 +198,11 @@ class Walkthrough:
         return argv[1:]
 
     async def plcstack(self, step: Step, command: str) -> None:
-        pipe_to = None
+        pipe_to = into = None
         if " | " in command:
             command, pipe_to = (part.strip() for part in command.split(" | ", 1))
+        elif " > " in command:
+            command, into = (part.strip() for part in command.split(" > ", 1))
         argv = self.plcstack_argv(command)
         if step.background:
             task = asyncio.create_task(_run(argv))
@@ -212,6 +216,10 @@ class Walkthrough:
         if pipe_to is not None:
             assert code == 0, f"{self.page}: {command}: exit {code}: {shown.err}"
             await self.shell(step, pipe_to, shown.out.encode())
+            return
+        if into is not None:
+            assert code == 0, f"{self.page}: {command}: exit {code}: {shown.err}"
+            (self.cwd / into).write_text(shown.out)
             return
         expected_code, expected = _exit_code(step.expected)
         assert code == expected_code, f"{self.page}: {step.command}: exit {code}: {shown.err}"

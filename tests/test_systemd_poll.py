@@ -23,21 +23,14 @@ from plcstack.sim import as511 as sim_as511
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.systemd.notify import monotonic_usec
-from tests.ports import free_port
-from tests.systemd_helpers import NotifySocket
+from tests.systemd_helpers import NotifySocket, two_plcs
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 async def test_poll_under_systemd(tmp_path: Path) -> None:
     sim = await e71.start(MelsecMemory())
-    config = tmp_path / "plant.toml"
-    config.write_text(
-        "[poll]\ninterval = 0.1\n"
-        f'[[plc]]\nname = "press1"\nurl = "{sim.url}"\n[plc.tags]\nx = {{ address = "D0" }}\n'
-        f'[[plc]]\nname = "oven2"\nurl = "e71+tcp://127.0.0.1:{free_port()}"\n'
-        '[plc.tags]\ny = { address = "D0" }\n'
-    )
+    config = two_plcs(tmp_path, sim.url, 0.1)
     with NotifySocket(tmp_path) as sock:
         env = {**os.environ, "NOTIFY_SOCKET": sock.address, "WATCHDOG_USEC": "600000"}
         started = time.monotonic()

@@ -33,7 +33,7 @@ from typing import NoReturn
 
 from plcstack import __version__
 from plcstack.errors import AddressError, PlcError
-from plcstack.logs import LEVELS, configure
+from plcstack.logs import FORMATS, LEVELS, configure, on_journal
 
 #: subcommand modules, in the order ``--help`` lists them
 COMMAND_MODULES = [
@@ -44,6 +44,7 @@ COMMAND_MODULES = [
     "plcstack.cli.e71",
     "plcstack.cli.sim",
     "plcstack.cli.gateway",
+    "plcstack.cli.systemd",
     "plcstack.cli.bench",
     "plcstack.cli.tags",
     "plcstack.cli.wireshark",
@@ -91,6 +92,15 @@ def add_logging_options(parser: argparse.ArgumentParser) -> None:
         type=str.lower,
         default=argparse.SUPPRESS,
         help="log level (default warning); debug shows every frame as hex",
+    )
+    group.add_argument(
+        "--log-format",
+        choices=FORMATS,
+        type=str.lower,
+        default=argparse.SUPPRESS,
+        help="text (default: one line per record; under systemd with its syslog priority first"
+        " and no time) or json (one JSON object per line: time, level, logger, message, plc,"
+        " tag, face)",
     )
 
 
@@ -158,9 +168,10 @@ def _level(args: argparse.Namespace) -> str:
 
 
 def _fail(kind: str, message: object) -> None:
-    # one line, whatever the message holds
+    # one line, whatever the message holds; filed as an error by journald under systemd
     text = " ".join(str(message).split()) or "(no message)"
-    print(f"plcstack: {kind}: {text}", file=sys.stderr, flush=True)
+    priority = "<3>" if on_journal() else ""
+    print(f"{priority}plcstack: {kind}: {text}", file=sys.stderr, flush=True)
 
 
 def print_error(message: object) -> None:
@@ -204,7 +215,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, --version, or the one-line usage error already printed
         return exc.code if isinstance(exc.code, int) else EXIT_USAGE
-    unconfigure = configure(_level(args))
+    unconfigure = configure(_level(args), getattr(args, "log_format", "text"))
     try:
         code: int = asyncio.run(args.func(args))
         sys.stdout.flush()  # a reader that went away shows here, not as noise at exit

@@ -468,7 +468,7 @@ class MqttSink:
         if previous is not None and reason_of(previous) == reason_of(error):
             log.debug("%s (again)", error)
         else:
-            log.warning("%s; retrying with backoff", error)
+            log.warning("%s; retrying with backoff", error, extra={"face": self.name})
 
     def _tls_context(self) -> ssl.SSLContext | None:
         s = self.settings
@@ -531,6 +531,7 @@ class MqttSink:
                     self.name,
                     s.url,
                     len(self.buffer),
+                    extra={"face": self.name},
                 )
                 self.last_error = None  # the next failure is a change again, logged
             backoff.reset()

@@ -215,7 +215,13 @@ class North:
                     await close()
                 except Exception as exc:  # the others still close; this one is said
                     name = sink_name(sink)
-                    log.error("%s: closing failed: %s: %s", name, type(exc).__name__, exc)
+                    log.error(
+                        "%s: closing failed: %s: %s",
+                        name,
+                        type(exc).__name__,
+                        exc,
+                        extra={"face": name},
+                    )
         await self.supervisor.aclose()
         if self.metrics is not None:
             await self.metrics.aclose()
@@ -263,13 +269,13 @@ class North:
             plc = scan.plc
             if not state:
                 reason = next((s.error for s in scan.samples if s.error), None) or "no good value"
-                log.warning("PLC %s is offline: %s", plc, reason)
+                log.warning("PLC %s is offline: %s", plc, reason, extra={"plc": plc})
                 self._offline.add(plc)
             elif plc in self._offline:
                 self._offline.discard(plc)
-                log.warning("PLC %s is back online", plc)
+                log.warning("PLC %s is back online", plc, extra={"plc": plc})
             else:
-                log.info("PLC %s is online", plc)
+                log.info("PLC %s is online", plc, extra={"plc": plc})
 
     async def run(self, emit: Callable[[list[Scan]], None] | None = None) -> None:
         """Consume the poller's (or a scale-out Worker's) scans until cancelled: one list per

@@ -103,6 +103,7 @@ class Supervised:
             delay,
             # a bug gets its traceback; a PlcError's message already says what happened
             exc_info=exc if exc is not None and not isinstance(exc, PlcError) else None,
+            extra={"face": self.name},
         )
         self._timer = asyncio.get_running_loop().call_later(delay, self._run)
 
@@ -240,6 +241,7 @@ class Supervisor:
             tag,
             getattr(sample, "value", None),
             _describe(exc),
+            extra={"face": name, "plc": plc, "tag": tag},
         )
 
 

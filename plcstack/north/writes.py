@@ -261,10 +261,11 @@ class WritePath:
         client = f" (client {peer})" if peer else ""
         # who refused what: another client (peer) or login refused the same tag is a new line
         key = (source, peer, user, plc, tag)
+        context = {"plc": plc, "tag": tag, "face": source}  # the fields of a JSON log line
         if result.ok:
             self.ok += 1
             self._last_code.pop(key, None)
-            log.info("write from %s: %s%s", who, result.message, client)
+            log.info("write from %s: %s%s", who, result.message, client, extra=context)
             return
         self.refused += 1
         # one WARNING per change: a client repeating the same refused write is not a log flood
@@ -272,4 +273,12 @@ class WritePath:
         if len(self._last_code) >= 4096:  # bounded, whatever names clients send
             self._last_code.clear()
         self._last_code[key] = result.code
-        log.log(level, "write from %s refused (%s): %s%s", who, result.code, result.message, client)
+        log.log(
+            level,
+            "write from %s refused (%s): %s%s",
+            who,
+            result.code,
+            result.message,
+            client,
+            extra=context,
+        )

@@ -303,7 +303,7 @@ class Scanner:
                 stats.requests += 1
                 self._deliver(self._plan, (reply,), start + offset, end + offset, None, None)
         except Exception:  # a bug must not end this group's scans
-            _log.exception("%s: delivering a scan failed", self._name)
+            _log.exception("%s: delivering a scan failed", self._name, extra={"plc": self._name})
         group = self._group
         interval = group.interval
         next_due = group.next_due + interval
@@ -359,7 +359,7 @@ class Scanner:
             try:
                 await self.scan()
             except Exception:  # scan turns read failures into samples: this is a bug
-                _log.exception("%s: a scan failed", self._name)
+                _log.exception("%s: a scan failed", self._name, extra={"plc": self._name})
             advance(self._stats, group, _clock())
 
     async def _scan_task(self) -> None:
@@ -367,7 +367,7 @@ class Scanner:
         try:
             await self.scan()
         except Exception:  # scan turns read failures into samples: this is a bug
-            _log.exception("%s: a scan failed", self._name)
+            _log.exception("%s: a scan failed", self._name, extra={"plc": self._name})
         self._task = None
         if not self._closed:
             group = self._group
