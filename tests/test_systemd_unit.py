@@ -70,6 +70,7 @@ def test_write_access_where_the_paths_point(tmp_path: Path) -> None:
         + '[mqtt]\nurl = "mqtt://127.0.0.1:1883"\nbuffer_path = "/var/lib/plcstack/mqtt.sqlite"\n'
         'state_path = "/var/lib/plcstack/spb/bdseq.json"\n'
         '[audit]\npath = "audit/writes.jsonl"\n'
+        '[history]\npath = "/var/lib/plcstack/history.sqlite"\n'
     )
     text = verified(tmp_path, unit_text(str(config), user="gw", watchdog=0))
     assert lines(text, "StateDirectory") == ["plcstack plcstack/spb"]

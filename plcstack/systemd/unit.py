@@ -53,6 +53,8 @@ def written_paths(north: NorthConfig) -> list[str]:
         paths += [north.mqtt.buffer_path, north.mqtt.state_path]
     if north.audit is not None:
         paths.append(north.audit.path)
+    if north.history is not None:
+        paths.append(str(north.history.path))
     return list(dict.fromkeys(p for p in paths if p))
 
 
