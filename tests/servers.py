@@ -35,6 +35,7 @@ import socket
 import subprocess
 import tempfile
 import time
+import urllib.parse
 from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
@@ -294,14 +295,37 @@ class NatsServer(_Server):
 
 
 class Influxd(_Server):
-    """InfluxDB 1.x (``influxd``) with HTTP on ``127.0.0.1:port``, everything else loopback."""
+    """InfluxDB 1.x (``influxd``) with HTTP on ``127.0.0.1:port``, everything else loopback.
+
+    ``auth=True``: HTTP authentication on, with one admin user ``admin``/``secret`` (created
+    through the query that InfluxDB allows while it has no user at all); :meth:`request` then
+    sends those credentials."""
 
     name = "influxd"
+    USER, PASSWORD = "admin", "secret"
 
-    def __init__(self) -> None:
+    def __init__(self, *, auth: bool = False) -> None:
         super().__init__()
+        self.auth = auth
         self.bind_port = free_port()
         self.binary = _find("influxd", "/usr/bin", "/usr/local/bin")
+
+    def start(self) -> None:
+        super().start()
+        if self.auth:
+            status, text = self._request(
+                "POST",
+                "/query?q="
+                + urllib.parse.quote(
+                    f"CREATE USER {self.USER} WITH PASSWORD '{self.PASSWORD}' WITH ALL PRIVILEGES"
+                ),
+                b"",
+                credentials=False,
+            )
+            # after a restart the user exists already: then only an authorised query works
+            created = status == 200 and '"error"' not in text
+            if not created and status not in (401, 403):
+                raise ServerUnavailable(f"influxd: CREATE USER: {status} {text}")
 
     @property
     def url(self) -> str:
@@ -318,10 +342,19 @@ class Influxd(_Server):
 
     def request(self, method: str, path: str, body: bytes = b"") -> tuple[int, str]:
         """One HTTP request to influxd: (status, body text); HTTP errors are returned."""
+        return self._request(method, path, body, credentials=self.auth)
+
+    def _request(
+        self, method: str, path: str, body: bytes, *, credentials: bool
+    ) -> tuple[int, str]:
+        import base64
         import urllib.error
         import urllib.request
 
         req = urllib.request.Request(f"{self.url}{path}", data=body or None, method=method)
+        if credentials:
+            token = base64.b64encode(f"{self.USER}:{self.PASSWORD}".encode()).decode()
+            req.add_header("Authorization", f"Basic {token}")
         try:
             with urllib.request.urlopen(req, timeout=10) as r:
                 return int(r.status), r.read().decode()
@@ -330,8 +363,6 @@ class Influxd(_Server):
 
     def create_database(self, name: str) -> None:
         """CREATE DATABASE and wait until a write to it is no longer "database not found"."""
-        import urllib.parse
-
         status, text = self.request(
             "POST", "/query?q=" + urllib.parse.quote(f'CREATE DATABASE "{name}"')
         )
@@ -353,7 +384,7 @@ class Influxd(_Server):
             f'[meta]\n  dir = "{d}/meta"\n'
             f'[data]\n  dir = "{d}/data"\n  wal-dir = "{d}/wal"\n  query-log-enabled = false\n'
             f'[http]\n  enabled = true\n  bind-address = "{self.host}:{self.port}"\n'
-            "  log-enabled = false\n"
+            f"  log-enabled = false\n  auth-enabled = {'true' if self.auth else 'false'}\n"
             "[monitor]\n  store-enabled = false\n"
             "[subscriber]\n  enabled = false\n"
             "[continuous_queries]\n  enabled = false\n"

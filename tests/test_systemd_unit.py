@@ -71,9 +71,11 @@ def test_write_access_where_the_paths_point(tmp_path: Path) -> None:
         'state_path = "/var/lib/plcstack/spb/bdseq.json"\n'
         '[audit]\npath = "audit/writes.jsonl"\n'
         '[history]\npath = "/var/lib/plcstack/history.sqlite"\n'
+        '[influx]\nurl = "http://127.0.0.1:8086"\ndatabase = "plant"\n'
+        'buffer_path = "/var/lib/plcstack-influx/queue.sqlite"\n'
     )
     text = verified(tmp_path, unit_text(str(config), user="gw", watchdog=0))
-    assert lines(text, "StateDirectory") == ["plcstack plcstack/spb"]
+    assert lines(text, "StateDirectory") == ["plcstack plcstack/spb plcstack-influx"]
     # a relative path is the file's directory's
     assert lines(text, "ReadWritePaths") == [str(tmp_path / "audit")]
     assert lines(text, "WatchdogSec") == []

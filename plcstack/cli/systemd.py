@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from plcstack.cli import UsageError, plain_text
-from plcstack.north.config import load_config
+from plcstack.config import load_config
 from plcstack.systemd.unit import DEFAULT_USER, DEFAULT_WATCHDOG, render_unit
 
 
@@ -56,7 +56,8 @@ async def run_unit(args: argparse.Namespace) -> int:
 def unit_text(config: str, *, user: str, watchdog: float) -> str:
     """The unit for the file ``config`` (a file that does not load: its FILE:LINE error)."""
     path = str(Path(config).absolute())
-    poll, north = load_config(path)
+    whole = load_config(path)
+    poll, north = whole.poll, whole.north
     try:
         return render_unit(path, poll, north, user=user, watchdog=watchdog)
     except ValueError as exc:

@@ -24,7 +24,7 @@ from pathlib import Path
 from plcstack.checks import Notice, read_tables, table_names, toml_table
 from plcstack.north.audit import AuditSettings, parse_audit
 from plcstack.north.history.settings import HistorySettings, parse_history
-from plcstack.north.influx import InfluxSettings, parse_influx
+from plcstack.north.influx_config import InfluxSettings, parse_influx
 from plcstack.north.metrics import MetricsSettings, parse_metrics
 from plcstack.north.modbus.config import ModbusSettings, parse_modbus
 from plcstack.north.mqtt import MqttSettings, parse_mqtt

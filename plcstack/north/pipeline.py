@@ -31,6 +31,7 @@ from typing import Any, Self, cast
 from plcstack.north.audit import Audit
 from plcstack.north.config import NorthConfig
 from plcstack.north.history import History
+from plcstack.north.influx_sink import InfluxSink
 from plcstack.north.layout import JsonLayout, Reachability, scan_groups
 from plcstack.north.metrics import MetricsServer, PlcstackCollector
 from plcstack.north.mqtt import MqttSink
@@ -81,6 +82,8 @@ def needs_of(config: NorthConfig) -> list[tuple[str, str, str]]:
         needs.append(("[metrics]", "prometheus_client", "metrics"))
     if config.web is not None:
         needs.append(("[web] or --web-port", "aiohttp", "web"))
+    if config.influx.url is not None:
+        needs.append(("[influx] url", "aiohttp", "influx"))
     return needs
 
 
@@ -148,6 +151,10 @@ class North:
             self.trace = TraceSink(config.trace)
             self.trace.attach(poller)
             self.sinks.append(self.trace)
+        self.influx: InfluxSink | None = None
+        if config.influx.url is not None:  # the Influx writer: a sink with its own queue
+            self.influx = InfluxSink(config.influx, poller.config.plcs, supervisor=self.supervisor)
+            self.sinks.append(self.influx)
         self.web: Any = None
         if config.web is not None:  # the web console: a sink, and a server (the web extra)
             from plcstack.north.web.server import WebConsole
@@ -166,19 +173,24 @@ class North:
                 cast(Any, sink).supervisor = self.supervisor  # its tasks run under the run's
         self.collector = PlcstackCollector(
             poller,
-            [s for s in self.sinks if hasattr(s, "buffer")],
+            [s for s in self.sinks if isinstance(s, MqttSink)],
             self.rbe,
             supervisor=self.supervisor,
         )
         self.metrics: MetricsServer | None = None
         if config.metrics is not None:
             self.metrics = MetricsServer(self.collector, config.metrics, self._health)
+            if self.influx is not None:
+                self.metrics.registry.register(self.influx)
         self._running = False
 
     def _health(self) -> str | None:
         if not self._running:
             return "the poller is not running"
-        return self.supervisor.health()
+        problems = [self.supervisor.health()]
+        if self.influx is not None:
+            problems.append(self.influx.health_problem())
+        return "; ".join(p for p in problems if p is not None) or None
 
     async def __aenter__(self) -> Self:
         try:

@@ -55,6 +55,8 @@ def written_paths(north: NorthConfig) -> list[str]:
         paths.append(north.audit.path)
     if north.history is not None:
         paths.append(str(north.history.path))
+    if north.influx.url is not None:
+        paths.append(north.influx.buffer_path)
     return list(dict.fromkeys(p for p in paths if p))
 
 
