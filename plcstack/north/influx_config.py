@@ -131,7 +131,8 @@ def parse_influx(table: Any, *, base: Path | None = None) -> InfluxSettings:
     layout = table.get("layout", DEFAULT_LAYOUT)
     if layout not in LAYOUTS:
         raise ConfigError(
-            f"[influx] layout must be {' or '.join(repr(x) for x in LAYOUTS)}, not {layout!r}"
+            f"[influx] layout must be {' or '.join(f'{x!r}'.replace(chr(39), chr(34)) for x in LAYOUTS)},"
+            f" not {layout!r}"
         )
     url = text("url", None)
     if url is None:
