@@ -131,8 +131,9 @@ def parse_influx(table: Any, *, base: Path | None = None) -> InfluxSettings:
     layout = table.get("layout", DEFAULT_LAYOUT)
     if layout not in LAYOUTS:
         raise ConfigError(
-            f"[influx] layout must be {' or '.join(f'{x!r}'.replace(chr(39), chr(34)) for x in LAYOUTS)},"
-            f" not {layout!r}"
+            f"[influx] layout must be {' or '.join(f'{chr(34)}{x}{chr(34)}' for x in LAYOUTS)},"
+            f" not {layout!r}",
+            key="influx.layout",
         )
     url = text("url", None)
     if url is None:
