@@ -26,6 +26,7 @@ from typing import Any, Final, Generic, TypeVar
 from plcstack.errors import ConfigError, check_keys
 
 __all__ = [
+    "NAME_RULE",
     "Listen",
     "Notice",
     "Table",
@@ -85,19 +86,22 @@ class Listen:
 
 @dataclass(frozen=True, slots=True)
 class Notice:
-    """Something the loader says once about a table that still loads (an old spelling): the
-    dotted TOML path it is about, for the line, and the message."""
+    """Something the loader says once about a file that still loads (an old spelling, PLCs
+    that will not all get a connection): the dotted TOML path it is about (or its ``line``,
+    when a path cannot say it) and the message."""
 
-    key: str
+    key: str | None
     message: str
+    line: int | None = None
 
 
 #: what a name may not contain, with the face that cannot carry it: the one rule for PLC,
 #: tag and scan group names, whatever faces the file configures (a file that gains an
 #: [mqtt] table later must not find its names refused then)
-_NAME_RULE: Final = (
-    "it becomes an MQTT topic level, a Sparkplug device or metric name, an OPC UA browse name, "
-    "an Influx tag and a path of the web console's REST API"
+NAME_RULE: Final = (
+    "a name becomes an MQTT topic level, a Sparkplug device or metric name, an OPC UA browse "
+    "name, an Influx tag and a path of the web console's REST API, whichever of them a file "
+    "configures"
 )
 _UNSAFE: Final = {"/": "a slash", "+": "a plus", "#": "a hash"}
 #: a PLC name is the first part of its tags' OPC UA NodeIds ("PLC.TAG"): no dot, so no two
@@ -115,21 +119,21 @@ def name_problem(kind: str, name: object) -> str | None:
     """What is wrong with the name of a ``kind`` (``"PLC"``, ``"tag"``, ``"scan group"``), or
     None. The rule and its reason are said once, here."""
     if not isinstance(name, str) or not name.strip():
-        return f"a {kind} name must be a non-empty string, not {name!r}"
+        return f"a {kind} name must be a non-empty string, not {name!r}; {NAME_RULE}"
     unsafe = _PLC_UNSAFE if kind == "PLC" else _UNSAFE
     for char, what in unsafe.items():
         if char in name:
             return (
                 f"{kind} name {name!r} contains {what} ({char}: {_UNSAFE_WHY[char]}); "
-                f"a {kind} name may not contain {' '.join(unsafe)}, since {_NAME_RULE}"
+                f"a {kind} name may not contain {' '.join(unsafe)}, since {NAME_RULE}"
             )
     if name in (".", ".."):
-        return f"{kind} name {name!r} is a path step; {_NAME_RULE}"
+        return f"{kind} name {name!r} is a path step; {NAME_RULE}"
     bad = next((c for c in name if ord(c) < 32 or ord(c) == 127), None)
     if bad is not None:
-        return f"{kind} name {name!r} contains the control character {bad!r}; {_NAME_RULE}"
+        return f"{kind} name {name!r} contains the control character {bad!r}; {NAME_RULE}"
     if name != name.strip():
-        return f"{kind} name {name!r} begins or ends with a space; {_NAME_RULE}"
+        return f"{kind} name {name!r} begins or ends with a space; {NAME_RULE}"
     return None
 
 

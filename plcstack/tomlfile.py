@@ -16,12 +16,14 @@ from typing import Any, Final
 
 from plcstack.errors import ConfigError
 
-__all__ = ["MAX_TOML_DEPTH", "TomlFile", "toml_line"]
+__all__ = ["MAX_TOML_DEPTH", "TomlFile", "toml_key", "toml_line"]
 
 #: deepest nesting of tables and arrays a config may use; ours needs 4 ([[plc]] > tags > tag)
 MAX_TOML_DEPTH: Final = 32
+#: one part of a dotted key: bare, or quoted (then any character but the quote)
+_PART: Final = r"""(?:"[^"]*"|'[^']*'|[\w\-]+(?:\[\d+\])?)"""
 _HEADER: Final = re.compile(r"\s*\[\[?([^\[\]]+)\]\]?\s*(?:#.*)?$")
-_KEY: Final = re.compile(r"\s*([\w\-\s.\"']+?)\s*=")
+_KEY: Final = re.compile(rf"\s*({_PART}(?:\s*\.\s*{_PART})*)\s*=")
 #: ``name[N]``: the N-th table (from 0) of the array of tables ``[[name]]``
 _INDEXED: Final = re.compile(r"(.+)\[(\d+)\]")
 
@@ -131,8 +133,15 @@ def toml_line(lines: list[str], path: str) -> int | None:
 
 
 def _toml_path(dotted: str) -> list[str]:
-    """``'a . "b" . c'`` -> ``["a", "b", "c"]`` (a dot inside quotes is rare enough to ignore)."""
-    return [part.strip().strip("\"'") for part in dotted.split(".")]
+    """``'a . "b.c" . d'`` -> ``["a", "b.c", "d"]``: a dotted key's parts, quotes taken off."""
+    return [part.strip("\"'") for part in re.findall(_PART, dotted)]
+
+
+def toml_key(*parts: str) -> str:
+    """The dotted path of ``parts``, each quoted unless it is a bare key (``groups."a/b"``)."""
+    return ".".join(
+        p if re.fullmatch(r"[\w\-]+", p) else '"' + p.replace('"', "") + '"' for p in parts
+    )
 
 
 def _depth(value: Any) -> int:

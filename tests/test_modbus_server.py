@@ -18,6 +18,7 @@ from plcstack import ConfigError, load_config
 from plcstack.north.audit import Audit, AuditSettings
 from plcstack.north.modbus.server import ModbusServer
 from plcstack.north.writes import WritePath
+from plcstack.poll.config import parse_poll_config
 from plcstack.poll.engine import Poller
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
@@ -325,12 +326,15 @@ def test_overlapping_tags_are_refused_naming_both_with_lines(tmp_path: Path) -> 
         'speed = { address = "D0", type = "uint16", modbus = "hr:11" }\n'
         'other = { address = "D1", type = "uint16", modbus = "ir:11" }\n'
     )
-    poller = Poller(load_config(path).poll)
     with pytest.raises(ConfigError) as caught:
-        ModbusServer.from_config(poller)
+        load_config(path)  # every command that reads the file refuses it
     text = str(caught.value)
     assert "tag 'speed' of PLC 'b' (hr:11)" in text and f"{path}:10" in text
     assert "tag 'temp' of PLC 'a' (hr:10..11)" in text and f"{path}:5" in text
+    poller = Poller(parse_poll_config(path.read_text(), source=str(path)))
+    with pytest.raises(ConfigError) as again:
+        ModbusServer.from_config(poller)  # and so does the Python API, in the same words
+    assert str(again.value) == text
 
 
 @pytest.mark.parametrize(
@@ -377,7 +381,7 @@ def test_bad_modbus_tables_are_config_errors(tmp_path: Path, table: str, message
 
 
 def test_the_file_is_read_once_and_errors_still_name_its_lines(tmp_path: Path) -> None:
-    """from_config takes what load_config parsed: with the file gone, an overlap is still
+    """from_config takes what the loader parsed: with the file gone, an overlap is still
     reported at file:line (it used to read the file a second time for the lines)."""
     path = tmp_path / "once.toml"
     path.write_text(
@@ -385,7 +389,7 @@ def test_the_file_is_read_once_and_errors_still_name_its_lines(tmp_path: Path) -
         'x = { address = "D0", modbus = "hr:0" }\n'
         'y = { address = "D1", modbus = "hr:0" }\n'
     )
-    poller = Poller(load_config(path).poll)
+    poller = Poller(parse_poll_config(path.read_text(), source=str(path)))
     path.unlink()
     with pytest.raises(ConfigError) as caught:
         ModbusServer.from_config(poller)

@@ -50,6 +50,7 @@ temp = { address = "D102", type = "float32", group = "default" }
 alarms = { address = "M0", type = "bool", count = 16 }
 
 [[plc]]
+name = "kiln2"
 url = "s5lan://127.0.0.1:5010?timeout=3"
 word_order = "little"
 max_gap = 0
@@ -72,7 +73,7 @@ def test_full_example() -> None:
         ("alarms", "M0", vt.BOOL, 16, "fast"),
     ]
     assert p1.order is WordOrder.LITTLE  # MELSEC default
-    assert p2.name == "s5lan://127.0.0.1:5010?timeout=3"  # name defaults to the URL
+    assert p2.name == "kiln2" and p2.url == "s5lan://127.0.0.1:5010?timeout=3"
     assert p2.order is WordOrder.LITTLE and p2.max_gap == 0 and p2.timeout == 0.25
     assert p2.tags[0].name == "level.1"
 

@@ -23,8 +23,9 @@ from plcstack.north.sparkplug_pb import Payload
 from plcstack.north.supervise import Supervisor
 from plcstack.poll.config import PollConfig
 from plcstack.poll.samples import Quality, Sample, Scan
-from plcstack.sim import e71
+from plcstack.sim import e71, s5lan
 from plcstack.sim.melsec_memory import MelsecMemory
+from plcstack.sim.s5memory import S5Memory
 from tests.north_helpers import sample, subscriber
 from tests.scan_helpers import scan
 from tests.servers import Mosquitto
@@ -233,10 +234,10 @@ async def test_a_sparkplug_value_the_encoder_cannot_take_costs_one_sample_not_th
     """A tag whose value the Sparkplug encoder once could not take (a KY tuple): before, the
     sink's TypeError ended the consumer, the run stopped after its first scan with exit 0 and
     no log line. Now every scan of the other tag goes out, and the failure (if the encoder still
-    fails) is one ERROR line naming the PLC and the tag."""
-    memory = MelsecMemory()
-    memory.write_words("D", 100, [7, 0x0102])
-    sim = await e71.start(memory)
+    fails) is one ERROR line naming the PLC and the tag. KY is an S5 format: an S5 PLC."""
+    memory = S5Memory(default_dbs={10: 8})
+    memory.write_db_words(10, 0, [7, 0x0102])
+    sim = await s5lan.start(memory)
     config = tmp_path / "plant.toml"
     config.write_text(
         f"""
@@ -246,8 +247,8 @@ interval = 0.05
 name = "press1"
 url = "{sim.url}"
 [plc.tags]
-strokes = {{ address = "D100", type = "uint16" }}
-pair = {{ address = "D101", type = "ky" }}
+strokes = {{ address = "DB10.DW0", type = "uint16" }}
+pair = {{ address = "DB10.DW1", type = "ky" }}
 [mqtt]
 url = "mqtt://{mosquitto.host}:{mosquitto.port}"
 mode = "sparkplug"

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from plcstack import values as vt
+from plcstack.checks import name_problem
 from plcstack.config import parse_config
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.tags import read_kepware, to_toml, write_kepware
@@ -24,11 +25,12 @@ TEXT = st.text(
     min_size=1,
     max_size=40,
 ).filter(str.strip)
+#: a tag name as the configuration takes it (the name rule: plcstack.checks.name_problem)
 NAME = st.text(
     st.characters(blacklist_categories=("Cc", "Cs", "Zs", "Zl", "Zp"), blacklist_characters="\x7f"),
     min_size=1,
     max_size=20,
-)
+).filter(lambda name: name_problem("tag", name) is None)
 FINITE = st.floats(-1e6, 1e6, allow_nan=False) | st.integers(-30000, 30000)
 WORD_TYPES: list[vt.ValueType[Any]] = [
     vt.RAW,
@@ -54,7 +56,8 @@ def scales(draw: st.DrawFn) -> Scale | None:
 
 @st.composite
 def melsec_tag(draw: st.DrawFn, name: str, group: str) -> TagConfig:
-    kind = draw(st.sampled_from(["word", "bits", "bit_of_word", "string", "s5type"]))
+    # no S5 formats: a MELSEC word holds none, and the loader refuses them on a MELSEC PLC
+    kind = draw(st.sampled_from(["word", "bits", "bit_of_word", "string"]))
     common: dict[str, Any] = {
         "group": group,
         "writable": draw(st.booleans()),
@@ -71,8 +74,7 @@ def melsec_tag(draw: st.DrawFn, name: str, group: str) -> TagConfig:
         return TagConfig(name, f"D{n}.{draw(st.integers(0, 15)):X}", vt.BOOL, **common)
     if kind == "string":
         return TagConfig(name, f"D{n}", vt.string(draw(st.integers(1, 40))), **common)
-    choices: list[vt.ValueType[Any]] = WORD_TYPES if kind == "word" else [vt.KG, vt.KF, vt.KH]
-    vtype = draw(st.sampled_from(choices))
+    vtype = draw(st.sampled_from(WORD_TYPES))
     scale = draw(scales()) if vtype.kind in ("int", "float") else None
     count = draw(st.integers(1, 8))
     return TagConfig(name, f"D{n}", vtype, count, scale=scale, **common)

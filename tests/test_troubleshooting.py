@@ -83,6 +83,22 @@ async def _config_typo(tmp: Path) -> str:
     return str(err.value)
 
 
+async def _config_error(tmp: Path, text: str) -> str:
+    path = tmp / "names.toml"
+    path.write_text(text)
+    with pytest.raises(PlcError) as err:
+        load_config(path)
+    return str(err.value)
+
+
+async def _config_warning(tmp: Path) -> str:
+    path = tmp / "shared.toml"
+    plc = '[[plc]]\nname = "p{}"\nurl = "s5lan://10.0.0.7:5010"\ntags = {{ t = "DB1.DW0" }}\n'
+    path.write_text(plc.format(1) + plc.format(2))
+    (said,) = load_config(path).notices
+    return said
+
+
 def _mistakes(tmp: Path) -> dict[str, Awaitable[str]]:
     return {
         "connect: cannot connect to": _cannot_connect(),
@@ -102,6 +118,15 @@ def _mistakes(tmp: Path) -> dict[str, Awaitable[str]]:
             "read", f"e71+tcp://{NOWHERE}", "D0", "--timeout", "0"
         ),
         "did you mean": _config_typo(tmp),
+        "may not contain / + #": _config_error(
+            tmp, '[[plc]]\nname = "line1/press"\nurl = "e71+tcp://h:5000"\ntags = { t = "D0" }\n'
+        ),
+        "and this is a MELSEC PLC, whose words hold no S5 formats": _config_error(
+            tmp,
+            '[[plc]]\nname = "p"\nurl = "e71+tcp://h:5000"\ntags = { t = { address = "D0",'
+            ' type = "kg" } }\n',
+        ),
+        "cannot connect. Make them one [[plc]]": _config_warning(tmp),
     }
 
 

@@ -36,7 +36,9 @@ __all__ = ["HOSTILE", "TOKEN", "TOKEN_ENV", "Console", "float_words", "running_c
 
 TOKEN_ENV = "PLCSTACK_TEST_WEB_TOKEN"
 TOKEN = "s3cret-token"
-HOSTILE = "<script>window.pwned=1</script>"
+#: a name that runs script if a page does not escape it (with no / + # or dot, so every face
+#: can carry it: the name rule of the configuration)
+HOSTILE = "<svg onload=pwned=1>"
 
 
 @dataclass

@@ -59,6 +59,7 @@ from plcstack.codecs.e71 import (
     parse_address,
     unit_error,
 )
+from plcstack.codecs.e71_devices import foreign_notation
 from plcstack.codecs.e71_wire import as_code
 from plcstack.diagnose import Failure, e71_hint
 from plcstack.errors import (
@@ -374,8 +375,11 @@ class E71Client(E71CommandsMixin):
         if not dot:
             return address, None
         if len(tail) != 1 or tail.upper() not in "0123456789ABCDEF":
+            foreign = foreign_notation(address)  # DB10.DW0: the family's words, not the bit's
             raise AddressError(
-                f"{address!r}: the bit of a word is one hexadecimal digit 0-F (D100.F)",
+                f"address {address!r}{foreign}"
+                if foreign
+                else f"{address!r}: the bit of a word is one hexadecimal digit 0-F (D100.F)",
                 plc=self.name,
             )
         return head, int(tail, 16)

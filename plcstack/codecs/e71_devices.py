@@ -28,6 +28,7 @@ __all__ = [
     "decode_ref",
     "dev_value",
     "device_ranges",
+    "foreign_notation",
     "in_range",
     "parse_address",
 ]
@@ -229,6 +230,13 @@ def _range_text(device: Device, last: dict[Device, int]) -> str:
 _LOOKALIKES: Final = str.maketrans({"O": "0", "I": "1", "L": "1"})
 #: the hexadecimal devices, for the message of a decimal one given hex digits
 _HEX_NAMES: Final = ", ".join(d.letters for d in Device if d.base == 16)
+
+
+def foreign_notation(text: str) -> str:
+    """``": that is Siemens S5 notation ..."`` when ``text`` is an address of the S5 family,
+    else ``""``: what a MELSEC address parser or bit-of-a-word check adds to its message, so
+    ``DB10.DW0`` gets the same words from ``plcstack read``, the Python API and a TOML tag."""
+    return _foreign(text.strip().upper())
 
 
 def _foreign(upper: str) -> str:

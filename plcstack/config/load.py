@@ -18,6 +18,8 @@ from plcstack.config.model import TABLES, Config
 from plcstack.errors import ConfigError
 from plcstack.gateway.faces import check_faces
 from plcstack.north.config import parse_north
+from plcstack.north.modbus.config import build_map
+from plcstack.poll.checks import check_plans, shared_connections
 from plcstack.poll.config import PollTables
 from plcstack.tomlfile import TomlFile
 
@@ -54,7 +56,13 @@ def read_config(file: TomlFile) -> Config:
         check_faces(own.get("gateway", ()), [(plc.name, plc.url) for plc in poll.plcs])
     except ConfigError as exc:
         raise file.error(exc) from None
-    said = tuple(f"{n.message} ({file.at(file.line(n.key))})" for n in notices)
+    tags = check_plans(poll)  # every address on its family's client, with FILE:LINE
+    if any(tag.modbus is not None for plc in poll.plcs for tag in plc.tags):
+        build_map(tags, source=file.source)  # overlaps refused at load, by every command
+    notices += [Notice(None, message, line) for line, message in shared_connections(poll)]
+    said = tuple(
+        f"{n.message} ({file.at(n.line or (file.line(n.key) if n.key else None))})" for n in notices
+    )
     for line in said:
         log.warning("%s", line)
     return Config(poll, north, source=file.source, notices=said, **own)

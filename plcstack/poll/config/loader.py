@@ -15,6 +15,7 @@ import re
 from collections.abc import Collection, Mapping
 from typing import Any
 
+from plcstack.checks import NAME_RULE, name_problem
 from plcstack.errors import AddressError, ConfigError, unknown_names
 from plcstack.poll.config.model import (
     DEFAULT_BATCH_WAIT,
@@ -31,7 +32,7 @@ from plcstack.poll.config.model import (
     text_problem,
 )
 from plcstack.poll.display import decimals_problem, parse_labels
-from plcstack.tomlfile import TomlFile
+from plcstack.tomlfile import TomlFile, toml_key
 from plcstack.url import parse_url
 from plcstack.values import TYPES, Scale, WordOrder, value_type
 
@@ -230,6 +231,9 @@ class PollTables:
         if not isinstance(raw_groups, dict):
             raise self.error("[groups] must be a table of name = interval (seconds)", "groups")
         for name in raw_groups:
+            problem = name_problem("scan group", name)
+            if problem:
+                raise self.error(problem, path=toml_key("groups", name))
             groups[name] = self._number(raw_groups, name, 0, f"scan group {name!r}: interval")
         raw_plcs = data.get("plc", [])
         if not isinstance(raw_plcs, list):
@@ -268,9 +272,12 @@ class PollTables:
         if not isinstance(raw, dict):
             raise self.error("each [[plc]] must be a table")
         url = raw.get("url")
-        name = raw.get("name", url)
-        if not isinstance(name, str) or not name:
-            raise self.error("PLC name must be a non-empty string", "name")
+        if "name" not in raw:
+            raise self.error(f'missing name (e.g. name = "press1"); {NAME_RULE}')
+        name = raw["name"]
+        problem = name_problem("PLC", name)
+        if problem:
+            raise self.error(problem, "name")
         self.plc_name = name
         if not isinstance(url, str):
             raise self.error('missing url (e.g. url = "e71+tcp://10.0.0.5:5000")', "url")
@@ -355,8 +362,9 @@ class PollTables:
 
     def _tag(self, name: str, spec: Any, group: str, groups: Mapping[str, float]) -> TagConfig:
         where = f"tag {name!r}"
-        if not name.strip():
-            raise self.error("a tag name must not be empty", "tags")
+        problem = name_problem("tag", name)
+        if problem:
+            raise self.error(problem, name if name.strip() else "tags")
         if isinstance(spec, str):
             spec = {"address": spec}
         if not isinstance(spec, dict):

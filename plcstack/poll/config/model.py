@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from plcstack.checks import name_problem
 from plcstack.errors import AddressError, ConfigError
 from plcstack.poll.display import Labels, decimals_problem, labels_problem
 from plcstack.url import parse_url
@@ -187,6 +188,9 @@ def validate(config: PollConfig) -> None:
     if problem:
         raise ConfigError(problem)
     for name, interval in config.groups.items():
+        problem = name_problem("scan group", name)
+        if problem:
+            raise ConfigError(problem)
         if not (
             isinstance(interval, int | float)
             and math.isfinite(interval)
@@ -198,6 +202,9 @@ def validate(config: PollConfig) -> None:
             )
     seen: set[str] = set()
     for plc in config.plcs:
+        problem = name_problem("PLC", plc.name)
+        if problem:
+            raise ConfigError(problem, plc=plc.name if isinstance(plc.name, str) else None)
         if plc.name in seen:
             raise ConfigError(f"PLC name {plc.name!r} is used twice", plc=plc.name)
         seen.add(plc.name)
@@ -214,6 +221,9 @@ def validate(config: PollConfig) -> None:
         tag_names: set[str] = set()
         for tag in plc.tags:
             where = f"tag {tag.name!r}"
+            problem = name_problem("tag", tag.name)
+            if problem:
+                raise ConfigError(problem, plc=plc.name)
             if tag.name in tag_names:
                 raise ConfigError(f"{where} is defined twice", plc=plc.name)
             tag_names.add(tag.name)
