@@ -9,6 +9,8 @@ from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from plcstack.clients import connect
 from plcstack.clients.e71 import E71Client
@@ -166,3 +168,62 @@ async def test_faces_and_the_poll_take_turns_on_the_connection() -> None:
             assert scans >= 0.5 * done and done >= 40, (scans, done)
             assert share.stats.busy == share.stats.expired == 0
             assert poller.stats["kiln1"].bad_samples == 0
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    st.lists(st.integers(0, 4), min_size=1, max_size=16),
+    st.integers(1, 8),
+    st.integers(1, 3),
+)
+def test_the_queue_serves_sources_in_turn_and_refuses_beyond_its_bounds(
+    sources: list[int], queue_size: int, per_source: int
+) -> None:
+    """Requests of random sources, all submitted while the connection is busy: those beyond
+    the queue or a source's line are refused busy; the rest run each source in turn (in the
+    order the sources first came), each source's own in the order they came."""
+    # the model: a line per source, refusals at the bounds, round robin
+    lines: dict[int, list[int]] = {}
+    waiting = 0
+    busy = set()
+    for index, source in enumerate(sources):
+        line = lines.setdefault(source, [])
+        if waiting >= queue_size or len(line) >= min(per_source, queue_size):
+            busy.add(index)
+            if not line:
+                del lines[source]
+            continue
+        line.append(index)
+        waiting += 1
+    expected: list[int] = []
+    while lines:
+        for source in list(lines):
+            expected.append(lines[source].pop(0))
+            if not lines[source]:
+                del lines[source]
+
+    async def run() -> tuple[list[int], set[int]]:
+        async with shared(queue_size=queue_size, per_source=per_source) as (_, client, share):
+            order: list[int] = []
+
+            def job(index: int) -> Callable[[], Awaitable[None]]:
+                async def read() -> None:
+                    order.append(index)
+                    await client.read_words("D0", 1)
+
+                return read
+
+            async with client.turn():  # busy while everything is submitted
+                tasks = [
+                    asyncio.create_task(share.run(source, job(i)))
+                    for i, source in enumerate(sources)
+                ]
+                await asyncio.sleep(0)
+            results = await asyncio.wait_for(asyncio.gather(*tasks, return_exceptions=True), 10)
+            refused = {i for i, r in enumerate(results) if isinstance(r, QueueFull)}
+            assert all(r is None or isinstance(r, QueueFull) for r in results), results
+            return order, refused
+
+    order, refused = asyncio.run(run())
+    assert refused == busy
+    assert order == expected
