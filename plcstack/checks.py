@@ -31,6 +31,7 @@ __all__ = [
     "Notice",
     "Table",
     "TableSpec",
+    "changed_tables",
     "name_problem",
     "parse_seconds",
     "parse_size",
@@ -465,6 +466,18 @@ def toml_array(name: str, parse: Callable[[Table], Any]) -> Mapping[str, TableSp
 
 def _specs(cls: type[Any]) -> list[tuple[str, TableSpec[Any]]]:
     return [(f.name, f.metadata["table"]) for f in dataclasses.fields(cls) if "table" in f.metadata]
+
+
+def changed_tables(old: object, new: object) -> tuple[str, ...]:
+    """The top-level tables whose values differ between two instances of one configuration
+    dataclass (its :func:`toml_table` fields, compared by value)."""
+    if type(old) is not type(new):
+        raise TypeError(f"cannot compare a {type(old).__name__} with a {type(new).__name__}")
+    return tuple(
+        spec.name
+        for field_name, spec in _specs(type(old))
+        if getattr(old, field_name) != getattr(new, field_name)
+    )
 
 
 def table_names(cls: type[Any]) -> tuple[str, ...]:

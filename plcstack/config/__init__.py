@@ -9,10 +9,20 @@ config.north.mqtt                      # a face's table, typed (None: not config
 ```
 
 ``model`` holds :class:`Config` (the tables and where each is read), ``load`` the reading of a
-file. The checks every table uses are :mod:`plcstack.checks`.
+file, ``overrides`` the command line over it, ``diff`` what a reload changes. The checks every
+table uses are :mod:`plcstack.checks`.
 """
 
+from plcstack.config.diff import ConfigDiff, diff
 from plcstack.config.load import load_config, parse_config, read_config
 from plcstack.config.model import TABLES, Config
 
-__all__ = ["TABLES", "Config", "load_config", "parse_config", "read_config"]
+__all__ = [
+    "TABLES",
+    "Config",
+    "ConfigDiff",
+    "diff",
+    "load_config",
+    "parse_config",
+    "read_config",
+]
