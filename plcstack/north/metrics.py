@@ -39,6 +39,8 @@ Exported (``plc`` label per PLC)::
     plcstack_rbe_suppressed_total        samples held back by report-by-exception
     plcstack_sink_errors_total           per sink (``sink`` = its name): samples it could not
                                          take and deaths of its task (logged at ERROR)
+    plcstack_face_guard_total            per listening face and reason: connections refused or
+                                         closed to protect the other clients, malformed requests
 
 ``/healthz`` answers 200 ``ok`` while the poller runs, 503 with the reason otherwise. The server
 binds 127.0.0.1 unless ``[metrics] listen`` says otherwise: metrics name every PLC of the plant.
@@ -63,7 +65,7 @@ from plcstack.checks import Listen, Table
 from plcstack.errors import ConfigError, ValueDecodeError
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.resource import cancel_until_done
-from plcstack.transports.guard import ClientLimit, close_writer
+from plcstack.transports.guard import TOTALS, ClientLimit, close_writer
 from plcstack.transports.peer import peer_address
 
 __all__ = [
@@ -297,6 +299,16 @@ class PlcstackCollector:
             for name, count in sorted(self.supervisor.errors.items()):
                 errors.add_metric([name], float(count))
             yield errors
+        guarded = CounterMetricFamily(
+            "plcstack_face_guard",
+            "what each listening face did to protect its clients: connections refused"
+            " (max_clients, max_clients_per_host) or closed (first_request_timeout,"
+            " idle_timeout, frame_timeout), and malformed requests (malformed)",
+            labels=["face", "reason"],
+        )
+        for (face, reason), count in TOTALS.items():
+            guarded.add_metric([face, reason], float(count))
+        yield guarded
         if self.rbe is not None:
             yield CounterMetricFamily(
                 "plcstack_rbe_suppressed",

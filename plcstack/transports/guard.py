@@ -1,36 +1,61 @@
 """What every listening face does against clients that are slow, silent, many or hostile.
 
-The gateway's S5-LAN and FETCH/WRITE servers, the Modbus TCP server and the simulators listen
-on plant networks, where a scanner, a half-open socket or a broken panel is a matter of time.
-Three bounds keep such a client from holding what the others need:
+The gateway's S5-LAN and FETCH/WRITE faces, the Modbus TCP server, OPC UA, the web console,
+``/metrics`` and the simulators listen on plant networks, where a scanner, a half-open socket,
+a broken panel or a client that leaks sockets is a matter of time. One :class:`FaceGuard` per
+face keeps such a client from holding what the others need:
 
-* :class:`IdleWatch`: a connection that sends nothing for ``timeout`` seconds is ended (a dead
-  partner would otherwise hold one of the few connections for ever);
+* at most ``max_clients`` connections at once, and at most ``max_clients_per_host`` from one
+  host, so one machine cannot take every slot; the next one is turned away at once;
+* a connection must send one complete request within ``first_request_timeout`` seconds (a
+  socket opened and left silent is closed long before the idle timeout);
+* a connection that sends nothing for ``idle_timeout`` seconds is closed (a dead partner
+  would otherwise hold its slot for ever);
 * :class:`FrameDeadline`: a frame once begun must be complete within ``limit`` seconds of its
   *first* byte. A per-read timeout does not do it: a client that sends one header byte every
-  half second restarts it with every byte and holds its connection for ever (slowloris);
-* :class:`ClientLimit`: at most ``limit`` clients at once; the next one is turned away at once
-  and counted, and the log says so once per burst, not once per connection of a flood;
-* :func:`close_writer`: a stream closed after its answer, aborted if the peer does not read it.
+  half second restarts it with every byte and holds its connection for ever (slowloris).
+
+Every refusal and every close is counted by face and reason (:data:`TOTALS`, which
+``/metrics`` serves as ``plcstack_face_guard_closes_total``), and said at WARNING once per
+host per burst (:class:`BurstLog`): the first at once, then one line with the count per
+:data:`BURST_PERIOD` while it goes on; a flood of garbage or connections writes a few lines,
+not one per frame. One INFO line per face at start says its limits (:meth:`FaceGuard.announce`).
+:func:`close_writer` closes a stream after its answer, aborted if the peer does not read it.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+from plcstack.errors import ConfigError
+from plcstack.transports.peer import peer_address
 
 __all__ = [
+    "BURST_PERIOD",
     "CLOSE_LINGER",
+    "FIRST_REQUEST_TIMEOUT",
     "FRAME_TIMEOUT",
+    "LIMIT_KEYS",
+    "TOTALS",
+    "BurstLog",
     "ClientLimit",
+    "FaceGuard",
     "FrameDeadline",
     "IdleWatch",
+    "Limits",
+    "Visit",
     "close_writer",
+    "parse_limits",
 ]
 
-#: seconds a request frame may take from its first byte to its last. Frames of these protocols
+#: seconds a frame may take from its first byte to its last. Frames of these protocols
 #: are at most a few KiB (a FETCH/WRITE write: 128 KiB), sent in one go by every real client;
 #: only a client that trickles them, to hold a connection, takes longer.
 FRAME_TIMEOUT = 5.0
@@ -38,6 +63,407 @@ FRAME_TIMEOUT = 5.0
 #: seconds a closing connection may take to send what is still queued for a peer that reads
 #: nothing, before it is aborted
 CLOSE_LINGER = 1.0
+
+#: seconds a new connection may take to send its first complete request: every client of
+#: these protocols sends one as soon as it is connected; a socket that stays silent is a scan,
+#: a leak or an attack, and must not hold a slot for the idle timeout (ten minutes)
+FIRST_REQUEST_TIMEOUT = 10.0
+
+#: seconds of a burst per log line: the first event is said at once, the ones after it in one
+#: line per period with their count, and the burst is over after a period without one
+BURST_PERIOD = 60.0
+
+#: hosts (and kinds of event) a burst log follows at once; beyond, the oldest burst is said
+#: and forgotten, so a flood from many addresses cannot grow it
+MAX_BURSTS = 1024
+
+#: the configuration keys of :func:`parse_limits`, in every listening face's table
+LIMIT_KEYS = ("max_clients", "max_clients_per_host", "first_request_timeout", "idle_timeout")
+
+#: what each reason a connection was refused or closed means, for the log
+REASONS = {
+    "max_clients": "the face serves {limit} clients at once",
+    "max_clients_per_host": "one host may hold {limit} connections",
+    "first_request_timeout": "no complete request within {limit:g} s of connecting",
+    "idle_timeout": "nothing sent for {limit:g} s",
+    "frame_timeout": "a request begun was not complete within {limit:g} s",
+    "malformed": "it sent bytes that are no request of the protocol",
+}
+
+
+class Totals:
+    """Refusals and closes of every face of the process, by face and reason: counters that
+    only grow (a face restarted keeps counting on), read by ``/metrics``."""
+
+    def __init__(self) -> None:
+        self._counts: collections.Counter[tuple[str, str]] = collections.Counter()
+
+    def add(self, face: str, reason: str, n: int = 1) -> None:
+        self._counts[(face, reason)] += n
+
+    def items(self) -> list[tuple[tuple[str, str], int]]:
+        """``((face, reason), count)`` pairs, sorted."""
+        return sorted(self._counts.items())
+
+    def get(self, face: str, reason: str) -> int:
+        return self._counts[(face, reason)]
+
+
+#: the process's one set of totals
+TOTALS = Totals()
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """How many clients one listening face serves and how long it waits for them (``None``:
+    no bound). ``max_clients_per_host`` defaults to a quarter of ``max_clients`` (at least 1)."""
+
+    max_clients: int | None = 64
+    max_clients_per_host: int | None = None
+    first_request_timeout: float | None = FIRST_REQUEST_TIMEOUT
+    idle_timeout: float | None = 600.0
+
+    def __post_init__(self) -> None:
+        total, per_host = self.max_clients, self.max_clients_per_host
+        for name, value in (("max_clients", total), ("max_clients_per_host", per_host)):
+            if value is not None and (isinstance(value, bool) or value < 1):
+                raise ValueError(f"{name} must be at least 1, not {value!r}")
+        if per_host is None and total is not None:
+            object.__setattr__(self, "max_clients_per_host", max(1, total // 4))
+        elif per_host is not None and total is not None and per_host > total:
+            raise ValueError(
+                f"max_clients_per_host ({per_host}) cannot be more than max_clients ({total})"
+            )
+        for name in ("first_request_timeout", "idle_timeout"):
+            seconds = getattr(self, name)
+            if seconds is not None and not 0 < seconds < 1e9:
+                raise ValueError(f"{name} must be seconds greater than 0, not {seconds!r}")
+
+    def describe(self) -> str:
+        """The limits in a sentence, as the face's start line says them."""
+        parts = []
+        if self.max_clients is not None:
+            parts.append(
+                f"at most {self.max_clients} clients, {self.max_clients_per_host} per host"
+            )
+        if self.first_request_timeout is not None:
+            parts.append(f"a first request within {self.first_request_timeout:g} s")
+        parts.append(
+            "idle clients kept"
+            if self.idle_timeout is None
+            else f"idle clients closed after {self.idle_timeout:g} s"
+        )
+        return "; ".join(parts)
+
+
+def parse_limits(table: Mapping[str, Any], section: str, defaults: Limits) -> Limits:
+    """The :data:`LIMIT_KEYS` of a face's TOML table over ``defaults``; ``0`` turns a timeout
+    off. :class:`ConfigError` naming ``[section] key`` for a value out of range."""
+    values: dict[str, Any] = {}
+    for key in ("max_clients", "max_clients_per_host"):
+        if key in table:
+            value = table[key]
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 10_000:
+                raise ConfigError(f"[{section}] {key} must be 1..10000, not {value!r}")
+            values[key] = value
+    if "max_clients" in values and "max_clients_per_host" not in values:
+        values["max_clients_per_host"] = None  # a quarter of the new max_clients
+    for key in ("first_request_timeout", "idle_timeout"):
+        if key in table:
+            value = table[key]
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not 0 <= value < 1e9
+            ):
+                raise ConfigError(f"[{section}] {key} must be seconds (0: no limit), not {value!r}")
+            values[key] = float(value) or None
+    try:
+        return replace(defaults, **values)
+    except ValueError as exc:
+        raise ConfigError(f"[{section}] {exc}") from None
+
+
+class BurstLog:
+    """Says repeated events once per burst: the first of a key at once, then one line per
+    :data:`BURST_PERIOD` with how many more came, and nothing once the key was quiet for a
+    period. ``key`` is who and what (a host and a reason)."""
+
+    def __init__(self, log: logging.Logger, period: float = BURST_PERIOD) -> None:
+        self.log = log
+        self.period = period
+        #: key -> [events not said yet, events of this period, the summary's text, first time]
+        self._bursts: collections.OrderedDict[tuple[str, str], list[Any]] = (
+            collections.OrderedDict()
+        )
+        self._timer: asyncio.TimerHandle | None = None
+
+    def event(self, key: tuple[str, str], first: str, more: str) -> None:
+        """One event of ``key``. ``first`` is logged when it starts a burst; ``more`` (with
+        ``{n}``, the count, and ``{since}``, when the burst began) when later ones are
+        summed up."""
+        burst = self._bursts.get(key)
+        if burst is not None:
+            burst[0] += 1
+            burst[1] += 1
+            burst[2] = more
+            return
+        self.log.warning("%s", first)
+        self._bursts[key] = [0, 1, more, time.strftime("%H:%M:%S")]
+        if len(self._bursts) > MAX_BURSTS:
+            old_key = next(iter(self._bursts))
+            self._say(self._bursts.pop(old_key))
+        if self._timer is None:
+            self._timer = asyncio.get_running_loop().call_later(self.period, self._tick)
+
+    def flush(self) -> None:
+        """Say every burst's unsaid count now (a face that stops)."""
+        for burst in self._bursts.values():
+            self._say(burst)
+        self._bursts.clear()
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _say(self, burst: list[Any]) -> None:
+        if burst[0]:
+            self.log.warning("%s", burst[2].format(n=burst[0], since=burst[3]))
+            burst[0] = 0
+
+    def _tick(self) -> None:
+        self._timer = None
+        for key in list(self._bursts):
+            burst = self._bursts[key]
+            quiet = burst[1] == 0
+            self._say(burst)
+            burst[1] = 0
+            if quiet:
+                del self._bursts[key]
+        if self._bursts:
+            self._timer = asyncio.get_running_loop().call_later(self.period, self._tick)
+
+
+class FaceGuard:
+    """The limits of one listening face (see the module): admits clients (:meth:`admit`),
+    watches their first request and their silence (:class:`Visit`), counts and says what it
+    refused and closed, and says a client's garbage once per burst (:meth:`malformed`).
+
+    ``face`` is the face's label in ``/metrics`` (``modbus``, ``s5lan``...), ``title`` how the
+    log names it ("Modbus server").
+    """
+
+    def __init__(self, face: str, title: str, limits: Limits, log: logging.Logger) -> None:
+        self.face = face
+        self.title = title
+        self.limits = limits
+        self.log = log
+        self.bursts = BurstLog(log)
+        #: connections served now, in all and by host
+        self.current = 0
+        self.hosts: collections.Counter[str] = collections.Counter()
+        #: refusals and closes by reason, this face alone (:data:`TOTALS` has the process's)
+        self.counts: collections.Counter[str] = collections.Counter()
+
+    @property
+    def refused(self) -> int:
+        """Connections turned away at once (either cap)."""
+        return self.counts["max_clients"] + self.counts["max_clients_per_host"]
+
+    def announce(self, where: str) -> None:
+        """The one INFO line of the face's start: where it listens and its limits."""
+        self.log.info("%s on %s: %s", self.title, where, self.limits.describe())
+
+    def admit(self, peername: Any, on_expire: Callable[[str], None] | None = None) -> Visit | None:
+        """A new connection from ``peername`` (a socket's ``getpeername()``): its
+        :class:`Visit`, or None when a cap refuses it (counted and said; the caller closes
+        it). ``on_expire(reason)`` is called when the visit's first-request or idle deadline
+        passes (a protocol-callback server); a server that reads in a loop passes None and
+        waits until :attr:`Visit.due`."""
+        host = _host_of(peername)
+        peer = peer_address(peername) or host
+        limits = self.limits
+        reason = None
+        if limits.max_clients is not None and self.current >= limits.max_clients:
+            reason = "max_clients"
+        elif limits.max_clients_per_host is not None and (
+            self.hosts[host] >= limits.max_clients_per_host
+        ):
+            reason = "max_clients_per_host"
+        if reason is not None:
+            self.ended(host, peer, reason, refused=True)
+            return None
+        self.current += 1
+        self.hosts[host] += 1
+        return Visit(self, host, peer, on_expire)
+
+    def ended(self, host: str, peer: str, reason: str, *, refused: bool = False) -> None:
+        """Count a refusal or close for ``reason`` (a key of :data:`REASONS`) and say it once
+        per host per burst."""
+        self.counts[reason] += 1
+        TOTALS.add(self.face, reason)
+        limits = self.limits
+        limit = {
+            "max_clients": limits.max_clients,
+            "max_clients_per_host": limits.max_clients_per_host,
+            "first_request_timeout": limits.first_request_timeout,
+            "idle_timeout": limits.idle_timeout,
+            "frame_timeout": FRAME_TIMEOUT,
+        }.get(reason)
+        why = REASONS[reason].format(limit=limit if limit is not None else 0)
+        verb = "refusing" if refused else "closed the connection of"
+        self.bursts.event(
+            (host, reason),
+            f"{self.title}: {verb} {peer}: {why} (more from {host} are counted and said"
+            f" once a minute)",
+            f"{self.title}: {{n}} more connections of {host} {'refused' if refused else 'closed'}"
+            f" since {{since}}: {why}",
+        )
+
+    def malformed(self, peer: str | None, host: str | None, what: str) -> None:
+        """A client sent garbage (``what`` says how); said once per host per burst with the
+        count of the rest. The caller decides whether the connection goes on."""
+        host = host or peer or "?"
+        self.counts["malformed"] += 1
+        TOTALS.add(self.face, "malformed")
+        self.bursts.event(
+            (host, "malformed"),
+            f"{self.title}: {peer or host} sent {what} (more from {host} are counted and said"
+            " once a minute)",
+            f"{self.title}: {{n}} more malformed requests from {host} since {{since}}",
+        )
+
+    def left(self, visit: Visit) -> None:
+        """A visit ended (its connection closed)."""
+        self.current -= 1
+        left = self.hosts[visit.host] - 1
+        if left > 0:
+            self.hosts[visit.host] = left
+        else:
+            del self.hosts[visit.host]
+
+    def close(self) -> None:
+        """The face stops: say what bursts have not said yet."""
+        self.bursts.flush()
+
+
+class Visit:
+    """One admitted connection's stay: its first-request and idle deadlines.
+
+    The face calls :meth:`touch` when bytes arrive, :meth:`served` when a complete request
+    was taken, and :meth:`leave` when the connection is gone. A loop-reading server waits
+    for bytes until :attr:`due` and then asks :meth:`expired`; a protocol-callback server
+    gets ``on_expire(reason)`` from one timer, re-armed only when it fires.
+    """
+
+    __slots__ = (
+        "_gone",
+        "_handle",
+        "_last",
+        "_loop",
+        "_started",
+        "guard",
+        "host",
+        "on_expire",
+        "peer",
+        "served_once",
+    )
+
+    def __init__(
+        self,
+        guard: FaceGuard,
+        host: str,
+        peer: str,
+        on_expire: Callable[[str], None] | None,
+    ) -> None:
+        self.guard = guard
+        self.host = host
+        self.peer = peer
+        self.on_expire = on_expire
+        self.served_once = False
+        self._gone = False
+        self._loop = asyncio.get_running_loop()
+        self._started = self._last = self._loop.time()
+        self._handle: asyncio.TimerHandle | None = None
+        self._arm()
+
+    @property
+    def due(self) -> float | None:
+        """Loop time at which the visit ends unless a request (or, once served, any byte)
+        comes first; None: never."""
+        limits = self.guard.limits
+        idle = None if limits.idle_timeout is None else self._last + limits.idle_timeout
+        if self.served_once or limits.first_request_timeout is None:
+            return idle
+        first = self._started + limits.first_request_timeout
+        return first if idle is None else min(first, idle)
+
+    def touch(self) -> None:
+        """Bytes arrived."""
+        self._last = self._loop.time()
+
+    def served(self) -> None:
+        """A complete request was taken: the first-request deadline is met."""
+        self._last = self._loop.time()
+        self.served_once = True
+
+    def expired(self) -> str | None:
+        """The reason the visit ends now (counted and said), or None if it is not due yet."""
+        due = self.due
+        if due is None or self._loop.time() < due:
+            return None
+        limits = self.guard.limits
+        first = (
+            not self.served_once
+            and limits.first_request_timeout is not None
+            and due == self._started + limits.first_request_timeout
+        )
+        reason = "first_request_timeout" if first else "idle_timeout"
+        self.guard.ended(self.host, self.peer, reason)
+        return reason
+
+    def frame_late(self) -> None:
+        """The face closes the connection: a frame begun was not complete in time."""
+        self.guard.ended(self.host, self.peer, "frame_timeout")
+
+    def malformed(self, what: str) -> None:
+        """The client sent garbage: said once per host per burst (:meth:`FaceGuard.malformed`)."""
+        self.guard.malformed(self.peer, self.host, what)
+
+    def leave(self) -> None:
+        """The connection is gone (idempotent)."""
+        if self._gone:
+            return
+        self._gone = True
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+        self.guard.left(self)
+
+    def _arm(self) -> None:
+        if self.on_expire is None:
+            return
+        due = self.due
+        if due is not None:
+            self._handle = self._loop.call_at(due, self._fire)
+
+    def _fire(self) -> None:
+        self._handle = None
+        if self._gone:
+            return
+        reason = self.expired()
+        if reason is None:
+            self._arm()  # touched or served since: the deadline moved on
+        elif self.on_expire is not None:
+            self.on_expire(reason)
+
+
+def _host_of(peername: Any) -> str:
+    """The host part of a socket's peer name (the key of the per-host cap)."""
+    if isinstance(peername, tuple | list) and peername:
+        return str(peername[0])
+    if isinstance(peername, str) and peername:
+        return peername
+    return "?"
 
 
 async def close_writer(writer: asyncio.StreamWriter) -> None:
@@ -61,42 +487,6 @@ async def close_writer(writer: asyncio.StreamWriter) -> None:
         writer.transport.abort()
         with contextlib.suppress(ConnectionError, OSError, asyncio.CancelledError):
             await writer.wait_closed()
-
-
-class IdleWatch:
-    """Calls ``on_idle`` once ``timeout`` seconds passed without :meth:`touch`.
-
-    One timer per connection, re-armed only when it fires (``touch`` just stores the time), so
-    a busy connection costs one attribute write per chunk received.
-    """
-
-    __slots__ = ("_handle", "_last", "_loop", "on_idle", "timeout")
-
-    def __init__(self, timeout: float | None, on_idle: Callable[[], None]) -> None:
-        self.timeout = timeout
-        self.on_idle = on_idle
-        self._loop = asyncio.get_running_loop()
-        self._last = self._loop.time()
-        self._handle: asyncio.TimerHandle | None = None
-        if timeout is not None:
-            self._handle = self._loop.call_later(timeout, self._fire)
-
-    def touch(self) -> None:
-        self._last = self._loop.time()
-
-    def cancel(self) -> None:
-        if self._handle is not None:
-            self._handle.cancel()
-            self._handle = None
-
-    def _fire(self) -> None:
-        assert self.timeout is not None
-        due = self._last + self.timeout
-        if self._loop.time() >= due:
-            self._handle = None
-            self.on_idle()
-        else:
-            self._handle = self._loop.call_at(due, self._fire)
 
 
 class FrameDeadline:
@@ -142,6 +532,42 @@ class FrameDeadline:
         self._handle = None
         if self.on_expire is not None:
             self.on_expire()
+
+
+class IdleWatch:
+    """Calls ``on_idle`` once ``timeout`` seconds passed without :meth:`touch`.
+
+    One timer per connection, re-armed only when it fires (``touch`` just stores the time), so
+    a busy connection costs one attribute write per chunk received.
+    """
+
+    __slots__ = ("_handle", "_last", "_loop", "on_idle", "timeout")
+
+    def __init__(self, timeout: float | None, on_idle: Callable[[], None]) -> None:
+        self.timeout = timeout
+        self.on_idle = on_idle
+        self._loop = asyncio.get_running_loop()
+        self._last = self._loop.time()
+        self._handle: asyncio.TimerHandle | None = None
+        if timeout is not None:
+            self._handle = self._loop.call_later(timeout, self._fire)
+
+    def touch(self) -> None:
+        self._last = self._loop.time()
+
+    def cancel(self) -> None:
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+
+    def _fire(self) -> None:
+        assert self.timeout is not None
+        due = self._last + self.timeout
+        if self._loop.time() >= due:
+            self._handle = None
+            self.on_idle()
+        else:
+            self._handle = self._loop.call_at(due, self._fire)
 
 
 class ClientLimit:

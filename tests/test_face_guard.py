@@ -1,0 +1,96 @@
+"""The guard every listening face shares (plcstack.transports.guard): its limits and their
+configuration keys, the admission caps, the first-request and idle deadlines, and the burst log
+that says a host's refusals, closes and garbage once per burst with a count."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import pytest
+
+from plcstack.errors import ConfigError
+from plcstack.transports.guard import TOTALS, BurstLog, FaceGuard, Limits, parse_limits
+
+log = logging.getLogger("tests.guard")
+
+
+def test_limits_default_a_quarter_per_host_and_say_themselves() -> None:
+    assert Limits(max_clients=32).max_clients_per_host == 8
+    assert Limits(max_clients=1).max_clients_per_host == 1
+    assert Limits(max_clients=None).max_clients_per_host is None
+    assert Limits(max_clients=16, idle_timeout=None).describe() == (
+        "at most 16 clients, 4 per host; a first request within 10 s; idle clients kept"
+    )
+    with pytest.raises(ValueError, match=r"max_clients_per_host \(9\) cannot be more"):
+        Limits(max_clients=8, max_clients_per_host=9)
+    with pytest.raises(ValueError, match="first_request_timeout must be seconds"):
+        Limits(first_request_timeout=0)
+
+
+def test_parse_limits_keys_and_their_errors() -> None:
+    defaults = Limits(max_clients=32, idle_timeout=600)
+    assert parse_limits({}, "modbus", defaults) == defaults
+    got = parse_limits(
+        {"max_clients": 8, "first_request_timeout": 2, "idle_timeout": 0}, "modbus", defaults
+    )
+    assert got == Limits(8, 2, 2.0, None)
+    for table, message in (
+        ({"max_clients": 0}, r"\[modbus\] max_clients must be 1..10000, not 0"),
+        ({"max_clients_per_host": True}, "max_clients_per_host must be 1..10000"),
+        ({"first_request_timeout": -1}, "first_request_timeout must be seconds"),
+        ({"idle_timeout": "10"}, "idle_timeout must be seconds"),
+        ({"max_clients": 4, "max_clients_per_host": 5}, "cannot be more than max_clients"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            parse_limits(table, "modbus", defaults)
+
+
+async def test_a_burst_is_said_once_then_counted(caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, log.name)
+    bursts = BurstLog(log, period=0.2)
+    for _ in range(500):
+        bursts.event(("10.0.0.7", "malformed"), "first one", "{n} more since {since}")
+    assert [r.getMessage() for r in caplog.records] == ["first one"]
+    await asyncio.sleep(0.3)  # one period: the rest in one line with the count
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and lines[1].startswith("499 more since ")
+    await asyncio.sleep(0.5)  # a quiet period ends the burst; the next event starts one
+    bursts.event(("10.0.0.7", "malformed"), "first again", "{n} more")
+    assert [r.getMessage() for r in caplog.records][-1] == "first again"
+    bursts.flush()
+
+
+async def test_the_caps_refuse_by_host_and_in_all(caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.WARNING, log.name)
+    guard = FaceGuard("test-face", "test face", Limits(max_clients=4), log)
+    before = TOTALS.get("test-face", "max_clients_per_host")
+    visits = [guard.admit(("10.0.0.7", 1000 + i)) for i in range(3)]
+    assert visits[0] is not None and visits[1] is None and visits[2] is None
+    assert guard.counts["max_clients_per_host"] == 2
+    assert TOTALS.get("test-face", "max_clients_per_host") == before + 2
+    others = [guard.admit((f"10.0.0.{i}", 1)) for i in range(10, 14)]
+    assert others[3] is None and guard.counts["max_clients"] == 1
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2, said  # once for 10.0.0.7, once for the cap in all
+    assert "refusing 10.0.0.7:1001: one host may hold 1 connections" in said[0]
+    for visit in [*visits, *others]:
+        if visit is not None:
+            visit.leave()
+    assert guard.current == 0 and not guard.hosts
+    guard.close()
+
+
+async def test_a_visit_that_sends_no_request_ends_at_its_first_deadline() -> None:
+    guard = FaceGuard("test-face", "test face", Limits(first_request_timeout=0.1), log)
+    ended: list[str] = []
+    silent = guard.admit(("10.0.0.7", 1), ended.append)
+    talking = guard.admit(("10.0.0.8", 1), ended.append)
+    assert silent is not None and talking is not None
+    talking.served()
+    await asyncio.sleep(0.25)
+    assert ended == ["first_request_timeout"]
+    assert guard.counts["first_request_timeout"] == 1
+    silent.leave()
+    talking.leave()
+    guard.close()
