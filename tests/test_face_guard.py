@@ -9,6 +9,7 @@ import logging
 
 import pytest
 
+from plcstack.checks import Table
 from plcstack.errors import ConfigError
 from plcstack.transports.guard import TOTALS, BurstLog, FaceGuard, Limits, parse_limits
 
@@ -30,20 +31,25 @@ def test_limits_default_a_quarter_per_host_and_say_themselves() -> None:
 
 def test_parse_limits_keys_and_their_errors() -> None:
     defaults = Limits(max_clients=32, idle_timeout=600)
-    assert parse_limits({}, "modbus", defaults) == defaults
-    got = parse_limits(
-        {"max_clients": 8, "first_request_timeout": 2, "idle_timeout": 0}, "modbus", defaults
+
+    def parse_limits_of(values: dict[str, object]) -> Limits:
+        return parse_limits(Table(values, "modbus"), defaults)
+
+    assert parse_limits_of({}) == defaults
+    assert parse_limits_of({"first_request_timeout": "2s", "idle_timeout": "10m"}) == Limits(
+        32, 24, 2.0, 600.0
     )
+    got = parse_limits_of({"max_clients": 8, "first_request_timeout": 2, "idle_timeout": 0})
     assert got == Limits(8, 2, 2.0, None)
     for table, message in (
         ({"max_clients": 0}, r"\[modbus\] max_clients must be 1..10000, not 0"),
         ({"max_clients_per_host": True}, "max_clients_per_host must be 1..10000"),
-        ({"first_request_timeout": -1}, "first_request_timeout must be seconds"),
-        ({"idle_timeout": "10"}, "idle_timeout must be seconds"),
+        ({"first_request_timeout": -1}, "first_request_timeout"),
+        ({"idle_timeout": "ten"}, "idle_timeout"),
         ({"max_clients": 4, "max_clients_per_host": 5}, "cannot be more than max_clients"),
     ):
         with pytest.raises(ConfigError, match=message):
-            parse_limits(table, "modbus", defaults)
+            parse_limits_of(table)
 
 
 async def test_a_burst_is_said_once_then_counted(caplog: pytest.LogCaptureFixture) -> None:

@@ -20,6 +20,7 @@ from plcstack.north.modbus.server import ModbusServer
 from plcstack.poll.engine import Poller
 from plcstack.sim import e71
 from tests.aio_helpers import ended_by_server, eventually
+from tests.guard_helpers import ATTACKER, IDLE_SOCKETS, guard_lines, idle_sockets
 
 PLANT = """
 [poll]
@@ -61,8 +62,9 @@ async def serving(tmp_path: Path, extra: str = "") -> AsyncIterator[ModbusServer
         await sim.aclose()
 
 
-async def _answered(port: int) -> bytes:
-    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+async def _answered(port: int, source: str | None = None) -> bytes:
+    local = None if source is None else (source, 0)
+    reader, writer = await asyncio.open_connection("127.0.0.1", port, local_addr=local)
     try:
         writer.write(READ_ALL)
         return await asyncio.wait_for(reader.readexactly(259), 5)
@@ -107,13 +109,13 @@ async def test_a_flood_of_connections_meets_max_clients(
     """Before: 1000 connections were 1000 clients (2000 descriptors, no limit). After: the
     clients beyond ``max_clients`` are closed at once, said once, and the limit frees again."""
     caplog.set_level(logging.WARNING, "plcstack.north.modbus")
-    async with serving(tmp_path, "max_clients = 3") as server:
+    async with serving(tmp_path, "max_clients = 3\nmax_clients_per_host = 3") as server:
         held = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(3)]
         await eventually(lambda: server.clients == 3, "three clients are served")
         turned = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(5)]
         for reader, _ in turned:
             assert await ended_by_server(reader)
-        assert server.limit.refused == 5 and server.clients == 3
+        assert server.guard.refused == 5 and server.clients == 3
         reader, writer = held[0]
         writer.write(READ_ALL)
         assert len(await asyncio.wait_for(reader.readexactly(259), 5)) == 259
@@ -121,8 +123,10 @@ async def test_a_flood_of_connections_meets_max_clients(
             w.transport.abort()
         await eventually(lambda: server.clients == 0, "the clients are gone")
         assert len(await _answered(server.port)) == 259
-    said = [r for r in caplog.records if "the limit" in r.getMessage()]
-    assert len(said) == 1, [r.getMessage() for r in said]
+    said = [r.getMessage() for r in caplog.records if "serves 3 clients at once" in r.getMessage()]
+    assert len(said) == 2, said  # the first refusal at once, the count of the rest at the end
+    assert "refusing 127.0.0.1:" in said[0]
+    assert said[1].startswith("Modbus server: 4 more connections of 127.0.0.1 refused since")
 
 
 async def test_silent_and_trickling_clients_are_ended(
@@ -158,9 +162,11 @@ async def test_silent_and_trickling_clients_are_ended(
 
 def test_modbus_limits_parse_and_refuse_nonsense() -> None:
     settings = parse_modbus({"max_clients": 4, "idle_timeout": 0})
-    assert settings.max_clients == 4 and settings.idle_timeout is None
+    assert settings.limits.max_clients == 4 and settings.limits.idle_timeout is None
+    assert settings.limits.max_clients_per_host == 1  # a quarter of max_clients
     assert parse_modbus({}) == ModbusSettings()
-    assert ModbusSettings().idle_timeout == 600.0
+    assert ModbusSettings().limits.idle_timeout == 600.0
+    assert ModbusSettings().limits.first_request_timeout == 10.0
     for table, message in [
         ({"max_clients": 0}, "max_clients must be 1..10000"),
         ({"max_clients": True}, "max_clients must be 1..10000"),
@@ -170,3 +176,68 @@ def test_modbus_limits_parse_and_refuse_nonsense() -> None:
     ]:
         with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace("?)", r"\?\)")):
             parse_modbus(table)
+
+
+async def test_64_idle_sockets_of_one_host_lock_no_one_out(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before: 64 silent sockets took 32 slots (max_clients) for 600 s each, renewable, and the
+    next client was refused. After: one host gets 8 (max_clients_per_host), the rest are
+    refused and counted, all said in one line; another host is served at once, and the silent
+    ones are closed at the first-request deadline, so their host is served again."""
+    caplog.set_level(logging.WARNING, "plcstack.north.modbus")
+    async with serving(tmp_path, "first_request_timeout = 1") as server:
+        guard = server.guard
+        counts = guard.counts
+        async with idle_sockets(server.port):
+            # every socket refused or holding a slot (or, on a slow machine, already closed
+            # at its deadline, which let a later one in)
+            await eventually(
+                lambda: (
+                    counts["max_clients_per_host"]
+                    + guard.hosts[ATTACKER]
+                    + counts["first_request_timeout"]
+                    == IDLE_SOCKETS
+                ),
+                "all sockets seen",
+            )
+            assert guard.hosts[ATTACKER] <= 8
+            assert len(await _answered(server.port)) == 259  # 127.0.0.1: served at once
+            await eventually(lambda: not guard.hosts[ATTACKER], "the silent ones closed")
+            assert len(await _answered(server.port, source=ATTACKER)) == 259
+        refused, closed = counts["max_clients_per_host"], counts["first_request_timeout"]
+        assert refused + closed == IDLE_SOCKETS and closed >= 8
+    # each kind said once when it began, its count once when the server stopped
+    lines = guard_lines(caplog)
+    assert len(lines) == 4, lines
+    assert "refusing 127.0.0.2:" in lines[0] and "one host may hold 8 connections" in lines[0]
+    assert "closed the connection of 127.0.0.2:" in lines[1]
+    assert "no complete request within 1 s" in lines[1]
+    assert lines[2].startswith(f"Modbus server: {refused - 1} more connections of 127.0.0.2")
+    assert lines[3].startswith(f"Modbus server: {closed - 1} more connections of 127.0.0.2")
+
+
+async def test_one_clients_garbage_is_said_once_per_burst(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before: a WARNING line per malformed frame (3,934 lines, 532 KB for 6,000 frames in
+    the benchmark), the malformed writes without the client's address. After: the first one,
+    naming the client, and the count of the rest once a minute."""
+    caplog.set_level(logging.WARNING, "plcstack.north.modbus")
+    async with serving(tmp_path) as server:
+        bad_write = struct.pack(">HHHBBHHB", 1, 0, 9, 1, 16, 0, 1, 4) + b"\x00\x01"  # 4 != 2 bytes
+        unknown = struct.pack(">HHHBB", 2, 0, 2, 1, 0x55)
+        broken = struct.pack(">HHHB", 3, 7, 6, 1) + bytes(5)  # protocol id 7
+        for _ in range(20):
+            reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+            for frame in (bad_write, unknown) * 5:
+                writer.write(frame)
+                await reader.read(260)
+            writer.write(broken)
+            assert await reader.read() == b""  # closed
+            writer.close()
+        assert server.guard.counts["malformed"] == 20 * 11
+    lines = guard_lines(caplog, "127.0.0.1")
+    assert len(lines) == 2, lines  # the first; the count of the rest when the server stops
+    assert "127.0.0.1:" in lines[0] and "malformed request" in lines[0]
+    assert lines[1].startswith("Modbus server: 219 more malformed requests from 127.0.0.1")

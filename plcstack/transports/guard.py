@@ -34,7 +34,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
-from plcstack.errors import ConfigError
+from plcstack.checks import Table
 from plcstack.transports.peer import peer_address
 
 __all__ = [
@@ -156,32 +156,27 @@ class Limits:
         return "; ".join(parts)
 
 
-def parse_limits(table: Mapping[str, Any], section: str, defaults: Limits) -> Limits:
-    """The :data:`LIMIT_KEYS` of a face's TOML table over ``defaults``; ``0`` turns a timeout
-    off. :class:`ConfigError` naming ``[section] key`` for a value out of range."""
-    values: dict[str, Any] = {}
-    for key in ("max_clients", "max_clients_per_host"):
-        if key in table:
-            value = table[key]
-            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 10_000:
-                raise ConfigError(f"[{section}] {key} must be 1..10000, not {value!r}")
-            values[key] = value
-    if "max_clients" in values and "max_clients_per_host" not in values:
-        values["max_clients_per_host"] = None  # a quarter of the new max_clients
-    for key in ("first_request_timeout", "idle_timeout"):
-        if key in table:
-            value = table[key]
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, int | float)
-                or not 0 <= value < 1e9
-            ):
-                raise ConfigError(f"[{section}] {key} must be seconds (0: no limit), not {value!r}")
-            values[key] = float(value) or None
-    try:
-        return replace(defaults, **values)
-    except ValueError as exc:
-        raise ConfigError(f"[{section}] {exc}") from None
+def parse_limits(t: Table, defaults: Limits) -> Limits:
+    """The :data:`LIMIT_KEYS` of a face's table over ``defaults`` (durations as every table
+    takes them, ``0`` turns a timeout off); :class:`ConfigError` naming ``[table] key``."""
+    total = defaults.max_clients
+    if "max_clients" in t:
+        total = t.integer("max_clients", 1, 1, 10_000)
+    per_host = defaults.max_clients_per_host if "max_clients" not in t else None
+    if "max_clients_per_host" in t:
+        per_host = t.integer("max_clients_per_host", 1, 1, 10_000)
+    timeouts: dict[str, float | None] = {}
+    for key, off in (("first_request_timeout", "no limit"), ("idle_timeout", "never")):
+        default = getattr(defaults, key)
+        if key in t:
+            timeouts[key] = t.seconds(key, 0.0, hi=1e9, zero=off) or None
+        else:
+            timeouts[key] = default
+    if total is not None and per_host is not None and per_host > total:
+        raise t.error(
+            "max_clients_per_host", f"({per_host}) cannot be more than max_clients ({total})"
+        )
+    return Limits(total, per_host, timeouts["first_request_timeout"], timeouts["idle_timeout"])
 
 
 class BurstLog:

@@ -6,6 +6,8 @@ listen = "127.0.0.1:5020"     # the default: loopback only ("0.0.0.0:502" for th
 unit_id = 1                   # the unit identifier answered; requests to another get 0x0A
 word_order = "big"            # two-register values: high word first ("little": low word first)
 max_clients = 32              # clients at once; the next one is closed at once (logged once)
+max_clients_per_host = 24     # of them from one host (default: 3/4 of max_clients)
+first_request_timeout = 10    # seconds a new client has to send its first request (0: no limit)
 idle_timeout = 600            # seconds a client may send nothing before it is dropped (0: never)
 
 [[plc]]
@@ -34,11 +36,13 @@ from plcstack.checks import Listen, Table
 from plcstack.errors import ConfigError
 from plcstack.north.modbus.registers import TABLES, Layout, layout_for
 from plcstack.poll.config import TagConfig
+from plcstack.transports.guard import LIMIT_KEYS, Limits, parse_limits
 from plcstack.values import WordOrder
 
 __all__ = [
     "DEFAULT_ENDPOINT",
     "DEFAULT_IDLE_TIMEOUT",
+    "DEFAULT_LIMITS",
     "DEFAULT_LISTEN",
     "DEFAULT_MAX_CLIENTS",
     "MapEntry",
@@ -56,6 +60,8 @@ DEFAULT_MAX_CLIENTS = 32
 #: seconds a client may send nothing: a dead panel (cable pulled, power cut) never says goodbye,
 #: and its connection would count against ``max_clients`` for ever. Longer than any sane poll.
 DEFAULT_IDLE_TIMEOUT = 600.0
+#: what the server allows its clients (``[modbus]`` sets each; see plcstack.transports.guard)
+DEFAULT_LIMITS = Limits(max_clients=DEFAULT_MAX_CLIENTS, idle_timeout=DEFAULT_IDLE_TIMEOUT)
 _ADDRESS = re.compile(r"^\s*(hr|ir|co|di)\s*:\s*(\d{1,5})\s*$", re.IGNORECASE)
 
 
@@ -67,9 +73,8 @@ class ModbusSettings:
     port: int = DEFAULT_LISTEN.port
     unit_id: int = 1
     word_order: WordOrder = WordOrder.BIG
-    max_clients: int = DEFAULT_MAX_CLIENTS
-    #: None: never drop a silent client
-    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT
+    #: clients at once and per host, the first-request and idle deadlines
+    limits: Limits = DEFAULT_LIMITS
 
     @property
     def listen(self) -> Listen:
@@ -91,10 +96,11 @@ def parse_address(text: object) -> tuple[str, int]:
 
 
 def parse_modbus(table: object) -> ModbusSettings:
-    """``[modbus]``: listen, unit_id, word_order, max_clients, idle_timeout; ConfigError
+    """``[modbus]``: listen, unit_id, word_order and the client limits (max_clients,
+    max_clients_per_host, first_request_timeout, idle_timeout); ConfigError
     naming the key otherwise. The old ``endpoint = "HOST:PORT"`` still loads, with a notice."""
     t = Table.of(table, "modbus")
-    t.keys(("listen", "endpoint", "unit_id", "word_order", "max_clients", "idle_timeout"))
+    t.keys(("listen", "endpoint", "unit_id", "word_order", *LIMIT_KEYS))
     if "endpoint" in t:
         if "listen" in t:
             raise t.error(
@@ -109,11 +115,8 @@ def parse_modbus(table: object) -> ModbusSettings:
         listen = t.listen(DEFAULT_LISTEN)
     unit_id = t.integer("unit_id", 1, 0, 255)
     word_order = WordOrder(t.choice("word_order", "big", ("big", "little")))
-    clients = t.integer("max_clients", DEFAULT_MAX_CLIENTS, 1, 10_000)
-    idle = t.seconds(
-        "idle_timeout", DEFAULT_IDLE_TIMEOUT, hi=1e9, zero="never drop a silent client"
-    )
-    return ModbusSettings(listen.host, listen.port, unit_id, word_order, clients, idle or None)
+    limits = parse_limits(t, DEFAULT_LIMITS)
+    return ModbusSettings(listen.host, listen.port, unit_id, word_order, limits)
 
 
 @dataclass(frozen=True, slots=True)

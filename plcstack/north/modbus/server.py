@@ -27,8 +27,12 @@ above its high-water mark), the server stops reading from that client, so what i
 client is bounded (a client that sent reads and never read the answers grew the server by
 119 MB in 15 s before). The client that does not read is said once in the log; if it also sends
 nothing for ``idle_timeout`` seconds it is dropped. A frame must be complete within
-:data:`~plcstack.transports.guard.FRAME_TIMEOUT` seconds of its first byte, and at most
-``max_clients`` clients are served at once (see :mod:`plcstack.transports.guard`).
+:data:`~plcstack.transports.guard.FRAME_TIMEOUT` seconds of its first byte, a new client must
+send its first request within ``first_request_timeout``, and at most ``max_clients`` clients
+(``max_clients_per_host`` from one host) are served at once (see
+:mod:`plcstack.transports.guard`). Malformed frames are said once per host per burst with
+their count: a fuzzing client wrote one WARNING line per frame (3,934 lines, 520 KB for 6,000
+frames) before.
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ from plcstack.north.writes import WritePath
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Scan
 from plcstack.resource import AsyncResource
-from plcstack.transports.guard import FRAME_TIMEOUT, ClientLimit, FrameDeadline, IdleWatch
+from plcstack.transports.guard import FRAME_TIMEOUT, FaceGuard, FrameDeadline, Visit
 from plcstack.transports.peer import peer_address
 
 __all__ = ["ModbusCollector", "ModbusServer"]
@@ -67,45 +71,42 @@ class _Connection(asyncio.Protocol):
         self.writing: asyncio.Task[None] | None = None
         #: the client's address (``host:port``), as the log and the write audit say it
         self.peer: str | None = None
-        #: counted against ``max_clients`` (a refused connection is not)
-        self.admitted = False
+        #: its stay, as the server's guard admitted it (None: refused, or gone)
+        self.visit: Visit | None = None
         #: the client does not read: its answers are above the transport's high-water mark
         self.write_blocked = False
         self.said_blocked = False
         self.paused = False
-        self.idle: IdleWatch | None = None
         self.frame: FrameDeadline | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
-        self.peer = peer_address(transport.get_extra_info("peername"))
+        peername = transport.get_extra_info("peername")
+        self.peer = peer_address(peername)
         server = self.server
-        if not server.limit.admit(self.peer):
+        self.visit = server.guard.admit(peername, self._expired)
+        if self.visit is None:
             transport.abort()
             return
-        self.admitted = True
         server._connections.add(self)
-        self.idle = IdleWatch(server.settings.idle_timeout, self._idle_out)
         self.frame = FrameDeadline(FRAME_TIMEOUT, self._frame_late)
         log.info("Modbus client %s connected", self.peer or "?")
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.transport = None
-        if not self.admitted:
+        visit, self.visit = self.visit, None
+        if visit is None:
             return
-        self.admitted = False
-        self.server.limit.release()
+        visit.leave()
         self.server._connections.discard(self)
-        if self.idle is not None:
-            self.idle.cancel()
         if self.frame is not None:
             self.frame.cancel()
         log.info("Modbus client %s disconnected", self.peer or "?")
 
     def data_received(self, data: bytes) -> None:
-        if self.idle is not None:
-            self.idle.touch()
+        if self.visit is not None:
+            self.visit.touch()
         self.codec.receive_data(data)
         self._drain()
 
@@ -133,14 +134,22 @@ class _Connection(asyncio.Protocol):
             try:
                 request = self.codec.next_request()
             except RemoteProtocolError as exc:
-                log.warning(
-                    "Modbus client %s: %s; closing the connection", self.peer or "?", exc.message
-                )
                 server.protocol_errors += 1
+                if self.visit is not None:
+                    self.visit.malformed(f"a broken frame ({exc.message}); closing the connection")
                 self._drop()
                 return
             if request is None:
                 break
+            if self.visit is not None:
+                self.visit.served()
+                if request.error:
+                    # a well-framed request that is none (unknown function, counts that do not
+                    # match): the client's garbage, answered with its exception code
+                    self.visit.malformed(
+                        f"a malformed request (function {request.function}, answered"
+                        f" {describe_code(request.error)})"
+                    )
             if request.error == 0 and request.is_write and server.for_us(request):
                 task = asyncio.create_task(self._write(request), name="modbus write")
                 server._writes.add(task)
@@ -173,22 +182,16 @@ class _Connection(asyncio.Protocol):
         else:
             transport.close()
 
-    def _idle_out(self) -> None:
-        self.server.idle_closed += 1
-        log.info(
-            "Modbus client %s sent nothing for %g s; closing the connection",
-            self.peer or "?",
-            self.server.settings.idle_timeout,
-        )
+    def _expired(self, reason: str) -> None:
+        """The guard's first-request or idle deadline passed (counted and said there)."""
+        if reason == "idle_timeout":
+            self.server.idle_closed += 1
         self._drop()
 
     def _frame_late(self) -> None:
         self.server.protocol_errors += 1
-        log.warning(
-            "Modbus client %s: a frame begun %g s ago is still incomplete; closing the connection",
-            self.peer or "?",
-            FRAME_TIMEOUT,
-        )
+        if self.visit is not None:
+            self.visit.frame_late()
         if self.transport is not None:
             self.transport.abort()
 
@@ -237,8 +240,9 @@ class ModbusServer(AsyncResource):
         self.idle_closed = 0
         #: clients that stopped reading their answers (each said once in the log)
         self.slow_clients = 0
-        #: clients at once; ``limit.refused`` counts the ones turned away
-        self.limit = ClientLimit(self.settings.max_clients, "Modbus server", log)
+        #: clients at once and per host, first-request and idle deadlines; ``guard.counts``
+        #: has what it refused and closed, by reason
+        self.guard = FaceGuard("modbus", "Modbus server", self.settings.limits, log)
         self._server: asyncio.Server | None = None
         self._connections: set[_Connection] = set()
         self._writes: set[asyncio.Task[None]] = set()
@@ -270,9 +274,11 @@ class ModbusServer(AsyncResource):
     def _refused(self, request: Request, refused: Refused) -> bytes:
         self.image.exceptions[refused.code] += 1
         # a refused read is DEBUG: a panel polling a dead PLC would flood the log (the poller
-        # logs the PLC's failure); refused writes are WARNINGs of the write path or of here
+        # logs the PLC's failure); refused writes are WARNINGs of the write path or of here;
+        # a malformed request was said by the connection's guard, once per burst
         write = request.function in (5, 6, 15, 16)
-        level = logging.WARNING if write and not refused.logged else logging.DEBUG
+        said = refused.logged or request.error != 0
+        level = logging.WARNING if write and not said else logging.DEBUG
         where = f" {request.table}:{request.address} x{request.count}" if request.known else ""
         log.log(
             level,
@@ -322,6 +328,7 @@ class ModbusServer(AsyncResource):
                 " (another process on that port? set [modbus] endpoint)"
             ) from None
         self.port = self._server.sockets[0].getsockname()[1]
+        self.guard.announce(self.endpoint)
 
     async def aclose(self) -> None:
         """Stop listening and drop the clients; PLC writes in flight finish (and are logged)."""
@@ -334,6 +341,7 @@ class ModbusServer(AsyncResource):
             await asyncio.gather(*self._writes, return_exceptions=True)
         if server is not None:
             await server.wait_closed()
+        self.guard.close()
 
     async def aopen(self) -> None:
         """``async with server`` listens (see :meth:`start`)."""
