@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import os
 import random
 import struct
 import sys
@@ -23,9 +24,11 @@ import tempfile
 import time
 from pathlib import Path
 
+import plcstack
 from plcstack.sim import e71 as sim_e71
 
-ROOT = Path(__file__).resolve().parent.parent
+#: the server runs the plcstack this process imported (a checkout to compare, or the install)
+SOURCE = Path(plcstack.__file__).resolve().parent.parent
 
 CONFIG = """[poll]
 interval = 0.5
@@ -89,15 +92,11 @@ async def main(args: argparse.Namespace) -> None:
     tmp = Path(tempfile.mkdtemp(prefix="garbage-log-"))
     config = tmp / "plant.toml"
     config.write_text(CONFIG.format(url=sim.url))
+    env = dict(os.environ, PYTHONPATH=str(SOURCE))
     proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "plcstack",
-        "serve",
-        "modbus",
-        str(config),
+        *(sys.executable, "-m", "plcstack", "serve", "modbus", str(config)),
         stderr=asyncio.subprocess.PIPE,
-        cwd=ROOT,
+        env=env,
     )
     assert proc.stderr is not None
     lines: list[bytes] = []
