@@ -16,12 +16,14 @@ from plcstack.transports.guard import TOTALS, BurstLog, FaceGuard, Limits, parse
 log = logging.getLogger("tests.guard")
 
 
-def test_limits_default_a_quarter_per_host_and_say_themselves() -> None:
-    assert Limits(max_clients=32).max_clients_per_host == 8
+def test_limits_leave_a_quarter_to_other_hosts_and_say_themselves() -> None:
+    assert Limits(max_clients=32).max_clients_per_host == 24
+    assert Limits(max_clients=8).max_clients_per_host == 6
+    assert Limits(max_clients=3).max_clients_per_host == 3
     assert Limits(max_clients=1).max_clients_per_host == 1
     assert Limits(max_clients=None).max_clients_per_host is None
     assert Limits(max_clients=16, idle_timeout=None).describe() == (
-        "at most 16 clients, 4 per host; a first request within 10 s; idle clients kept"
+        "at most 16 clients, 12 per host; a first request within 10 s; idle clients kept"
     )
     with pytest.raises(ValueError, match=r"max_clients_per_host \(9\) cannot be more"):
         Limits(max_clients=8, max_clients_per_host=9)
@@ -40,7 +42,7 @@ def test_parse_limits_keys_and_their_errors() -> None:
         32, 24, 2.0, 600.0
     )
     got = parse_limits_of({"max_clients": 8, "first_request_timeout": 2, "idle_timeout": 0})
-    assert got == Limits(8, 2, 2.0, None)
+    assert got == Limits(8, 6, 2.0, None)
     for table, message in (
         ({"max_clients": 0}, r"\[modbus\] max_clients must be 1..10000, not 0"),
         ({"max_clients_per_host": True}, "max_clients_per_host must be 1..10000"),
@@ -69,7 +71,7 @@ async def test_a_burst_is_said_once_then_counted(caplog: pytest.LogCaptureFixtur
 
 async def test_the_caps_refuse_by_host_and_in_all(caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level(logging.WARNING, log.name)
-    guard = FaceGuard("test-face", "test face", Limits(max_clients=4), log)
+    guard = FaceGuard("test-face", "test face", Limits(max_clients=4, max_clients_per_host=1), log)
     before = TOTALS.get("test-face", "max_clients_per_host")
     visits = [guard.admit(("10.0.0.7", 1000 + i)) for i in range(3)]
     assert visits[0] is not None and visits[1] is None and visits[2] is None

@@ -109,7 +109,7 @@ async def test_a_flood_of_connections_meets_max_clients(
     """Before: 1000 connections were 1000 clients (2000 descriptors, no limit). After: the
     clients beyond ``max_clients`` are closed at once, said once, and the limit frees again."""
     caplog.set_level(logging.WARNING, "plcstack.north.modbus")
-    async with serving(tmp_path, "max_clients = 3\nmax_clients_per_host = 3") as server:
+    async with serving(tmp_path, "max_clients = 3") as server:
         held = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(3)]
         await eventually(lambda: server.clients == 3, "three clients are served")
         turned = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(5)]
@@ -163,7 +163,7 @@ async def test_silent_and_trickling_clients_are_ended(
 def test_modbus_limits_parse_and_refuse_nonsense() -> None:
     settings = parse_modbus({"max_clients": 4, "idle_timeout": 0})
     assert settings.limits.max_clients == 4 and settings.limits.idle_timeout is None
-    assert settings.limits.max_clients_per_host == 1  # a quarter of max_clients
+    assert settings.limits.max_clients_per_host == 3  # three quarters of max_clients
     assert parse_modbus({}) == ModbusSettings()
     assert ModbusSettings().limits.idle_timeout == 600.0
     assert ModbusSettings().limits.first_request_timeout == 10.0
@@ -182,8 +182,8 @@ async def test_64_idle_sockets_of_one_host_lock_no_one_out(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """Before: 64 silent sockets took 32 slots (max_clients) for 600 s each, renewable, and the
-    next client was refused. After: one host gets 8 (max_clients_per_host), the rest are
-    refused and counted, all said in one line; another host is served at once, and the silent
+    next client was refused. After: one host gets 24 (max_clients_per_host), the rest are
+    refused and counted, said in one line; another host is served at once, and the silent
     ones are closed at the first-request deadline, so their host is served again."""
     caplog.set_level(logging.WARNING, "plcstack.north.modbus")
     async with serving(tmp_path, "first_request_timeout = 1") as server:
@@ -201,16 +201,16 @@ async def test_64_idle_sockets_of_one_host_lock_no_one_out(
                 ),
                 "all sockets seen",
             )
-            assert guard.hosts[ATTACKER] <= 8
+            assert guard.hosts[ATTACKER] <= 24
             assert len(await _answered(server.port)) == 259  # 127.0.0.1: served at once
             await eventually(lambda: not guard.hosts[ATTACKER], "the silent ones closed")
             assert len(await _answered(server.port, source=ATTACKER)) == 259
         refused, closed = counts["max_clients_per_host"], counts["first_request_timeout"]
-        assert refused + closed == IDLE_SOCKETS and closed >= 8
+        assert refused + closed == IDLE_SOCKETS and closed >= 24
     # each kind said once when it began, its count once when the server stopped
     lines = guard_lines(caplog)
     assert len(lines) == 4, lines
-    assert "refusing 127.0.0.2:" in lines[0] and "one host may hold 8 connections" in lines[0]
+    assert "refusing 127.0.0.2:" in lines[0] and "one host may hold 24 connections" in lines[0]
     assert "closed the connection of 127.0.0.2:" in lines[1]
     assert "no complete request within 1 s" in lines[1]
     assert lines[2].startswith(f"Modbus server: {refused - 1} more connections of 127.0.0.2")

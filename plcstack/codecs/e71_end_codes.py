@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Final
 
-__all__ = ["ABNORMAL_CODES", "END_CODES"]
+__all__ = ["ABNORMAL_CODES", "END_CODES", "GARBAGE_END_CODES"]
 
 END_CODES: Final[dict[int, str]] = {
     0x00: "normal completion",
@@ -40,3 +40,8 @@ ABNORMAL_CODES: Final[dict[int, str]] = {
     0x20: "link error (the CPU given by the PC number cannot be accessed)",
     0x21: "special function module bus error",
 }
+
+#: end codes of bytes that are no E71 request at all (an undefined subheader or command, ASCII
+#: that is not hex): what a client that speaks another protocol or sends noise gets, never a
+#: request a working client sends and the PLC refuses (those have the other codes)
+GARBAGE_END_CODES: Final = frozenset({0x50, 0x54})

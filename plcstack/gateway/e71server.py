@@ -1,13 +1,16 @@
 """The E71 face on the network: 1E frames over TCP (a connection per client) or UDP (a datagram
 per request), binary or ASCII, each request answered by an :class:`E71Executor`.
 
-TCP: requests of one connection are answered strictly one after another (the E71's rule), a
-connection that sends nothing for ``idle_timeout`` seconds or trickles a frame for longer than
-a few seconds is closed, at most ``max_connections`` clients are served at once (the next is
-turned away, counted and said once per burst), and a client that stops reading its answers is
-not read either. A client that goes away while its request waits gets the request given up
-unsent. UDP: each datagram is one request, answered to its source address; each source has its
-own line in the PLC's queue, and too many requests at once are answered "busy" without a task.
+TCP: requests of one connection are answered strictly one after another (the E71's rule); the
+face's guard (:mod:`plcstack.transports.guard`) serves at most ``max_clients`` clients (three
+quarters of them from one host), closes a connection that sends no request within
+``first_request_timeout``, nothing for ``idle_timeout`` seconds or trickles a frame for longer
+than a few seconds, counts what it refused and closed and says it once per host per burst, as
+it says a client's garbage (bytes that are no E71 request); a client that stops reading its
+answers is not read either. A client that goes away while its request waits gets the request
+given up unsent. UDP: each datagram is one request, answered to its source address; each source
+has its own line in the PLC's queue, and too many requests at once are answered "busy" without
+a task.
 """
 
 from __future__ import annotations
@@ -19,8 +22,9 @@ import logging
 from typing import Any, Literal
 
 from plcstack.codecs._common import NEED_DATA
-from plcstack.codecs.e71 import Code, E71ServerConnection, ErrorResponse
+from plcstack.codecs.e71 import BadRequest, Code, E71ServerConnection, ErrorResponse
 from plcstack.codecs.e71_commands import DECODERS
+from plcstack.codecs.e71_end_codes import GARBAGE_END_CODES
 from plcstack.gateway.e71face import E71Executor, Event, Session, command_of
 from plcstack.sim.base import (
     DEFAULT_IDLE_TIMEOUT,
@@ -30,7 +34,7 @@ from plcstack.sim.base import (
     check_idle_timeout,
     close_writer,
 )
-from plcstack.transports.guard import FRAME_TIMEOUT, ClientLimit, FrameDeadline
+from plcstack.transports.guard import FRAME_TIMEOUT, FaceGuard, FrameDeadline, Limits, earliest
 from plcstack.transports.peer import peer_address
 
 __all__ = ["DEFAULT_MAX_CONNECTIONS", "E71TcpFace", "E71UdpFace", "start"]
@@ -48,34 +52,21 @@ def _scheme(code: Code, transport: str) -> tuple[str, str]:
 
 
 class E71TcpFace(TcpSimulator):
-    """A running E71 face on TCP; ``executor`` answers, ``limit`` counts the refused clients."""
+    """A running E71 face on TCP; ``executor`` answers, ``guard`` counts what it refused and
+    closed."""
 
     def __init__(
-        self,
-        server: asyncio.Server,
-        executor: E71Executor,
-        code: Code,
-        *,
-        max_connections: int,
-        idle_timeout: float | None,
+        self, server: asyncio.Server, executor: E71Executor, code: Code, guard: FaceGuard
     ) -> None:
-        super().__init__(server, *_scheme(code, "tcp"))
+        super().__init__(server, *_scheme(code, "tcp"), guard)
         self.executor = executor
         self.code = code
-        self.idle_timeout = idle_timeout
-        self.limit = ClientLimit(max_connections, f"E71 face {self.url}", log)
-        #: connections closed because a request was begun and not completed in time
-        self.late_frames = 0
         #: requests received (answered or not)
         self.requests = 0
 
-    @property
-    def refused_connections(self) -> int:  # type: ignore[override]
-        return self.limit.refused
-
     async def handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        peer = peer_address(writer.get_extra_info("peername"))
-        if not self.limit.admit(peer):
+        visit = self.guard.admit(writer.get_extra_info("peername"))
+        if visit is None:
             writer.transport.abort()
             return
         task = asyncio.current_task()
@@ -85,37 +76,41 @@ class E71TcpFace(TcpSimulator):
         codec = E71ServerConnection(self.code, extensions=DECODERS)
         session = Session()
         frame = FrameDeadline(FRAME_TIMEOUT)
+        loop = asyncio.get_running_loop()
         try:
             while True:
                 frame.note(codec.buffered > 0)
                 due = frame.due
                 try:
-                    async with (
-                        asyncio.timeout(self.idle_timeout)
-                        if due is None
-                        else asyncio.timeout_at(due)
-                    ):
+                    async with asyncio.timeout_at(earliest(due, visit.due)):
                         data = await reader.read(65536)
                 except TimeoutError:
-                    if due is not None:
-                        self.late_frames += 1
-                    else:
-                        self.idle_closed += 1
-                    return
+                    if due is not None and loop.time() >= due:
+                        visit.frame_late()
+                        return
+                    if visit.expired() is not None:
+                        return
+                    continue
                 if not data:
                     return
+                visit.touch()
                 codec.receive_data(data)
                 while (event := codec.next_event()) is not NEED_DATA:
                     self.requests += 1
+                    visit.served()
+                    if isinstance(event, BadRequest) and event.end_code in GARBAGE_END_CODES:
+                        visit.malformed(
+                            f"a malformed request ({event.reason}; answered {event.end_code:02X}H)"
+                        )
                     with gone.waiting():
-                        answer = await self.executor.answer(event, session, peer)
+                        answer = await self.executor.answer(event, session, visit.peer)
                     writer.write(codec.send(answer))
                     await writer.drain()  # a client that does not read is not read either
         except (ConnectionError, OSError, asyncio.CancelledError):
             return  # the client went away (or the face stops): nothing to answer
         finally:
             gone.close()
-            self.limit.release()
+            visit.leave()
             await close_writer(writer)
 
 
@@ -190,8 +185,12 @@ async def start(
     code: Code | Literal["binary", "ascii"] = "binary",
     max_connections: int = DEFAULT_MAX_CONNECTIONS,
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
+    limits: Limits | None = None,
 ) -> E71TcpFace | E71UdpFace:
-    """Serve the E71 face of ``executor``'s PLC on ``host:port`` (0: any free port)."""
+    """Serve the E71 face of ``executor``'s PLC on ``host:port`` (0: any free port).
+
+    TCP: ``limits`` (the ``[[gateway]]`` table's keys) or ``max_connections`` clients, three
+    quarters of them per host, and ``idle_timeout`` (see :mod:`plcstack.transports.guard`)."""
     code_ = code if isinstance(code, Code) else Code(code)
     if transport == "udp":
         holder: list[E71UdpFace] = []
@@ -204,7 +203,9 @@ async def start(
         return udp
     if transport != "tcp":
         raise ValueError(f"transport must be 'tcp' or 'udp', not {transport!r}")
-    idle = check_idle_timeout(idle_timeout)
+    if limits is None:
+        limits = Limits(max_clients=max_connections, idle_timeout=check_idle_timeout(idle_timeout))
+    guard = FaceGuard("e71", f"E71 face {host}:{port}", limits, log)
     faces: list[E71TcpFace] = []
 
     async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -212,6 +213,6 @@ async def start(
             await faces[0].handle(reader, writer)
 
     server = await asyncio.start_server(handle, host, port)
-    face = E71TcpFace(server, executor, code_, max_connections=max_connections, idle_timeout=idle)
+    face = E71TcpFace(server, executor, code_, guard)
     faces.append(face)
     return face

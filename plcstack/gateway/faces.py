@@ -36,7 +36,8 @@ from plcstack.gateway.store import ClientStore
 from plcstack.resource import AsyncResource
 from plcstack.sim import fetchwrite as fetchwrite_server
 from plcstack.sim import s5lan as s5lan_server
-from plcstack.sim.base import DEFAULT_MAX_CONNECTIONS, Simulator
+from plcstack.sim.base import DEFAULT_IDLE_TIMEOUT, DEFAULT_MAX_CONNECTIONS, Limits, Simulator
+from plcstack.transports.guard import parse_limits
 
 __all__ = ["PROTOCOLS", "FaceSettings", "GatewayFaces", "PlcFaces", "check_faces", "parse_gateway"]
 
@@ -76,6 +77,10 @@ class FaceSettings:
     #: default, 32) and the seconds one may wait (None: 2); faces of one PLC share them
     queue: int | None = None
     max_wait: float | None = None
+    #: the face guard's limits (:data:`~plcstack.transports.guard.LIMIT_KEYS`), replacing
+    #: ``max_connections``; None: ``max_connections`` clients, three quarters of them from one
+    #: host, a first request within 10 s, idle clients closed after 600 s
+    limits: Limits | None = None
 
     def __post_init__(self) -> None:
         if self.queue is not None and self.queue < 1:
@@ -93,6 +98,13 @@ class FaceSettings:
     @property
     def connections(self) -> int:
         return self.max_connections or DEFAULT_CONNECTIONS[self.protocol]
+
+    @property
+    def guard_limits(self) -> Limits:
+        """What the face's guard allows its clients (see ``limits``)."""
+        if self.limits is not None:
+            return self.limits
+        return Limits(self.connections, idle_timeout=DEFAULT_IDLE_TIMEOUT)
 
     def allow_list(self) -> WriteAllowList | DeviceAllowList:
         """``writable`` parsed in the grammar of the face's PLC family."""
@@ -217,18 +229,18 @@ async def _start(face: FaceSettings, answering: Answering) -> Simulator:
             port=face.port,
             transport=face.transport,
             code=face.code,
-            max_connections=face.connections,
+            limits=face.guard_limits,
         )
     if face.protocol == "s5lan":
         return await s5lan_server.start(
-            host=face.host, port=face.port, store=answering, max_connections=face.connections
+            host=face.host, port=face.port, store=answering, limits=face.guard_limits
         )
     return await fetchwrite_server.start(
         host=face.host,
         port=face.port,
         store=answering,
         mk=face.mk,
-        max_connections=face.connections,
+        limits=face.guard_limits,
     )
 
 
@@ -253,6 +265,9 @@ _KEYS: Final = (
     "transport",
     "code",
     "max_connections",
+    "max_clients_per_host",
+    "first_request_timeout",
+    "idle_timeout",
     "queue",
     "max_wait",
 )
@@ -267,6 +282,8 @@ def parse_gateway(table: Table) -> FaceSettings:
         listen = "0.0.0.0:2000"
         plc = "kiln1"                # a [[plc]] of this file
         writable = "DB10-20, M"      # nothing writable by default
+        # max_connections, max_clients_per_host, first_request_timeout, idle_timeout: the
+        # face guard's limits (plcstack.transports.guard)
     """
     table.keys(_KEYS)
     if "protocol" not in table:
@@ -284,6 +301,11 @@ def parse_gateway(table: Table) -> FaceSettings:
     connections = (
         table.integer("max_connections", 1, 1, 4096) if "max_connections" in table else None
     )
+    limits = None
+    if any(k in table for k in ("max_clients_per_host", "first_request_timeout", "idle_timeout")):
+        # the guard's keys; the face's clients at once are its max_connections
+        total = connections or DEFAULT_CONNECTIONS[protocol]
+        limits = parse_limits(table, Limits(total, idle_timeout=DEFAULT_IDLE_TIMEOUT))
     queue = table.integer("queue", 1, 1, 65536) if "queue" in table else None
     max_wait = table.seconds("max_wait", 2.0, hi=3600.0) if "max_wait" in table else None
     plc = table.text("plc", "")
@@ -298,6 +320,7 @@ def parse_gateway(table: Table) -> FaceSettings:
             transport=transport,
             code=code,
             max_connections=connections,
+            limits=limits,
             queue=queue,
             max_wait=max_wait,
         )

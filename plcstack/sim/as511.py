@@ -43,15 +43,17 @@ from plcstack.sim.base import (
     CLOSE_LINGER,
     DEFAULT_IDLE_TIMEOUT,
     DEFAULT_MAX_CONNECTIONS,
+    Limits,
     Simulator,
     TcpSimulator,
     add_idle_timeout_argument,
-    check_idle_timeout,
     idle_timeout_of,
+    module_guard,
 )
 from plcstack.sim.s5memory import BLOCK_HEADER_BYTES, BlockType, S5AccessError, S5Memory
 from plcstack.transports import tap
 from plcstack.transports.base import HELD_UP, QueueProtocolMixin
+from plcstack.transports.guard import Visit
 
 __all__ = [
     "AS511Machine",
@@ -212,10 +214,11 @@ class AS511Machine:
         write: Callable[[bytes], None],
         ag: AGConnection | None = None,
         *,
-        idle_timeout: float | None = None,
+        visit: Visit | None = None,
     ) -> bool:
         """Run the AG (``ag``, or a :meth:`new_line`) on ``line`` until it ends (False) or the
-        PG sent nothing for ``idle_timeout`` seconds between transactions (True).
+        ``visit`` of a TCP line ends between transactions (True: no first transaction in time
+        after connecting, or nothing for the idle timeout; counted and said by its guard).
 
         A gap is what the AG saw, not what its clock says: bytes the line hands over before
         its deadline ran out are in time however late the loop saw them, and a deadline
@@ -224,15 +227,21 @@ class AS511Machine:
         """
         loop = asyncio.get_running_loop()
         ag = ag if ag is not None else self.new_line()
+        requests = self.requests
         while True:
+            if visit is not None and self.requests != requests:
+                visit.served()  # a transaction's parameters came complete
+                requests = self.requests
             deadline = ag.deadline
-            idle_until = None if idle_timeout is None else loop.time() + idle_timeout
+            until = deadline if deadline is not None or visit is None else visit.due
             try:
-                data = await line.read(deadline if deadline is not None else idle_until)
+                data = await line.read(until)
             except TimeoutError:
                 now = loop.time()
                 if deadline is None:
-                    return True  # idle for idle_timeout
+                    if visit is not None and visit.expired() is not None:
+                        return True
+                    continue
                 if now - deadline > HELD_UP:
                     ag.held_up(now)
                 else:
@@ -241,6 +250,8 @@ class AS511Machine:
                 continue
             if not data:
                 return False
+            if visit is not None:
+                visit.touch()
             if self.mute:
                 continue
             ag.busy = self.busy
@@ -396,44 +407,43 @@ async def start(
     char_timeout: float = DEFAULT_CHAR_TIMEOUT,
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
     max_connections: int = DEFAULT_MAX_CONNECTIONS,
+    limits: Limits | None = None,
 ) -> AS511TcpSimulator:
     """Serve AS511 over TCP (a serial device server's view); returns once it accepts clients.
 
     ``idle_timeout``: seconds after which a connection that sent nothing is closed (default
     600, ``None``: never); ``max_connections``: connections at once, further ones are closed
-    at once and counted in ``refused_connections``.
+    at once and counted in ``refused_connections``; ``limits`` replaces both (see
+    :func:`~plcstack.sim.base.module_guard`).
     """
-    idle = check_idle_timeout(idle_timeout)
-    if max_connections < 1:
-        raise ValueError("max_connections must be at least 1")
+    guard = module_guard("as511", "AS511 simulator", max_connections, idle_timeout, limits)
     machine = AS511Machine(memory, baud=baud, char_timeout=char_timeout)
     sim: AS511TcpSimulator | None = None
 
-    async def serve(line: AgLine, transport: asyncio.Transport) -> None:
+    async def serve(line: AgLine, transport: asyncio.Transport, visit: Visit) -> None:
         try:
-            idled = await machine.serve_line(line, transport.write, idle_timeout=idle)
-            if idled and sim is not None:
-                sim.idle_closed += 1
+            await machine.serve_line(line, transport.write, visit=visit)
         except (ConnectionError, OSError):
             pass
         except asyncio.CancelledError:
             # aclose() ended this connection: end normally, as a handler of start_server would
             pass
         finally:
+            visit.leave()
             await line.close(transport)
 
     def connected(line: AgLine, transport: asyncio.Transport) -> None:
-        if sim is not None and sim.connection_count.current >= max_connections:
-            sim.refused_connections += 1
+        visit = guard.admit(transport.get_extra_info("peername"))
+        if visit is None:
             transport.abort()
             return
-        task = asyncio.get_running_loop().create_task(serve(line, transport))
+        task = asyncio.get_running_loop().create_task(serve(line, transport, visit))
         if sim is not None:
             sim.track(task)
 
     server = await tap.create_server(lambda: AgLine(f"{host}:{port}", connected), host, port)
     query = f"baud={baud}" if baud else ""
-    sim = AS511TcpSimulator(server, "as511+tcp", query)
+    sim = AS511TcpSimulator(server, "as511+tcp", query, guard)
     sim.machine = machine
     sim.memory = machine.memory
     return sim

@@ -10,13 +10,23 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import logging
 from abc import abstractmethod
 from collections.abc import Iterator
 from typing import Any
 
 from plcstack.resource import AsyncResource
-from plcstack.transports.guard import CLOSE_LINGER, IdleWatch, close_writer
+from plcstack.transports.guard import (
+    CLOSE_LINGER,
+    FIRST_REQUEST_TIMEOUT,
+    FaceGuard,
+    IdleWatch,
+    Limits,
+    close_writer,
+)
 from plcstack.transports.peer import peer_address
+
+log = logging.getLogger("plcstack.sim")
 
 __all__ = [
     "CLOSE_LINGER",
@@ -24,7 +34,9 @@ __all__ = [
     "DEFAULT_MAX_CONNECTIONS",
     "ClientGone",
     "ConnectionCount",
+    "FaceGuard",
     "IdleWatch",
+    "Limits",
     "Simulator",
     "TcpSimulator",
     "UdpSimulator",
@@ -33,6 +45,7 @@ __all__ = [
     "check_idle_timeout",
     "close_writer",
     "idle_timeout_of",
+    "module_guard",
 ]
 
 #: seconds a simulator keeps a connection on which the client sent nothing. Real modules drop
@@ -43,6 +56,29 @@ DEFAULT_IDLE_TIMEOUT: float | None = 600.0
 #: connections at once of the simulators whose modules have no documented limit (FETCH/WRITE,
 #: AS511 over a serial device server); beyond it a connection is closed at once and counted
 DEFAULT_MAX_CONNECTIONS = 16
+
+
+def module_guard(
+    face: str,
+    title: str,
+    max_connections: int = DEFAULT_MAX_CONNECTIONS,
+    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
+    limits: Limits | None = None,
+) -> FaceGuard:
+    """The guard of a simulated module's listener: ``limits`` (a gateway's face passes its
+    own), or the module's: ``max_connections`` from any host (a module does not tell hosts
+    apart), a first request within :data:`FIRST_REQUEST_TIMEOUT`, ``idle_timeout``. Its log
+    lines go to ``plcstack.sim``."""
+    if limits is None:
+        if max_connections < 1:
+            raise ValueError("max_connections must be at least 1")
+        limits = Limits(
+            max_clients=max_connections,
+            max_clients_per_host=max_connections,
+            first_request_timeout=FIRST_REQUEST_TIMEOUT,
+            idle_timeout=check_idle_timeout(idle_timeout),
+        )
+    return FaceGuard(face, title, limits, log)
 
 
 def check_idle_timeout(idle_timeout: float | None) -> float | None:
@@ -171,16 +207,14 @@ class Simulator(AsyncResource):
 
 
 class TcpSimulator(Simulator):
-    """A simulator behind one ``asyncio.Server``; ``host``/``port`` are the bound address."""
+    """A simulator behind one ``asyncio.Server``; ``host``/``port`` are the bound address.
 
-    #: seconds without a byte from the client before its connection is closed (None: never)
-    idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT
-    #: connections closed because the client sent nothing for ``idle_timeout`` seconds
-    idle_closed = 0
-    #: connections closed at once because the simulator was at its connection cap
-    refused_connections = 0
+    ``guard`` holds its limits (connections at once and per host, the first-request and idle
+    deadlines; :func:`module_guard`) and counts what they refused and closed."""
 
-    def __init__(self, server: asyncio.Server, scheme: str, query: str = "") -> None:
+    def __init__(
+        self, server: asyncio.Server, scheme: str, query: str = "", guard: FaceGuard | None = None
+    ) -> None:
         self.server = server
         self.host, self.port, self.url = bound_address(
             server.sockets[0].getsockname(), scheme, query
@@ -189,6 +223,34 @@ class TcpSimulator(Simulator):
         #: client connections now / at most at once (simulators without per-connection tasks
         #: call ``opened``/``closed`` themselves)
         self.connection_count = ConnectionCount()
+        self.guard = guard if guard is not None else module_guard(scheme, f"{scheme} simulator")
+        self.guard.announce(self.url)
+
+    @property
+    def idle_timeout(self) -> float | None:
+        """Seconds without a byte from the client before its connection is closed."""
+        return self.guard.limits.idle_timeout
+
+    @property
+    def idle_closed(self) -> int:
+        """Connections closed because the client sent nothing for ``idle_timeout`` seconds."""
+        return self.guard.counts["idle_timeout"]
+
+    @property
+    def refused_connections(self) -> int:
+        """Connections closed at once because the simulator was at a connection cap."""
+        return self.guard.refused
+
+    @property
+    def first_request_closed(self) -> int:
+        """Connections closed because no complete request came in time after connecting."""
+        return self.guard.counts["first_request_timeout"]
+
+    @property
+    def late_frames(self) -> int:
+        """Connections closed because a request begun was not complete in time (a header
+        trickled byte by byte)."""
+        return self.guard.counts["frame_timeout"]
 
     def track(self, task: asyncio.Task[None]) -> None:
         """Remember a per-connection task so ``aclose`` can end it (no task outlives the sim);
@@ -208,6 +270,7 @@ class TcpSimulator(Simulator):
         if self._conn_tasks:
             await asyncio.gather(*self._conn_tasks, return_exceptions=True)
         await self.server.wait_closed()
+        self.guard.close()
 
 
 class UdpSimulator(Simulator):

@@ -51,19 +51,21 @@ from plcstack.codecs.e71 import (
     unit_error,
 )
 from plcstack.codecs.e71_commands import DECODERS
+from plcstack.codecs.e71_end_codes import GARBAGE_END_CODES
 from plcstack.sim.base import (
     DEFAULT_IDLE_TIMEOUT,
-    IdleWatch,
+    Limits,
     Simulator,
     TcpSimulator,
     UdpSimulator,
     add_idle_timeout_argument,
-    check_idle_timeout,
     idle_timeout_of,
+    module_guard,
 )
 from plcstack.sim.e71_module import execute_extension, module_of
 from plcstack.sim.melsec_memory import CpuState, MelsecAccessError, MelsecMemory
 from plcstack.transports import tap
+from plcstack.transports.guard import FaceGuard, Visit
 
 __all__ = [
     "MAX_CONNECTIONS",
@@ -198,23 +200,22 @@ class _TcpConnection(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
         self._partial_timer: asyncio.TimerHandle | None = None
         self._busy_until = 0.0  # loop time when the last queued (delayed) answer goes out
-        self._idle: IdleWatch | None = None
+        self._visit: Visit | None = None
 
     def connection_made(self, transport_: asyncio.BaseTransport) -> None:
         # cast, not isinstance: uvloop's transports are not subclasses of asyncio.Transport
         transport = cast(asyncio.Transport, transport_)
-        if len(self.sim.connections) >= MAX_CONNECTIONS:
-            self.sim.refused_connections += 1
+        self._visit = self.sim.guard.admit(transport.get_extra_info("peername"), self._expired)
+        if self._visit is None:
             transport.abort()  # all 8 connections in use
             return
         self.transport = transport
         self.sim.connections.add(self)
         self.sim.connection_count.opened()
-        self._idle = IdleWatch(self.sim.idle_timeout, self._idle_out)
 
-    def _idle_out(self) -> None:
+    def _expired(self, reason: str) -> None:
+        """No request in time after connecting, or nothing for ``idle_timeout``."""
         if self.transport is not None:
-            self.sim.idle_closed += 1
             self.transport.abort()
 
     def pause_writing(self) -> None:
@@ -232,8 +233,9 @@ class _TcpConnection(asyncio.Protocol):
         transport = self.transport
         if transport is None:
             return
-        if self._idle is not None:
-            self._idle.touch()
+        visit = self._visit
+        if visit is not None:
+            visit.touch()
         codec = self.codec
         codec.receive_data(data)
         sim = self.sim
@@ -242,6 +244,12 @@ class _TcpConnection(asyncio.Protocol):
             if event is NEED_DATA:
                 break
             sim.requests += 1
+            if visit is not None:
+                visit.served()
+                if isinstance(event, BadRequest) and event.end_code in GARBAGE_END_CODES:
+                    visit.malformed(
+                        f"a malformed request ({event.reason}; answered {event.end_code:02X}H)"
+                    )
             if sim.mute:
                 continue
             if sim.delay <= 0 and sim.cpu_time <= 0 and self._busy_until == 0.0:
@@ -274,8 +282,8 @@ class _TcpConnection(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         if self._partial_timer is not None:
             self._partial_timer.cancel()
-        if self._idle is not None:
-            self._idle.cancel()
+        if self._visit is not None:
+            self._visit.leave()
         if self.transport is not None:
             self.sim.connection_count.closed()
         self.sim.connections.discard(self)
@@ -312,8 +320,10 @@ class E71TcpSimulator(_E71Plc, TcpSimulator):
         lower_ok: bool,
         abnormal_trailer: bool,
         incomplete_timeout: float,
+        guard: FaceGuard,
     ) -> None:
-        super().__init__(server, "e71+tcp", "code=ascii" if code is Code.ASCII else "")
+        query = "code=ascii" if code is Code.ASCII else ""
+        super().__init__(server, "e71+tcp", query, guard)
         self._init_plc(memory, code, abnormal_trailer)
         self.lower_ok = lower_ok
         self.incomplete_timeout = incomplete_timeout
@@ -385,15 +395,18 @@ async def start(
     abnormal_trailer: bool = True,
     incomplete_timeout: float = INCOMPLETE_TIMEOUT,
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
+    limits: Limits | None = None,
 ) -> E71TcpSimulator | E71UdpSimulator:
     """Start an E71 simulator; returns once it accepts clients (``port=0``: a free port).
 
     ``lower_ok=False``: lower-case ASCII hex is answered with 54H (§13 A7 strict mode).
     ``abnormal_trailer=False``: 5BH answers without the trailing 00H (Q-series form, §13 A3).
     ``idle_timeout``: seconds (TCP) after which a connection that sent nothing is closed
-    (default 600; ``None``: never), so idle sockets cannot hold all 8 connections for ever.
+    (default 600; ``None``: never), so idle sockets cannot hold all 8 connections for ever;
+    a connection must send its first request within 10 s. ``limits`` replaces the module's
+    8 connections and ``idle_timeout`` (see :func:`~plcstack.sim.base.module_guard`).
     """
-    idle = check_idle_timeout(idle_timeout)
+    guard = module_guard("e71", "E71 simulator", MAX_CONNECTIONS, idle_timeout, limits)
     mem = memory if memory is not None else MelsecMemory()
     code_ = code if isinstance(code, Code) else Code(code)
     loop = asyncio.get_running_loop()
@@ -416,8 +429,8 @@ async def start(
         lower_ok=lower_ok,
         abnormal_trailer=abnormal_trailer,
         incomplete_timeout=incomplete_timeout,
+        guard=guard,
     )
-    tsim.idle_timeout = idle
     sims.append(tsim)
 
     sim_ref = weakref.ref(tsim)  # the module outlives no simulator through this listener

@@ -35,8 +35,8 @@ from plcstack.sim.base import (
     ClientGone,
     TcpSimulator,
     add_idle_timeout_argument,
-    check_idle_timeout,
     idle_timeout_of,
+    module_guard,
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.sim.s5store import (
@@ -50,8 +50,7 @@ from plcstack.sim.s5store import (
     resolve_store,
 )
 from plcstack.transports import tap
-from plcstack.transports.guard import FRAME_TIMEOUT, FrameDeadline
-from plcstack.transports.peer import peer_address
+from plcstack.transports.guard import FRAME_TIMEOUT, FaceGuard, FrameDeadline, Limits, earliest
 
 __all__ = ["FetchWriteSimulator", "add_cli_arguments", "default_memory", "serve_cli", "start"]
 
@@ -97,6 +96,7 @@ class FetchWriteSimulator(TcpSimulator):
         life_timeout: float | None,
         strict: bool,
         write_server: asyncio.Server | None,
+        guard: FaceGuard,
     ) -> None:
         query = []
         if mk:
@@ -110,7 +110,7 @@ class FetchWriteSimulator(TcpSimulator):
             query.append(f"write_port={self.write_port}")
         if life_ack is not None:
             query.append(f"life_ack={life_ack:g}")
-        super().__init__(server, "fetchwrite", "&".join(query))
+        super().__init__(server, "fetchwrite", "&".join(query), guard)
         #: where jobs are executed: the simulated CPU, or the AS511 gateway's real one
         self.store = store
         self.mk = mk
@@ -126,10 +126,6 @@ class FetchWriteSimulator(TcpSimulator):
         self.life_acks_received = 0
         self.life_acks_sent = 0
         self.dropped_dead = 0
-        #: connections closed because a job was not complete FRAME_TIMEOUT s after its first
-        #: byte (a header trickled byte by byte to hold the connection)
-        self.late_frames = 0
-        self.max_connections = DEFAULT_MAX_CONNECTIONS
 
     @property
     def memory(self) -> S5Memory:
@@ -147,8 +143,8 @@ class FetchWriteSimulator(TcpSimulator):
     async def handle(
         self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, role: _Role
     ) -> None:
-        if self.connection_count.current >= self.max_connections:
-            self.refused_connections += 1
+        visit = self.guard.admit(writer.get_extra_info("peername"))
+        if visit is None:
             writer.transport.abort()
             return
         task = asyncio.current_task()
@@ -157,7 +153,7 @@ class FetchWriteSimulator(TcpSimulator):
         self.connections += 1
         # a gateway's job of a client that went away is given up where it waits (never sent)
         gone = ClientGone(reader, writer)
-        peer = peer_address(writer.get_extra_info("peername"))
+        peer = visit.peer
         loop = asyncio.get_running_loop()
         # a module is lenient with partners that do not count (only strict checks them)
         mk = MkConnection(strict=self.strict, check_seq=self.strict) if self.mk else None
@@ -167,13 +163,15 @@ class FetchWriteSimulator(TcpSimulator):
             self.life_timeout if self.mk else None,
             loop.time(),
         )
-        idle_at = loop.time() + (self.idle_timeout or 0.0)
         # measured from a job's first byte: the idle timeout restarts with every byte, so a
         # header sent one byte at a time held a connection (of max_connections) for ever
         frame = FrameDeadline(FRAME_TIMEOUT)
         try:
             while True:
                 while (event := codec.next_event()) is not NEED_DATA:
+                    visit.served()
+                    if isinstance(event, BadRequest) and event.close:
+                        visit.malformed(f"a job that cannot be framed ({event.reason})")
                     with gone.waiting():
                         response, close = await self.answer(event, role, peer)
                     if self.silent:
@@ -187,33 +185,23 @@ class FetchWriteSimulator(TcpSimulator):
                     # (+1.5 GB in 17 s) and a backlog was worked off long after it was gone.
                     await writer.drain()
                 if mk is not None:
+                    if mk.life_acks_received:
+                        visit.served()  # an MK partner keeping the line up is no silent socket
                     self.life_acks_received += mk.life_acks_received
                     mk.life_acks_received = 0
                 if self.silent:
                     codec = ServerConnection("mk" if self.mk else "raw", mk=mk)
-                wakeup = timer.next_wakeup()
-                if self.idle_timeout is not None and (wakeup is None or idle_at < wakeup):
-                    wakeup = idle_at
                 frame.note(codec.buffered > 0)
                 due = frame.due
-                if due is not None and (wakeup is None or due < wakeup):
-                    wakeup = due
                 try:
-                    async with asyncio.timeout_at(wakeup):
+                    async with asyncio.timeout_at(earliest(timer.next_wakeup(), visit.due, due)):
                         data = await reader.read(65536)
                 except TimeoutError:
                     now = loop.time()
                     if due is not None and now >= due:
-                        self.late_frames += 1
-                        log.info(
-                            "fetchwrite: %s: a job begun %s s ago is still incomplete, closing",
-                            peer or "?",
-                            FRAME_TIMEOUT,
-                        )
+                        visit.frame_late()
                         return
-                    if self.idle_timeout is not None and now >= idle_at:
-                        self.idle_closed += 1
-                        log.info("fetchwrite sim: nothing for %s s, closing", self.idle_timeout)
+                    if visit.expired() is not None:
                         return
                     if timer.dead(now):
                         self.dropped_dead += 1
@@ -227,17 +215,17 @@ class FetchWriteSimulator(TcpSimulator):
                     continue
                 if not data:
                     return
-                if self.idle_timeout is not None:
-                    idle_at = loop.time() + self.idle_timeout
+                visit.touch()
                 timer.received(loop.time())
                 codec.receive_data(data)
         except RemoteProtocolError as exc:
             # C.6.5: a malformed header closes the connection without an answer.
-            log.info("fetchwrite sim: closing connection: %s", exc)
+            visit.malformed(f"a malformed header ({exc.message}); closing the connection")
         except (ConnectionError, OSError):
             pass
         finally:
             gone.close()
+            visit.leave()
             writer.transport.abort()
 
     async def answer(
@@ -315,6 +303,7 @@ async def start(
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
     max_connections: int = DEFAULT_MAX_CONNECTIONS,
     store: S5Store | None = None,
+    limits: Limits | None = None,
 ) -> FetchWriteSimulator:
     """Start a FETCH/WRITE simulator; returns once it accepts connections.
 
@@ -325,11 +314,11 @@ async def start(
     600, ``None``: never); ``max_connections``: connections at once (per port), further ones
     are closed at once and counted in ``refused_connections``. ``store`` executes the jobs
     somewhere else than in a memory image (the AS511 gateway passes the real CPU); it excludes
-    ``memory``.
+    ``memory``. ``limits`` (a gateway's face) replaces ``max_connections`` and
+    ``idle_timeout``: see :func:`~plcstack.sim.base.module_guard`.
     """
-    idle = check_idle_timeout(idle_timeout)
-    if max_connections < 1:
-        raise ValueError("max_connections must be at least 1")
+    title = "FETCH/WRITE simulator" if store is None else "FETCH/WRITE face"
+    guard = module_guard("fetchwrite", title, max_connections, idle_timeout, limits)
     if db_start_unit not in ("word", "byte"):
         raise ValueError("db_start_unit must be 'word' or 'byte'")
     if life_ack is not None and not mk:
@@ -368,9 +357,8 @@ async def start(
         life_timeout=life_timeout,
         strict=strict,
         write_server=write_server,
+        guard=guard,
     )
-    sim.idle_timeout = idle
-    sim.max_connections = max_connections
     holder.append(sim)
     return sim
 

@@ -39,15 +39,14 @@ from plcstack.sim.base import (
     ClientGone,
     TcpSimulator,
     add_idle_timeout_argument,
-    check_idle_timeout,
     close_writer,
     idle_timeout_of,
+    module_guard,
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.sim.s5store import S5Fault, S5Store, Target, memory_of, resolve_store
 from plcstack.transports import tap
-from plcstack.transports.guard import FrameDeadline
-from plcstack.transports.peer import peer_address
+from plcstack.transports.guard import FaceGuard, FrameDeadline, Limits, Visit, earliest
 
 __all__ = ["DEFAULT_DATA_WORDS", "S5LanSimulator", "add_cli_arguments", "default_memory", "start"]
 
@@ -79,7 +78,7 @@ class S5LanSimulator(TcpSimulator):
     """A running module. ``memory`` is live: tests may read and change it while clients work."""
 
     def __init__(self, server: asyncio.Server, state: _State) -> None:
-        super().__init__(server, "s5lan")
+        super().__init__(server, "s5lan", guard=state.guard)
         #: where requests are executed: the simulated CPU, or the AS511 gateway's real one
         self.store: S5Store = state.store
         self._state = state
@@ -91,23 +90,7 @@ class S5LanSimulator(TcpSimulator):
 
     @property
     def active_connections(self) -> int:
-        return self._state.active
-
-    @property
-    def idle_closed(self) -> int:  # type: ignore[override]
-        """Connections closed because the client sent nothing for ``idle_timeout`` seconds."""
-        return self._state.idle_closed
-
-    @property
-    def late_frames(self) -> int:
-        """Connections closed because a request was not complete ``data_timeout`` seconds
-        after its first byte (a header trickled byte by byte)."""
-        return self._state.late_frames
-
-    @property
-    def refused_connections(self) -> int:  # type: ignore[override]
-        """Connections closed at once because ``max_connections`` were already in use."""
-        return self._state.refused
+        return self.guard.current
 
     def inject_error(self, err: int, times: int = 1) -> None:
         """Answer the next ``times`` well-formed requests with ``err`` (e.g. 9 = PLC timeout)."""
@@ -123,8 +106,8 @@ class _State:
     def __init__(
         self,
         store: S5Store,
+        guard: FaceGuard,
         *,
-        max_connections: int,
         realistic_timing: bool,
         data_timeout: float,
         header_byte_order: ByteOrder,
@@ -132,17 +115,13 @@ class _State:
         version: int,
     ) -> None:
         self.store = store
-        self.max_connections = max_connections
+        #: connections at once and per host, first request, idle: what they refused and closed
+        self.guard = guard
         self.realistic_timing = realistic_timing
         self.data_timeout = data_timeout
         self.header_byte_order: ByteOrder = header_byte_order
         self.strict = strict
         self.version = version
-        self.active = 0
-        self.refused = 0
-        self.idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT
-        self.idle_closed = 0
-        self.late_frames = 0
         self.injected: collections.deque[int] = collections.deque()
         self.writers: set[asyncio.StreamWriter] = set()
 
@@ -183,17 +162,15 @@ class _State:
 async def _handle(
     state: _State, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
 ) -> None:
-    if state.active >= state.max_connections:
+    visit = state.guard.admit(writer.get_extra_info("peername"))
+    if visit is None:
         # D.A4: the module supports one connection; the extra one is closed at once so the
         # second client fails fast instead of waiting for an answer that never comes.
-        state.refused += 1
         await close_writer(writer)
         return
-    state.active += 1
     state.writers.add(writer)
     # a gateway's request of a client that went away is given up where it waits (never sent)
     gone = ClientGone(reader, writer)
-    peer = peer_address(writer.get_extra_info("peername"))
     codec = ServerConnection(
         header_byte_order=state.header_byte_order, strict=state.strict, version=state.version
     )
@@ -201,40 +178,42 @@ async def _handle(
     # byte (A.7, Err 10 for write data): measured per read, a client sending one byte every
     # half second held the module's connection for ever.
     frame = FrameDeadline(state.data_timeout)
+    loop = asyncio.get_running_loop()
     try:
         while True:
             # An incomplete header is given as long and then the connection is closed (the
-            # module has no error code for it); an idle connection is closed after
-            # idle_timeout, or the one connection the module accepts would be held by a silent
-            # socket for ever.
+            # module has no error code for it); a connection that sends no request in time
+            # after connecting, or nothing for idle_timeout, is closed, or the one connection
+            # the module accepts would be held by a silent socket for ever.
             frame.note(codec.awaiting_data or codec.buffered > 0)
             due = frame.due
             try:
-                async with (
-                    asyncio.timeout(state.idle_timeout) if due is None else asyncio.timeout_at(due)
-                ):
+                async with asyncio.timeout_at(earliest(due, visit.due)):
                     data = await reader.read(65536)
             except TimeoutError:
-                if codec.awaiting_data:
-                    if not await _answer(state, codec, writer, codec.data_timeout(), peer, gone):
-                        return
-                    continue
-                if codec.buffered:
-                    state.late_frames += 1
-                else:
-                    state.idle_closed += 1
-                return
+                if due is not None and loop.time() >= due:
+                    if codec.awaiting_data:
+                        late = codec.data_timeout()
+                        if not await _answer(state, codec, writer, late, visit, gone):
+                            return
+                        continue
+                    visit.frame_late()
+                    return
+                if visit.expired() is not None:
+                    return
+                continue
             if not data:
                 return
+            visit.touch()
             codec.receive_data(data)
             while (event := codec.next_event()) is not NEED_DATA:
-                if not await _answer(state, codec, writer, event, peer, gone):
+                if not await _answer(state, codec, writer, event, visit, gone):
                     return
     except (ConnectionError, OSError):
         return
     finally:
         gone.close()
-        state.active -= 1
+        visit.leave()
         state.writers.discard(writer)
         await close_writer(writer)  # not abort(): an Err 6 answer before a close must go out
 
@@ -244,18 +223,21 @@ async def _answer(
     codec: ServerConnection,
     writer: asyncio.StreamWriter,
     event: object,
-    peer: str | None,
+    visit: Visit,
     gone: ClientGone,
 ) -> bool:
-    """Answer one event of the client at ``peer``; ``False`` when the connection must be
+    """Answer one event of the client of ``visit``; ``False`` when the connection must be
     closed."""
+    visit.served()
     if isinstance(event, BadRequest):
+        if event.close:  # no request block at all: the client's garbage, said once per burst
+            visit.malformed(f"a malformed request ({event.reason}); closing the connection")
         writer.write(codec.send_response(event.header, event.err))
         await writer.drain()
         return not event.close
     assert isinstance(event, Request)
     with gone.waiting():
-        err, data = await state.execute(event, peer)
+        err, data = await state.execute(event, visit.peer)
     if state.realistic_timing:
         await asyncio.sleep(estimate_seconds(event.header.data_len or 0))
     header: Header = event.header
@@ -277,6 +259,7 @@ async def start(
     version: int = DEFAULT_VERSION,
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
     store: S5Store | None = None,
+    limits: Limits | None = None,
 ) -> S5LanSimulator:
     """Start a module simulator; returns once it accepts clients (``sim.url`` says where).
 
@@ -286,19 +269,22 @@ async def start(
     ``realistic_timing`` delays each answer by 50 ms + 1.5 ms per data byte (A.8);
     ``data_timeout`` is how long write data may take before Err 10 ([R] 1 s);
     ``strict`` accepts only PLCType 35h (D.A2); ``idle_timeout``: seconds after which a
-    connection that sent nothing is closed (default 600, ``None``: never).
+    connection that sent nothing is closed (default 600, ``None``: never). ``limits`` (a
+    gateway's face) replaces ``max_connections`` and ``idle_timeout``: see
+    :func:`~plcstack.sim.base.module_guard`.
     """
+    title = "S5-LAN simulator" if store is None else "S5-LAN face"
     store = resolve_store(memory, store, default_memory)
+    guard = module_guard("s5lan", title, max_connections, idle_timeout, limits)
     state = _State(
         store,
-        max_connections=max_connections,
+        guard,
         realistic_timing=realistic_timing,
         data_timeout=data_timeout,
         header_byte_order=header_byte_order,
         strict=strict,
         version=version,
     )
-    state.idle_timeout = check_idle_timeout(idle_timeout)
     sim: S5LanSimulator | None = None
     early: list[asyncio.Task[None]] = []  # accepted before start_server() returned
 

@@ -30,8 +30,8 @@ import collections
 import contextlib
 import logging
 import time
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from plcstack.checks import Table
@@ -52,6 +52,7 @@ __all__ = [
     "Limits",
     "Visit",
     "close_writer",
+    "earliest",
     "parse_limits",
 ]
 
@@ -116,7 +117,10 @@ TOTALS = Totals()
 @dataclass(frozen=True, slots=True)
 class Limits:
     """How many clients one listening face serves and how long it waits for them (``None``:
-    no bound). ``max_clients_per_host`` defaults to a quarter of ``max_clients`` (at least 1)."""
+    no bound). ``max_clients_per_host`` defaults to three quarters of ``max_clients`` (at
+    least 1): a host with several legitimate clients (a SCADA server, a browser's six
+    connections) is served, and a quarter of the slots stays for the others whatever one host
+    opens."""
 
     max_clients: int | None = 64
     max_clients_per_host: int | None = None
@@ -129,7 +133,7 @@ class Limits:
             if value is not None and (isinstance(value, bool) or value < 1):
                 raise ValueError(f"{name} must be at least 1, not {value!r}")
         if per_host is None and total is not None:
-            object.__setattr__(self, "max_clients_per_host", max(1, total // 4))
+            object.__setattr__(self, "max_clients_per_host", max(1, total - total // 4))
         elif per_host is not None and total is not None and per_host > total:
             raise ValueError(
                 f"max_clients_per_host ({per_host}) cannot be more than max_clients ({total})"
@@ -450,6 +454,12 @@ class Visit:
             self._arm()  # touched or served since: the deadline moved on
         elif self.on_expire is not None:
             self.on_expire(reason)
+
+
+def earliest(*times: float | None) -> float | None:
+    """The earliest of some deadlines (loop times; None: that one does not run), or None."""
+    running = [t for t in times if t is not None]
+    return min(running) if running else None
 
 
 def _host_of(peername: Any) -> str:
