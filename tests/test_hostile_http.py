@@ -12,8 +12,9 @@ import pytest
 
 from plcstack.north import metrics
 from plcstack.north.metrics import MetricsServer, MetricsSettings, PlcstackCollector
-from plcstack.north.web import server as web_server
+from plcstack.transports.guard import Limits
 from tests.aio_helpers import ended_by_server, eventually
+from tests.guard_helpers import ATTACKER, IDLE_SOCKETS, guard_lines, idle_sockets
 from tests.web_helpers import running_console
 
 
@@ -21,9 +22,10 @@ async def test_web_console_ends_silent_and_trickling_connections(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Before: aiohttp's default keep-alive of 3630 s held a socket that never sent a byte, and
-    one sending a header a byte at a time, for an hour. After: IDLE_TIMEOUT (shortened here)."""
-    monkeypatch.setattr(web_server, "IDLE_TIMEOUT", 0.5, raising=False)
-    async with running_console() as console:
+    one sending a header a byte at a time, for an hour. After: the first request's deadline
+    (shortened here), counted as such."""
+    limits = Limits(max_clients=256, first_request_timeout=0.5, idle_timeout=75)
+    async with running_console(limits=limits) as console:
         reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
         assert await ended_by_server(reader)
         writer.transport.abort()
@@ -43,6 +45,7 @@ async def test_web_console_ends_silent_and_trickling_connections(
             dripping.cancel()
             await asyncio.gather(dripping, return_exceptions=True)
             writer.transport.abort()
+        assert console.web.guard.counts["first_request_timeout"] == 2
 
 
 GARBAGE = [
@@ -59,7 +62,8 @@ async def test_web_console_answers_garbage_400_without_a_traceback(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     """Before: every request aiohttp could not parse was an ERROR with a traceback in the log
-    ("Error handling request"). After: 400 and one WARNING line naming the client."""
+    ("Error handling request"); then a WARNING line each. After: 400, and one WARNING line
+    naming the client for the burst, the count of the rest when the console stops."""
     caplog.set_level(logging.DEBUG)
     async with running_console() as console:
         for request in GARBAGE:
@@ -72,11 +76,14 @@ async def test_web_console_answers_garbage_400_without_a_traceback(
         writer.write(b"GET /api/plcs HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
         assert b" 200 " in await asyncio.wait_for(reader.read(64), 5)
         writer.close()
+        assert console.web.guard.counts["malformed"] == len(GARBAGE)
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR or r.exc_info]
     assert errors == [], [r.getMessage() for r in errors]
-    said = [r.getMessage() for r in caplog.records if "bad HTTP request from" in r.getMessage()]
-    assert len(said) == len(GARBAGE), said
-    assert all("127.0.0.1" in line and " 400 " in line for line in said), said
+    said = [r.getMessage() for r in caplog.records if "127.0.0.1" in r.getMessage()]
+    said = [line for line in said if "bad HTTP request" in line or "more malformed" in line]
+    assert len(said) == 2, said
+    assert "web console: 127.0.0.1 sent a bad HTTP request, answered 400" in said[0]
+    assert said[1].startswith(f"web console: {len(GARBAGE) - 1} more malformed requests from")
 
 
 class _Poller:
@@ -114,8 +121,10 @@ async def test_metrics_client_that_never_reads_is_dropped(monkeypatch: pytest.Mo
 
 async def test_metrics_flood_meets_its_limit() -> None:
     """Before: no limit (1000 connections: 1000 served). After: MAX_CLIENTS at once, the next
-    ones closed at once and counted; the endpoint answers again once they are gone."""
-    server = MetricsServer(PlcstackCollector(_Poller()), MetricsSettings(port=0))
+    ones closed at once and counted; the endpoint answers again once they are gone (all from
+    one host here: the per-host cap is another test's)."""
+    limits = Limits(max_clients=metrics.MAX_CLIENTS, max_clients_per_host=metrics.MAX_CLIENTS)
+    server = MetricsServer(PlcstackCollector(_Poller()), MetricsSettings(port=0, limits=limits))
     await server.start()
     try:
         held = [
@@ -123,15 +132,15 @@ async def test_metrics_flood_meets_its_limit() -> None:
             for _ in range(metrics.MAX_CLIENTS)
         ]
         await eventually(
-            lambda: server.limit.current == metrics.MAX_CLIENTS, "the first ones are served"
+            lambda: server.guard.current == metrics.MAX_CLIENTS, "the first ones are served"
         )
         reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
         assert await ended_by_server(reader)
-        assert server.limit.refused == 1
+        assert server.guard.refused == 1
         writer.transport.abort()
         for _, w in held:
             w.transport.abort()
-        await eventually(lambda: server.limit.current == 0, "the held ones are gone")
+        await eventually(lambda: server.guard.current == 0, "the held ones are gone")
         reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
         writer.write(b"GET /healthz HTTP/1.1\r\n\r\n")
         assert (await asyncio.wait_for(reader.read(), 5)).startswith(b"HTTP/1.1 200 OK")
@@ -142,9 +151,9 @@ async def test_metrics_flood_meets_its_limit() -> None:
 
 async def test_web_console_flood_meets_its_limit(monkeypatch: pytest.MonkeyPatch) -> None:
     """Before: 1000 connections were 1000 served (2000 descriptors; no limit in aiohttp). After:
-    MAX_CONNECTIONS at once (shortened here), the next answered 503 and closed, said once."""
-    monkeypatch.setattr(web_server, "MAX_CONNECTIONS", 3, raising=False)
-    async with running_console() as console:
+    max_clients at once (shortened here), the next answered 503 and closed, said once."""
+    limits = Limits(max_clients=3, max_clients_per_host=3, idle_timeout=75)
+    async with running_console(limits=limits) as console:
         runner = console.web._runner
         assert runner is not None and runner.server is not None
         http = runner.server
@@ -161,4 +170,66 @@ async def test_web_console_flood_meets_its_limit(monkeypatch: pytest.MonkeyPatch
         writer.write(b"GET /api/plcs HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
         assert b" 200 " in await asyncio.wait_for(reader.read(64), 5)
         writer.close()
-        assert console.web.limit.refused == 1
+        assert console.web.guard.refused == 1
+
+
+async def test_64_idle_sockets_lock_no_one_out_of_the_console(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """64 silent sockets of one host: the console (256 connections) serves another client at
+    once, and closes the silent ones at the first-request deadline, said once with the count."""
+    caplog.set_level(logging.WARNING)
+    limits = Limits(max_clients=256, first_request_timeout=1.0, idle_timeout=75)
+    async with running_console(limits=limits) as console:
+        guard = console.web.guard
+        async with idle_sockets(console.web.port):
+            await eventually(
+                lambda: (
+                    guard.hosts[ATTACKER] + guard.counts["first_request_timeout"] == IDLE_SOCKETS
+                ),
+                "every socket holding a slot",
+            )
+            reader, writer = await asyncio.open_connection("127.0.0.1", console.web.port)
+            writer.write(b"GET /api/plcs HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+            assert b" 200 " in await asyncio.wait_for(reader.read(64), 5)
+            writer.close()
+            await eventually(lambda: not guard.hosts[ATTACKER], "the silent sockets closed")
+        assert guard.counts["first_request_timeout"] == IDLE_SOCKETS and guard.refused == 0
+    lines = guard_lines(caplog)
+    assert len(lines) == 2, lines
+    assert "closed the connection of 127.0.0.2:" in lines[0]
+    assert lines[1].startswith(f"web console: {IDLE_SOCKETS - 1} more connections of")
+
+
+async def test_64_idle_sockets_lock_no_one_out_of_the_metrics(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """64 silent sockets of one host: /metrics (16 connections, 12 per host) refuses 52 and
+    says so once, serves another host at once, and closes the silent 12 at the first-request
+    deadline."""
+    caplog.set_level(logging.WARNING)
+    limits = Limits(max_clients=16, first_request_timeout=1.0, idle_timeout=None)
+    server = MetricsServer(PlcstackCollector(_Poller()), MetricsSettings(port=0, limits=limits))
+    await server.start()
+    guard = server.guard
+    try:
+        async with idle_sockets(server.port):
+            await eventually(
+                lambda: (
+                    guard.refused + guard.hosts[ATTACKER] + guard.counts["first_request_timeout"]
+                    == IDLE_SOCKETS
+                ),
+                "every socket refused or holding a slot",
+            )
+            reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+            writer.write(b"GET /healthz HTTP/1.1\r\n\r\n")
+            assert (await asyncio.wait_for(reader.read(), 5)).startswith(b"HTTP/1.1 200 OK")
+            writer.close()
+            await eventually(lambda: not guard.hosts[ATTACKER], "the silent sockets closed")
+        assert guard.refused + guard.counts["first_request_timeout"] == IDLE_SOCKETS
+        assert guard.counts["first_request_timeout"] >= 12
+    finally:
+        await server.aclose()
+    lines = guard_lines(caplog)
+    assert len(lines) == 4, lines  # the refusals and the closes: each once, then its count
+    assert "refusing 127.0.0.2:" in lines[0] and "one host may hold 12 connections" in lines[0]

@@ -24,12 +24,13 @@ from plcstack.north.history import HistorySettings
 from plcstack.north.pipeline import North
 from plcstack.north.trace import TraceSettings
 from plcstack.north.web.server import WebConsole
-from plcstack.north.web.settings import WebSettings
+from plcstack.north.web.settings import DEFAULT_LIMITS, WebSettings
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.sim import e71 as e71_sim
 from plcstack.sim.base import Simulator
 from plcstack.sim.melsec_memory import MelsecMemory
+from plcstack.transports.guard import Limits
 from tests.servers import free_port
 
 __all__ = ["HOSTILE", "TOKEN", "TOKEN_ENV", "Console", "float_words", "running_console"]
@@ -102,10 +103,12 @@ async def running_console(
     history: Path | None = None,
     more_plcs: int = 0,
     trace: Path | None = None,
+    limits: Limits = DEFAULT_LIMITS,
 ) -> AsyncIterator[Console]:
     """The simulator, the poller, the north side with the console on a free port (and the
     embedded history in the file ``history``, if given; ``more_plcs`` PLCs besides the three,
-    see :func:`fleet`; the flight recorder writing into ``trace``, if given)."""
+    see :func:`fleet`; the flight recorder writing into ``trace``, if given); ``limits``: the
+    console's ``[web]`` client limits."""
     memory = MelsecMemory()
     memory.write_words("D", 100, [1500])
     memory.write_words("D", 200, [7])
@@ -128,7 +131,9 @@ async def running_console(
             extra_sims.append(udp)
             more = fleet(udp.url, more_plcs)
         config = PollConfig(plcs(sim.url) + more, {"default": 0.1, "slow": 1.0})
-        settings = WebSettings(port=0, write_token_env=TOKEN_ENV, trend_seconds=trend_seconds)
+        settings = WebSettings(
+            port=0, write_token_env=TOKEN_ENV, trend_seconds=trend_seconds, limits=limits
+        )
         north_config = NorthConfig(
             web=settings,
             audit=None if audit is None else AuditSettings(str(audit)),

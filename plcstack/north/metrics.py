@@ -65,8 +65,14 @@ from plcstack.checks import Listen, Table
 from plcstack.errors import ConfigError, ValueDecodeError
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.resource import cancel_until_done
-from plcstack.transports.guard import TOTALS, ClientLimit, close_writer
-from plcstack.transports.peer import peer_address
+from plcstack.transports.guard import (
+    LIMIT_KEYS,
+    TOTALS,
+    FaceGuard,
+    Limits,
+    close_writer,
+    parse_limits,
+)
 
 __all__ = [
     "LATENCY_BUCKETS",
@@ -94,12 +100,19 @@ SEEN_FAILURES = 4096
 #: where ``/metrics`` and ``/healthz`` listen unless ``[metrics] listen`` says otherwise: loopback
 #: only, since metrics name every PLC of the plant
 DEFAULT_LISTEN = Listen("127.0.0.1", 9108)
+#: clients at once (12 from one host), a request within REQUEST_TIMEOUT of connecting; no
+#: idle timeout: a connection serves one request and is closed
+DEFAULT_LIMITS = Limits(
+    max_clients=MAX_CLIENTS, first_request_timeout=REQUEST_TIMEOUT, idle_timeout=None
+)
 
 
 @dataclass(frozen=True)
 class MetricsSettings:
     host: str = DEFAULT_LISTEN.host
     port: int = DEFAULT_LISTEN.port
+    #: clients at once and per host, the first request's deadline
+    limits: Limits = DEFAULT_LIMITS
 
     @property
     def listen(self) -> Listen:
@@ -108,11 +121,12 @@ class MetricsSettings:
 
 def parse_metrics(table: object) -> MetricsSettings:
     """``[metrics]``: ``listen = "HOST:PORT"`` (default 127.0.0.1:9108; port 0 = any free
-    port). The old ``host`` and ``port`` keys still load, with a notice."""
+    port) and the client limits (``max_clients``, ``max_clients_per_host``,
+    ``first_request_timeout``). The old ``host`` and ``port`` keys still load, with a notice."""
     t = Table.of(table, "metrics")
-    t.keys(("listen", "host", "port"))
+    t.keys(("listen", "host", "port", *LIMIT_KEYS[:3]))
     listen = t.listen(DEFAULT_LISTEN)
-    return MetricsSettings(listen.host, listen.port)
+    return MetricsSettings(listen.host, listen.port, parse_limits(t, DEFAULT_LIMITS))
 
 
 class _Histogram:
@@ -336,8 +350,8 @@ class MetricsServer:
         self._server: asyncio.Server | None = None
         self._refresher: asyncio.Task[None] | None = None
         self._handlers: set[asyncio.Task[Any]] = set()
-        #: clients at once; ``limit.refused`` counts the ones turned away
-        self.limit = ClientLimit(MAX_CLIENTS, "metrics endpoint", log)
+        #: clients at once and per host, the first request's deadline; what they refused
+        self.guard = FaceGuard("metrics", "metrics endpoint", self.settings.limits, log)
         self.port = self.settings.port
 
     async def start(self) -> None:
@@ -352,6 +366,7 @@ class MetricsServer:
                 f"{exc.strerror or exc} (another process on that port? set [metrics] listen)"
             ) from None
         self.port = self._server.sockets[0].getsockname()[1]
+        self.guard.announce(f"{host}:{self.port}")
         self._refresher = asyncio.create_task(self._refresh_loop())
 
     async def _refresh_loop(self) -> None:
@@ -371,34 +386,43 @@ class MetricsServer:
         await asyncio.gather(*handlers, return_exceptions=True)
         if self._server is not None:
             await self._server.wait_closed()
+        self.guard.close()
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        if not self.limit.admit(peer_address(writer.get_extra_info("peername"))):
+        visit = self.guard.admit(writer.get_extra_info("peername"))
+        if visit is None:
             writer.transport.abort()
             return
         task = asyncio.current_task()
         if task is not None:
             self._handlers.add(task)
         try:
-            # one deadline for the request and its answer: the answer waits for a client that
-            # does not read it, and before, only the request was under a deadline
+            try:
+                # the request within the first request's deadline (silent or trickled: closed)
+                async with asyncio.timeout_at(visit.due):
+                    head = await reader.readuntil(b"\r\n\r\n")
+            except asyncio.LimitOverrunError:
+                head = b"TOO-LARGE / HTTP/1.1\r\n\r\n"
+            except TimeoutError:
+                visit.expired()  # counted and said by the guard
+                return
+            visit.served()
+            # a deadline for the answer too: it waits for a client that does not read it
             async with asyncio.timeout(REQUEST_TIMEOUT):
-                await self._answer(reader, writer)
+                await self._answer(head, writer)
         except TimeoutError:
-            pass  # a client too slow to send its request or to read its answer
+            pass  # a client too slow to read its answer
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass  # the client left before its request was complete
         except asyncio.CancelledError:
             pass  # the server stops: end normally (Python 3.11 logs a cancelled handler)
         finally:
             self._handlers.discard(task)
-            self.limit.release()
+            visit.leave()
             await close_writer(writer)  # aborted if the client does not read its answer
 
-    async def _answer(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _answer(self, head: bytes, writer: asyncio.StreamWriter) -> None:
         try:
-            try:
-                head = await reader.readuntil(b"\r\n\r\n")
-            except asyncio.LimitOverrunError:
-                head = b"TOO-LARGE / HTTP/1.1\r\n\r\n"
             request_line = head.split(b"\r\n", 1)[0].decode("latin-1")
             parts = request_line.split()
             method, path = (parts[0], parts[1]) if len(parts) >= 2 else ("", "")

@@ -20,7 +20,6 @@ from plcstack.transports.guard import (
     CLOSE_LINGER,
     FIRST_REQUEST_TIMEOUT,
     FaceGuard,
-    IdleWatch,
     Limits,
     close_writer,
 )
@@ -35,7 +34,6 @@ __all__ = [
     "ClientGone",
     "ConnectionCount",
     "FaceGuard",
-    "IdleWatch",
     "Limits",
     "Simulator",
     "TcpSimulator",

@@ -32,7 +32,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 from plcstack.checks import Table
 from plcstack.transports.peer import peer_address
@@ -45,10 +45,9 @@ __all__ = [
     "LIMIT_KEYS",
     "TOTALS",
     "BurstLog",
-    "ClientLimit",
     "FaceGuard",
     "FrameDeadline",
-    "IdleWatch",
+    "GuardedProtocol",
     "Limits",
     "Visit",
     "close_writer",
@@ -272,12 +271,15 @@ class FaceGuard:
         """The one INFO line of the face's start: where it listens and its limits."""
         self.log.info("%s on %s: %s", self.title, where, self.limits.describe())
 
-    def admit(self, peername: Any, on_expire: Callable[[str], None] | None = None) -> Visit | None:
+    def admit(
+        self, peername: Any, on_expire: Callable[[str], None] | None = None, *, idle: bool = True
+    ) -> Visit | None:
         """A new connection from ``peername`` (a socket's ``getpeername()``): its
         :class:`Visit`, or None when a cap refuses it (counted and said; the caller closes
         it). ``on_expire(reason)`` is called when the visit's first-request or idle deadline
         passes (a protocol-callback server); a server that reads in a loop passes None and
-        waits until :attr:`Visit.due`."""
+        waits until :attr:`Visit.due`. ``idle=False``: the server keeps its own idle timeout
+        (the visit watches the first request only)."""
         host = _host_of(peername)
         peer = peer_address(peername) or host
         limits = self.limits
@@ -293,7 +295,7 @@ class FaceGuard:
             return None
         self.current += 1
         self.hosts[host] += 1
-        return Visit(self, host, peer, on_expire)
+        return Visit(self, host, peer, on_expire, idle)
 
     def ended(self, host: str, peer: str, reason: str, *, refused: bool = False) -> None:
         """Count a refusal or close for ``reason`` (a key of :data:`REASONS`) and say it once
@@ -357,6 +359,7 @@ class Visit:
     __slots__ = (
         "_gone",
         "_handle",
+        "_idle",
         "_last",
         "_loop",
         "_started",
@@ -373,8 +376,10 @@ class Visit:
         host: str,
         peer: str,
         on_expire: Callable[[str], None] | None,
+        idle: bool = True,
     ) -> None:
         self.guard = guard
+        self._idle = idle
         self.host = host
         self.peer = peer
         self.on_expire = on_expire
@@ -390,7 +395,8 @@ class Visit:
         """Loop time at which the visit ends unless a request (or, once served, any byte)
         comes first; None: never."""
         limits = self.guard.limits
-        idle = None if limits.idle_timeout is None else self._last + limits.idle_timeout
+        timeout = limits.idle_timeout if self._idle else None
+        idle = None if timeout is None else self._last + timeout
         if self.served_once or limits.first_request_timeout is None:
             return idle
         first = self._started + limits.first_request_timeout
@@ -454,6 +460,79 @@ class Visit:
             self._arm()  # touched or served since: the deadline moved on
         elif self.on_expire is not None:
             self.on_expire(reason)
+
+
+class GuardedProtocol(asyncio.Protocol):
+    """The protocol of a server plcstack does not write (aiohttp's), behind a
+    :class:`FaceGuard`: the guard admits the connection (``refuse`` answers one it turns away,
+    else it is aborted), the first request counts as complete when ``request_end`` has come
+    (an HTTP header's blank line), and everything else is the inner protocol's."""
+
+    def __init__(
+        self,
+        guard: FaceGuard,
+        inner: Callable[[], asyncio.Protocol],
+        request_end: bytes,
+        refuse: Callable[[asyncio.Transport], None] | None = None,
+    ) -> None:
+        self._guard = guard
+        self._make = inner
+        self._end = request_end
+        self._refuse = refuse
+        self._inner: asyncio.Protocol | None = None
+        self._visit: Visit | None = None
+        self._transport: asyncio.Transport | None = None
+        self._tail = b""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        stream = cast(asyncio.Transport, transport)  # uvloop's are no subclasses of asyncio's
+        self._visit = self._guard.admit(
+            transport.get_extra_info("peername"), self._expired, idle=False
+        )
+        if self._visit is None:
+            if self._refuse is not None:
+                self._refuse(stream)
+            else:
+                stream.abort()
+            return
+        self._transport = stream
+        self._inner = self._make()
+        self._inner.connection_made(transport)
+
+    def data_received(self, data: bytes) -> None:
+        inner, visit = self._inner, self._visit
+        if inner is None or visit is None:
+            return
+        if not visit.served_once:
+            seen = self._tail + data
+            if self._end in seen:
+                visit.served()
+                self._tail = b""
+            else:
+                self._tail = seen[-(len(self._end) - 1) :] if len(self._end) > 1 else b""
+        visit.touch()
+        inner.data_received(data)
+
+    def eof_received(self) -> bool | None:
+        return self._inner.eof_received() if self._inner is not None else None
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._visit is not None:
+            self._visit.leave()
+        if self._inner is not None:
+            self._inner.connection_lost(exc)
+
+    def pause_writing(self) -> None:
+        if self._inner is not None:
+            self._inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        if self._inner is not None:
+            self._inner.resume_writing()
+
+    def _expired(self, reason: str) -> None:
+        if self._transport is not None:
+            self._transport.abort()
 
 
 def earliest(*times: float | None) -> float | None:
@@ -537,92 +616,3 @@ class FrameDeadline:
         self._handle = None
         if self.on_expire is not None:
             self.on_expire()
-
-
-class IdleWatch:
-    """Calls ``on_idle`` once ``timeout`` seconds passed without :meth:`touch`.
-
-    One timer per connection, re-armed only when it fires (``touch`` just stores the time), so
-    a busy connection costs one attribute write per chunk received.
-    """
-
-    __slots__ = ("_handle", "_last", "_loop", "on_idle", "timeout")
-
-    def __init__(self, timeout: float | None, on_idle: Callable[[], None]) -> None:
-        self.timeout = timeout
-        self.on_idle = on_idle
-        self._loop = asyncio.get_running_loop()
-        self._last = self._loop.time()
-        self._handle: asyncio.TimerHandle | None = None
-        if timeout is not None:
-            self._handle = self._loop.call_later(timeout, self._fire)
-
-    def touch(self) -> None:
-        self._last = self._loop.time()
-
-    def cancel(self) -> None:
-        if self._handle is not None:
-            self._handle.cancel()
-            self._handle = None
-
-    def _fire(self) -> None:
-        assert self.timeout is not None
-        due = self._last + self.timeout
-        if self._loop.time() >= due:
-            self._handle = None
-            self.on_idle()
-        else:
-            self._handle = self._loop.call_at(due, self._fire)
-
-
-class ClientLimit:
-    """At most ``limit`` clients of one server at once (``None``: no limit).
-
-    :meth:`admit` says whether a new client may stay; a refused one is counted in ``refused``
-    and the first refusal of a burst is logged (WARNING) with ``what`` naming the server; the
-    next is logged again only after the server was below its limit once more.
-    """
-
-    __slots__ = ("_said", "current", "limit", "log", "refused", "what")
-
-    def __init__(self, limit: int | None, what: str, log: logging.Logger) -> None:
-        if limit is not None and limit < 1:
-            raise ValueError(f"{what}: a client limit must be at least 1, not {limit}")
-        self.limit = limit
-        self.what = what
-        self.log = log
-        self.current = 0
-        self.refused = 0
-        self._said = False
-
-    def admit(self, peer: str | None, *, current: int | None = None) -> bool:
-        """Count the client in, or refuse it (False): the caller closes its connection.
-        ``current``: the clients connected now, for a server that counts them itself (then
-        :meth:`release` is not called)."""
-        if current is not None:
-            self.current = current
-        if self.limit is not None and self.current >= self.limit:
-            self.refused += 1
-            if not self._said:
-                self._said = True
-                self.log.warning(
-                    "%s: %d clients connected, the limit; refusing %s and more until one leaves",
-                    self.what,
-                    self.current,
-                    peer or "a client",
-                )
-            return False
-        if self._said:
-            self._said = False
-            self.log.info(
-                "%s: below its limit of %d clients again (%d refused so far)",
-                self.what,
-                self.limit,
-                self.refused,
-            )
-        self.current += 1
-        return True
-
-    def release(self) -> None:
-        """A client admitted has gone."""
-        self.current -= 1

@@ -5,12 +5,13 @@ nothing is sent from there), ``aclose()``. Binds 127.0.0.1 unless ``[web] host``
 the pages name every PLC of the plant. Every response carries a Content-Security-Policy that
 allows scripts, styles and connections from the console itself only (no inline script), and
 ``nosniff``; request bodies are limited to 64 KiB. A request for a host name the console does
-not serve is answered 421 before any route (DNS rebinding, see :mod:`.hosts`). A connection
-that sends no complete request for :data:`IDLE_TIMEOUT` seconds (silent, or a header trickled
-byte by byte) is closed, a request that cannot be parsed is answered 400 and logged as one
-WARNING line naming the client, and at most :data:`MAX_CONNECTIONS` connections are served at
-once (the next get 503 and are closed: a flood cannot take the file descriptors the PLC
-connections need).
+not serve is answered 421 before any route (DNS rebinding, see :mod:`.hosts`). The console's
+face guard (:mod:`plcstack.transports.guard`, ``[web]`` limits) serves at most ``max_clients``
+connections, ``max_clients_per_host`` of them from one host (the next get 503 and are closed:
+a flood cannot take the file descriptors the PLC connections need), closes a connection that
+sends no complete request header within ``first_request_timeout`` (silent, or a header
+trickled byte by byte) and one that waits ``idle_timeout`` between requests; a request that
+cannot be parsed is answered 400, and said once per host per burst with the count.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from plcstack.north.web.settings import WebSettings
 from plcstack.north.web.state import ConsoleState, plc_row
 from plcstack.north.writes import WritePath
 from plcstack.poll.samples import Scan
-from plcstack.transports.guard import ClientLimit
+from plcstack.transports.guard import FaceGuard, GuardedProtocol
 
 __all__ = ["WebConsole"]
 
@@ -56,13 +57,6 @@ MAX_BODY = 64 * 1024
 SOURCE = "web"
 #: a stream with nothing to say sends a comment this often (finds peers that went away)
 KEEPALIVE = 15.0
-#: seconds a connection may go without a complete request (aiohttp's default is an hour: a
-#: silent socket, or a header sent one byte a minute, held its connection that long); the
-#: event stream is not affected, its request is complete
-IDLE_TIMEOUT = 75.0
-#: connections at once: browsers open up to six per console tab, and 64 event streams are
-#: served (:data:`~plcstack.north.web.events.MAX_CLIENTS`); more is a flood
-MAX_CONNECTIONS = 256
 _BUSY = (
     b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\nContent-Length: 26\r\n"
     b"Connection: close\r\n\r\ntoo many connections open\n"
@@ -111,8 +105,8 @@ class WebConsole:
         self.token: str | None = None
         self._runner: web.AppRunner | None = None
         self._listener: asyncio.Server | None = None
-        #: connections at once; ``limit.refused`` counts the ones turned away
-        self.limit = ClientLimit(MAX_CONNECTIONS, "web console", log)
+        #: connections at once and per host, first request, idle; what they refused and closed
+        self.guard = FaceGuard("web", "web console", self.settings.limits, log)
         #: runs the push to the browsers; North sets its run's supervisor before ``start``
         self.supervisor: Supervisor | None = None
         self._pusher: Supervised | None = None
@@ -166,25 +160,27 @@ class WebConsole:
                 *capture_routes(self),
             ]
         )
+        http_log = logging.Logger(_http_log.name)  # not in the registry: it goes with the console
+        http_log.parent = _http_log
+        http_log.addFilter(_ClientFaults(self.guard))
         runner = web.AppRunner(
             app,
             access_log=None,
             handle_signals=False,
             shutdown_timeout=1.0,
-            keepalive_timeout=IDLE_TIMEOUT,
-            logger=_http_log,
+            # between requests (0: never); the first request is the guard's
+            keepalive_timeout=self.settings.limits.idle_timeout or 0,
+            logger=http_log,
         )
         await runner.setup()
         host, port = self.settings.host, self.settings.port
         http = runner.server
         assert http is not None
-        limit = self.limit
+        guard = self.guard
 
         def accept() -> asyncio.BaseProtocol:
-            # aiohttp's server counts its connections; one beyond the limit is answered 503
-            if limit.admit(None, current=len(http.connections)):
-                return http()
-            return _Busy()
+            # aiohttp has no connection limit: the guard admits, one it refuses gets 503
+            return GuardedProtocol(guard, http, b"\r\n\r\n", _busy)
 
         try:
             # not web.TCPSite: aiohttp has no connection limit, so the listener is ours
@@ -197,6 +193,7 @@ class WebConsole:
             ) from None
         self._runner, self._listener = runner, listener
         self.port = listener.sockets[0].getsockname()[1]  # the port taken when [web] port = 0
+        guard.announce(self.url)
         if self.supervisor is None:
             self.supervisor = Supervisor()
         self._pusher = self.supervisor.start(self.name, self.hub.run)
@@ -225,6 +222,7 @@ class WebConsole:
             self._runner = None
         if listener is not None:
             await listener.wait_closed()
+        self.guard.close()
 
     # -- data -----------------------------------------------------------------------------------
     def plc_rows(self, plc: str | None) -> list[dict[str, Any]]:
@@ -374,42 +372,35 @@ async def _stream(client: EventClient, response: web.StreamResponse) -> None:
         await response.write(data)
 
 
-class _Busy(asyncio.Protocol):
-    """A connection beyond :data:`MAX_CONNECTIONS`: 503 and closed, nothing read."""
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        transport.write(_BUSY)
-        transport.close()
+def _busy(transport: asyncio.Transport) -> None:
+    """A connection the guard refused: 503 and closed, nothing read."""
+    transport.write(_BUSY)
+    transport.close()
 
 
 class _ClientFaults(logging.Filter):
     """aiohttp logs a request it cannot parse (garbage, a port scanner, a bad Content-Length)
     as an ERROR with a traceback, which reads like a fault of the console. It is the client's:
-    one WARNING line naming the client and what was wrong."""
+    said by the console's guard, once per host per burst with the count."""
+
+    def __init__(self, guard: FaceGuard) -> None:
+        super().__init__()
+        self.guard = guard
 
     def filter(self, record: logging.LogRecord) -> bool:
         exc = record.exc_info[1] if record.exc_info else None
-        if isinstance(exc, HttpProcessingError):
-            peer = record.args[0] if isinstance(record.args, tuple) and record.args else "?"
-            what = " ".join(str(exc.message).split())[:200]
-            record.msg, record.args = (
-                "web console: bad HTTP request from %s: %s %s",
-                (
-                    peer,
-                    exc.code,
-                    what,
-                ),
-            )
-            record.exc_info = record.exc_text = None
-            if record.levelno > logging.WARNING:
-                record.levelno, record.levelname = logging.WARNING, "WARNING"
-        return True
+        if not isinstance(exc, HttpProcessingError):
+            return True
+        peer = record.args[0] if isinstance(record.args, tuple) and record.args else None
+        what = " ".join(str(exc.message).split())[:200]
+        host = str(peer) if peer else None
+        self.guard.malformed(host, host, f"a bad HTTP request, answered {exc.code}: {what}")
+        return False
 
 
-#: the logger aiohttp's connections log to
+#: the logger of aiohttp's connections: each console logs to a child of its own, whose filter
+#: hands the clients' faults to the console's guard
 _http_log = logging.getLogger("plcstack.web.http")
-_http_log.addFilter(_ClientFaults())
 
 
 def _html(text: str, status: int = 200) -> web.Response:
