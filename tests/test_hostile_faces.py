@@ -19,17 +19,13 @@ from contextlib import asynccontextmanager
 
 import pytest
 
-from plcstack import gateway
 from plcstack.clients import connect
-from plcstack.clients.share import SharedConnection
 from plcstack.errors import PlcError
-from plcstack.gateway import e71server
-from plcstack.gateway.e71face import E71Executor
+from plcstack.gateway.faces import FaceSettings, PlcFaces
 from plcstack.sim import as511, e71, fetchwrite, s5lan
 from plcstack.sim.base import TcpSimulator
 from plcstack.transports.guard import TOTALS, Limits
 from tests.aio_helpers import eventually
-from tests.faces_helpers import polled
 from tests.guard_helpers import ATTACKER, IDLE_SOCKETS, guard_lines, idle_sockets
 
 #: seconds a socket may stay silent after connecting, in these tests
@@ -47,37 +43,21 @@ async def face(kind: str) -> AsyncIterator[tuple[TcpSimulator, str, str]]:
     def module(n: int) -> Limits:  # a simulated module: n connections from any host
         return Limits(n, n, first_request_timeout=FIRST)
 
-    if kind in ("gateway-s5lan", "gateway-fetchwrite"):
-        plc = await s5lan.start()
-        gw = await gateway.start(
-            plc.url,
-            s5lan=("127.0.0.1", 0),
-            fetchwrite=("127.0.0.1", 0),
-            s5lan_limits=Limits(8, first_request_timeout=FIRST),
-            fetchwrite_limits=Limits(16, first_request_timeout=FIRST),
-        )
-        server = gw.s5lan if kind == "gateway-s5lan" else gw.fetchwrite
-        assert server is not None
+    if kind.startswith("gateway-"):
+        protocol = kind.removeprefix("gateway-")
+        plc = await (e71.start() if protocol == "e71" else s5lan.start())
+        cap = {"s5lan": 8, "fetchwrite": 16, "e71": 32}[protocol]
+        limits = Limits(cap, first_request_timeout=FIRST)
+        settings = FaceSettings(protocol, "127.0.0.1", 0, "kiln1", limits=limits)  # type: ignore[arg-type]
+        client = connect(plc.url)
         try:
-            yield server, server.url, ADDRESS["s5"]
+            async with PlcFaces("kiln1", client, [settings]) as faces:
+                (server,) = faces.servers
+                assert isinstance(server, TcpSimulator)
+                yield server, server.url, ADDRESS["e71" if protocol == "e71" else "s5"]
         finally:
-            await gw.aclose()
+            await client.aclose()
             await plc.aclose()
-    elif kind == "gateway-e71":
-        melsec = await e71.start()
-        try:
-            async with polled(melsec.url, 'x = "D0"') as poller:
-                share = SharedConnection(poller.client("kiln1"), name="kiln1")
-                async with share:
-                    executor = E71Executor(share)
-                    e71face = await e71server.start(
-                        executor, limits=Limits(32, first_request_timeout=FIRST)
-                    )
-                    assert isinstance(e71face, e71server.E71TcpFace)
-                    async with e71face:
-                        yield e71face, e71face.url, ADDRESS["e71"]
-        finally:
-            await melsec.aclose()
     else:
         sims: dict[str, Callable[[], object]] = {
             "sim-e71": lambda: e71.start(limits=module(8)),

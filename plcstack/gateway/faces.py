@@ -197,12 +197,12 @@ class PlcFaces(AsyncResource):
             for face, answering in zip(self.settings, self.answering, strict=True):
                 server = await _start(face, answering)
                 self.servers.append(server)
+                # its limits: the line of its guard (plcstack.transports.guard)
                 log.info(
-                    "%s listening on %s (%s); %d clients at once; writable: %s",
+                    "%s listening on %s (%s); writable: %s",
                     face.describe(),
                     server.url,
                     face.transport.upper(),
-                    face.connections,
                     face.allow_list(),
                 )
         except BaseException:
