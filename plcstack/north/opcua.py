@@ -99,6 +99,7 @@ from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample, Scan
+from plcstack.transports.guard import FaceGuard, Limits
 
 __all__ = [
     "STATUS_MAP",
@@ -433,6 +434,20 @@ class OpcUaServer:
         self._server: Server | None = None
         #: undoes the client limit's log filter (at stop)
         self._unlimit: Callable[[], None] = lambda: None
+        config = self.config
+        #: its limits (asyncua keeps them: clients at once, from any host alike, and a session
+        #: activated in time) and what they refused and closed, by reason
+        self.guard = FaceGuard(
+            "opcua",
+            "OPC UA server",
+            Limits(
+                max_clients=config.max_clients,
+                max_clients_per_host=config.max_clients,
+                first_request_timeout=config.first_request_timeout,
+                idle_timeout=None,
+            ),
+            log,
+        )
         self._bindings: dict[ua.NodeId, _Binding] = {}
         self._by_tag: dict[tuple[str, str], _Binding] = {}
         self._writes: set[asyncio.Future[Any]] = set()
@@ -516,7 +531,7 @@ class OpcUaServer:
             by_node(self._bindings, lambda b: b.tag.writable),
             by_node(self._bindings, lambda b: _eu_span(b.tag)),
         )
-        unlimit = limit_clients(server, config.max_clients)
+        unlimit = limit_clients(server, self.guard)
         try:
             await server.start()
         except OSError as exc:
@@ -528,6 +543,7 @@ class OpcUaServer:
         if bound is not None:
             parts = urlsplit(config.endpoint)
             self.url = urlunsplit(parts._replace(netloc=f"{parts.hostname}:{bound.port}"))
+        self.guard.announce(self.url)
 
     async def _build(self, server: Server, idx: int) -> None:
         session = server.iserver.isession
@@ -559,6 +575,7 @@ class OpcUaServer:
         if server is not None:
             await server.stop()
             self._unlimit()
+        self.guard.close()
         if self._writes:
             await asyncio.gather(*self._writes, return_exceptions=True)
 

@@ -12,6 +12,7 @@ They live in the ``[opcua]`` table of the poller's TOML file, next to the PLCs t
     trusted_client_certificates = "trusted/"   # only these clients' certificates (DER/PEM)
     anonymous = "read"               # "none" | "read" | "write"
     max_clients = 64                 # connections at once; the next is closed at once
+    first_request_timeout = 10       # seconds a connection has to activate a session (0: 30)
 
     [opcua.users.operator]           # user name / password logins
     password_hash = "pbkdf2_sha256$..."   # plcstack serve opcua --hash-password
@@ -39,6 +40,7 @@ from urllib.parse import urlsplit
 from plcstack.checks import Listen, Table
 from plcstack.errors import ConfigError
 from plcstack.tomlfile import TomlFile
+from plcstack.transports.guard import FIRST_REQUEST_TIMEOUT
 
 __all__ = [
     "DEFAULT_ENDPOINT",
@@ -109,6 +111,9 @@ class OpcUaConfig:
     #: connections at once; asyncua closes the next one at once (its own default is 1000,
     #: enough to take the file descriptors the PLC connections need)
     max_clients: int = DEFAULT_MAX_CLIENTS
+    #: seconds a new connection has to activate a session before it is closed (asyncua's
+    #: activation watchdog; its own default is 30 s)
+    first_request_timeout: float = FIRST_REQUEST_TIMEOUT
 
     def __post_init__(self) -> None:
         _validate(self)
@@ -149,6 +154,12 @@ def _validate(config: OpcUaConfig) -> None:
     if isinstance(clients, bool) or not isinstance(clients, int) or not 1 <= clients <= 10_000:
         raise ConfigError(
             f"opcua.max_clients must be 1..10000, not {clients!r}", key="opcua.max_clients"
+        )
+    first = config.first_request_timeout
+    if isinstance(first, bool) or not isinstance(first, int | float) or not 0 < first < 1e9:
+        raise ConfigError(
+            f"opcua.first_request_timeout must be seconds greater than 0, not {first!r}",
+            key="opcua.first_request_timeout",
         )
     if not config.namespace:
         raise ConfigError("opcua.namespace must not be empty", key="opcua.namespace")
@@ -275,6 +286,7 @@ _KEYS = {
     "anonymous",
     "users",
     "max_clients",
+    "first_request_timeout",
 }
 DEFAULT_LISTEN = Listen("127.0.0.1", 4840)
 DEFAULT_PATH = "/plcstack"
@@ -316,6 +328,10 @@ def parse_opcua_config(section: object, *, base: Path | None = None) -> OpcUaCon
     options["users"] = tuple(_user(users, name, spec) for name, spec in users.values.items())
     if "max_clients" in t:
         options["max_clients"] = t.raw("max_clients")
+    if "first_request_timeout" in t:
+        # 0: asyncua's own 30 s (its activation watchdog cannot be turned off from here)
+        first = t.seconds("first_request_timeout", 0.0, hi=1e9, zero="asyncua's 30 s")
+        options["first_request_timeout"] = first or 30.0
     return OpcUaConfig(**options)
 
 

@@ -5,8 +5,6 @@ certificates, and where a session's client is (the write audit's ``peer``)."""
 from __future__ import annotations
 
 import logging
-import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,11 +19,12 @@ from asyncua.server.user_managers import UserManager
 
 from plcstack.north.opcua_config import OpcUaConfig, check_password
 from plcstack.poll.config import ConfigError
+from plcstack.transports.guard import FaceGuard
 from plcstack.transports.peer import peer_address
 
 __all__ = [
+    "AsyncuaSays",
     "PlcUser",
-    "RefusalsOnce",
     "UserManagerOfConfig",
     "limit_clients",
     "session_peer",
@@ -33,50 +32,56 @@ __all__ = [
 ]
 
 log = logging.getLogger("plcstack.north.opcua")
-#: where asyncua says that it refused a connection at its limit
+#: where asyncua says what it did with a client's connection
 _ASYNCUA_LISTENER = "asyncua.server.binary_server_asyncio"
 
 
-class RefusalsOnce(logging.Filter):
-    """asyncua logs every connection it refuses at its limit as a WARNING: a flood, or a client
-    that reconnects in a loop, would be a line per attempt. The first refusal of a burst passes;
-    the next ones are counted (``refused``) and dropped until no refusal came for ``quiet``
-    seconds. The first line of the next burst says how many the previous one refused after its
-    first line."""
+class AsyncuaSays(logging.Filter):
+    """What asyncua's listener logs about its clients, handed to the server's face guard:
+    a connection refused at ``max_clients``, one closed because it activated no session in
+    time (its activation watchdog: the first request's deadline) and a malformed message header
+    are counted by the guard (``plcstack_face_guard_total``) and said once per host per burst
+    with their count, instead of one WARNING or ERROR line each (a flood, or a client that
+    reconnects in a loop, was a line per attempt)."""
 
-    def __init__(self, quiet: float = 10.0, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, guard: FaceGuard) -> None:
         super().__init__()
-        self.quiet = quiet
-        self.clock = clock
-        self.refused = 0
-        self._last = -math.inf
-        self._unsaid = 0
+        self.guard = guard
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if not str(record.msg).startswith("Refusing connection"):
-            return True
-        self.refused += 1
-        now, last = self.clock(), self._last
-        self._last = now
-        if now - last < self.quiet:
-            self._unsaid += 1
+        text = str(record.msg)
+        if text.startswith("Got malformed header"):
+            self.guard.malformed(None, None, "a malformed OPC UA message header")
             return False
-        if self._unsaid:
-            record.msg = f"{record.msg} (and {self._unsaid} more refused in the burst before)"
-            self._unsaid = 0
-        return True
+        if text.startswith("Refusing connection"):
+            reason = "max_clients"
+        elif text.startswith("Closing idle connection"):
+            reason = "first_request_timeout"
+        else:
+            return True
+        peername = record.args[0] if isinstance(record.args, tuple) and record.args else None
+        host = str(peername[0]) if isinstance(peername, tuple) and peername else "?"
+        peer = peer_address(peername) or host
+        self.guard.ended(host, peer, reason, refused=reason == "max_clients")
+        return False
 
 
-def limit_clients(server: Server, limit: int) -> Callable[[], None]:
-    """At most ``limit`` connections to ``server`` at once (asyncua closes the next one at once;
-    its own default, 1000, would take the file descriptors the PLC connections need), its
-    refusals logged once per burst. Returns what undoes the logging part (at the server's stop).
-    """
-    server.iserver.max_connections = limit
-    refusals = RefusalsOnce()
+def limit_clients(server: Server, guard: FaceGuard) -> Callable[[], None]:
+    """The guard's limits on ``server``, as asyncua can keep them: at most ``max_clients``
+    connections at once (asyncua closes the next one at once; its own default, 1000, would
+    take the file descriptors the PLC connections need), and a session activated within
+    ``first_request_timeout``; what it refuses and closes is counted and said by ``guard``
+    (:class:`AsyncuaSays`). Returns what undoes the logging part (at the server's stop)."""
+    limits = guard.limits
+    iserver = server.iserver
+    if limits.max_clients is not None:
+        iserver.max_connections = limits.max_clients
+    if limits.first_request_timeout is not None:
+        iserver.max_pending_activation_seconds = limits.first_request_timeout
+    says = AsyncuaSays(guard)
     listener = logging.getLogger(_ASYNCUA_LISTENER)
-    listener.addFilter(refusals)
-    return lambda: listener.removeFilter(refusals)
+    listener.addFilter(says)
+    return lambda: listener.removeFilter(says)
 
 
 @dataclass
