@@ -144,11 +144,15 @@ def e71_hint(failure: Failure, reply: bytes, *, code: str, first: bool) -> str:
             "longer request); check the port and that the E71 connection is 'with procedure'"
         )
     if failure == "closed":
+        # An E71 answers even a request it cannot parse: on an E71 port, a close without an
+        # answer is the module turning away a connection beyond its 8 (melsec-e71 §1.1).
         return (
             "the peer closed the connection right after our first request without answering; "
-            "an E71 answers even a request it cannot parse, so this port is probably not an "
-            "E71 MC-protocol port (a FETCH/WRITE or Tani MK module closes on such a request); "
-            "check the port"
+            "an E71 serves 8 connections at once and turns away any further one, so check "
+            "how many other clients (pollers, HMIs, SCADA, engineering software) hold its "
+            "connections; an E71 answers even a request it cannot parse, so otherwise this "
+            "port is probably not an E71 MC-protocol port (a FETCH/WRITE or Tani MK module "
+            "closes on such a request)"
         )
     return ""
 

@@ -256,6 +256,26 @@ async def test_e71_client_against_tani_module_that_closes() -> None:
     assert "closed the connection right after our first request" in hint_of(exc)
 
 
+async def test_a_ninth_e71_client_is_told_of_the_connection_limit() -> None:
+    """Before: "this port is probably not an E71 MC-protocol port" (the module closes the ninth
+    connection; an E71 never closes on a request, so on an E71 port that is the limit). After:
+    the limit of 8 connections is named first, the wrong port second."""
+    async with await e71sim.start() as sim:
+        held = [connect(f"e71+tcp://{hostport(sim)}") for _ in range(8)]
+        try:
+            for plc in held:
+                await plc.aopen()
+                await plc.read("D100", 1)
+            exc = await failure_of(f"e71+tcp://{hostport(sim)}?{FAST}", read("D100"))
+        finally:
+            for plc in held:
+                await plc.aclose()
+    assert type(exc) is ConnectionLost
+    hint = hint_of(exc)
+    assert "an E71 serves 8 connections at once" in hint, hint
+    assert hint.index("8 connections") < hint.index("probably not an E71"), hint
+
+
 async def test_e71_client_against_as511_device_server() -> None:
     async with await as511sim.start() as sim:
         exc = await failure_of(f"e71+tcp://{hostport(sim)}?{FAST}", read("D100"))

@@ -56,6 +56,18 @@ async def _e71_behind_s5_url() -> str:
         return await _plc_error(url, lambda plc: plc.read("DB10.DW0", 1))
 
 
+async def _ninth_e71_client() -> str:
+    async with await e71.start() as sim:
+        held = [plcstack.connect(sim.url) for _ in range(8)]
+        try:
+            for plc in held:
+                await plc.aopen()
+            return await _plc_error(sim.url, lambda plc: plc.read("D0", 1))
+        finally:
+            for plc in held:
+                await plc.aclose()
+
+
 async def _write_a_float() -> str:
     plc = plcstack.connect(f"e71+tcp://{NOWHERE}")  # refused before any connection is made
     try:
@@ -104,6 +116,7 @@ def _mistakes(tmp: Path) -> dict[str, Awaitable[str]]:
         "connect: cannot connect to": _cannot_connect(),
         "sent nothing; an S5-LAN module answers every 26-byte request block": _silent_port(),
         "looks like it comes from a MELSEC E71": _e71_behind_s5_url(),
+        "an E71 serves 8 connections at once": _ninth_e71_client(),
         "that is Siemens S5 notation": _cli_error("read", f"e71+tcp://{NOWHERE}", "DB10.DW0"),
         "is not an S5 address but MELSEC notation": _cli_error(
             "read", f"s5lan://{NOWHERE}", "D100"
