@@ -96,10 +96,23 @@ def test_skip_unsupported_reports_each_device() -> None:
     ).tags
     assert [t.address for t in tags] == ["D0"]
     assert [(s.line, s.device) for s in seen] == [(2, "SM400")]
+    assert "special relay of the Q/L and iQ-R series" in seen[0].why
+    assert "'M400' is not one" not in seen[0].why
 
 
 REFUSALS = [
-    ('"Device Name"\t"Comment"\r\n"SM400"\t"Always ON"\r\n', "c.csv:2: column 'Device'", "SM400"),
+    # before: "M takes a decimal device number like M100; 'M400' is not one" (S read as M)
+    (
+        '"Device Name"\t"Comment"\r\n"SM400"\t"Always ON"\r\n',
+        "c.csv:2: column 'Device'",
+        "SM is a special relay of the Q/L and iQ-R series; the A series has special relays"
+        " M9000-M9255 instead",
+    ),
+    (
+        '"Device Name"\t"Comment"\r\n"ZR100"\t"Recipe"\r\n',
+        "c.csv:2: column 'Device'",
+        "ZR is a file register of the Q/L series",
+    ),
     ('"Device Name"\t"Comment"\r\n"D99999"\t"x"\r\n', "c.csv:2: column 'Device'", "out of range"),
     (
         '"Device Name"\t"Comment"\r\n"D1"\t"a"\r\n"D0001"\t"b"\r\n',

@@ -88,6 +88,28 @@ _NAMES: Final[dict[str, Device]] = {d.letters: d for d in Device} | _ALIASES
 SPECIAL_FIRST: Final = 9000
 SPECIAL_LAST: Final = 9255
 
+#: devices of the later MELSEC series (Q, L, iQ-R; GX Works projects and device comments name
+#: them) that the 1E frame of an A-series E71 does not address (§5.1): what each is, and what
+#: the A series has instead where it has something
+_OTHER_SERIES: Final[dict[str, str]] = {
+    "SM": "a special relay of the Q/L and iQ-R series; the A series has special relays"
+    f" M{SPECIAL_FIRST}-M{SPECIAL_LAST} instead (e.g. SM400 'always ON' is M9036)",
+    "SD": "a special register of the Q/L and iQ-R series; the A series has special registers"
+    f" D{SPECIAL_FIRST}-D{SPECIAL_LAST} instead",
+    "SB": "a link special relay of the Q/L series, which the 1E frame does not reach",
+    "SW": "a link special register of the Q/L series, which the 1E frame does not reach",
+    "ZR": "a file register of the Q/L series in serial numbering; the 1E frame reaches the"
+    " A series' file registers as R",
+    "DX": "a direct input of the Q/L series; the 1E frame reads inputs as X",
+    "DY": "a direct output of the Q/L series; the 1E frame reads outputs as Y",
+    "LB": "a link relay of the iQ-R series; the 1E frame reaches link relays as B",
+    "LW": "a link register of the iQ-R series; the 1E frame reaches link registers as W",
+    "RD": "a refresh data register of the iQ-R series, which the 1E frame does not reach",
+    "Z": "an index register, which the 1E frame does not reach",
+    "V": "an index register (or edge relay), which the 1E frame does not reach",
+    "U": "a module's buffer memory (U\\G), which the 1E frame reaches by its own commands",
+}
+
 
 class CpuGroup(enum.Enum):
     """CPU groups of §5.2 (device ranges differ). VII = A3A/A3U/A4U/Q3A/Q4A."""
@@ -185,6 +207,9 @@ def _parse(text: str, last: dict[Device, int] | None) -> DeviceRef:
     if not isinstance(text, str):
         raise AddressError(f"address {text!r} is not a string")
     upper = text.strip().upper()
+    other = _other_series(upper)
+    if other and not _foreign(upper):  # DX3.DW0 is an S5 data block, not a direct input
+        raise AddressError(f"address {text!r}: {other}")
     device: Device | None = None
     digits = ""
     for size in (2, 1):
@@ -212,6 +237,19 @@ def _parse(text: str, last: dict[Device, int] | None) -> DeviceRef:
             f" ({_range_text(device, ranges)})"
         )
     return DeviceRef(device, number)
+
+
+def _other_series(upper: str) -> str:
+    """What a device of another MELSEC series is (``_OTHER_SERIES``), or "" when ``upper``
+    is none: a letter pair of those series followed by a number (``SM400``), where the A
+    series' parser would take the first letter for a device of its own (``S`` = ``M``) and
+    complain about the rest ("'M400' is not one")."""
+    for size in (2, 1):
+        what = _OTHER_SERIES.get(upper[:size])
+        rest = upper[size:]
+        if what and rest and rest[0].isdigit():
+            return f"{upper[:size]} is {what}"
+    return ""
 
 
 def _range_text(device: Device, last: dict[Device, int]) -> str:
