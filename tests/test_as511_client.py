@@ -30,6 +30,7 @@ from plcstack.sim.s5memory import Area, BlockType, S5Memory
 from plcstack.transports.serial import SerialTransport, is_pty
 from plcstack.url import parse_url
 from tests.aio_helpers import ends_quietly
+from tests.cli_helpers import cli_in_process
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -269,6 +270,18 @@ async def test_serial_open_errors_and_pty_parity_fallback() -> None:
             await transport.aclose()
         assert transport.parity_fallback
         assert transport.byte_time == pytest.approx(11 / 9600)
+
+
+async def test_the_pty_parity_fallback_is_said_as_the_readme_says() -> None:
+    """README and as511.md: on a pty the transport retries without parity and logs it once at
+    INFO, shown with -v, not on the default error output (before, the README said "on
+    stderr", where it was never shown)."""
+    async with await sim_as511.start_pty() as s:
+        code, out, err = await cli_in_process("read", s.url, "MB0")
+        assert (code, out) == (0, "MB0: 0\n") and "parity" not in err, err
+        code, out, err = await cli_in_process("read", "-v", s.url, "MB0")
+        assert code == 0 and err.count("rejects parity E") == 1, err
+        assert "INFO" in next(line for line in err.splitlines() if "rejects parity" in line)
 
 
 def test_poller_hooks() -> None:
