@@ -145,3 +145,42 @@ async def test_64_idle_sockets_lock_no_client_out(
         assert int(more.group(1)) + 1 == refused
     closes = [line for line in lines if "no complete request within 1 s" in line]
     assert 1 <= len(closes) <= 2 and f"closed the connection of {ATTACKER}:" in closes[0]
+
+
+#: bytes that are no request of the face's protocol: an undefined E71 subheader (answered 50H),
+#: an S5-LAN block with a wrong header length, a FETCH/WRITE job without its "S5"
+GARBAGE = {"e71": bytes([0x65]) + bytes(11), "s5lan": bytes(26), "fetchwrite": bytes(16)}
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "gateway-s5lan",
+        "gateway-fetchwrite",
+        "gateway-e71",
+        "sim-e71",
+        "sim-s5lan",
+        "sim-fetchwrite",
+    ],
+)
+async def test_one_clients_garbage_is_said_once_per_burst(
+    kind: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before: the faces took garbage without a word (an S5-LAN or FETCH/WRITE face closed the
+    connection, an E71 answered its end code): nothing told an operator that a client spoke
+    another protocol. After: the first, naming the client, and the count of the rest."""
+    caplog.set_level(logging.WARNING)
+    protocol = kind.split("-", 1)[1]
+    sent = 20
+    async with face(kind) as (server, _, _):
+        for _ in range(sent):
+            reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+            writer.write(GARBAGE[protocol])
+            await asyncio.wait_for(reader.read(100), 5)  # the face's answer, or its close
+            writer.close()
+        await eventually(lambda: server.guard.counts["malformed"] == sent, "all garbage seen")
+    lines = guard_lines(caplog, "127.0.0.1")
+    lines = [line for line in lines if "malformed" in line or "sent a" in line]
+    assert len(lines) == 2, lines
+    assert "127.0.0.1:" in lines[0] and "sent a malformed" in lines[0]
+    assert f"{sent - 1} more malformed requests from 127.0.0.1" in lines[1]
