@@ -407,8 +407,8 @@ class Visit:
         self._last = self._loop.time()
 
     def served(self) -> None:
-        """A complete request was taken: the first-request deadline is met."""
-        self._last = self._loop.time()
+        """A complete request was taken: the first-request deadline is met (its bytes were
+        touched as they came)."""
         self.served_once = True
 
     def expired(self) -> str | None:
