@@ -43,13 +43,14 @@ def test_parse_limits_keys_and_their_errors() -> None:
     )
     got = parse_limits_of({"max_clients": 8, "first_request_timeout": 2, "idle_timeout": 0})
     assert got == Limits(8, 6, 2.0, None)
-    for table, message in (
+    refused: list[tuple[dict[str, object], str]] = [
         ({"max_clients": 0}, r"\[modbus\] max_clients must be 1..10000, not 0"),
         ({"max_clients_per_host": True}, "max_clients_per_host must be 1..10000"),
         ({"first_request_timeout": -1}, "first_request_timeout"),
         ({"idle_timeout": "ten"}, "idle_timeout"),
         ({"max_clients": 4, "max_clients_per_host": 5}, "cannot be more than max_clients"),
-    ):
+    ]
+    for table, message in refused:
         with pytest.raises(ConfigError, match=message):
             parse_limits_of(table)
 

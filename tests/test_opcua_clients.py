@@ -73,7 +73,7 @@ def test_first_request_timeout_is_read_and_checked() -> None:
     assert parse_opcua_config({"first_request_timeout": 2}).first_request_timeout == 2
     assert parse_opcua_config({"first_request_timeout": 0}).first_request_timeout == 30.0
     for bad in (-1, "8", True):
-        with pytest.raises(ConfigError, match="first_request_timeout must be seconds"):
+        with pytest.raises(ConfigError, match="first_request_timeout must be a number of seconds"):
             parse_opcua_config({"first_request_timeout": bad})
 
 

@@ -48,8 +48,7 @@ from plcstack.sim.as511 import AgLine
 from plcstack.sim.base import DEFAULT_IDLE_TIMEOUT, TcpSimulator, check_idle_timeout
 from plcstack.sim.s5store import ABSOLUTE
 from plcstack.transports import tap
-from plcstack.transports.guard import ClientLimit
-from plcstack.transports.peer import peer_address
+from plcstack.transports.guard import FaceGuard, Limits, Visit
 
 __all__ = ["As511Executor", "As511Face", "start"]
 
@@ -195,29 +194,26 @@ def _what_changes(fn: int, params: bytes) -> tuple[str, list[int]]:
 
 
 class As511Face(TcpSimulator):
-    """A running AS511 face on TCP: one PG at a time (a programming port has one master)."""
+    """A running AS511 face on TCP: one PG at a time (a programming port has one master);
+    ``guard`` (its limits: a first transaction within the first request's deadline, the idle
+    timeout) counts what it refused and closed."""
 
     def __init__(
         self,
         server: asyncio.Server,
         executor: As511Executor,
+        guard: FaceGuard,
         *,
-        max_connections: int,
-        idle_timeout: float | None,
         char_timeout: float,
     ) -> None:
-        super().__init__(server, "as511+tcp")
+        super().__init__(server, "as511+tcp", guard=guard)
         self.executor = executor
-        self.idle_timeout = idle_timeout
         self.char_timeout = char_timeout
-        self.limit = ClientLimit(max_connections, f"AS511 face {self.url}", log)
 
-    @property
-    def refused_connections(self) -> int:  # type: ignore[override]
-        return self.limit.refused
-
-    async def serve(self, line: AgLine, transport: asyncio.Transport, peer: str) -> None:
-        """The AG of one PG: its transactions until it goes (or is idle too long)."""
+    async def serve(self, line: AgLine, transport: asyncio.Transport, visit: Visit) -> None:
+        """The AG of one PG: its transactions until it goes (or sends no transaction in time
+        after connecting, or is idle too long)."""
+        peer = visit.peer
         loop = asyncio.get_running_loop()
         ag = AGConnection(char_timeout=self.char_timeout, functions=FUNCTIONS)
         pending: asyncio.Task[Answer] | None = None
@@ -243,25 +239,26 @@ class As511Face(TcpSimulator):
                         continue
                     data = reading.result()
                 else:
-                    deadline = ag.deadline
-                    if deadline is None and self.idle_timeout is not None:
-                        deadline = loop.time() + self.idle_timeout
+                    deadline = ag.deadline if ag.deadline is not None else visit.due
                     try:
                         data = await line.read(deadline)
                     except TimeoutError:
                         now = loop.time()
                         if ag.deadline is None:
-                            self.idle_closed += 1
-                            return  # nothing from the PG for idle_timeout
+                            if visit.expired() is not None:  # counted and said by the guard
+                                return
+                            continue
                         ag.timer(now)
                         continue
                 if not data:
                     return  # the PG went away
+                visit.touch()
                 now = line.arrived or loop.time()
                 ag.held_up(now)
                 ag.receive_data(data, now)
                 while (event := ag.next_event()) is not NEED_DATA:
                     if isinstance(event, Request):
+                        visit.served()
                         pending = asyncio.ensure_future(
                             self.executor.execute(event.fn, event.params, peer)
                         )
@@ -278,7 +275,7 @@ class As511Face(TcpSimulator):
             if pending is not None:
                 pending.cancel()
                 await asyncio.gather(pending, return_exceptions=True)
-            self.limit.release()
+            visit.leave()
             await line.close(transport)
 
 
@@ -290,26 +287,24 @@ async def start(
     max_connections: int = DEFAULT_MAX_CONNECTIONS,
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
     char_timeout: float = 0.5,
+    limits: Limits | None = None,
 ) -> As511Face:
-    """Serve the AS511 face of ``executor``'s PLC on ``host:port`` (0: any free port)."""
-    idle = check_idle_timeout(idle_timeout)
+    """Serve the AS511 face of ``executor``'s PLC on ``host:port`` (0: any free port):
+    ``limits`` (the face's table keys), or ``max_connections`` PGs and ``idle_timeout``."""
+    if limits is None:
+        limits = Limits(max_connections, idle_timeout=check_idle_timeout(idle_timeout))
+    guard = FaceGuard("as511", f"AS511 face {host}:{port}", limits, log)
     faces: list[As511Face] = []
 
     def connected(line: AgLine, transport: asyncio.Transport) -> None:
-        face = faces[0]
-        peer = peer_address(transport.get_extra_info("peername")) or "?"
-        if not face.limit.admit(peer):
+        visit = guard.admit(transport.get_extra_info("peername"))
+        if visit is None:
             transport.abort()
             return
-        face.track(asyncio.get_running_loop().create_task(face.serve(line, transport, peer)))
+        task = asyncio.get_running_loop().create_task(faces[0].serve(line, transport, visit))
+        faces[0].track(task)
 
     server = await tap.create_server(lambda: AgLine(f"{host}:{port}", connected), host, port)
-    face = As511Face(
-        server,
-        executor,
-        max_connections=max_connections,
-        idle_timeout=idle,
-        char_timeout=char_timeout,
-    )
+    face = As511Face(server, executor, guard, char_timeout=char_timeout)
     faces.append(face)
     return face

@@ -220,7 +220,7 @@ async def _start(face: FaceSettings, answering: Answering) -> Simulator:
     """The server of one face, answering from its store or executor."""
     if isinstance(answering, As511Executor):
         return await as511face.start(
-            answering, host=face.host, port=face.port, max_connections=face.connections
+            answering, host=face.host, port=face.port, limits=face.guard_limits
         )
     if isinstance(answering, E71Executor):
         return await e71server.start(
