@@ -17,6 +17,7 @@ from plcstack.clients import connect
 from plcstack.config import parse_config
 from plcstack.errors import ConfigError, PlcErrorResponse
 from plcstack.sim import s5lan as lan_sim
+from plcstack.transports.guard import Limits
 from tests.ports import free_port
 from tests.test_gateway import _env
 
@@ -111,6 +112,8 @@ plc = "kiln1"
         (('listen = "127.0.0.1:2001"', 'listen = "2001"'), "listen must be"),
         (('plc = "kiln1"', "mk = true"), "mk (the Tani MK header)"),
         (('plc = "kiln1"', "queue = 0"), "queue must be 1..65536"),
+        (('plc = "kiln1"', "first_request_timeout = -1"), "first_request_timeout must be"),
+        (('plc = "kiln1"', "max_clients_per_host = 9"), "cannot be more than max_connections (8)"),
     ],
 )
 def test_gateway_mistakes_are_said_with_their_line(change: tuple[str, str], message: str) -> None:
@@ -135,3 +138,15 @@ def test_two_faces_on_one_address_are_refused() -> None:
         parse_config(text, source="plant.toml")
     config = parse_config(PLC.format(url="s5lan://127.0.0.1:5010") + GATEWAY)
     assert [f.describe() for f in config.gateway] == ["s5lan face of kiln1"]
+
+
+def test_a_faces_guard_limits_are_its_tables_keys() -> None:
+    """[[gateway]] takes the guard's keys of every listening face (plcstack.transports.guard);
+    its clients at once are its max_connections."""
+    keys = 'plc = "kiln1"\nmax_connections = 4\nmax_clients_per_host = 1\n'
+    keys += 'first_request_timeout = "2s"\nidle_timeout = 0\n'
+    text = PLC.format(url="s5lan://127.0.0.1:5010") + GATEWAY.replace('plc = "kiln1"\n', keys)
+    (face,) = parse_config(text).gateway
+    assert face.guard_limits == Limits(4, 1, 2.0, None)
+    (plain,) = parse_config(PLC.format(url="s5lan://127.0.0.1:5010") + GATEWAY).gateway
+    assert plain.guard_limits == Limits(8, 6, 10.0, 600.0)

@@ -305,7 +305,8 @@ def parse_gateway(table: Table) -> FaceSettings:
     if any(k in table for k in ("max_clients_per_host", "first_request_timeout", "idle_timeout")):
         # the guard's keys; the face's clients at once are its max_connections
         total = connections or DEFAULT_CONNECTIONS[protocol]
-        limits = parse_limits(table, Limits(total, idle_timeout=DEFAULT_IDLE_TIMEOUT))
+        defaults = Limits(total, idle_timeout=DEFAULT_IDLE_TIMEOUT)
+        limits = parse_limits(table, defaults, total_key="max_connections")
     queue = table.integer("queue", 1, 1, 65536) if "queue" in table else None
     max_wait = table.seconds("max_wait", 2.0, hi=3600.0) if "max_wait" in table else None
     plc = table.text("plc", "")

@@ -159,9 +159,11 @@ class Limits:
         return "; ".join(parts)
 
 
-def parse_limits(t: Table, defaults: Limits) -> Limits:
+def parse_limits(t: Table, defaults: Limits, *, total_key: str = "max_clients") -> Limits:
     """The :data:`LIMIT_KEYS` of a face's table over ``defaults`` (durations as every table
-    takes them, ``0`` turns a timeout off); :class:`ConfigError` naming ``[table] key``."""
+    takes them, ``0`` turns a timeout off); :class:`ConfigError` naming ``[table] key``.
+    ``total_key``: how the table names the clients at once (``[[gateway]]``:
+    ``max_connections``, read by its own parser into ``defaults``)."""
     total = defaults.max_clients
     if "max_clients" in t:
         total = t.integer("max_clients", 1, 1, 10_000)
@@ -177,7 +179,7 @@ def parse_limits(t: Table, defaults: Limits) -> Limits:
             timeouts[key] = default
     if total is not None and per_host is not None and per_host > total:
         raise t.error(
-            "max_clients_per_host", f"({per_host}) cannot be more than max_clients ({total})"
+            "max_clients_per_host", f"({per_host}) cannot be more than {total_key} ({total})"
         )
     return Limits(total, per_host, timeouts["first_request_timeout"], timeouts["idle_timeout"])
 
