@@ -36,6 +36,7 @@ from benchmarks.web_console import all_answered, finish, ready, start_helper
 from plcstack.bench.cases.fanout import raise_fd_limit
 from plcstack.north.config import NorthConfig
 from plcstack.north.pipeline import North
+from plcstack.north.web.server import WebConsole
 from plcstack.north.web.settings import WebSettings
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
@@ -137,8 +138,9 @@ async def measure(args: argparse.Namespace) -> dict[str, Any]:
             consumer = asyncio.create_task(north.run())
             await all_answered(poller)
             await asyncio.sleep(3.0)  # two pushes of the PLC rows
-            assert north.web is not None
-            base = north.web.url.rstrip("/")
+            console = north.face(WebConsole)
+            assert console is not None
+            base = console.url.rstrip("/")
             result = {"bytes": await sizes(base), "chromium": await browse(base, args.loads)}
             consumer.cancel()
             await asyncio.gather(consumer, return_exceptions=True)

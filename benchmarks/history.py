@@ -126,9 +126,9 @@ async def measure_write(args: argparse.Namespace, folder: Path) -> dict[str, Any
             for r in range(args.rounds):
                 for mode in MODES[r % 2 :] + MODES[: r % 2]:
                     if mode == "poller":
-                        north.sinks = [s for s in north.sinks if s is not history]
-                    elif history not in north.sinks:
-                        north.sinks.append(history)
+                        north.faces = [f for f in north.faces if f is not history]
+                    elif history not in north.faces:
+                        north.faces.append(history)
                     share, rate = await window(poller, args.window)
                     cpu[mode].append(share)
                     rates[mode].append(rate)

@@ -40,8 +40,8 @@ from plcstack.north.mqtt import MqttSettings
 from plcstack.north.pipeline import North
 from plcstack.north.rbe import PASS_ALL, ReportPolicy
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample, Scan
-from plcstack.poll.stats import PlcStats
 
 
 def cpu_seconds(pid: int) -> float:
@@ -74,22 +74,14 @@ def start_mosquitto(workdir: Path, nodelay: bool = False) -> tuple[subprocess.Po
     raise SystemExit(f"mosquitto ({binary}) did not start on 127.0.0.1:{port}")
 
 
-class FakePoller:
-    """What North needs of a poller: config, stats, dropped (samples come from the benchmark)."""
-
-    def __init__(self, plcs: int, tags: int) -> None:
-        tag_configs = tuple(TagConfig(f"t{j}", f"D{j}") for j in range(tags))
-        self.config = PollConfig(
-            tuple(
-                PlcConfig(f"plc{i:04d}", "e71+tcp://127.0.0.1:1", tag_configs) for i in range(plcs)
-            )
-        )
-        self.stats = {p.name: PlcStats() for p in self.config.plcs}
-        self.dropped = 0
-        self.plcs = [p.name for p in self.config.plcs]
-
-    async def write_tag(self, plc: str, tag: str, value: object) -> None:
-        raise NotImplementedError
+def idle_poller(plcs: int, tags: int) -> Poller:
+    """A Poller of the benchmark's PLCs, never started (the samples come from the benchmark):
+    what the runtime reads of it is its configuration, its PLCs and tags, its statistics."""
+    tag_configs = tuple(TagConfig(f"t{j}", f"D{j}") for j in range(tags))
+    plc_configs = tuple(
+        PlcConfig(f"plc{i:04d}", "e71+tcp://127.0.0.1:1", tag_configs) for i in range(plcs)
+    )
+    return Poller(PollConfig(plc_configs))
 
 
 def scan(plc: str, tags: int, t: float, k: int) -> list[Scan]:
@@ -118,7 +110,7 @@ async def drive(north: North, plcs: list[str], tags: int, seconds: int) -> int:
 
 
 async def paced(args: argparse.Namespace, port: int, broker_pid: int, workdir: Path) -> None:
-    poller = FakePoller(args.plcs, args.tags)
+    poller = idle_poller(args.plcs, args.tags)
     report: Any = ReportPolicy(deadband=0.5) if args.rbe else PASS_ALL
     # baseline: the same pacing, samples, metrics and RBE, without the sink
     async with North(poller, NorthConfig(report=report)) as bare:
@@ -156,7 +148,7 @@ async def paced(args: argparse.Namespace, port: int, broker_pid: int, workdir: P
 
 
 async def burst(args: argparse.Namespace, port: int, workdir: Path) -> None:
-    poller = FakePoller(args.plcs, args.tags)
+    poller = idle_poller(args.plcs, args.tags)
     settings = MqttSettings(
         host="127.0.0.1", port=port, client_id="bench-burst", buffer_path=str(workdir / "b.sqlite")
     )

@@ -230,9 +230,9 @@ async def _measure(args: argparse.Namespace) -> dict[str, Any]:
                 for mode in order:
                     helper = None
                     if mode == "poller":
-                        north.sinks = [s for s in north.sinks if s is not console]
-                    elif console not in north.sinks:
-                        north.sinks.append(console)
+                        north.faces = [f for f in north.faces if f is not console]
+                    elif console not in north.faces:
+                        north.faces.append(console)
                     if mode == "console, 1 browser":
                         helper = start_helper("browser", console.url)
                         await loop.run_in_executor(None, ready, helper, "the browser")

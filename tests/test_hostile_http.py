@@ -12,6 +12,8 @@ import pytest
 
 from plcstack.north import metrics
 from plcstack.north.metrics import MetricsServer, MetricsSettings, PlcstackCollector
+from plcstack.poll.config import PollConfig
+from plcstack.poll.engine import Poller
 from plcstack.transports.guard import Limits
 from tests.aio_helpers import ended_by_server, eventually
 from tests.guard_helpers import ATTACKER, IDLE_SOCKETS, guard_lines, idle_sockets
@@ -86,10 +88,8 @@ async def test_web_console_answers_garbage_400_without_a_traceback(
     assert said[1].startswith(f"web console: {len(GARBAGE) - 1} more malformed requests from")
 
 
-class _Poller:
-    stats: dict[str, object] = {}
-    dropped = 0
-    plcs: list[str] = []
+def _Poller() -> Poller:
+    return Poller(PollConfig((), {"default": 1.0}))
 
 
 def _handlers() -> list[asyncio.Task[object]]:

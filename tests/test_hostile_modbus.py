@@ -21,6 +21,7 @@ from plcstack.poll.engine import Poller
 from plcstack.sim import e71
 from tests.aio_helpers import ended_by_server, eventually
 from tests.guard_helpers import ATTACKER, IDLE_SOCKETS, guard_lines, idle_sockets
+from tests.runtime_helpers import fed
 
 PLANT = """
 [poll]
@@ -48,17 +49,12 @@ async def serving(tmp_path: Path, extra: str = "") -> AsyncIterator[ModbusServer
     config = load_config(path)
     poller = Poller(config.poll)
     server = ModbusServer.from_config(poller, config.north.modbus)
-    feed: asyncio.Task[None] | None = None
     try:
-        async with poller, server:
-            feed = asyncio.create_task(server.run())
+        async with poller, server, fed(poller, server):
             slot = server.image._by_tag[("p", "block")]
             await eventually(lambda: slot.words is not None, "the first poll reached the image")
             yield server
     finally:
-        if feed is not None:
-            feed.cancel()
-            await asyncio.gather(feed, return_exceptions=True)
         await sim.aclose()
 
 
@@ -91,7 +87,7 @@ async def test_a_client_that_never_reads_is_not_answered_into_memory(
                     await asyncio.wait_for(writer.drain(), 0.5)
                 except TimeoutError:
                     break  # the server stopped reading: TCP pushes back on us
-            (connection,) = server._connections
+            (connection,) = server.connections
             assert connection.transport is not None
             held = connection.transport.get_write_buffer_size() + connection.codec.buffered
             assert held <= 1024 * 1024, f"{held} bytes held for a client that does not read"

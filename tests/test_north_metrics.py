@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import asyncio
-from typing import Any
+import time
 
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from plcstack.clients.base import Client
 from plcstack.north.buffer import StoreAndForward
+from plcstack.north.health import Health
 from plcstack.north.metrics import MetricsServer, PlcstackCollector, parse_metrics
+from plcstack.north.mqtt import MqttSettings, MqttSink
 from plcstack.north.rbe import ReportByException, ReportPolicy
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
@@ -30,16 +32,16 @@ async def http(port: int, request: bytes) -> tuple[int, bytes]:
     return int(head.split()[1]), body
 
 
-class FakeSink:
-    def __init__(self) -> None:
-        self.buffer = StoreAndForward(None, max_bytes=10_000)
-        self.connected = False
+def idle_poller() -> Poller:
+    """A poller of no PLC, never started."""
+    return Poller(PollConfig((), {"default": 1.0}))
 
-        class S:
-            sent = 7
-            replayed = 3
 
-        self.stats = S()
+def idle_sink() -> MqttSink:
+    """An MQTT sink never started, with figures of its own."""
+    sink = MqttSink(MqttSettings(port=1), buffer=StoreAndForward(None, max_bytes=10_000))
+    sink.stats.sent, sink.stats.replayed = 7, 3
+    return sink
 
 
 async def test_metrics_endpoint_parses_and_counts() -> None:
@@ -56,7 +58,7 @@ async def test_metrics_endpoint_parses_and_counts() -> None:
         ),
         {"default": 0.01},
     )
-    sink = FakeSink()
+    sink = idle_sink()
     for _ in range(5):
         sink.buffer.put("x/y", b"12345")
     rbe = ReportByException(ReportPolicy())
@@ -102,27 +104,35 @@ async def test_metrics_endpoint_parses_and_counts() -> None:
     assert backlog.value == 5
     assert families["plcstack_mqtt_sent"].samples[0].value == 7
     assert families["plcstack_rbe_suppressed"].samples[0].value == rbe.suppressed > 0
-    assert health == (200, b"ok\n")
+    assert health == (200, b"ok\nmetrics: ok\n")
     assert (missing[0], post[0]) == (404, 405)
-    assert huge[0] in (431, 0) and after == (200, b"ok\n")  # refused, and still serving
+    assert huge[0] in (431, 0) and after == health  # refused, and still serving
 
 
-async def test_healthz_reports_the_reason() -> None:
-    class P:
-        stats: dict[str, Any] = {}
-        dropped = 0
-
+async def test_healthz_reports_the_reason_and_livez_that_it_lives() -> None:
+    since = time.time() - 12
+    parts = [
+        Health("poller"),
+        Health("mqtt", "MQTT broker mqtt://127.0.0.1:1 unreachable", since, (("waiting", 269),)),
+    ]
     server = MetricsServer(
-        PlcstackCollector(P()), parse_metrics({"port": 0}), lambda: "poller stopped"
+        PlcstackCollector(idle_poller()), parse_metrics({"port": 0}), lambda: parts
     )
     await server.start()
     try:
-        assert await http(server.port, b"GET /healthz HTTP/1.0\r\n\r\n") == (
-            503,
-            b"poller stopped\n",
-        )
+        status, body = await http(server.port, b"GET /healthz HTTP/1.0\r\n\r\n")
+        alive = await http(server.port, b"GET /livez HTTP/1.0\r\n\r\n")
+        parts[1] = Health("mqtt")
+        healthy = await http(server.port, b"GET /healthz HTTP/1.0\r\n\r\n")
     finally:
         await server.aclose()
+    assert status == 503
+    stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(since))
+    assert body.decode() == (
+        f"mqtt: MQTT broker mqtt://127.0.0.1:1 unreachable since {stamp} (12 s ago), 269 waiting\n"
+    )
+    assert alive == (200, b"alive\n")
+    assert healthy == (200, b"ok\npoller: ok\nmqtt: ok\n")
 
 
 def test_metrics_table() -> None:
@@ -211,11 +221,7 @@ def test_failures_that_are_no_failed_request_are_not_observed() -> None:
     from plcstack.errors import ConnectionLost, PlcTimeout, ValueDecodeError
     from plcstack.poll.samples import Quality, Sample
 
-    class P:
-        stats: dict[str, Any] = {}
-        dropped = 0
-
-    collector = PlcstackCollector(P())
+    collector = PlcstackCollector(idle_poller())
     t = 1_800_000_000.0
     bad = Quality.BAD
     collector.observe(

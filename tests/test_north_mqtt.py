@@ -16,6 +16,7 @@ from plcstack.clients.base import Client
 from plcstack.errors import ConnectFailed
 from plcstack.north.buffer import StoreAndForward
 from plcstack.north.mqtt import MqttSettings, MqttSink, parse_mqtt
+from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.values import BOOL, KY, UINT16
@@ -187,8 +188,7 @@ def make_poller() -> tuple[Poller, dict[str, FakeClient]]:
 async def test_writes_are_confirmed_or_refused_with_the_reason(mosquitto: Mosquitto) -> None:
     poller, fakes = make_poller()
     async with poller:
-        writable = {("press1", t.name): t.writable for t in poller.config.plcs[0].tags}
-        sink = MqttSink(settings(mosquitto), writer=poller, writable=writable)
+        sink = MqttSink(settings(mosquitto), writes=WritePath(poller))
         await sink.start()
         await sink.wait_connected(5)
         async with (

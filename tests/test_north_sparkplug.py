@@ -12,6 +12,7 @@ from plcstack.clients.base import Client
 from plcstack.north.mqtt import MqttSettings, MqttSink
 from plcstack.north.sparkplug import SparkplugLayout, metric_value
 from plcstack.north.sparkplug_pb import Payload
+from plcstack.north.writes import WritePath
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.values import BOOL, FLOAT32, INT16, UINT16
@@ -39,7 +40,7 @@ def test_payload_bytes_follow_the_specification_field_numbers() -> None:
 
 
 TAGS = (
-    TagConfig("speed", "D10", UINT16),
+    TagConfig("speed", "D10", UINT16, writable=True),  # DCMD writes it (the one allow-list)
     TagConfig("neg", "D11", INT16),
     TagConfig("temp", "D12", FLOAT32),
     TagConfig("alarms", "M0", BOOL, count=2),
@@ -89,7 +90,7 @@ async def test_sparkplug_session_births_data_deaths_rebirth_and_dcmd(mosquitto: 
         Poller(config, client_factory=factory) as poller,
         subscriber(mosquitto.host, mosquitto.port, "#") as sub,
     ):
-        sink = MqttSink(settings, writer=poller, layout=layout)
+        sink = MqttSink(settings, writes=WritePath(poller), layout=layout)
         await sink.start()
         await sink.wait_connected(5)
         await sub.wait_for(lambda s: len(s.messages) >= 2)

@@ -35,7 +35,7 @@ def bd_seq_of(payload: bytes) -> int:
 
 
 def will_bd_seq(layout: SparkplugLayout) -> int:
-    return bd_seq_of(layout.will()[1])
+    return bd_seq_of(layout.will(0.0)[1])
 
 
 def layout(state: BdSeqStore | None) -> SparkplugLayout:

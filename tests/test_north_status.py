@@ -110,11 +110,10 @@ async def test_every_plcs_retained_status_is_there_again_after_a_broker_restart(
     online = {f"press{i}": i % 3 != 0 for i in range(7)}
     topics = [f"plcstack/{plc}/status" for plc in online]
     with Mosquitto(persistence=False) as broker:
-        layout = JsonLayout("plcstack", "restart-test", groups={p: ["default"] for p in online})
+        groups = {p: ["default"] for p in online}
+        layout = JsonLayout("plcstack", "restart-test", groups=groups, plcs=list(online))
         sink = MqttSink(
-            MqttSettings(host=broker.host, port=broker.port, reconnect_max=0.2),
-            layout=layout,
-            plcs=list(online),
+            MqttSettings(host=broker.host, port=broker.port, reconnect_max=0.2), layout=layout
         )
         await sink.start()
         try:

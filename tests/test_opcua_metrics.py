@@ -84,7 +84,9 @@ async def test_serve_opcua_serves_metrics_from_the_poll_collector(tmp_path: Path
         assert requests["press1"] >= 1
         kinds = {(s.labels["plc"], s.labels["error"]) for s in failed}
         assert kinds == {("dead", "ConnectFailed")}
-        assert await get(port, "/healthz") == (200, "ok\n")
+        status, health = await get(port, "/healthz")
+        assert status == 200 and health.splitlines()[0] == "ok", health
+        assert "opcua: ok, 2 variables" in health.splitlines()  # every face of the run
         os.kill(os.getpid(), signal.SIGTERM)  # the command's own handler: a clean stop
         assert await asyncio.wait_for(serving, 15) == 0
     finally:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from types import SimpleNamespace
 
 import pytest
 
@@ -14,6 +13,7 @@ from plcstack.north.config import NorthConfig
 from plcstack.north.mqtt import MqttSettings, MqttSink
 from plcstack.north.pipeline import North
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.values import BCD16
 from tests.scan_helpers import scan
@@ -31,7 +31,7 @@ def test_a_plc_going_offline_and_back_is_one_warning_each(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     plc = PlcConfig("press1", "e71+tcp://127.0.0.1:1", (TagConfig("x", "D0"),))
-    poller = SimpleNamespace(config=PollConfig((plc,), {"default": 1}))
+    poller = Poller(PollConfig((plc,), {"default": 1}))  # never started
     north = North(poller, NorthConfig())
     pattern = [True] * 3 + [False] * 20 + [True] * 5 + [False] * 2
     with caplog.at_level(logging.WARNING):
@@ -50,7 +50,7 @@ def test_a_cold_start_whose_failing_group_reports_first_says_nothing_offline(
 ) -> None:
     tags = (TagConfig("x", "D0"), TagConfig("code", "D1", BCD16, group="slow"))
     plc = PlcConfig("press1", "e71+tcp://127.0.0.1:1", tags)
-    poller = SimpleNamespace(config=PollConfig((plc,), {"default": 1, "slow": 1}))
+    poller = Poller(PollConfig((plc,), {"default": 1, "slow": 1}))  # never started
     north = North(poller, NorthConfig())
     t = 1_800_000_000.0
     error = "press1: read D1: 00AF is no BCD"

@@ -12,6 +12,7 @@ from collections.abc import AsyncIterator, Callable
 
 import pytest
 
+from plcstack.north.writes import WritePath
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.scale.hrw import owner
 from plcstack.scale.worker import Worker, WorkerOptions
@@ -156,3 +157,33 @@ async def test_a_worker_cut_from_the_broker_keeps_its_plcs(
             assert set(fleet.peaks().values()) == {1}, fleet.peaks()
     finally:
         await proxy.aclose()
+
+
+async def test_a_worker_writes_the_plcs_it_holds_through_the_one_write_path(
+    mosquitto: Mosquitto,
+) -> None:
+    """Before: a worker refused every write ("this poller takes no writes"). After: a write to
+    a PLC it polls goes through the write path and that PLC's one connection; a write to a PLC
+    another worker polls is refused before anything is sent, naming that worker."""
+    async with Fleet(4, interval=INTERVAL) as fleet:
+        tags = (TagConfig("x", "D0", writable=True),)
+        plcs = tuple(PlcConfig(n, w.sim.url, tags, timeout=0.5) for n, w in fleet.watch.items())
+        config = PollConfig(plcs=plcs, groups={"default": INTERVAL})
+        async with (
+            worker(config, "a", mosquitto.url, None) as a,
+            worker(config, "b", mosquitto.url, None) as b,
+        ):
+            await until(lambda: len(a.owned) + len(b.owned) == 4 and bool(a.owned and b.owned))
+            mine, theirs = sorted(a.owned)[0], sorted(b.owned)[0]
+            writes = WritePath(a)
+            ok = await writes.write("mqtt", None, mine, "x", 4321, peer=None)
+            refused = await writes.write("mqtt", None, theirs, "x", 1, peer=None)
+        assert ok.ok, ok.message
+        assert fleet.watch[mine].sim.memory.read_words("D", 0, 1) == [4321]
+        assert (refused.ok, refused.code, refused.may_have_executed) == (
+            False,
+            "unknown_plc",
+            False,
+        )
+        assert "does not poll it now (worker b does)" in refused.message
+        assert fleet.watch[theirs].sim.memory.read_words("D", 0, 1) == [0]

@@ -11,13 +11,13 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import Sequence
-from types import SimpleNamespace
 from typing import Any
 
 import pytest
 
 from plcstack.config import parse_config
 from plcstack.north.config import NorthConfig
+from plcstack.north.face import FaceBase
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.layout import JsonLayout
 from plcstack.north.mqtt import MqttSink, parse_mqtt
@@ -194,25 +194,23 @@ def test_rbe_filters_each_scan_and_keeps_its_group_and_times() -> None:
 
 
 def test_north_reports_each_scan_after_rbe_to_every_sink() -> None:
-    class Recorder:
-        name = "recorder"
-
-        def __init__(self) -> None:
+    class Recorder(FaceBase):
+        def __init__(self, name: str) -> None:
+            self.name = name
             self.got: list[list[Scan]] = []
 
         def submit(self, scans: Sequence[Scan]) -> None:
             self.got.append(list(scans))
 
     plc = PlcConfig("p", "e71+tcp://127.0.0.1:1", (TagConfig("a", "D0"), TagConfig("b", "D1")))
-    poller = SimpleNamespace(config=PollConfig((plc,), {"default": 1}))
-    sink = Recorder()
-    north = North(poller, NorthConfig(report=ReportPolicy()), sinks=[sink])
-    emitted: list[list[Scan]] = []
+    poller = Poller(PollConfig((plc,), {"default": 1}))  # never started
+    sink, other = Recorder("recorder"), Recorder("other")
+    north = North(poller, NorthConfig(report=ReportPolicy()), faces=[sink, other])
     one = scan(good("p", "a", 1), good("p", "b", 1), group="x")
     two = scan(good("p", "a", 1, T + 1), good("p", "b", 2, T + 1), group="y")
-    north.deliver([one], emitted.append)
-    north.deliver([two], emitted.append)
-    assert sink.got == emitted
+    north.deliver([one])
+    north.deliver([two])
+    assert sink.got == other.got
     assert [[(s.group, [x.tag for x in s.samples]) for s in b] for b in sink.got] == [
         [("x", ["a", "b"])],
         [("y", ["b"])],
@@ -220,27 +218,30 @@ def test_north_reports_each_scan_after_rbe_to_every_sink() -> None:
 
 
 # -- every sink takes scans -------------------------------------------------------------------
-def test_every_sink_implements_the_one_protocol() -> None:
-    """Checked by mypy (this list is typed) and here: each sink's ``submit`` takes scans."""
+def test_every_face_implements_the_one_protocol() -> None:
+    """Checked by mypy (these lists are typed) and here: each face's ``submit`` takes scans,
+    and it has every method of :class:`Face` (start, aclose, probe, health, summary, ...)."""
     import inspect
 
+    from plcstack.north.face import Face
     from plcstack.north.history import History
+    from plcstack.north.metrics import MetricsServer
     from plcstack.north.modbus.server import ModbusServer
     from plcstack.north.opcua import OpcUaServer
+    from plcstack.north.stdout import StdoutLines
     from plcstack.north.web.server import WebConsole
     from plcstack.north.web.state import ConsoleState
 
-    sinks: list[type[ScanSink]] = [
-        MqttSink,
-        WebConsole,
-        ConsoleState,
-        ModbusServer,
-        OpcUaServer,
-        History,
-    ]
+    faces: list[type[Face]] = [
+        MqttSink, WebConsole, ModbusServer, OpcUaServer, MetricsServer, StdoutLines, History
+    ]  # fmt: skip
+    sinks: list[type[ScanSink]] = [*faces, ConsoleState]
+    members = [name for name in dir(Face) if not name.startswith("_")]
     for sink in sinks:
         [param] = list(inspect.signature(sink.submit).parameters.values())[1:]
         assert param.name == "scans", sink
+    for face in faces:
+        assert all(callable(getattr(face, m, None)) or m == "name" for m in members), face
 
 
 def _two_groups_same_times() -> list[Scan]:

@@ -22,6 +22,7 @@ from plcstack.north.mqtt import MqttSettings, MqttSink, parse_mqtt
 from plcstack.north.pipeline import North
 from plcstack.north.sparkplug import SparkplugLayout
 from plcstack.north.sparkplug_pb import Payload
+from plcstack.north.writes import WritePath
 from plcstack.poll.config import ConfigError, PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample
@@ -170,7 +171,7 @@ def cold_layout(**kwargs: Any) -> SparkplugLayout:
 
 def test_dbirth_before_the_first_scan_declares_each_tags_type_and_ddata_carries_it() -> None:
     layout = cold_layout()
-    layout.will()
+    layout.will(0.0)
     (_, _nbirth, nqos, _), (topic, dbirth, qos, retain) = layout.births(1_800_000_000.0)
     assert topic == "spBv1.0/plant/DBIRTH/edge1/p" and (nqos, qos, retain) == (0, 0, False)
     born = wire_metrics(dbirth)
@@ -200,7 +201,7 @@ def test_unit_and_description_are_metric_properties_of_the_birth() -> None:
         "level", "D10", INT16, scale=Scale(0, 100, 0, 10), unit="m", description="tank 3 level"
     )
     layout = SparkplugLayout("plant", "edge1", {"p": [tag, TagConfig("plain", "D11", INT16)]})
-    layout.will()
+    layout.will(0.0)
     born = wire_metrics(layout.births(1.0)[1][1])
     assert born["level"]["properties"] == {"engUnit": "m", "documentation": "tank 3 level"}
     assert born["plain"]["properties"] == {}
@@ -267,7 +268,7 @@ def test_a_cold_start_whose_failing_group_reports_first_declares_nothing_dead() 
     groups = scan_groups([PlcConfig("p", "e71+tcp://127.0.0.1:1", tags)])
     assert groups == {"p": frozenset({"default", "slow"})}
     json_layout = JsonLayout("plcstack", "poller", groups=groups)
-    layout.will()  # a session begins: its CONNECT, then the births
+    layout.will(0.0)  # a session begins: its CONNECT, then the births
     births = [t.split("/")[2] for t, *_ in layout.births(1.0)]
     assert births == ["NBIRTH", "DBIRTH"]
     kinds: list[str] = []
@@ -381,8 +382,7 @@ async def test_a_qos_1_subscriber_sees_the_configured_qos_and_dcmd_writes_an_ele
         subscriber(mosquitto.host, mosquitto.port, "#", client_id=f"qos{sparkplug_qos}") as sub,
     ):
         layout = SparkplugLayout.for_config(settings, config, poller)
-        writable = {("press1", t.name): t.writable for t in tags}
-        sink = MqttSink(settings, writer=poller, layout=layout, writable=writable)
+        sink = MqttSink(settings, writes=WritePath(poller), layout=layout)
         await sink.start()
         await sink.wait_connected(5)
         sink.submit([as_scan(sample("press1", "speed", 5))])
@@ -409,7 +409,7 @@ async def test_a_qos_1_subscriber_sees_the_configured_qos_and_dcmd_writes_an_ele
         assert [memory["D"].get(20 + i, 0) for i in range(3)] == [0, (-300) & 0xFFFF, 0]
         refused = [t for t, _ in sub.messages if "write/resp" in t]
         assert refused == ["plcstack/press1/write/resp"]
-        assert layout.writes_refused == 1
+        assert sink.stats.writes_refused == 1
         # one WARNING, the write path's (tests/test_sparkplug_dcmd_log.py)
         assert "write from sparkplug refused (unknown_tag): press1: write alarms/9" in caplog.text
         await sink.aclose()

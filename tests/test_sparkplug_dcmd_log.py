@@ -16,6 +16,7 @@ from plcstack.clients.base import Client
 from plcstack.north.mqtt import MqttSettings, MqttSink
 from plcstack.north.sparkplug import SparkplugLayout
 from plcstack.north.sparkplug_pb import Payload
+from plcstack.north.writes import WritePath
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import Poller
 from plcstack.values import UINT16
@@ -39,15 +40,16 @@ async def test_a_refused_dcmd_is_one_warning(
     )  # fmt: skip
     layout = SparkplugLayout.for_config(settings, config)
     async with Poller(config, client_factory=factory) as poller:
-        sink = MqttSink(settings, writer=poller, layout=layout)  # never started: no broker
+        # never started: no broker
+        sink = MqttSink(settings, writes=WritePath(poller), layout=layout)
         command = Payload()
         metric = command.metrics.add()
         metric.name, metric.datatype, metric.int_value = "nope", 6, 1
         with caplog.at_level(logging.DEBUG, logger="plcstack"):
-            assert layout.handle(
-                sink, "spBv1.0/plant/DCMD/edge1/press1", bytes(command.SerializeToString())
+            sink.handle_request(
+                "spBv1.0/plant/DCMD/edge1/press1", bytes(command.SerializeToString())
             )
-            await eventually(lambda: layout.writes_refused == 1, "the DCMD is refused")
+            await eventually(lambda: sink.stats.writes_refused == 1, "the DCMD is refused")
     warnings = [
         r for r in caplog.records if r.levelno >= logging.WARNING and "nope" in r.getMessage()
     ]

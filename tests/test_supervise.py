@@ -17,11 +17,14 @@ import pytest
 
 from plcstack.cli.poll import run_poll
 from plcstack.north.config import NorthConfig
+from plcstack.north.face import FaceBase
+from plcstack.north.health import Health
 from plcstack.north.metrics import MetricsSettings
 from plcstack.north.pipeline import North
 from plcstack.north.sparkplug_pb import Payload
 from plcstack.north.supervise import Supervisor
 from plcstack.poll.config import PollConfig
+from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.sim import e71, s5lan
 from plcstack.sim.melsec_memory import MelsecMemory
@@ -85,7 +88,7 @@ def test_a_sample_a_sink_cannot_take_costs_only_that_sample(
 
 
 def test_a_broken_pipe_still_ends_the_run() -> None:
-    def emit(batch: list[Sample]) -> None:
+    def emit(batch: list[Scan]) -> None:
         raise BrokenPipeError
 
     with pytest.raises(BrokenPipeError):
@@ -98,7 +101,7 @@ async def test_a_dead_task_is_restarted_with_backoff_and_reported_meanwhile(
     supervisor = Supervisor(initial=0.05, maximum=0.05)
     starts = 0
     running = asyncio.Event()
-    reports: list[str | None] = []
+    reports: list[list[Health]] = []
 
     async def flaky() -> None:
         nonlocal starts
@@ -119,12 +122,11 @@ async def test_a_dead_task_is_restarted_with_backoff_and_reported_meanwhile(
         async with asyncio.timeout(5):
             await running.wait()
     assert starts == 3 and handle.restarts == 2
-    assert (
-        reports
-        and reports[0] is not None
-        and "feeder failed (RuntimeError: crash 1)" in (reports[0])
-    )
-    assert supervisor.health() is None  # running again
+    assert reports and [(h.name, h.problem) for h in reports[0]] == [
+        ("feeder", "failed (RuntimeError: crash 1); restarting")
+    ]
+    assert reports[0][0].since is not None
+    assert supervisor.health() == []  # running again
     assert supervisor.errors == {"feeder": 2}
     messages = [r.getMessage() for r in caplog.records]
     first = "feeder failed: RuntimeError: crash 1; restarting in"
@@ -134,9 +136,11 @@ async def test_a_dead_task_is_restarted_with_backoff_and_reported_meanwhile(
 
 
 async def test_healthz_names_a_dead_sink_until_it_runs_again() -> None:
-    class Crashing:
+    class Crashing(FaceBase):
         name = "crashing"
-        supervisor: Any = None
+
+        def __init__(self, supervisor: Supervisor) -> None:
+            self.supervisor = supervisor
 
         async def start(self) -> None:
             self.supervisor.start(self.name, self.run)
@@ -147,14 +151,15 @@ async def test_healthz_names_a_dead_sink_until_it_runs_again() -> None:
         def submit(self, scans: Sequence[Scan]) -> None:
             pass
 
-    class P:
-        stats: dict[str, Any] = {}
-        dropped = 0
-        config = PollConfig(())
-
-    sink = Crashing()
-    north = North(P(), NorthConfig(metrics=MetricsSettings(port=0)), sinks=[sink])
-    north.supervisor.initial = 30.0  # the restart is far away: /healthz is asked meanwhile
+    # the restart is far away: /healthz is asked meanwhile
+    supervisor = Supervisor(initial=30.0, maximum=30.0)
+    poller = Poller(PollConfig((), {"default": 1.0}))  # no PLC, never started
+    north = North(
+        poller,
+        NorthConfig(metrics=MetricsSettings(port=0)),
+        faces=[Crashing(supervisor)],
+        supervisor=supervisor,
+    )
     async with north:
         async with asyncio.timeout(5):
             while not north.supervisor.down:  # noqa: ASYNC110 - waits for a condition
@@ -163,7 +168,9 @@ async def test_healthz_names_a_dead_sink_until_it_runs_again() -> None:
         status, body = await http(north.metrics.port, b"GET /healthz HTTP/1.0\r\n\r\n")
         metrics = (await http(north.metrics.port, b"GET /metrics HTTP/1.0\r\n\r\n"))[1]
     assert status == 503
-    assert body == b"crashing failed (ConnectionError: lost the broker); restarting\n"
+    text = body.decode()
+    assert text.startswith("crashing: failed (ConnectionError: lost the broker); restarting since ")
+    assert text.count("\n") == 1  # every other part is healthy
     assert b'plcstack_sink_errors_total{sink="crashing"} 1.0' in metrics
 
 
@@ -191,7 +198,7 @@ async def test_poll_exits_1_naming_what_failed_when_the_consumer_dies(
         '[plc.tags]\nstrokes = { address = "D100" }\n'
     )
 
-    async def broken(self: North, emit: Any = None) -> None:
+    async def broken(self: North) -> None:
         raise RuntimeError("the consumer broke")
 
     monkeypatch.setattr(North, "run", broken)

@@ -143,8 +143,9 @@ async def running_console(
         async with Poller(config) as poller, North(poller, north_config) as north:
             consumer = asyncio.create_task(north.run())
             try:
-                assert north.web is not None
-                yield Console(memory, poller, north.web, sim)
+                console = north.face(WebConsole)
+                assert console is not None
+                yield Console(memory, poller, console, sim)
             finally:
                 consumer.cancel()
                 with contextlib.suppress(asyncio.CancelledError):

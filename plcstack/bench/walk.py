@@ -10,13 +10,17 @@ until its scans run the usual way (the read checked once, the connection settled
 one scan with :func:`sys.setprofile`: the calls made under the ticker's callback (the scan is
 due, its request is sent) and under the transport's ``buffer_updated`` (the answer, the sample),
 nothing else the event loop does meanwhile. The north walk hands one such scan (one sample) to
-:meth:`North.deliver` with an MQTT sink (not connected: it queues) and a JSON-lines ``emit``.
+:meth:`North.deliver` of a runtime with every face (not started: nothing is sent or served,
+each face takes the scan as it would): JSON lines on stdout, the MQTT sink (it queues), the
+OPC UA server (it keeps the sample for its applying task), the Modbus register image, the web
+console's state and the metrics endpoint.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import io
 import re
 import sys
 from collections.abc import Sequence
@@ -100,7 +104,7 @@ def _config(port: int) -> Any:
     from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
     from plcstack.values import RAW
 
-    tag = TagConfig("w", "D0", RAW, 64, "default")
+    tag = TagConfig("w", "D0", RAW, 64, "default", modbus="hr:0")
     return PollConfig((PlcConfig("plc", f"e71+tcp://127.0.0.1:{port}", (tag,)),), {"default": 0.05})
 
 
@@ -141,27 +145,35 @@ def request_walk() -> Walk:
 def north_walk() -> Walk:
     """The walk of one scan's sample through :meth:`North.deliver` (see the module's docstring)."""
     from plcstack.north.config import NorthConfig
+    from plcstack.north.metrics import MetricsSettings
+    from plcstack.north.modbus.config import ModbusSettings
     from plcstack.north.mqtt import parse_mqtt
+    from plcstack.north.opcua_config import OpcUaConfig
     from plcstack.north.pipeline import North
+    from plcstack.north.stdout import StdoutLines
+    from plcstack.north.web.settings import WebSettings
     from plcstack.poll.engine import Poller
     from plcstack.poll.samples import Quality, Scan, make_sample
-    from plcstack.poll.sinks import jsonl_line
+    from plcstack.poll.sinks import jsonl_text
 
     async def run() -> Walk:
         poller = Poller(_config(1))
-        north = North(poller, NorthConfig(mqtt=parse_mqtt({"url": "mqtt://127.0.0.1:1"})))
-        out: list[str] = []
-
-        def emit(batch: list[Any]) -> None:
-            out.extend(jsonl_line(s) for scan in batch for s in scan.samples)
-
+        stdout = StdoutLines(jsonl_text(poller.config.plcs), io.StringIO())
+        every = NorthConfig(
+            mqtt=parse_mqtt({"url": "mqtt://127.0.0.1:1"}),
+            opcua=OpcUaConfig(endpoint="opc.tcp://127.0.0.1:0/plcstack"),
+            modbus=ModbusSettings(port=0),
+            web=WebSettings(port=0),
+            metrics=MetricsSettings(port=0),
+        )
+        north = North(poller, every, faces=[stdout])
         sample = make_sample("plc", "w", [0] * 64, Quality.GOOD, 1.0, 1.001, None)
         scan = Scan("plc", "default", 1.0, 1.001, (sample,))
-        north.deliver([scan], emit)  # once untraced: first-use work is not the path
+        north.deliver([scan])  # once untraced: first-use work is not the path
         walk = Walk({North.deliver.__code__})
         walk.arm()
         try:
-            north.deliver([scan], emit)
+            north.deliver([scan])
         finally:
             walk.disarm()
         for client in (poller.client(name) for name in poller.plcs):
@@ -183,7 +195,7 @@ def figure(walk: Walk, title: str) -> str:
 def figures() -> dict[str, str]:
     return {
         "request": figure(request_walk(), "one polled E71 read (scan due -> scan queued)"),
-        "north": figure(north_walk(), "one scan's sample through the north side (deliver)"),
+        "north": figure(north_walk(), "one scan's sample through the runtime to every face"),
     }
 
 

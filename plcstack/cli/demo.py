@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from plcstack.cli import UsageError, plain_text, print_error
-from plcstack.cli.poll import StopEvent, install_stop_signals, remove_stop_signals
+from plcstack.cli.signals import Signals, StopEvent
 from plcstack.poll.demo import DemoPlant, start_plant
 from plcstack.poll.engine import Poller, Quality, Sample, format_stats
 
@@ -179,9 +179,8 @@ async def run_demo(args: argparse.Namespace, out: TextIO | None = None) -> int:
             return 1
         poller = Poller(plant.config)
         stop = StopEvent()
-        installed = install_stop_signals(stop)
         live = out.isatty() and os.environ.get("TERM") != "dumb"
-        try:
+        with Signals(stop):
             async with poller:
                 show = _live_table(poller, plant, out) if live else _plain(poller, out, stop)
                 shower = asyncio.create_task(show)
@@ -192,8 +191,6 @@ async def run_demo(args: argparse.Namespace, out: TextIO | None = None) -> int:
                 shower.cancel()
                 stopper.cancel()
                 await asyncio.gather(shower, stopper, return_exceptions=True)
-        finally:
-            remove_stop_signals(installed)
         if live:
             out.write("\n")
         with contextlib.suppress(BrokenPipeError, ValueError):

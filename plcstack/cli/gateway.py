@@ -30,7 +30,7 @@ from typing import Any
 from plcstack import gateway
 from plcstack.cli import UsageError, plain_text, print_error
 from plcstack.cli.faces import face_written
-from plcstack.cli.poll import StopEvent, ended_early, install_stop_signals, remove_stop_signals
+from plcstack.cli.signals import Signals, StopEvent, ended_early
 from plcstack.clients.as511 import AS511Client
 from plcstack.errors import AddressError
 from plcstack.north.audit import Audit, AuditSettings
@@ -173,7 +173,8 @@ async def run(args: argparse.Namespace) -> int:
             raise UsageError(f"gateway: {exc}") from None
         raise UsageError(f"gateway cannot start: {exc.strerror or exc}") from None
     stop = StopEvent()
-    installed = install_stop_signals(stop)
+    signals = Signals(stop)
+    signals.__enter__()
     failure: str | None = None
     try:
         listening = [
@@ -196,7 +197,7 @@ async def run(args: argparse.Namespace) -> int:
             failure = ended_early(done - {stopper}, stop)
             stopper.cancel()
     finally:
-        remove_stop_signals(installed)
+        signals.__exit__()
         await gw.aclose()
         if audit is not None:
             audit.close()

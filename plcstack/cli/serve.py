@@ -1,15 +1,16 @@
 """``plcstack serve opcua CONFIG.toml``: poll the PLCs of a TOML file and serve them over OPC UA.
 
-The ``[opcua]`` table of the same file sets the endpoint (default ``opc.tcp://127.0.0.1:4840/
+The same runtime as ``plcstack poll CONFIG --format none``, with the OPC UA server running even
+when the file has no ``[opcua]`` table: every other face the file configures (``[mqtt]``,
+``[modbus]``, ``[web]``, ``[metrics]``, ``[audit]``) runs too, on the same poller and one
+connection per PLC. The ``[opcua]`` table sets the endpoint (default ``opc.tcp://127.0.0.1:4840/
 plcstack``: loopback only), security policies and logins (plcstack docs opcua). It prints ``OPC
 UA server listening on URL`` on stderr once every PLC's first scan is in (a PLC that does not
 answer: once that scan failed), so a client that connects then reads values. Runs until Ctrl-C
 or SIGTERM (or ``--duration``), then prints the poller's statistics on stderr.
 
-With ``[metrics]`` in the file (or ``--metrics-port``) it also serves ``/metrics`` and ``/healthz``
-as ``plcstack poll`` does (the same collector; plcstack docs north). ``--metrics-port`` overrides
-the port, so ``plcstack poll`` and this command can run from one file side by side. ``[mqtt]``
-and ``[report]`` are for ``plcstack poll`` and are not used here.
+With ``[metrics]`` in the file (or ``--metrics-port``, which overrides its port) it also serves
+``/metrics``, ``/healthz`` and ``/livez`` (plcstack docs north).
 
 ``plcstack serve opcua --hash-password`` reads a password from stdin and prints the
 ``password_hash`` to put under ``[opcua.users.NAME]``.
@@ -20,6 +21,7 @@ Needs the optional extra: ``pip install 'plcstack[opcua]'`` (asyncua).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import getpass
 import importlib.util
 import sys
@@ -27,11 +29,10 @@ from typing import Any
 
 from plcstack.cli import plain_text, print_error, serve_modbus
 from plcstack.cli.run_options import add_run_options, overrides_of
-from plcstack.cli.serve_run import metrics_settings, run_fed
+from plcstack.cli.serve_run import run_served
 from plcstack.config import load_config
 from plcstack.config.overrides import apply_overrides
 from plcstack.north.opcua_config import OpcUaConfig, hash_password
-from plcstack.poll.engine import Poller
 
 
 def register(subparsers: Any) -> None:
@@ -77,19 +78,5 @@ async def run_opcua(args: argparse.Namespace) -> int:
     # -v (INFO) logs every write; the log options are the ones every subcommand has
     whole = apply_overrides(load_config(args.config), overrides_of(args))  # read once
     config, north_config = whole.poll, whole.north
-    opcua_config = north_config.opcua or OpcUaConfig()
-    from plcstack.north.opcua import OpcUaServer  # asyncua: only when serving
-
-    metrics, ok = metrics_settings(north_config, "serve opcua")
-    if not ok:
-        return 2
-    poller = Poller(config)  # every URL and address checked before anything is sent
-    server = OpcUaServer(poller, opcua_config)
-    return await run_fed(
-        poller,
-        server,
-        north_config,
-        metrics,
-        listening=lambda: f"OPC UA server listening on {server.url}",
-        duration=args.duration,
-    )
+    north_config = dataclasses.replace(north_config, opcua=north_config.opcua or OpcUaConfig())
+    return await run_served(args, "serve opcua", config, north_config)

@@ -7,26 +7,28 @@ answered from the latest poll (a PLC that does not answer: exception 0x0B), writ
 ``writable = true`` only after the PLC confirmed them. Two tags whose registers overlap are
 refused when the file is loaded. See plcstack docs modbus.
 
-With ``[metrics]`` in the file (or ``--metrics-port``) it also serves ``/metrics`` and
-``/healthz`` as ``plcstack poll`` does, plus the Modbus requests, exception answers and clients.
-It prints ``Modbus server listening on HOST:PORT`` on stderr once every PLC's first scan is in
-(a PLC that does not answer: once that scan failed), so a client that connects then reads
-values. Runs until Ctrl-C or SIGTERM (or ``--duration``), then prints the poller's statistics
-on stderr.
+The same runtime as ``plcstack poll CONFIG --format none``, with the Modbus server running even
+when the file has no ``[modbus]`` table: every other face the file configures runs too, on the
+same poller and one connection per PLC. With ``[metrics]`` in the file (or ``--metrics-port``) it
+also serves ``/metrics``, ``/healthz`` and ``/livez``, with the Modbus requests, exception
+answers and clients. It prints ``Modbus server listening on HOST:PORT`` on stderr once every
+PLC's first scan is in (a PLC that does not answer: once that scan failed), so a client that
+connects then reads values. Runs until Ctrl-C or SIGTERM (or ``--duration``), then prints the
+poller's statistics on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from typing import Any
 
 from plcstack.cli import plain_text
 from plcstack.cli.run_options import add_run_options, overrides_of
-from plcstack.cli.serve_run import metrics_settings, run_fed
+from plcstack.cli.serve_run import run_served
 from plcstack.config import load_config
 from plcstack.config.overrides import apply_overrides
-from plcstack.north.modbus.server import ModbusServer
-from plcstack.poll.engine import Poller
+from plcstack.north.modbus.config import ModbusSettings
 
 
 def register(servers: Any) -> None:
@@ -44,18 +46,6 @@ def register(servers: Any) -> None:
 async def run_modbus(args: argparse.Namespace) -> int:
     whole = apply_overrides(load_config(args.config), overrides_of(args))  # read once
     config, north_config = whole.poll, whole.north
-    metrics, ok = metrics_settings(north_config, "serve modbus")
-    if not ok:
-        return 2
-    poller = Poller(config)  # every URL and address checked before anything is sent
-    # overlaps refused here (the file read once)
-    server = ModbusServer.from_config(poller, north_config.modbus)
-    return await run_fed(
-        poller,
-        server,
-        north_config,
-        metrics,
-        listening=lambda: f"Modbus server listening on {server.endpoint}",
-        duration=args.duration,
-        collectors=[server.collector()],
-    )
+    modbus = north_config.modbus or ModbusSettings()
+    north_config = dataclasses.replace(north_config, modbus=modbus)
+    return await run_served(args, "serve modbus", config, north_config)

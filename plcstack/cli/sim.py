@@ -7,20 +7,20 @@ then serves until cancelled. Scripts and tests wait for that one line on stdout.
 
 Anything that goes wrong before that line (a port in use or out of range, a host name that does
 not resolve, an option the simulator refuses) is a start-up error: one line on stderr, exit 2.
-Ctrl-C ends the simulator with exit 130, SIGTERM with exit 0.
+Ctrl-C ends the simulator with exit 130, SIGTERM with exit 0; SIGHUP is logged and ignored.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
-import contextlib
 import importlib
 import signal
 from typing import Any
 
 from plcstack.cli import EXIT_INTERRUPTED, UsageError
 from plcstack.cli.pcap import add_pcap_options, with_pcap
+from plcstack.cli.signals import Signals, StopEvent
 from plcstack.systemd.notify import Notifier
 from plcstack.systemd.service import ServiceNotifier, notifying
 
@@ -76,24 +76,14 @@ def _runner(name: str, module: Any) -> Any:
 
         task = asyncio.current_task()
         assert task is not None
-        loop = asyncio.get_running_loop()
-        stopped_by: signal.Signals | None = None
-
-        def on_signal(sig: signal.Signals) -> None:
-            # Our own handlers for both signals, as `poll` and `demo` have: asyncio.run's
-            # SIGINT handling only exists when SIGINT has its default handler at start-up (a
-            # parent that ignores it, as some test runners and shells do for their children,
-            # left Ctrl-C without effect: seen once in CI as a simulator that never ended)
-            nonlocal stopped_by
-            if stopped_by is None:
-                stopped_by = sig
-            task.cancel()
-
-        installed = []
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                loop.add_signal_handler(sig, on_signal, sig)
-                installed.append(sig)
+        # Our own handlers for both signals, as `poll` and `demo` have: asyncio.run's SIGINT
+        # handling only exists when SIGINT has its default handler at start-up (a parent that
+        # ignores it, as some test runners and shells do for their children, left Ctrl-C
+        # without effect: seen once in CI as a simulator that never ended); and SIGHUP, which
+        # never ends a plcstack process
+        stop = StopEvent()
+        signals = Signals(stop, on_stop=task.cancel)
+        signals.__enter__()
         # under systemd: ready once listening, the listening lines as its status
         service = ServiceNotifier(
             Notifier.from_environment(),
@@ -110,13 +100,11 @@ def _runner(name: str, module: Any) -> Any:
             where = _where(args)
             raise UsageError(f"sim {name} cannot start{where}: {reason}") from None
         except asyncio.CancelledError:
-            if stopped_by is None:
+            if stop.by is None:
                 raise
         finally:
-            for sig in installed:
-                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                    loop.remove_signal_handler(sig)
-        return EXIT_INTERRUPTED if stopped_by is signal.SIGINT else 0
+            signals.__exit__()
+        return EXIT_INTERRUPTED if stop.by is signal.SIGINT else 0
 
     return run
 

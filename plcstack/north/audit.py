@@ -49,6 +49,7 @@ from typing import Any, TextIO
 
 from plcstack.checks import Table
 from plcstack.errors import ConfigError
+from plcstack.north.health import Condition, Health
 from plcstack.output import json_safe
 
 __all__ = ["Audit", "AuditSettings", "parse_audit"]
@@ -124,6 +125,8 @@ class Audit:
         #: written before the next line: a newline if the file ends in a line cut short
         self._start = ""
         self._last_error: str | None = None
+        #: whether the last line could be written (``/healthz`` names the file while not)
+        self.condition = Condition("audit")
 
     def open(self) -> None:
         """Open (create) the file now: :class:`ConfigError` naming it if that is impossible, so
@@ -192,6 +195,7 @@ class Audit:
         self._start = ""
         self.written += 1
         self._last_error = None
+        self.condition.clear()
         return True
 
     def _rotate(self) -> None:
@@ -226,3 +230,8 @@ class Audit:
             json.dumps(entry, default=repr),
         )
         self._last_error = reason
+        self.condition.fail(f"cannot write {self.path} ({reason}); writes are not audited")
+
+    def health(self) -> Health:
+        """Unhealthy from a line that could not be written until one is written again."""
+        return self.condition.health(figures=(("lines not written", self.failed),))

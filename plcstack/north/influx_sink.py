@@ -41,6 +41,8 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
 from plcstack.north.buffer import Message, StoreAndForward
+from plcstack.north.face import FaceBase
+from plcstack.north.health import Health
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.influx_config import InfluxSettings
 from plcstack.north.supervise import Supervised, Supervisor
@@ -111,7 +113,7 @@ def _error_text(body: str) -> str:
     return " ".join(text.split())[:500]
 
 
-class InfluxSink:
+class InfluxSink(FaceBase):
     """Writes the scans it is given to InfluxDB 1.x (``[influx] url``); see the module."""
 
     name = "influx"
@@ -440,6 +442,21 @@ class InfluxSink:
         if not problems:
             return None
         return f"{self.name}: {'; '.join(problems)}, {len(self.buffer)} lines waiting"
+
+    def health(self) -> Health:
+        """Unhealthy while InfluxDB cannot be written to or the disk under ``buffer_path``
+        refuses writes: since when, why, how many lines wait."""
+        waiting = (("lines waiting", len(self.buffer)),)
+        problems: list[tuple[str, float]] = []
+        if self.problem is not None:
+            problems.append((self.problem, self.since or time.time()))
+        disk = self.buffer.failure
+        if disk is not None:
+            problems.append((disk.describe(), disk.since))
+        if not problems:
+            return Health(self.name, figures=waiting)
+        since = min(when for _, when in problems)
+        return Health(self.name, "; ".join(text for text, _ in problems), since, waiting)
 
     def metrics(self) -> Iterator[Metric]:
         """The writer's figures for ``/metrics`` (prometheus-client metric families)."""

@@ -53,15 +53,23 @@ import json
 import math
 import re
 from collections.abc import Collection, Iterable, Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, NamedTuple, Protocol
 
 from plcstack.errors import ConnectionLost, PlcTimeout
+from plcstack.north.buffer import Message
 from plcstack.output import shorten
 from plcstack.poll.config import PlcConfig
 from plcstack.poll.samples import Quality, Sample, Scan
 
 __all__ = [
+    "Command",
+    "JsonLayout",
+    "MqttLayout",
+    "Publish",
     "Reachability",
+    "Unanswerable",
+    "WriteRequest",
     "data_payload",
     "data_topic",
     "poller_status_topic",
@@ -160,6 +168,89 @@ def write_response_payload(
     return json.dumps(record, ensure_ascii=False, allow_nan=False).encode()
 
 
+class Publish(NamedTuple):
+    """One message to publish: what a layout makes of scans, connects and commands."""
+
+    topic: str
+    payload: bytes
+    qos: int
+    retain: bool
+
+
+@dataclass(frozen=True, slots=True)
+class WriteRequest:
+    """A write a client asked for over MQTT, as the layout understood it; the sink carries it
+    out through the run's write path and answers on ``P/PLC/write/resp``.
+
+    ``plc`` is None when the topic names no PLC of this run (``level``: the topic level it
+    named, where the answer goes); ``error`` says why a request cannot be understood
+    (``bad_request``); ``answer_ok``: whether a confirmed write is answered too (JSON) or only
+    a refused one (Sparkplug has no reply message).
+    """
+
+    plc: str | None
+    level: str
+    tag: str | None
+    value: object
+    request_id: object = None
+    error: str | None = None
+    answer_ok: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class Unanswerable:
+    """A command that cannot be understood and has nobody to answer (a DCMD that is not a
+    Sparkplug payload): counted as a refused write, logged at DEBUG."""
+
+    reason: str
+
+
+#: what a layout makes of a message that came in on one of its subscriptions
+Command = Publish | WriteRequest | Unanswerable
+
+
+class MqttLayout(Protocol):
+    """What the MQTT sink asks of a layout (:class:`JsonLayout`, or the Sparkplug B layout):
+    the topics and payloads of scans, of a connect and of a clean stop, the Last Will, what to
+    subscribe to, and what a received message asks for. The sink owns the connection, the
+    queue and the writes; the layout owns the names, the encoding and its session state."""
+
+    #: the Last Will's retained flag (Sparkplug 3.0: an NDEATH must not be retained)
+    will_retain: bool
+
+    def will(self, now: float) -> tuple[str, bytes]:
+        """The Last Will of a connection opened at ``now`` (called once per attempt)."""
+        ...
+
+    def on_connect(self, now: float) -> list[Publish]:
+        """Published first on every (re)connect, before the backlog."""
+        ...
+
+    def on_close(self, now: float) -> list[Publish]:
+        """Published on a clean stop (the Will covers the other kind)."""
+        ...
+
+    def subscriptions(self) -> list[str]: ...
+
+    def messages(self, scans: Sequence[Scan]) -> list[Publish]:
+        """The messages of a batch of scans; all or nothing (raises before any state changes
+        for a sample it cannot encode)."""
+        ...
+
+    def probe(self, sample: Sample) -> None:
+        """Raise if ``sample`` cannot be encoded; no state changes."""
+        ...
+
+    def prepare(self, message: Message, replayed: bool) -> bytes | None:
+        """The payload to publish for a queued message (``replayed``: it waited for this
+        session), or None to skip it as obsolete."""
+        ...
+
+    def commands(self, topic: str, payload: bytes) -> list[Command]:
+        """What a message received on a subscription asks for."""
+        ...
+
+
 #: the failures that say the PLC itself cannot be reached (not a bad value in one group)
 _UNREACHABLE = (PlcTimeout, ConnectionLost)
 
@@ -223,6 +314,8 @@ class Reachability:
 class JsonLayout:
     """The plain mode: turns scans into data and status messages, parses write requests."""
 
+    will_retain = True
+
     def __init__(
         self,
         prefix: str,
@@ -230,9 +323,13 @@ class JsonLayout:
         qos: int = 1,
         float32: Collection[tuple[str, str]] = (),
         groups: Mapping[str, Collection[str]] | None = None,
+        *,
+        plcs: Sequence[str] = (),
     ) -> None:
         """``float32``: (PLC, tag) of the float32 tags (:func:`plcstack.output.float32_tags`);
-        ``groups``: each PLC's scan groups (:func:`scan_groups`), for :class:`Reachability`."""
+        ``groups``: each PLC's scan groups (:func:`scan_groups`), for :class:`Reachability`;
+        ``plcs``: the PLCs whose write requests are taken and whose retained status says
+        ``offline`` on a clean stop."""
         self.prefix = prefix
         self.client_id = client_id
         self.qos = qos
@@ -240,44 +337,56 @@ class JsonLayout:
         self.reachability = Reachability(groups)
         #: each PLC's latest status message, published again on every (re)connect
         self._statuses: dict[str, bytes] = {}
+        self.plc_by_level = {topic_level(p): p for p in plcs}
 
     # what the sink asks of a layout
-    def will(self) -> tuple[str, bytes]:
-        return poller_status_topic(self.prefix, self.client_id), status_payload(False, 0.0)
+    def will(self, now: float) -> tuple[str, bytes]:
+        """The poller's ``offline``, stamped with the time its connection opened (the broker
+        sends it later, when it loses the connection, and cannot stamp it): never 0."""
+        return poller_status_topic(self.prefix, self.client_id), status_payload(False, now)
 
-    def on_connect(self, now: float) -> list[tuple[str, bytes, int, bool]]:
+    def on_connect(self, now: float) -> list[Publish]:
         """Messages published first on every (re)connect, before the backlog: the poller's
         status, and every PLC's latest status again (retained): a broker that was restarted
         without its retained messages has none for a late subscriber, and the backlog holds
         only the changes made while it was away. Each keeps the time of its change; a status
         still in the backlog comes after and is the same or newer."""
         poller = poller_status_topic(self.prefix, self.client_id)
-        return [(poller, status_payload(True, now), 1, True)] + [
-            (status_topic(self.prefix, plc), payload, 1, True)
+        return [Publish(poller, status_payload(True, now), 1, True)] + [
+            Publish(status_topic(self.prefix, plc), payload, 1, True)
             for plc, payload in self._statuses.items()
         ]
 
-    def on_close(self, now: float) -> list[tuple[str, bytes, int, bool]]:
-        """Messages published on a graceful shutdown (the Will covers the other kind)."""
-        return [
-            (poller_status_topic(self.prefix, self.client_id), status_payload(False, now), 1, True)
+    def on_close(self, now: float) -> list[Publish]:
+        """A clean stop: every PLC's retained status ``offline`` first (nobody polls them any
+        more: a retained ``online`` would stay true for ever), then the poller's."""
+        prefix = self.prefix
+        out = [
+            Publish(status_topic(prefix, plc), status_payload(False, now), 1, True)
+            for plc in self.plc_by_level.values()
         ]
+        out.append(
+            Publish(
+                poller_status_topic(prefix, self.client_id), status_payload(False, now), 1, True
+            )
+        )
+        return out
 
     def subscriptions(self) -> list[str]:
         return [write_request_topic(self.prefix)]
 
-    def messages(self, scans: Sequence[Scan]) -> list[tuple[str, bytes, int, bool]]:
+    def messages(self, scans: Sequence[Scan]) -> list[Publish]:
         """A data message per scan, after a status message when its PLC's state changed."""
-        out: list[tuple[str, bytes, int, bool]] = []
+        out: list[Publish] = []
         for scan in scans:
             plc, group, samples = scan.plc, scan.group, scan.samples
             online = self.reachability.update(scan)
             if online is not None:
                 when = max(s.receive_time for s in samples)
                 status = self._statuses[plc] = status_payload(online, when)
-                out.append((status_topic(self.prefix, plc), status, 1, True))
+                out.append(Publish(status_topic(self.prefix, plc), status, 1, True))
             out.append(
-                (
+                Publish(
                     data_topic(self.prefix, plc, group),
                     data_payload(plc, group, samples, self.float32),
                     self.qos,
@@ -286,23 +395,28 @@ class JsonLayout:
             )
         return out
 
-    def parse_write(
-        self, topic: str, payload: bytes
-    ) -> tuple[str, Any, str | None, Any, str | None]:
-        """``(plc_level, request_id, tag, value, error)`` of a write request; ``error`` is a
-        ``bad_request`` text when the request cannot be understood."""
+    def probe(self, sample: Sample) -> None:
+        data_payload(sample.plc, "", [sample])
+
+    def prepare(self, message: Message, replayed: bool) -> bytes | None:
+        return message.payload
+
+    def commands(self, topic: str, payload: bytes) -> list[Command]:
+        """A write request on ``P/PLC/write/req``."""
         levels = topic.split("/")
-        plc = levels[-3] if len(levels) >= 3 else ""
+        level = levels[-3] if len(levels) >= 3 else ""
+        plc = self.plc_by_level.get(level)
         try:
             request = json.loads(payload)
         except (UnicodeDecodeError, ValueError) as exc:
-            return plc, None, None, None, f"request is not JSON: {exc}"
+            return [WriteRequest(plc, level, None, None, error=f"request is not JSON: {exc}")]
         if not isinstance(request, dict):
-            return plc, None, None, None, "request must be a JSON object"
+            return [WriteRequest(plc, level, None, None, error="request must be a JSON object")]
         request_id = request.get("id")
         tag = request.get("tag")
         if not isinstance(tag, str):
-            return plc, request_id, None, None, 'request needs "tag" (a string)'
+            error = 'request needs "tag" (a string)'
+            return [WriteRequest(plc, level, None, None, request_id, error)]
         if "value" not in request:
-            return plc, request_id, tag, None, 'request needs "value"'
-        return plc, request_id, tag, request["value"], None
+            return [WriteRequest(plc, level, tag, None, request_id, 'request needs "value"')]
+        return [WriteRequest(plc, level, tag, request["value"], request_id)]

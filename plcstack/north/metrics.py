@@ -42,7 +42,9 @@ Exported (``plc`` label per PLC)::
     plcstack_face_guard_total            per listening face and reason: connections refused or
                                          closed to protect the other clients, malformed requests
 
-``/healthz`` answers 200 ``ok`` while the poller runs, 503 with the reason otherwise. The server
+``/healthz`` answers 200 only while every face and sink of the run is healthy (body ``ok`` and
+a line per part), 503 otherwise, naming each part that is not, why and since when
+(:mod:`plcstack.north.health`); ``/livez`` answers 200 ``alive`` while the process runs. The server
 binds 127.0.0.1 unless ``[metrics] listen`` says otherwise: metrics name every PLC of the plant.
 Requests are read with a size limit and a deadline (:data:`REQUEST_TIMEOUT` for the request and
 its answer together); anything but ``GET`` of these two paths gets 404/405, never a crash. A
@@ -55,14 +57,18 @@ from __future__ import annotations
 
 import asyncio
 import bisect
-import contextlib
 import logging
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from plcstack.checks import Listen, Table
 from plcstack.errors import ConfigError, ValueDecodeError
+from plcstack.north.face import Face, FaceBase, PollerView
+from plcstack.north.health import Health, healthz_body
+from plcstack.north.mqtt import MqttSink
+from plcstack.north.rbe import ReportByException
+from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.resource import cancel_until_done
 from plcstack.transports.guard import (
@@ -73,6 +79,9 @@ from plcstack.transports.guard import (
     close_writer,
     parse_limits,
 )
+
+if TYPE_CHECKING:
+    from prometheus_client.core import Metric
 
 __all__ = [
     "LATENCY_BUCKETS",
@@ -153,21 +162,26 @@ class _Histogram:
 
 
 class PlcstackCollector:
-    """A prometheus-client collector over a poller, its sinks and the RBE filter.
-
-    ``poller`` needs ``stats`` (name -> PlcStats), ``dropped`` and ``plcs``; ``sinks`` are
-    objects with ``buffer`` (a StoreAndForward) and ``stats`` (SinkStats) and ``connected``.
-    """
+    """A prometheus-client collector over a poller, its MQTT sinks, the RBE filter and the
+    faces of the run (each face's own :meth:`~plcstack.north.face.Face.metrics`)."""
 
     def __init__(
-        self, poller: Any, sinks: Sequence[Any] = (), rbe: Any = None, supervisor: Any = None
+        self,
+        poller: PollerView,
+        sinks: Sequence[MqttSink] = (),
+        rbe: ReportByException | None = None,
+        supervisor: Supervisor | None = None,
+        faces: Callable[[], Sequence[Face]] = lambda: (),
     ) -> None:
         """``supervisor``: the run's :class:`~plcstack.north.supervise.Supervisor`, whose
-        ``errors`` (sink name -> failures) become ``plcstack_sink_errors_total``."""
+        ``errors`` (sink name -> failures) become ``plcstack_sink_errors_total``; ``faces``:
+        the faces of the run when it is scraped (their MQTT sinks' queues and connections, and
+        each face's own figures)."""
         self.poller = poller
         self.supervisor = supervisor
         self.sinks = list(sinks)
         self.rbe = rbe
+        self.faces = faces
         self._up: dict[str, bool] = {}
         self._histograms: dict[str, _Histogram] = {}
         #: (plc, error type name) -> latencies of failed requests
@@ -218,7 +232,7 @@ class PlcstackCollector:
                 h.add(window.tail(new))
                 h.seen = window.total
 
-    def collect(self) -> Iterator[Any]:
+    def collect(self) -> Iterator[Metric]:
         from prometheus_client.core import (
             CounterMetricFamily,
             GaugeMetricFamily,
@@ -265,10 +279,12 @@ class PlcstackCollector:
         yield CounterMetricFamily(
             "plcstack_dropped_samples",
             "samples dropped because the consumer fell behind",
-            value=float(getattr(self.poller, "dropped", 0)),
+            value=float(self.poller.dropped),
         )
-        if self.sinks:
-            gauges: dict[str, tuple[str, Callable[[Any], float]]] = {
+        faces = self.faces()
+        sinks = self.sinks + [face for face in faces if isinstance(face, MqttSink)]
+        if sinks:
+            gauges: dict[str, tuple[str, Callable[[MqttSink], float]]] = {
                 "plcstack_buffer_backlog_messages": ("messages waiting", lambda k: len(k.buffer)),
                 "plcstack_buffer_backlog_bytes": (
                     "bytes waiting",
@@ -278,10 +294,10 @@ class PlcstackCollector:
             }
             for metric, (doc, get) in gauges.items():
                 g = GaugeMetricFamily(metric, doc, labels=["sink"])
-                for i, sink in enumerate(self.sinks):
+                for i, sink in enumerate(sinks):
                     g.add_metric([str(i)], float(get(sink)))
                 yield g
-            totals: dict[str, tuple[str, Callable[[Any], float]]] = {
+            totals: dict[str, tuple[str, Callable[[MqttSink], float]]] = {
                 "plcstack_buffer_dropped_messages": (
                     "messages lost: dropped by the byte budget or refused by a full disk",
                     lambda k: k.buffer.dropped,
@@ -296,12 +312,12 @@ class PlcstackCollector:
                 ),
                 "plcstack_mqtt_connection_failures": (
                     "failed connection attempts and dropped sessions (the log says why)",
-                    lambda k: getattr(k.stats, "failures", 0),
+                    lambda k: k.stats.failures,
                 ),
             }
             for metric, (doc, get) in totals.items():
                 c = CounterMetricFamily(metric, doc, labels=["sink"])
-                for i, sink in enumerate(self.sinks):
+                for i, sink in enumerate(sinks):
                     c.add_metric([str(i)], float(get(sink)))
                 yield c
         if self.supervisor is not None:
@@ -320,8 +336,8 @@ class PlcstackCollector:
             " idle_timeout, frame_timeout), and malformed requests (malformed)",
             labels=["face", "reason"],
         )
-        for (face, reason), count in TOTALS.items():
-            guarded.add_metric([face, reason], float(count))
+        for (kind, reason), count in TOTALS.items():
+            guarded.add_metric([kind, reason], float(count))
         yield guarded
         if self.rbe is not None:
             yield CounterMetricFamily(
@@ -329,30 +345,52 @@ class PlcstackCollector:
                 "samples held back by report-by-exception",
                 value=float(self.rbe.suppressed),
             )
+        for face in faces:
+            yield from face.metrics()
 
 
-class MetricsServer:
-    """Serves ``/metrics`` and ``/healthz``; ``healthy()`` returns None or the reason it is not."""
+class MetricsServer(FaceBase):
+    """Serves ``/metrics``, ``/healthz`` and ``/livez``; a face of the runtime (it takes no
+    scans: the collector reads the poller's own counters). ``health()`` gives every part of
+    the run (default: this server alone); ``supervisor``: the run's (default: its own), under
+    which the histogram refresh runs."""
+
+    name = "metrics"
 
     def __init__(
         self,
         collector: PlcstackCollector,
         settings: MetricsSettings | None = None,
-        healthy: Callable[[], str | None] = lambda: None,
+        health: Callable[[], list[Health]] | None = None,
+        *,
+        supervisor: Supervisor | None = None,
     ) -> None:
         from prometheus_client import CollectorRegistry
 
         self.collector = collector
         self.settings = settings or MetricsSettings()
-        self.healthy = healthy
+        self.parts = health if health is not None else lambda: [self.health()]
+        self.supervisor = supervisor if supervisor is not None else Supervisor()
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(collector)
         self._server: asyncio.Server | None = None
-        self._refresher: asyncio.Task[None] | None = None
+        self._refresher: Supervised | None = None
         self._handlers: set[asyncio.Task[Any]] = set()
         #: clients at once and per host, the first request's deadline; what they refused
         self.guard = FaceGuard("metrics", "metrics endpoint", self.settings.limits, log)
         self.port = self.settings.port
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.settings.host}:{self.port}/metrics"
+
+    def submit(self, scans: Sequence[Scan]) -> None:
+        """Nothing to take: the collector reads the run's counters when it is scraped."""
+
+    def health(self) -> Health:
+        if self._server is None:
+            return Health(self.name, f"not listening on {self.settings.host}:{self.settings.port}")
+        return Health(self.name)
 
     async def start(self) -> None:
         """Listen; :class:`ConfigError` naming the address if that is not possible (a port
@@ -367,7 +405,7 @@ class MetricsServer:
             ) from None
         self.port = self._server.sockets[0].getsockname()[1]
         self.guard.announce(f"{host}:{self.port}")
-        self._refresher = asyncio.create_task(self._refresh_loop())
+        self._refresher = self.supervisor.start("metrics refresh", self._refresh_loop)
 
     async def _refresh_loop(self) -> None:
         while True:
@@ -376,16 +414,16 @@ class MetricsServer:
 
     async def aclose(self) -> None:
         if self._refresher is not None:
-            self._refresher.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._refresher
-        if self._server is not None:
-            self._server.close()
+            await self._refresher.stop()
+            self._refresher = None
+        server, self._server = self._server, None
+        if server is not None:
+            server.close()
         handlers = list(self._handlers)
         await cancel_until_done(handlers)  # a handler may drop one cancel (Python 3.11)
         await asyncio.gather(*handlers, return_exceptions=True)
-        if self._server is not None:
-            await self._server.wait_closed()
+        if server is not None:
+            await server.wait_closed()
         self.guard.close()
 
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -429,20 +467,16 @@ class MetricsServer:
             path = path.split("?", 1)[0]
             if method == "TOO-LARGE":
                 status, ctype, body = "431 Request Header Fields Too Large", "text/plain", b"\n"
-            elif path not in ("/metrics", "/healthz"):
+            elif path not in ("/metrics", "/healthz", "/livez"):
                 status, ctype, body = "404 Not Found", "text/plain", b"not found\n"
             elif method not in ("GET", "HEAD"):
                 status, ctype, body = "405 Method Not Allowed", "text/plain", b"GET only\n"
+            elif path == "/livez":
+                status, ctype, body = "200 OK", "text/plain", b"alive\n"
             elif path == "/healthz":
-                reason = self.healthy()
-                if reason is None:
-                    status, ctype, body = "200 OK", "text/plain", b"ok\n"
-                else:
-                    status, ctype, body = (
-                        "503 Service Unavailable",
-                        "text/plain",
-                        (reason + "\n").encode(),
-                    )
+                healthy, text = healthz_body(self.parts())
+                status = "200 OK" if healthy else "503 Service Unavailable"
+                ctype, body = "text/plain; charset=utf-8", text.encode()
             else:
                 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 

@@ -35,20 +35,23 @@ import os
 import socket
 import ssl
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
 from plcstack.checks import Table
 from plcstack.errors import ConfigError, PlcError
 from plcstack.north.buffer import Message, StoreAndForward
+from plcstack.north.health import Condition, Health
 from plcstack.north.layout import (
     JsonLayout,
-    data_payload,
-    status_payload,
-    status_topic,
+    MqttLayout,
+    Publish,
+    Unanswerable,
+    WriteRequest,
     topic_level,
     write_response_payload,
     write_response_topic,
@@ -56,26 +59,19 @@ from plcstack.north.layout import (
 from plcstack.north.mqtt_client import guarded_client
 from plcstack.north.mqtt_errors import PahoLog, connect_error, reason_of
 from plcstack.north.supervise import Supervised, Supervisor
-from plcstack.north.write_values import split_element
 from plcstack.north.writes import BAD_REQUEST, BUSY, UNKNOWN_PLC, WritePath
 from plcstack.poll.samples import Sample, Scan
 from plcstack.transports.backoff import Backoff
 
-__all__ = ["MqttSettings", "MqttSink", "Writer", "parse_mqtt"]
+if TYPE_CHECKING:
+    from prometheus_client.core import Metric
+
+__all__ = ["MqttSettings", "MqttSink", "parse_mqtt"]
 
 log = logging.getLogger("plcstack.north.mqtt")
 
 #: write requests waiting for their PLC at once; more are refused with ``busy``
 MAX_PENDING_WRITES = 256
-
-
-class Writer(Protocol):
-    """What the sink needs of the poller: names and the single-flight tag write."""
-
-    @property
-    def plcs(self) -> list[str]: ...
-
-    async def write_tag(self, plc: str, tag: str, value: object) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -239,25 +235,25 @@ class SinkStats:
 
 
 class MqttSink:
-    """Publishes scans through a :class:`StoreAndForward` queue; answers write requests."""
+    """Publishes scans through a :class:`StoreAndForward` queue; answers write requests.
+
+    ``layout``: JSON (default) or Sparkplug B (:class:`~plcstack.north.layout.MqttLayout`);
+    ``writes``: the run's one write path (default: none, every write refused ``not_writable``);
+    ``supervisor``: the run's, under which the connection task runs (default: its own);
+    ``env``: where ``username_env``/``password_env`` are looked up (default ``os.environ``),
+    when the sink starts.
+    """
 
     def __init__(
         self,
         settings: MqttSettings,
         *,
-        writer: Writer | None = None,
-        layout: Any = None,
-        buffer: StoreAndForward | None = None,
-        writable: dict[tuple[str, str], bool] | None = None,
-        plcs: Sequence[str] | None = None,
-        env: Mapping[str, str] | None = None,
+        layout: MqttLayout | None = None,
         writes: WritePath | None = None,
+        supervisor: Supervisor | None = None,
+        buffer: StoreAndForward | None = None,
+        env: Mapping[str, str] | None = None,
     ) -> None:
-        """``writable``: (plc, tag) -> may MQTT clients write it (the tag's ``writable = true``);
-        a tag marked false is refused with ``not_writable``. None: every tag is writable.
-        ``env``: where ``username_env``/``password_env`` are looked up (default ``os.environ``),
-        when the sink starts. ``writes``: the run's write path (default: one on ``writer``
-        without an audit)."""
         self.settings = settings
         self.env = env
         #: credentials and TLS context, resolved by :meth:`prepare` (at start, not at load)
@@ -266,13 +262,13 @@ class MqttSink:
         #: ConnectionLost naming the broker); None before the first failure
         self.last_error: PlcError | None = None
         self._paho_log = PahoLog()
-        self.writer = writer
-        self.writable = writable
-        self.writes = writes if writes is not None else WritePath(writer)
-        self.layout = (
+        self.writes = writes if writes is not None else WritePath(None)
+        # the default: JSON, taking write requests for the PLCs the write path can write
+        plcs = self.writes.poller.plcs if self.writes.poller is not None else []
+        self.layout: MqttLayout = (
             layout
             if layout is not None
-            else JsonLayout(settings.prefix, settings.client_id, settings.qos)
+            else JsonLayout(settings.prefix, settings.client_id, settings.qos, plcs=plcs)
         )
         self.buffer = (
             buffer
@@ -285,16 +281,14 @@ class MqttSink:
         )
         self.stats = SinkStats()
         self.connected = False
+        #: the broker connection's health: not connected since when, and why
+        self.link = Condition(self.name)
         self._wake = asyncio.Event()
         self._closing = False
-        self._client: Any = None
+        self._client: Any = None  # the aiomqtt client of the current connection
         self._replay_until = -1
         self._writes: set[asyncio.Task[None]] = set()
-        if plcs is None:
-            plcs = writer.plcs if writer is not None else []
-        self._plc_by_level = {topic_level(p): p for p in plcs}
-        #: runs the connection task; North sets its run's supervisor before ``start``
-        self.supervisor: Supervisor | None = None
+        self.supervisor = supervisor if supervisor is not None else Supervisor()
         self._task: Supervised | None = None
         self._connected_event = asyncio.Event()
         self._idle = asyncio.Event()  # set while the publisher has nothing to send
@@ -314,20 +308,15 @@ class MqttSink:
         """
         if not scans:
             return
-        messages = self.layout.messages(scans)
-        for topic, payload, qos, retain in messages:
-            self._put(topic, payload, qos, retain)
+        for message in self.layout.messages(scans):
+            self._put(message)
 
     def probe(self, sample: Sample) -> None:
         """Raise if the layout cannot encode ``sample``; queues nothing, changes no state."""
-        probe = getattr(self.layout, "probe", None)
-        if probe is not None:
-            probe(sample)
-        else:
-            data_payload(sample.plc, "", [sample])
+        self.layout.probe(sample)
 
-    def _put(self, topic: str, payload: bytes, qos: int, retain: bool) -> None:
-        self.buffer.put(topic, payload, qos, retain)
+    def _put(self, message: Publish) -> None:
+        self.buffer.put(*message)
         self.stats.submitted += 1
         if not self.connected:
             self.stats.buffered += 1
@@ -353,6 +342,28 @@ class MqttSink:
             f"{where}, {dropped}"
         )
 
+    def health(self) -> Health:
+        """Unhealthy while the broker is not connected (since when, why, how many messages
+        wait) or the queue reports a problem of its own (a full disk)."""
+        waiting = (("messages waiting", len(self.buffer)),)
+        problems: list[tuple[str, float]] = []
+        if self.link.problem is not None and self.link.since is not None:
+            problems.append((self.link.problem, self.link.since))
+        disk = self.buffer.failure
+        if disk is not None:
+            problems.append((disk.describe(), disk.since))
+        if not problems:
+            return Health(self.name, figures=waiting)
+        since = min(when for _, when in problems)
+        return Health(self.name, "; ".join(text for text, _ in problems), since, waiting)
+
+    def announce(self) -> str | None:
+        return None
+
+    def metrics(self) -> Iterator[Metric]:
+        """None of its own: the run's collector exports the queue and the connection."""
+        return iter(())
+
     # -- lifecycle ------------------------------------------------------------------------------
     def prepare(self) -> None:
         """Read the credentials from the environment and load the TLS files, once.
@@ -367,8 +378,7 @@ class MqttSink:
 
     async def start(self) -> None:
         self.prepare()
-        if self.supervisor is None:
-            self.supervisor = Supervisor()
+        self.link.fail(f"not connected to the MQTT broker {self.settings.url} yet")
         self._task = self.supervisor.start(self.name, self.run)
 
     async def wait_connected(self, timeout: float) -> None:
@@ -401,7 +411,7 @@ class MqttSink:
         if client is not None and self.connected:
             with contextlib.suppress(Exception):
                 async with asyncio.timeout(2):
-                    for topic, payload, qos, retain in self._closing_messages(time.time()):
+                    for topic, payload, qos, retain in self.layout.on_close(time.time()):
                         await client.publish(topic, payload, qos=qos, retain=retain)
         if self._task is not None:
             # cancels until the task has really ended (aiomqtt awaits PUBACK/SUBACK through
@@ -410,28 +420,6 @@ class MqttSink:
         for task in list(self._writes):
             task.cancel()
         self.buffer.close()
-
-    def _closing_messages(self, now: float) -> list[tuple[str, bytes, int, bool]]:
-        """What a clean stop publishes: in JSON mode every PLC's retained status ``offline``
-        first (nobody polls them any more: a retained ``online`` would stay true for
-        ever), then the layout's own (the poller's ``offline``)."""
-        out: list[tuple[str, bytes, int, bool]] = []
-        if isinstance(self.layout, JsonLayout):
-            prefix = self.settings.prefix
-            out = [
-                (status_topic(prefix, plc), status_payload(False, now), 1, True)
-                for plc in self._plc_by_level.values()
-            ]
-        return out + list(self.layout.on_close(now))
-
-    def _will(self) -> tuple[str, bytes]:
-        """The Last Will of a new connection. In JSON mode its timestamp is when that
-        connection was opened (the broker sends the Will later, when it loses the connection,
-        and cannot stamp it): a real time, never 0."""
-        topic, payload = self.layout.will()
-        if isinstance(self.layout, JsonLayout):
-            payload = status_payload(False, time.time())
-        return topic, payload
 
     async def run(self) -> None:
         """Connect, serve, reconnect with backoff; until cancelled."""
@@ -465,6 +453,7 @@ class MqttSink:
         )
         self.stats.failures += 1
         previous, self.last_error = self.last_error, error
+        self.link.fail(str(error))
         if previous is not None and reason_of(previous) == reason_of(error):
             log.debug("%s (again)", error)
         else:
@@ -495,20 +484,18 @@ class MqttSink:
                 ) from None
         return context
 
-    async def _session(self, aiomqtt: Any, backoff: Backoff) -> None:
+    async def _session(self, aiomqtt: ModuleType, backoff: Backoff) -> None:
         s = self.settings
         assert self._prepared is not None
         username, password, tls_context = self._prepared
-        will_topic, will_payload = self._will()
+        will_topic, will_payload = self.layout.will(time.time())
         client = guarded_client(aiomqtt)(
             s.host,
             s.port,
             identifier=s.client_id,
             username=username,
             password=password,
-            will=aiomqtt.Will(
-                will_topic, will_payload, qos=1, retain=getattr(self.layout, "will_retain", True)
-            ),
+            will=aiomqtt.Will(will_topic, will_payload, qos=1, retain=self.layout.will_retain),
             clean_session=True,
             keepalive=s.keepalive,
             timeout=s.timeout,
@@ -525,6 +512,7 @@ class MqttSink:
             self._client = client
             self.connected = True
             self.stats.connects += 1
+            self.link.clear()
             if self.last_error is not None:  # it was lost: say it is back, once
                 log.warning(
                     "%s: connected to %s again; %d messages waiting are sent first",
@@ -555,7 +543,6 @@ class MqttSink:
         """
         buffer, stats = self.buffer, self.stats
         window = self.settings.inflight
-        prepare = getattr(self.layout, "prepare", None)
         inflight: collections.deque[tuple[Message, asyncio.Task[None]]] = collections.deque()
         last_started = -1
         try:
@@ -566,7 +553,7 @@ class MqttSink:
                     # them): skip them by seq
                     for m in buffer.peek(len(inflight) + room):
                         if m.seq > last_started:
-                            task = asyncio.ensure_future(self._publish(client, m, prepare))
+                            task = asyncio.ensure_future(self._publish(client, m))
                             inflight.append((m, task))
                             last_started = m.seq
                     buffer.in_flight_through = last_started  # kept from the byte budget
@@ -597,8 +584,8 @@ class MqttSink:
             for _, task in inflight:
                 task.cancel()
 
-    async def _publish(self, client: Any, m: Message, prepare: Any) -> None:
-        payload = m.payload if prepare is None else prepare(m, m.seq <= self._replay_until)
+    async def _publish(self, client: Any, m: Message) -> None:
+        payload = self.layout.prepare(m, m.seq <= self._replay_until)
         if payload is None:  # the layout says this one is obsolete (an old session's birth)
             return
         await client.publish(m.topic, payload, qos=m.qos, retain=m.retain)
@@ -612,78 +599,59 @@ class MqttSink:
             self.handle_request(str(message.topic), bytes(payload))
 
     def handle_request(self, topic: str, payload: bytes) -> None:
-        handler = getattr(self.layout, "handle", None)
-        if handler is not None and handler(self, topic, payload):
-            return
-        if not hasattr(self.layout, "parse_write"):
-            return
-        level, request_id, tag, value, error = self.layout.parse_write(topic, payload)
-        plc = self._plc_by_level.get(level)
+        """Carry out what a received message asks for (the layout says what that is)."""
+        for command in self.layout.commands(topic, payload):
+            if isinstance(command, Publish):  # a rebirth: through the queue, after what waits
+                self._put(command)
+            elif isinstance(command, Unanswerable):
+                self.stats.writes_refused += 1
+                log.debug("%s: %s on %s; nobody to answer", self.name, command.reason, topic)
+            else:
+                self._request(command)
+
+    def _request(self, request: WriteRequest) -> None:
+        plc, tag = request.plc, request.tag
         refusal: tuple[str, str] | None = None
-        if error is not None or tag is None:
-            refusal = BAD_REQUEST, error or "bad request"
+        if request.error is not None or tag is None:
+            refusal = BAD_REQUEST, request.error or "bad request"
         elif plc is None:
-            refusal = UNKNOWN_PLC, f"no PLC named {level!r} here"
-        elif self.writer is None:
-            refusal = "not_writable", "this poller takes no writes"
+            refusal = UNKNOWN_PLC, f"no PLC named {request.level!r} here"
         elif len(self._writes) >= MAX_PENDING_WRITES:
             refusal = BUSY, "too many writes waiting; not attempted"
         if refusal is not None:
             # logged and audited as every refused write is, then answered; no peer: the broker
             # delivers a message without its publisher's address
             self.writes.refuse(
-                self.name, None, plc or level, str(tag or ""), value, *refusal, peer=None
+                self.name, None, plc or request.level, tag or "", request.value, *refusal, peer=None
             )
-            self._respond(level, request_id, *refusal)
+            self._respond(request.level, request.request_id, *refusal)
             return
-        assert plc is not None and tag is not None
-        task = asyncio.create_task(self._write(plc, request_id, tag, value))
+        task = asyncio.create_task(self._write(request))
         self._writes.add(task)
         task.add_done_callback(self._writes.discard)
 
-    async def write_and_classify(
-        self, plc: str, tag: str, value: Any
-    ) -> tuple[str, str, bool] | None:
-        """Run one write through the write path (:mod:`plcstack.north.writes`: allow-list,
-        value grammar, ``write_tag``, audit, log); None if confirmed, else ``(code, message,
-        may_have_executed)``. The source is the sink's name (``mqtt`` or ``sparkplug``)."""
-        writable = self.writable
-        element = split_element(tag)
-        base = element[0] if element is not None and (plc, tag) not in (writable or {}) else tag
-        if writable is not None and False in (writable.get((plc, tag)), writable.get((plc, base))):
-            code, message, _ = self._read_only(plc, tag)
-            result = self.writes.refuse(self.name, None, plc, tag, value, code, message, peer=None)
-        else:
-            # writable None (the Python API): every tag is writable through this sink
-            # no peer: the broker delivers a message without its publisher's address
-            result = await self.writes.write(
-                self.name, None, plc, tag, value, peer=None, allow_list=self.writable is not None
-            )
-        if result.ok:
-            return None
-        return result.code, result.message, result.may_have_executed
-
-    @staticmethod
-    def _read_only(plc: str, tag: str) -> tuple[str, str, bool]:
-        return (
-            "not_writable",
-            f"{plc}: write {tag}: the tag is read-only for north-side clients"
-            " (set writable = true in its configuration); not attempted",
-            False,
+    async def _write(self, request: WriteRequest) -> None:
+        """One write through the run's write path (allow-list, value grammar, ``write_tag``,
+        audit, log), then the answer; the source is the sink's name."""
+        assert request.plc is not None and request.tag is not None
+        # no peer: the broker delivers a message without its publisher's address
+        result = await self.writes.write(
+            self.name, None, request.plc, request.tag, request.value, peer=None
         )
-
-    async def _write(self, plc: str, request_id: Any, tag: str, value: Any) -> None:
-        result = await self.write_and_classify(plc, tag, value)
-        if result is None:
+        level = topic_level(request.plc)
+        if result.ok:
             self.stats.writes_ok += 1
-            self._respond(topic_level(plc), request_id, None, None)
+            if request.answer_ok:
+                self._respond(level, request.request_id, None, None)
         else:
-            self._respond(topic_level(plc), request_id, *result)
+            self._respond(
+                level, request.request_id, result.code, result.message, result.may_have_executed
+            )
 
     def _respond(
         self,
         level: str,
-        request_id: Any,
+        request_id: object,
         error: str | None,
         message: str | None,
         may_have_executed: bool = False,
@@ -703,10 +671,10 @@ class MqttSink:
             self._writes.add(task)
             task.add_done_callback(self._writes.discard)
         else:
-            self._put(topic, payload, 1, False)
+            self._put(Publish(topic, payload, 1, False))
 
     async def _send_response(self, client: Any, topic: str, payload: bytes) -> None:
         try:
             await client.publish(topic, payload, qos=1)
         except Exception:  # connection went away: the queue delivers it after the reconnect
-            self._put(topic, payload, 1, False)
+            self._put(Publish(topic, payload, 1, False))

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import collections
 import logging
-from typing import Any
+from typing import Any, Protocol
 
 from plcstack.errors import ConnectFailed, ConnectionLost, PlcError
 
@@ -96,8 +96,20 @@ _SESSION_MEANINGS: tuple[tuple[tuple[str, ...], str], ...] = (
 )
 
 
+class ClientCertificate(Protocol):
+    """What the diagnosis needs of the ``[mqtt]`` settings: the client certificate, if any."""
+
+    @property
+    def cert_file(self) -> str | None: ...
+
+
 def connect_error(
-    exc: BaseException, paho_lines: Any, *, broker: str, connected: bool, settings: Any
+    exc: BaseException,
+    paho_lines: Any,
+    *,
+    broker: str,
+    connected: bool,
+    settings: ClientCertificate | None = None,
 ) -> PlcError:
     """The typed error for a failed connection attempt (``connected`` False) or a dropped
     session (True); ``paho_lines``: what :class:`PahoLog` kept during the attempt."""
@@ -110,19 +122,20 @@ def connect_error(
         message = f"{meaning} ({detail})" if meaning else detail
         return ConnectionLost(f"connection lost: {message}", plc=broker, request="session")
     meaning = next((m for keys, m in _MEANINGS if any(k in probe for k in keys)), None)
-    if meaning == _MEANINGS[0][1] and getattr(settings, "cert_file", None) is None:
+    cert_file = settings.cert_file if settings is not None else None
+    if meaning == _MEANINGS[0][1] and cert_file is None:
         meaning += "; set [mqtt] cert_file and key_file"
     elif meaning == _MEANINGS[0][1]:
-        meaning += f"; it did not accept {settings.cert_file!r}"
+        meaning += f"; it did not accept {cert_file!r}"
     if meaning is None and _CLOSED_IN_TLS in probe:
         # The broker hung up during or right after the TLS handshake. Under TLS 1.3 it checks
         # our certificate after the handshake and sends its alert as it closes: whether the
         # alert (UNKNOWN_CA, above) or only the close reaches us is a race. A close is what a
         # rejected certificate looks like when the alert lost that race.
-        if getattr(settings, "cert_file", None):
+        if cert_file:
             meaning = (
                 "the broker closed the TLS connection after the handshake: it most likely "
-                f"rejected our client certificate (cert_file {settings.cert_file!r}): not "
+                f"rejected our client certificate (cert_file {cert_file!r}): not "
                 "signed by a CA it trusts, or not meant for client use"
             )
         else:

@@ -1,17 +1,9 @@
 """An OPC UA server in front of the poller: SCADA, MES and historians see the old PLCs as OPC UA.
 
-```python
-from plcstack import Poller, load_config
-from plcstack.north.opcua import OpcUaConfig, OpcUaServer
-
-config = load_config("plant.toml")
-async with Poller(config.poll) as poller:
-    async with OpcUaServer(poller, config.north.opcua or OpcUaConfig()) as server:
-        await server.run()          # feeds every sample of the poller into the address space
-```
-
-or ``plcstack serve opcua plant.toml``. Needs the optional extra ``plcstack[opcua]`` (asyncua,
-LGPL); nothing else in plcstack imports this module.
+A face of the runtime (:mod:`plcstack.north.pipeline`): ``[opcua]`` in the file of ``plcstack
+poll`` (or ``plcstack serve opcua plant.toml``, the same runtime) serves it, fed with the
+poller's scans after report-by-exception like every other face. Needs the optional extra
+``plcstack[opcua]`` (asyncua, LGPL); nothing else in plcstack imports this module.
 
 Address space (namespace ``urn:plcstack`` unless configured)::
 
@@ -70,6 +62,8 @@ from asyncua.ua.status_codes import StatusCodes as _S
 from plcstack.errors import (
     PlcError,
 )
+from plcstack.north.face import FaceBase, PollerView
+from plcstack.north.health import Health
 from plcstack.north.opcua_config import (
     OpcUaConfig,
     load_opcua_config,
@@ -93,11 +87,10 @@ from plcstack.north.opcua_users import (
     session_peer,
     trust_list,
 )
-from plcstack.north.supervise import run_until
+from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.write_values import parse_write_value
-from plcstack.north.writes import WritePath
+from plcstack.north.writes import WritePath, WriteResult
 from plcstack.poll.config import ConfigError, TagConfig
-from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.transports.guard import FaceGuard, Limits
 
@@ -108,8 +101,6 @@ __all__ = [
     "load_opcua_config",
     "parse_opcua_config",
     "read_status",
-    "run_until",
-    "serve",
     "variant_type",
     "write_status",
 ]
@@ -341,7 +332,8 @@ class _WriteService(AttributeService):
         results: list[ua.StatusCode | None] = [None] * len(items)
         others: list[int] = []
         jobs: dict[str, list[tuple[int, _Binding, _Job]]] = {}
-        bindings = self._owner._bindings
+        owner = self._owner
+        bindings = owner.bindings
         # the session's login and client address for the audit (None: anonymous or the server
         # itself; no address for the server's own calls)
         login = user.name if isinstance(user, PlcUser) else None
@@ -351,13 +343,14 @@ class _WriteService(AttributeService):
             if binding is None:
                 others.append(i)
                 continue
-            checked = _check_write(binding, item, user)
+            allowed = owner.writes.allowed(binding.plc, binding.tag.name)
+            checked = _check_write(binding, item, user, allowed)
             if isinstance(checked, _Refusal):
                 results[i] = _status(checked.status)
                 # refused before the write path: logged and audited as every other attempt
                 raw = item.Value.Value.Value if item.Value and item.Value.Value else None
                 where = f"{binding.plc}: write {binding.tag.name}"
-                self._owner.writes.refuse(
+                owner.writes.refuse(
                     "opcua",
                     login,
                     binding.plc,
@@ -375,7 +368,7 @@ class _WriteService(AttributeService):
             for i, status in zip(others, await super().write(rest, user), strict=True):
                 results[i] = status
         if jobs:
-            for i, status in await self._owner._write_to_plcs(jobs):
+            for i, status in await owner.write_to_plcs(jobs):
                 results[i] = status
         return [r if r is not None else _status(_S.BadInternalError) for r in results]
 
@@ -390,14 +383,17 @@ class _Refusal:
     reason: str
 
 
-def _check_write(binding: _Binding, item: ua.WriteValue, user: User) -> _Refusal | Any:
-    """The value to write, or why the write is refused before anything is sent."""
+def _check_write(
+    binding: _Binding, item: ua.WriteValue, user: User, allowed: WriteResult | None
+) -> _Refusal | Any:
+    """The value to write, or why the write is refused before anything is sent (``allowed``:
+    the run's allow-list said None, or its refusal)."""
     if item.AttributeId != AttributeIds.Value:
         return _Refusal(_S.BadNotWritable, "not_writable", "only the Value attribute is written")
     if not isinstance(user, PlcUser):
         return _Refusal(_S.BadUserAccessDenied, "unauthorized", "not from a client session")
-    if not binding.tag.writable:
-        return _Refusal(_S.BadNotWritable, "not_writable", "the tag is not writable = true")
+    if allowed is not None:
+        return _Refusal(_S.BadNotWritable, allowed.code, "the tag is not writable = true")
     if not user.may_write:
         who = f"user {user.name}" if user.name else "an anonymous session"
         return _Refusal(_S.BadUserAccessDenied, "unauthorized", f"{who} may not write")
@@ -418,17 +414,27 @@ def _check_write(binding: _Binding, item: ua.WriteValue, user: User) -> _Refusal
 # -- the server -----------------------------------------------------------------------------------
 
 
-class OpcUaServer:
-    """An asyncua server whose address space mirrors the poller's PLCs and tags.
+class OpcUaServer(FaceBase):
+    """An asyncua server whose address space mirrors the poller's PLCs and tags; a face of the
+    runtime (:class:`~plcstack.north.face.Face`).
 
-    ``start()`` builds the address space and listens. Feed it with :meth:`run` (it then consumes
-    the poller's samples itself), or, when another loop owns the poller's samples and fans them
-    out to several sinks (after report-by-exception), with :meth:`submit` (the sinks' common
-    interface: never blocks) or ``await`` :meth:`send`. Every tag variable reads
-    Bad_WaitingForInitialData until its first sample.
+    ``start()`` builds the address space and listens; :meth:`submit` takes the scans (never
+    blocks; a supervised task of the run applies them), or ``await`` :meth:`send` puts samples
+    in at once. Every tag variable reads Bad_WaitingForInitialData until its first sample.
+    ``writes``: the run's one write path (default: one on ``poller`` without an audit);
+    ``supervisor``: the run's (default: its own).
     """
 
-    def __init__(self, poller: Poller, config: OpcUaConfig | None = None) -> None:
+    name = "opcua"
+
+    def __init__(
+        self,
+        poller: PollerView,
+        config: OpcUaConfig | None = None,
+        *,
+        writes: WritePath | None = None,
+        supervisor: Supervisor | None = None,
+    ) -> None:
         self.poller = poller
         self.config = config if config is not None else OpcUaConfig()
         self._server: Server | None = None
@@ -448,11 +454,12 @@ class OpcUaServer:
             ),
             log,
         )
-        self._bindings: dict[ua.NodeId, _Binding] = {}
+        #: every tag variable's binding by its NodeId (after :meth:`start`)
+        self.bindings: dict[ua.NodeId, _Binding] = {}
         self._by_tag: dict[tuple[str, str], _Binding] = {}
         self._writes: set[asyncio.Future[Any]] = set()
-        #: the run's write path (``plcstack serve opcua`` hands in the one with the audit)
-        self.writes = WritePath(poller)
+        self.writes = writes if writes is not None else WritePath(poller)
+        self.supervisor = supervisor if supervisor is not None else Supervisor()
         self.namespace_index = 0
         self.url = self.config.endpoint
         #: samples put into the address space / skipped as unchanged (for statistics)
@@ -462,7 +469,7 @@ class OpcUaServer:
         self.coalesced = 0
         self._pending: dict[tuple[str, str], Sample] = {}
         self._wakeup = asyncio.Event()
-        self._applier: asyncio.Task[None] | None = None
+        self._applier: Supervised | None = None
         self._plan_bindings()
 
     def _plan_bindings(self) -> None:
@@ -526,10 +533,11 @@ class OpcUaServer:
         iserver.attribute_service = _WriteService(iserver, self)
         # per-session UserAccessLevel, IndexRange on Read, PercentDeadband, BuildInfo
         await set_build_info(server)
+        allowed = self.writes.allowed
         install(
             server,
-            by_node(self._bindings, lambda b: b.tag.writable),
-            by_node(self._bindings, lambda b: _eu_span(b.tag)),
+            by_node(self.bindings, lambda b: allowed(b.plc, b.tag.name) is None),
+            by_node(self.bindings, lambda b: _eu_span(b.tag)),
         )
         unlimit = limit_clients(server, self.guard)
         try:
@@ -538,7 +546,7 @@ class OpcUaServer:
             unlimit()
             raise PlcError(f"OPC UA server cannot listen on {config.endpoint}: {exc}") from None
         self._server, self._unlimit = server, unlimit
-        self._applier = asyncio.create_task(self._apply_submitted(), name="opcua submitted")
+        self._applier = self.supervisor.start(self.name, self._apply_submitted)
         bound = server.bserver
         if bound is not None:
             parts = urlsplit(config.endpoint)
@@ -560,17 +568,16 @@ class OpcUaServer:
                 items.extend(_eu_items(binding, idx))
             for result in await session.add_nodes(items):
                 result.StatusCode.check()
-        self._bindings = {b.nodeid: b for b in self._by_tag.values()}
+        self.bindings = {b.nodeid: b for b in self._by_tag.values()}
         waiting = ua.DataValue(StatusCode=_status(INITIAL_STATUS))
-        for binding in self._bindings.values():
+        for binding in self.bindings.values():
             await server.write_attribute_value(binding.nodeid, waiting)
 
     async def aclose(self) -> None:
         """Stop listening; PLC writes still in flight finish (their outcome is logged)."""
         applier, self._applier = self._applier, None
         if applier is not None:
-            applier.cancel()
-            await asyncio.gather(applier, return_exceptions=True)
+            await applier.stop()
         server, self._server = self._server, None
         if server is not None:
             await server.stop()
@@ -643,6 +650,20 @@ class OpcUaServer:
         if pending:
             self._wakeup.set()
 
+    def health(self) -> Health:
+        if self._server is None:
+            return Health(self.name, f"not listening on {self.config.endpoint}")
+        return Health(self.name, figures=(("variables", len(self.bindings)),))
+
+    def summary(self) -> str:
+        return (
+            f"opcua {self.url}: {self.updates} values set, {self.unchanged} unchanged,"
+            f" {self.coalesced} replaced by a newer one before they were set"
+        )
+
+    def announce(self) -> str:
+        return f"OPC UA server listening on {self.url}"
+
     async def _apply_submitted(self) -> None:
         while True:
             await self._wakeup.wait()
@@ -654,29 +675,8 @@ class OpcUaServer:
             except Exception:  # one bad batch must not end the feed of every later one
                 log.exception("OPC UA server: applying %d samples failed", len(batch))
 
-    async def run(
-        self,
-        observe: Callable[[list[Scan]], object] | None = None,
-        stored: Callable[[list[Scan]], object] | None = None,
-    ) -> None:
-        """Consume the poller's scans until it is closed (or this task is cancelled).
-
-        ``observe`` sees every batch first (the metrics collector's ``observe``: ``plcstack
-        serve opcua`` with ``[metrics]``); ``stored`` sees it once its values are what a client
-        reads (``plcstack serve opcua`` says it listens after every PLC's first scan).
-        """
-        poller = self.poller
-        # gathered for poll.batch_wait, as the north pipeline takes them: one wake-up per
-        # event-loop pass would cost more than the requests with many PLCs
-        async for batch in poller.scans(wait=poller.config.batch_wait):
-            if observe is not None:
-                observe(batch)
-            await self.send(s for scan in batch for s in scan.samples)
-            if stored is not None:
-                stored(batch)
-
     # -- writes out -------------------------------------------------------------------------
-    async def _write_to_plcs(
+    async def write_to_plcs(
         self, jobs: dict[str, list[tuple[int, _Binding, _Job]]]
     ) -> list[tuple[int, ua.StatusCode]]:
         """Each PLC's writes in request order, PLCs in parallel; shielded from the client.
@@ -719,15 +719,3 @@ class OpcUaServer:
         if result.error is None:  # refused before the PLC (not writable, unknown tag)
             return _S.BadNotWritable
         return write_status(result.error)
-
-
-async def serve(
-    poller: Poller, config: OpcUaConfig | None = None, *, stop: asyncio.Event | None = None
-) -> OpcUaServer:
-    """Serve a started poller over OPC UA until ``stop`` is set (or forever).
-
-    Returns the stopped server, whose counters (``updates``, ``unchanged``) stay readable.
-    """
-    async with OpcUaServer(poller, config) as server:
-        await run_until(server, stop if stop is not None else asyncio.Event())
-    return server

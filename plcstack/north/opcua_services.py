@@ -41,6 +41,8 @@ from asyncua.server.server import Server
 from asyncua.ua.attribute_ids import AttributeIds
 from asyncua.ua.status_codes import StatusCodes as _S
 
+from plcstack.north.opcua_users import PlcUser
+
 __all__ = [
     "MANUFACTURER",
     "PRODUCT_NAME",
@@ -138,7 +140,8 @@ def install(
         params, results = event.request_params, event.response_params
         if results is None:
             return
-        may_write = bool(getattr(event.user, "may_write", False))
+        user = event.user
+        may_write = isinstance(user, PlcUser) and user.may_write
         for i, item in enumerate(params.NodesToRead):
             tag_writable = writable(item.NodeId)
             if tag_writable is None:

@@ -43,17 +43,26 @@ and counted; a confirmed one shows up in the next DDATA.
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from plcstack.north.layout import Reachability, topic_level
+from plcstack.north.buffer import Message
+from plcstack.north.face import PollerView
+from plcstack.north.layout import (
+    Command,
+    Publish,
+    Reachability,
+    Unanswerable,
+    WriteRequest,
+    topic_level,
+)
+from plcstack.north.mqtt import MqttSettings
 from plcstack.north.sparkplug_pb import DATATYPES, Payload
 from plcstack.north.sparkplug_state import BdSeqStore, default_state_path
-from plcstack.poll.config import TagConfig
+from plcstack.poll.config import PollConfig, TagConfig
 from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.values import value_type
 
@@ -212,20 +221,20 @@ class SparkplugLayout:
         self._configs = {(plc, t.name): t for plc, specs in self.tags.items() for t in specs}
         self._plc_by_level = {topic_level(p): p for p in tags}
         self.rebirths = 0
-        self.writes_refused = 0
 
     @classmethod
-    def for_config(cls, settings: Any, poll_config: Any, poller: Any = None) -> SparkplugLayout:
-        """The layout of ``[mqtt]`` ``settings`` for ``poll_config``'s PLCs; ``poller`` (if it
-        can tell) gives ``raw`` tags the width of their points."""
+    def for_config(
+        cls, settings: MqttSettings, poll_config: PollConfig, poller: PollerView | None = None
+    ) -> SparkplugLayout:
+        """The layout of ``[mqtt]`` ``settings`` for ``poll_config``'s PLCs; ``poller`` gives
+        ``raw`` tags the width of their points."""
         tags = {plc.name: list(plc.tags) for plc in poll_config.plcs}
         point_bits: dict[tuple[str, str], int] = {}
-        tags_of = getattr(poller, "tags", None)
-        if tags_of is not None:
+        if poller is not None:
             for plc in tags:
-                for name, (_, bits) in tags_of(plc).items():
+                for name, (_, bits) in poller.tags(plc).items():
                     point_bits[(plc, name)] = bits
-        path = getattr(settings, "state_path", None) or default_state_path(settings.buffer_path)
+        path = settings.state_path or default_state_path(settings.buffer_path)
         if path is None:
             log.warning(
                 "sparkplug: neither [mqtt] state_path nor buffer_path is set: bdSeq starts at 0 "
@@ -237,7 +246,7 @@ class SparkplugLayout:
             settings.client_id,
             tags,
             prefix=settings.prefix,
-            qos=getattr(settings, "sparkplug_qos", 0),
+            qos=settings.sparkplug_qos,
             state=state,
             point_bits=point_bits,
         )
@@ -316,48 +325,50 @@ class SparkplugLayout:
         return bytes(p.SerializeToString())
 
     # -- what the sink asks of a layout ---------------------------------------------------------
-    def will(self) -> tuple[str, bytes]:
+    def will(self, now: float) -> tuple[str, bytes]:
         """NDEATH with the new session's bdSeq (called once per connection attempt, before the
         CONNECT: the number is saved first, so even a crash right after it is counted)."""
         self.bd_seq = (self.bd_seq + 1) % 256
         if self.state is not None:
             self.state.save(self.bd_seq)
-        p = self._bd_seq_payload(time.time(), rebirth_metric=False)
+        p = self._bd_seq_payload(now, rebirth_metric=False)
         return self.topic("NDEATH"), bytes(p.SerializeToString())
 
-    def births(self, now: float) -> list[tuple[str, bytes, int, bool]]:
+    def births(self, now: float) -> list[Publish]:
         """NBIRTH (seq 0) and a DBIRTH for every PLC that is not known to be offline."""
         self.seq = 0
-        out: list[tuple[str, bytes, int, bool]] = []
+        out: list[Publish] = []
         p = self._bd_seq_payload(now, rebirth_metric=True)
         p.seq = self._next_seq()
-        out.append((self.topic("NBIRTH"), bytes(p.SerializeToString()), self.qos, False))
+        out.append(Publish(self.topic("NBIRTH"), bytes(p.SerializeToString()), self.qos, False))
         for plc in self.tags:
             if self.reachability.get(plc) is False:
                 continue
             birth = Payload.FromString(self._dbirth(plc, now))
             birth.seq = self._next_seq()
             out.append(
-                (self.topic("DBIRTH", plc), bytes(birth.SerializeToString()), self.qos, False)
+                Publish(
+                    self.topic("DBIRTH", plc), bytes(birth.SerializeToString()), self.qos, False
+                )
             )
         return out
 
-    def on_connect(self, now: float) -> list[tuple[str, bytes, int, bool]]:
+    def on_connect(self, now: float) -> list[Publish]:
         return self.births(now)
 
-    def on_close(self, now: float) -> list[tuple[str, bytes, int, bool]]:
+    def on_close(self, now: float) -> list[Publish]:
         """A graceful shutdown says NDEATH itself (the broker sends the Will only on a drop)."""
         p = self._bd_seq_payload(now, rebirth_metric=False)
-        return [(self.topic("NDEATH"), bytes(p.SerializeToString()), 1, False)]
+        return [Publish(self.topic("NDEATH"), bytes(p.SerializeToString()), 1, False)]
 
     def subscriptions(self) -> list[str]:
         return [self.topic("NCMD"), self.topic("DCMD") + "/+"]
 
-    def messages(self, scans: Sequence[Scan]) -> list[tuple[str, bytes, int, bool]]:
+    def messages(self, scans: Sequence[Scan]) -> list[Publish]:
         """DDATA per PLC and scan; DDEATH/DBIRTH when a PLC becomes unreachable/reachable
         (:class:`~plcstack.north.layout.Reachability`: a group failing on its own only makes
         its metrics null with Quality BAD); ``seq`` is set when published."""
-        out: list[tuple[str, bytes, int, bool]] = []
+        out: list[Publish] = []
         for scan in scans:
             plc, samples = scan.plc, scan.samples
             last = self._last.setdefault(plc, {})
@@ -370,18 +381,24 @@ class SparkplugLayout:
                 p = Payload()
                 p.timestamp = int(when * 1000)
                 out.append(
-                    (self.topic("DDEATH", plc), bytes(p.SerializeToString()), self.qos, False)
+                    Publish(
+                        self.topic("DDEATH", plc), bytes(p.SerializeToString()), self.qos, False
+                    )
                 )
                 continue
             if self.reachability.get(plc) is False:
                 continue  # dead: nothing until it is reachable again
             if changed is True and self._born_dead(plc):
-                out.append((self.topic("DBIRTH", plc), self._dbirth(plc, when), self.qos, False))
+                out.append(
+                    Publish(self.topic("DBIRTH", plc), self._dbirth(plc, when), self.qos, False)
+                )
                 continue
             p = Payload()
             p.timestamp = int(min(s.source_time for s in samples) * 1000)
             self._add_metrics(p, plc, samples, birth=False)
-            out.append((self.topic("DDATA", plc), bytes(p.SerializeToString()), self.qos, False))
+            out.append(
+                Publish(self.topic("DDATA", plc), bytes(p.SerializeToString()), self.qos, False)
+            )
         return out
 
     def _born_dead(self, plc: str) -> bool:
@@ -391,7 +408,7 @@ class SparkplugLayout:
         self._dead.discard(plc)
         return dead
 
-    def prepare(self, message: Any, replayed: bool) -> bytes | None:
+    def prepare(self, message: Message, replayed: bool) -> bytes | None:
         """At publish time: the session's next ``seq``; queued data from before the current
         session gets ``is_historical``; old births and deaths are dropped (None)."""
         kind = message.topic.split("/")[2] if message.topic.count("/") >= 3 else ""
@@ -409,40 +426,32 @@ class SparkplugLayout:
         return bytes(p.SerializeToString())
 
     # -- commands -------------------------------------------------------------------------------
-    def handle(self, sink: Any, topic: str, payload: bytes) -> bool:
+    def commands(self, topic: str, payload: bytes) -> list[Command]:
+        """NCMD ``Node Control/Rebirth`` = true: NBIRTH and every DBIRTH again, through the
+        queue after what waits there (:meth:`prepare` numbers them from 0 at the NBIRTH when
+        they are published); DCMD: a write per metric (metric name = tag, ``tag/3`` one
+        element), answered only when refused (Sparkplug has no reply message: on the JSON
+        mode's ``P/PLC/write/resp`` with ``id`` = ``"dcmd:<metric>"``)."""
         levels = topic.split("/")
         if len(levels) < 4 or levels[0] != NAMESPACE:
-            return False
+            return []
         try:
             p = Payload.FromString(payload)
         except Exception:  # not a Sparkplug payload: nothing to do, and nobody to answer
-            sink.stats.writes_refused += 1
-            return True
+            return [Unanswerable(f"a {levels[2]} that is not a Sparkplug B payload")]
         if levels[2] == "NCMD":
-            if any(m.name == REBIRTH and metric_value(m) is True for m in p.metrics):
-                self.rebirths += 1
-                seq = self.seq
-                for t, body, qos, retain in self.births(time.time()):
-                    # through the queue, after what is queued: prepare() numbers them again,
-                    # from 0 at the NBIRTH, when they are published
-                    sink._put(t, body, qos, retain)
-                self.seq = seq
-            return True
+            if not any(m.name == REBIRTH and metric_value(m) is True for m in p.metrics):
+                return []
+            self.rebirths += 1
+            seq = self.seq
+            births: list[Command] = list(self.births(time.time()))
+            self.seq = seq
+            return births
         if levels[2] == "DCMD" and len(levels) >= 5:
-            plc = self._plc_by_level.get(levels[4], levels[4])
-            for m in p.metrics:
-                task = asyncio.create_task(self._write(sink, plc, m.name, metric_value(m)))
-                sink._writes.add(task)
-                task.add_done_callback(sink._writes.discard)
-            return True
-        return False
-
-    async def _write(self, sink: Any, plc: str, tag: str, value: Any) -> None:
-        result = await sink.write_and_classify(plc, tag, value)
-        if result is None:
-            sink.stats.writes_ok += 1
-        else:
-            # Sparkplug has no reply message: counted and answered on the JSON topic; the write
-            # path (north/writes.py) has logged it, once per change of outcome
-            self.writes_refused += 1
-            sink._respond(topic_level(plc), f"dcmd:{tag}", *result)
+            level = levels[4]
+            plc = self._plc_by_level.get(level)
+            return [
+                WriteRequest(plc, level, m.name, metric_value(m), f"dcmd:{m.name}", answer_ok=False)
+                for m in p.metrics
+            ]
+        return []

@@ -13,8 +13,8 @@ Two kinds of failure, one place that sees them:
   cancelled): logged at ERROR with the reason, counted, and restarted after a growing, jittered
   backoff; meanwhile :meth:`Supervisor.health` names it, so ``/healthz`` answers 503.
 
-The supervisor knows sinks only as names and callables, scans as records with ``samples`` and
-samples as objects with ``plc`` and ``tag``: it does not depend on what a sink does.
+The supervisor knows sinks only as names and callables: it does not depend on what a sink
+does. :meth:`Supervisor.health` says which tasks are down, why and since when, for ``/healthz``.
 """
 
 from __future__ import annotations
@@ -25,10 +25,11 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable, Coroutine, Sequence
-from typing import Any, Protocol
+from typing import Any
 
 from plcstack.errors import PlcError
-from plcstack.poll.samples import Quality
+from plcstack.north.health import Health
+from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.resource import cancel_until_done
 from plcstack.transports.backoff import Backoff
 
@@ -45,15 +46,12 @@ def _describe(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
-def marked_bad(sample: Any, sink: str, exc: BaseException) -> Any:
+def marked_bad(sample: Sample, sink: str, exc: BaseException) -> Sample:
     """A bad-quality copy of ``sample`` whose error says which sink could not take it and why."""
     error = f"{sink} could not take this value: {_describe(exc)}"
-    try:
-        return dataclasses.replace(
-            sample, value=None, quality=Quality.BAD, error=error, error_type=None
-        )
-    except (TypeError, ValueError):  # a sample shape without these fields: it is only dropped
-        return None
+    return dataclasses.replace(
+        sample, value=None, quality=Quality.BAD, error=error, error_type=None
+    )
 
 
 class Supervised:
@@ -72,7 +70,8 @@ class Supervised:
         self._started = 0.0
         self._timer: asyncio.TimerHandle | None = None
 
-    def _run(self) -> None:
+    def launch(self) -> None:
+        """Start the task now (the supervisor's first start, and each restart)."""
         self._timer = None
         if self.stopping or self.supervisor.closing:
             return
@@ -95,7 +94,7 @@ class Supervised:
         delay = self.backoff.next_delay()
         self.restarts += 1
         self.supervisor.count(self.name)
-        self.supervisor.down[self.name] = f"{self.name} failed ({reason}); restarting"
+        self.supervisor.down.setdefault(self.name, (f"failed ({reason}); restarting", time.time()))
         log.error(
             "%s failed: %s; restarting in %.1f s",
             self.name,
@@ -105,7 +104,7 @@ class Supervised:
             exc_info=exc if exc is not None and not isinstance(exc, PlcError) else None,
             extra={"face": self.name},
         )
-        self._timer = asyncio.get_running_loop().call_later(delay, self._run)
+        self._timer = asyncio.get_running_loop().call_later(delay, self.launch)
 
     async def stop(self) -> None:
         """Cancel the task until it has really ended; no restart after this."""
@@ -129,8 +128,8 @@ class Supervisor:
         self.maximum = maximum
         #: sink or server name -> failures (samples it could not take, deaths of its task)
         self.errors: dict[str, int] = {}
-        #: name -> why it is down, while a dead task waits for its restart
-        self.down: dict[str, str] = {}
+        #: name -> (why it is down, since when), while a dead task waits for its restart
+        self.down: dict[str, tuple[str, float]] = {}
         self.closing = False
         self._tasks: list[Supervised] = []
         self._logged: set[tuple[str, str, str, str]] = set()
@@ -143,14 +142,13 @@ class Supervisor:
         """Run ``factory()`` as a task named ``name``, restarted with backoff when it fails."""
         handle = Supervised(self, name, factory)
         self._tasks.append(handle)
-        handle._run()
+        handle.launch()
         return handle
 
-    def health(self) -> str | None:
-        """None while every supervised task runs, else which are down and why."""
-        if not self.down:
-            return None
-        return "; ".join(self.down[name] for name in sorted(self.down))
+    def health(self) -> list[Health]:
+        """The supervised tasks that are down (why, since when), while they wait for their
+        restart; empty while every one runs."""
+        return [Health(name, reason, since) for name, (reason, since) in sorted(self.down.items())]
 
     async def aclose(self) -> None:
         self.closing = True
@@ -161,9 +159,9 @@ class Supervisor:
     def submit(
         self,
         name: str,
-        submit: Callable[[list[Any]], None],
-        scans: Sequence[Any],
-        probe: Callable[[Any], None] | None = None,
+        submit: Callable[[list[Scan]], None],
+        scans: Sequence[Scan],
+        probe: Callable[[Sample], None] | None = None,
     ) -> None:
         """``submit(scans)``; if it raises, the scans again without the samples it cannot take.
 
@@ -180,9 +178,9 @@ class Supervisor:
             first: BaseException = exc
         if probe is not None:
             culprits = False
-            fixed: list[Any] = []
+            fixed: list[Scan] = []
             for scan in batch:
-                kept: list[Any] = []
+                kept: list[Sample] = []
                 for s in scan.samples:
                     try:
                         probe(s)
@@ -190,8 +188,7 @@ class Supervisor:
                         culprits = True
                         self._lost(name, s, exc)
                         s = marked_bad(s, name, exc)
-                    if s is not None:
-                        kept.append(s)
+                    kept.append(s)
                 if kept:
                     fixed.append(scan.with_samples(tuple(kept)))
             if culprits:
@@ -207,7 +204,11 @@ class Supervisor:
         self._one_by_one(name, submit, batch, first)
 
     def _one_by_one(
-        self, name: str, submit: Callable[[list[Any]], None], scans: list[Any], cause: BaseException
+        self,
+        name: str,
+        submit: Callable[[list[Scan]], None],
+        scans: list[Scan],
+        cause: BaseException,
     ) -> None:
         """Each sample alone, as a scan of one sample (its PLC, group and times kept)."""
         log.debug("%s could not take a batch (%s); one sample at a time", name, _describe(cause))
@@ -221,14 +222,13 @@ class Supervisor:
                 except Exception as exc:
                     self._lost(name, s, exc)
                     bad = marked_bad(s, name, exc)
-                if bad is not None:
-                    with contextlib.suppress(Exception):
-                        submit([scan.with_samples((bad,))])
+                with contextlib.suppress(Exception):
+                    submit([scan.with_samples((bad,))])
 
-    def _lost(self, name: str, sample: Any, exc: BaseException) -> None:
+    def _lost(self, name: str, sample: Sample, exc: BaseException) -> None:
         """Count a sample a sink could not take; log it at ERROR the first time per kind."""
         self.count(name)
-        plc, tag = str(getattr(sample, "plc", "?")), str(getattr(sample, "tag", "?"))
+        plc, tag = sample.plc, sample.tag
         key = (name, plc, tag, type(exc).__name__)
         level = logging.DEBUG if key in self._logged else logging.ERROR
         self._logged.add(key)
@@ -239,42 +239,7 @@ class Supervisor:
             name,
             plc,
             tag,
-            getattr(sample, "value", None),
+            sample.value,
             _describe(exc),
             extra={"face": name, "plc": plc, "tag": tag},
         )
-
-
-class Fed(Protocol):
-    """A server fed from its poller's scans (the OPC UA and Modbus servers)."""
-
-    async def run(
-        self,
-        observe: Callable[[list[Any]], object] | None = None,
-        stored: Callable[[list[Any]], object] | None = None,
-    ) -> None: ...
-
-
-async def run_until(
-    server: Fed,
-    stop: asyncio.Event,
-    timeout: float | None = None,
-    observe: Callable[[list[Any]], object] | None = None,
-    stored: Callable[[list[Any]], object] | None = None,
-) -> None:
-    """Feed a started server from its poller until ``stop`` is set or ``timeout`` seconds
-    passed (``observe`` and ``stored``: see the server's ``run``).
-
-    A failure of the feed itself (a bug) is raised, not swallowed with the cancellation, so a
-    ``serve`` command ends with exit 1 and the reason instead of going on without its feed.
-    """
-    feeder = asyncio.create_task(server.run(observe, stored), name=f"{type(server).__name__} feed")
-    stopper = asyncio.create_task(stop.wait(), name=f"{type(server).__name__} stop")
-    try:
-        await asyncio.wait({feeder, stopper}, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        for task in (feeder, stopper):
-            task.cancel()
-        await asyncio.gather(feeder, stopper, return_exceptions=True)
-    if not feeder.cancelled() and (error := feeder.exception()) is not None:
-        raise error

@@ -26,6 +26,7 @@ from typing import Protocol
 
 from plcstack.checks import Table
 from plcstack.clients.base import Client
+from plcstack.north.face import FaceBase
 from plcstack.north.layout import Reachability
 from plcstack.poll.samples import Scan
 from plcstack.wire.ring import DEFAULT_RING, MIN_INTERVAL, FlightRecorder
@@ -67,7 +68,7 @@ class PlcConnections(Protocol):
     def client(self, plc: str) -> Client: ...
 
 
-class TraceSink:
+class TraceSink(FaceBase):
     """The flight recorder of one poller: rings on its PLCs' connections, a capture file when
     one goes offline. A sink (``submit(scans)``) of the north side."""
 

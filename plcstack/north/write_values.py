@@ -28,9 +28,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Any, Final
+from typing import Final
 
 from plcstack.errors import AddressError, ConnectFailed, PlcError, PlcErrorResponse
+from plcstack.north.face import PollerView
 from plcstack.poll.config import TagConfig
 from plcstack.poll.plan import encode_tag
 
@@ -71,10 +72,10 @@ class WriteValueError(AddressError):
         super().__init__(message, plc=plc, request=request)
 
 
-def expected_value(tag: Any) -> str:
+def expected_value(tag: TagConfig) -> str:
     """What one value of ``tag`` must look like, in the words every refusal uses."""
     vtype = tag.type
-    if getattr(tag, "scale", None) is not None:
+    if tag.scale is not None:
         return "a number (in engineering units)"
     kind, name = vtype.kind, vtype.name
     if name == "bool":
@@ -131,11 +132,11 @@ def _ky(value: object) -> tuple[int, int] | None:
     return high, low
 
 
-def _scalar(tag: Any, value: object) -> object:
+def _scalar(tag: TagConfig, value: object) -> object:
     """One value of ``tag`` in the form its type encodes, or raises ValueError."""
     vtype = tag.type
     kind, name = vtype.kind, vtype.name
-    if getattr(tag, "scale", None) is not None or kind == "float":
+    if tag.scale is not None or kind == "float":
         x = _number(value)
         if x is None:
             raise ValueError
@@ -164,7 +165,7 @@ def _scalar(tag: Any, value: object) -> object:
     return n
 
 
-def parse_write_value(tag: Any, value: object, *, plc: str | None = None) -> object:
+def parse_write_value(tag: TagConfig, value: object, *, plc: str | None = None) -> object:
     """The value to hand to ``write_tag`` for ``value`` written to ``tag`` (a
     :class:`~plcstack.poll.config.TagConfig`) by any north-side client.
 
@@ -173,7 +174,7 @@ def parse_write_value(tag: Any, value: object, *, plc: str | None = None) -> obj
     tag takes; nothing is written then.
     """
     request = f"write {tag.name}"
-    count = getattr(tag, "count", 1)
+    count = tag.count
     takes = expected_value(tag)
     if count == 1:
         try:
@@ -223,9 +224,8 @@ def result_code(error: PlcError) -> str:
     """The result code of an :class:`AddressError` raised by a write before anything was sent:
     the error's own ``code`` if it has one, else :data:`UNKNOWN_TAG` for a tag that does not
     exist and :data:`WRONG_TYPE` for a value the tag's type cannot hold."""
-    code = getattr(error, "code", None)
-    if isinstance(code, str):
-        return code
+    if isinstance(error, WriteValueError):
+        return error.code
     if "no tag named" in error.message:
         return UNKNOWN_TAG
     if "no PLC named" in error.message:
@@ -261,7 +261,7 @@ def split_element(name: str) -> tuple[str, int] | None:
 
 
 async def write_element(
-    poller: Any, plc: str, tag: TagConfig, point_bits: int, index: int, value: object
+    poller: PollerView, plc: str, tag: TagConfig, point_bits: int, index: int, value: object
 ) -> None:
     """Write element ``index`` of ``tag`` (``count > 1``) alone: the points of that one value,
     at its own address, through the poller's single-flight ``write`` (never a read-modify-write

@@ -42,16 +42,20 @@ import logging
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Final
 
 from plcstack.errors import PlcError
 from plcstack.north.audit import Audit
+from plcstack.north.face import PollerView
 from plcstack.north.write_values import (
+    NOT_WRITABLE,
+    UNKNOWN_TAG,
     classify_write_error,
     parse_write_value,
     split_element,
     write_element,
 )
+from plcstack.poll.samples import Scan
 
 __all__ = [
     "BAD_REQUEST",
@@ -71,7 +75,7 @@ BUSY: Final = "busy"
 UNKNOWN_PLC: Final = "unknown_plc"
 PLC_ERROR: Final = "plc_error"
 #: a value that was never given (``previous`` unknown to the caller)
-_UNSET: Final[Any] = object()
+_UNSET: Final = object()
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,22 +97,23 @@ class WriteResult:
 class WritePath:
     """The write path of one run; see the module docstring.
 
-    ``poller``: anything with ``plcs``, ``tags(plc)`` and ``write_tag`` (None: a poller that
-    takes no writes, such as a scale-out worker; every write is refused ``not_writable``).
-    ``audit``: where each attempt is recorded (None: no audit configured).
+    ``poller``: the run's poller (or a scale-out worker, which writes the PLCs it holds);
+    None: nothing takes writes here (the gateway, which records its own), every write is
+    refused ``not_writable``. ``audit``: where each attempt is recorded (None: no audit
+    configured).
     """
 
-    def __init__(self, poller: Any, *, audit: Audit | None = None) -> None:
+    def __init__(self, poller: PollerView | None, *, audit: Audit | None = None) -> None:
         self.poller = poller
         self.audit = audit
         #: (plc, tag) -> last polled value, kept only while an audit needs ``previous``
-        self.latest: dict[tuple[str, str], Any] = {}
+        self.latest: dict[tuple[str, str], object] = {}
         self.ok = 0
         self.refused = 0
         #: (source, peer, user, plc, tag) -> the code of its latest refusal (repeats at DEBUG)
         self._last_code: dict[tuple[str, str | None, str | None, str, str], str] = {}
 
-    def observe(self, scans: Iterable[Any]) -> None:
+    def observe(self, scans: Iterable[Scan]) -> None:
         """Note the polled values of a batch of scans (the audit's ``previous``); a no-op
         without an audit."""
         if self.audit is None:
@@ -124,24 +129,21 @@ class WritePath:
         user: str | None,
         plc: str,
         tag: str,
-        value: Any,
+        value: object,
         *,
         peer: str | None,
-        previous: Any = _UNSET,
-        allow_list: bool = True,
+        previous: object = _UNSET,
     ) -> WriteResult:
         """One write attempt from a north-side client; never raises for the write's outcome.
 
         ``peer``: the client's address (``host:port``), None where the north side cannot
         know it; a required keyword, so no north side leaves it out by accident.
         ``previous``: the value the caller last showed its client (default: the last polled
-        one this path saw). ``allow_list=False``: the caller's own allow-list admitted the write
-        (a sink built in Python with ``writable=None``, "every tag"); the tag's ``writable``
-        is then not asked.
+        one this path saw).
         """
         if previous is _UNSET:
             previous = self.latest.get((plc, tag))
-        result = await self._attempt(plc, tag, value, allow_list)
+        result = await self._attempt(plc, tag, value)
         self._finish(source, user, peer, plc, tag, value, previous, result)
         return result
 
@@ -151,7 +153,7 @@ class WritePath:
         user: str | None,
         plc: str,
         tag: str,
-        value: Any,
+        value: object,
         code: str,
         message: str,
         *,
@@ -169,11 +171,11 @@ class WritePath:
         user: str | None,
         plc: str,
         tag: str,
-        value: Any,
+        value: object,
         result: WriteResult,
         *,
         peer: str | None,
-        previous: Any = _UNSET,
+        previous: object = _UNSET,
     ) -> None:
         """Log and audit a write that a north side carried out on a path of its own (the
         gateway writes addresses over AS511, not tags through the poller)."""
@@ -181,39 +183,57 @@ class WritePath:
             previous = self.latest.get((plc, tag))
         self._finish(source, user, peer, plc, tag, value, previous, result)
 
-    async def _attempt(self, plc: str, tag: str, value: Any, allow_list: bool) -> WriteResult:
-        poller = self.poller
+    def allowed(self, plc: str, tag: str) -> WriteResult | None:
+        """The allow-list, the one of every north side: None if a write of ``tag`` (or of
+        one element ``tag/N`` of an array tag) may be attempted, else the refusal (unknown
+        PLC or tag, a tag without ``writable = true``, a poller that takes no writes).
+        A face that must refuse a whole request before any of its writes is sent (a Modbus
+        write spanning several tags) asks this first."""
         where = f"{plc}: write {tag}"
-        if poller is None or not hasattr(poller, "write_tag"):
+        poller = self.poller
+        if poller is None:
             return WriteResult(
-                False, "not_writable", f"{where}: this poller takes no writes; not attempted", False
+                False, NOT_WRITABLE, f"{where}: this poller takes no writes; not attempted", False
             )
-        tags = getattr(poller, "tags", None)
         try:
-            # a writer without tag configurations (a Python object handed to a sink) is its own
-            # allow-list: write_tag decides
-            known = tags(plc) if tags is not None else None
-            config = known.get(tag) if known is not None else None
-            if known is not None and config is None:
+            known = poller.tags(plc)
+        except PlcError as exc:
+            code, message, _ = classify_write_error(exc)
+            return WriteResult(False, code, message, False, exc)
+        config = known.get(tag)
+        if config is None:
+            element = split_element(tag)
+            if element is None or element[0] not in known or known[element[0]][0].count < 2:
+                close = difflib.get_close_matches(tag, list(known), n=1)
+                meant = f" (did you mean {close[0]}?)" if close else ""
+                return WriteResult(
+                    False,
+                    UNKNOWN_TAG,
+                    f"{where}: no tag named {tag!r}{meant}; not attempted",
+                    False,
+                )
+            config = known[element[0]]
+        if not config[0].writable:
+            return self._read_only(where)
+        return None
+
+    async def _attempt(self, plc: str, tag: str, value: object) -> WriteResult:
+        refusal = self.allowed(plc, tag)
+        if refusal is not None:
+            return refusal
+        poller = self.poller
+        assert poller is not None  # allowed() refuses without one
+        where = f"{plc}: write {tag}"
+        try:
+            known = poller.tags(plc)
+            config = known.get(tag)
+            if config is None:  # one value of an array tag (Sparkplug announces "alarms/3")
                 element = split_element(tag)
-                if element is None or element[0] not in known or known[element[0]][0].count < 2:
-                    close = difflib.get_close_matches(tag, list(known), n=1)
-                    meant = f" (did you mean {close[0]}?)" if close else ""
-                    return WriteResult(
-                        False,
-                        "unknown_tag",
-                        f"{where}: no tag named {tag!r}{meant}; not attempted",
-                        False,
-                    )
-                # one value of an array tag (Sparkplug announces them as "alarms/3")
+                assert element is not None  # allowed() refuses any other unknown name
                 base, bits = known[element[0]]
-                if allow_list and not getattr(base, "writable", False):
-                    return self._read_only(where)
                 await write_element(poller, plc, base, bits, element[1], value)
             else:
-                if allow_list and config is not None and not getattr(config[0], "writable", False):
-                    return self._read_only(where)
-                parsed = value if config is None else parse_write_value(config[0], value, plc=plc)
+                parsed = parse_write_value(config[0], value, plc=plc)
                 await poller.write_tag(plc, tag, parsed)
         except Exception as exc:  # every failure gets its answer, never silence
             code, message, may_have_executed = classify_write_error(exc)
@@ -226,7 +246,7 @@ class WritePath:
     def _read_only(where: str) -> WriteResult:
         return WriteResult(
             False,
-            "not_writable",
+            NOT_WRITABLE,
             f"{where}: the tag is read-only for north-side clients (set writable = true in its"
             " configuration); not attempted",
             False,
@@ -239,8 +259,8 @@ class WritePath:
         peer: str | None,
         plc: str,
         tag: str,
-        value: Any,
-        previous: Any,
+        value: object,
+        previous: object,
         result: WriteResult,
     ) -> None:
         if self.audit is not None:

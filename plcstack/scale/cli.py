@@ -83,10 +83,10 @@ def add_arguments(parser: Any) -> None:
 
 def select(config: PollConfig, args: argparse.Namespace) -> PollConfig:
     """The part of ``config`` this process polls under ``--shard`` (all of it without)."""
-    text = getattr(args, "shard", None)
+    text = args.shard
     if text is None:
         return config
-    if getattr(args, "mqtt", None) is not None:
+    if args.mqtt is not None:
         raise ValueError("--shard (static) and --mqtt (automatic) exclude each other")
     spec = parse_shard(text)
     return shard_config(config, spec.index, spec.count)
@@ -94,9 +94,9 @@ def select(config: PollConfig, args: argparse.Namespace) -> PollConfig:
 
 def make_worker(config: PollConfig, args: argparse.Namespace) -> Worker | None:
     """The automatic-mode worker for ``--mqtt`` (None without it); ValueError for bad options."""
-    mqtt = getattr(args, "mqtt", None)
+    mqtt = args.mqtt
     if mqtt is None:
-        if getattr(args, "nats", None) is not None:
+        if args.nats is not None:
             raise ValueError("--nats needs --mqtt (leases guard the PLCs presence assigns)")
         return None
     # imported here: aiomqtt and nats-py are the optional extra plcstack[scale]

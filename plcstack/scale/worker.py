@@ -25,12 +25,16 @@ import asyncio
 import contextlib
 import dataclasses
 import fnmatch
-from collections.abc import AsyncIterator, Callable, Coroutine
+from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 
-from plcstack.poll.config import PlcConfig, PollConfig
+from plcstack.clients.base import Client
+from plcstack.errors import AddressError
+from plcstack.north.write_values import WriteValueError
+from plcstack.north.writes import UNKNOWN_PLC
+from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.engine import (
     ClientFactory,
     PlcStats,
@@ -134,6 +138,8 @@ class Worker:
         check = Poller(config, client_factory=client_factory)
         for name in check.plcs:
             check.client(name).transport.abort()
+        #: every PLC's tags with the widths of their points (what the north side asks of any)
+        self._tags = {name: check.tags(name) for name in check.plcs}
         self._plcs: dict[str, PlcConfig] = {p.name: p for p in config.plcs}
         #: one poller per PLC, one set of connect turns for all of them (a worker that takes
         #: over thousands of PLCs at once connects them as one poller would)
@@ -263,6 +269,51 @@ class Worker:
     def owned(self) -> frozenset[str]:
         """The PLCs being polled now."""
         return frozenset(self._runs)
+
+    # -- the poller's read view and writes, for the PLCs this worker holds ----------------------
+    @property
+    def plcs(self) -> list[str]:
+        """The PLCs this worker polls now (the whole fleet is ``config.plcs``)."""
+        return list(self._runs)
+
+    def tags(self, plc: str) -> dict[str, tuple[TagConfig, int]]:
+        """Each tag of any PLC of the fleet with the width of its points (see
+        :meth:`Poller.tags`)."""
+        try:
+            return dict(self._tags[plc])
+        except KeyError:
+            raise AddressError(f"no PLC named {plc!r} in this poller", plc=plc) from None
+
+    def _poller_of(self, plc: str, request: str) -> Poller:
+        """The poller of a PLC this worker holds; for another PLC of the fleet an
+        :class:`AddressError` saying which worker polls it (nothing is sent)."""
+        run = self._runs.get(plc)
+        if run is not None:
+            return run.poller
+        if plc not in self._plcs:
+            raise AddressError(f"no PLC named {plc!r} in this poller", plc=plc, request=request)
+        live = self.presence.live
+        holder = owner(plc, live) if live else None
+        where = f"worker {holder}" if holder and holder != self.worker else "no worker yet"
+        raise WriteValueError(
+            f"this worker ({self.worker}) does not poll it now ({where} does); write through"
+            " that worker; not attempted",
+            code=UNKNOWN_PLC,
+            plc=plc,
+            request=request,
+        )
+
+    def client(self, plc: str) -> Client:
+        return self._poller_of(plc, "client").client(plc)
+
+    async def write(self, plc: str, address: str, values: Sequence[int] | Sequence[bool]) -> None:
+        """A write through the PLC's polling connection, if this worker holds the PLC."""
+        await self._poller_of(plc, f"write {address}").write(plc, address, values)
+
+    async def write_tag(self, plc: str, tag: str, value: object) -> None:
+        """A tag write through the PLC's polling connection, if this worker holds the PLC (the
+        same single-flight path as a Poller's); another PLC's is refused, nothing sent."""
+        await self._poller_of(plc, f"write {tag}").write_tag(plc, tag, value)
 
     # -- events -----------------------------------------------------------------------------------
     def _event(self, text: str) -> None:

@@ -20,6 +20,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from plcstack.errors import ConfigError
+from plcstack.north.face import FaceBase
 from plcstack.north.history.blocks import BlockError, decode_block
 from plcstack.north.history.downsample import Downsampler
 from plcstack.north.history.settings import HistorySettings
@@ -44,8 +45,8 @@ class HistoryBusy(Exception):
     """Too many queries at once, or the history is not open (yet, or any more)."""
 
 
-class History:
-    """The embedded history of one run (see the module's docstring)."""
+class History(FaceBase):
+    """The embedded history of one run (see the module's docstring); a face of the runtime."""
 
     #: how logs, metrics and ``/healthz`` name it
     name = "history"

@@ -1,17 +1,8 @@
 """The Modbus TCP server in front of the poller: HMI panels and SCADA see the old PLCs as Modbus.
 
-```python
-from plcstack import Poller, load_config
-from plcstack.north.modbus import ModbusServer
-
-config = load_config("plant.toml")
-poller = Poller(config.poll)
-async with poller, ModbusServer.from_config(poller, config.north.modbus) as server:
-    print(server.endpoint)   # the address actually bound (port 0 picks a free one)
-    await server.run()       # feeds the poller's scans into the register image
-```
-
-or ``plcstack serve modbus plant.toml``. What is answered is in
+A face of the runtime (:mod:`plcstack.north.pipeline`): ``[modbus]`` in the file of ``plcstack
+poll`` (or ``plcstack serve modbus plant.toml``, the same runtime) serves it, fed with the
+poller's scans after report-by-exception like every other face. What is answered is in
 :mod:`plcstack.north.modbus.service`, how values become registers in
 :mod:`plcstack.north.modbus.registers`, the wire format in :mod:`plcstack.north.modbus.frames`
 (which says why this is not pymodbus's server).
@@ -39,10 +30,12 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from collections.abc import Iterator, Sequence
+from typing import TYPE_CHECKING
 
 from plcstack.errors import ConfigError, PlcError, RemoteProtocolError
+from plcstack.north.face import PollerView
+from plcstack.north.health import Health
 from plcstack.north.modbus.config import MapEntry, ModbusSettings, build_map
 from plcstack.north.modbus.frames import (
     ModbusServerConnection,
@@ -52,11 +45,13 @@ from plcstack.north.modbus.frames import (
 )
 from plcstack.north.modbus.service import Refused, RegisterImage, describe_code
 from plcstack.north.writes import WritePath
-from plcstack.poll.engine import Poller
-from plcstack.poll.samples import Scan
+from plcstack.poll.samples import Sample, Scan
 from plcstack.resource import AsyncResource
 from plcstack.transports.guard import FRAME_TIMEOUT, FaceGuard, FrameDeadline, Visit
 from plcstack.transports.peer import peer_address
+
+if TYPE_CHECKING:
+    from prometheus_client.core import Metric
 
 __all__ = ["ModbusCollector", "ModbusServer"]
 
@@ -89,7 +84,7 @@ class _Connection(asyncio.Protocol):
         if self.visit is None:
             transport.abort()
             return
-        server._connections.add(self)
+        server.connections.add(self)
         self.frame = FrameDeadline(FRAME_TIMEOUT, self._frame_late)
         log.info("Modbus client %s connected", self.peer or "?")
 
@@ -99,7 +94,7 @@ class _Connection(asyncio.Protocol):
         if visit is None:
             return
         visit.leave()
-        self.server._connections.discard(self)
+        self.server.connections.discard(self)
         if self.frame is not None:
             self.frame.cancel()
         log.info("Modbus client %s disconnected", self.peer or "?")
@@ -137,7 +132,7 @@ class _Connection(asyncio.Protocol):
                 server.protocol_errors += 1
                 if self.visit is not None:
                     self.visit.malformed(f"a broken frame ({exc.message}); closing the connection")
-                self._drop()
+                self.drop()
                 return
             if request is None:
                 break
@@ -152,7 +147,7 @@ class _Connection(asyncio.Protocol):
                     )
             if request.error == 0 and request.is_write and server.for_us(request):
                 task = asyncio.create_task(self._write(request), name="modbus write")
-                server._writes.add(task)
+                server.writes_in_flight.add(task)
                 task.add_done_callback(self._write_done)
                 self.writing = task
                 break
@@ -171,7 +166,7 @@ class _Connection(asyncio.Protocol):
             self.paused = False
             transport.resume_reading()
 
-    def _drop(self) -> None:
+    def drop(self) -> None:
         """End the connection: closed once its answers are out, aborted if they cannot be (a
         client that does not read would hold the connection for ever)."""
         transport = self.transport
@@ -186,7 +181,7 @@ class _Connection(asyncio.Protocol):
         """The guard's first-request or idle deadline passed (counted and said there)."""
         if reason == "idle_timeout":
             self.server.idle_closed += 1
-        self._drop()
+        self.drop()
 
     def _frame_late(self) -> None:
         self.server.protocol_errors += 1
@@ -199,12 +194,12 @@ class _Connection(asyncio.Protocol):
         self._send(await self.server.answer_write(request, peer=self.peer))
 
     def _write_done(self, task: asyncio.Task[None]) -> None:
-        self.server._writes.discard(task)
+        self.server.writes_in_flight.discard(task)
         self.writing = None
         if not task.cancelled() and task.exception() is not None:
             # answer_write turns every failure into an answer; this is a bug, not a PLC's fault
             log.error("Modbus write task failed", exc_info=task.exception())
-            self._drop()
+            self.drop()
             return
         if self.transport is not None:
             self._drain()
@@ -215,11 +210,15 @@ class _Connection(asyncio.Protocol):
 
 
 class ModbusServer(AsyncResource):
-    """A Modbus TCP server answering from the poller's latest values (see the module)."""
+    """A Modbus TCP server answering from the poller's latest values (see the module); a face
+    of the runtime (:class:`~plcstack.north.face.Face`). ``writes``: the run's one write path
+    (default: one on ``poller`` without an audit)."""
+
+    name = "modbus"
 
     def __init__(
         self,
-        poller: Poller,
+        poller: PollerView,
         settings: ModbusSettings | None = None,
         entries: list[MapEntry] | None = None,
         *,
@@ -232,7 +231,6 @@ class ModbusServer(AsyncResource):
         if not entries:
             raise ConfigError('no tag has a modbus key: map tags with modbus = "hr:N" (ir, co, di)')
         self.image = RegisterImage(entries, self.settings.word_order)
-        #: the run's write path (``plcstack serve modbus`` hands in the one with the audit)
         self.writes = writes if writes is not None else WritePath(poller)
         self.port = self.settings.port
         self.protocol_errors = 0
@@ -244,16 +242,24 @@ class ModbusServer(AsyncResource):
         #: has what it refused and closed, by reason
         self.guard = FaceGuard("modbus", "Modbus server", self.settings.limits, log)
         self._server: asyncio.Server | None = None
-        self._connections: set[_Connection] = set()
-        self._writes: set[asyncio.Task[None]] = set()
+        #: the clients connected now
+        self.connections: set[_Connection] = set()
+        #: the writes waiting for their PLC (a client that goes away does not cut one short)
+        self.writes_in_flight: set[asyncio.Task[None]] = set()
 
     @classmethod
-    def from_config(cls, poller: Poller, settings: ModbusSettings | None = None) -> ModbusServer:
+    def from_config(
+        cls,
+        poller: PollerView,
+        settings: ModbusSettings | None = None,
+        *,
+        writes: WritePath | None = None,
+    ) -> ModbusServer:
         """The server of the poller's tags (their ``modbus`` keys, with file and line in its
         errors) and the ``[modbus]`` table (``settings``; None: the defaults)."""
         tags = {plc: poller.tags(plc) for plc in poller.plcs}
         map_ = build_map(tags, source=poller.config.source)
-        return cls(poller, settings or ModbusSettings(), map_)
+        return cls(poller, settings or ModbusSettings(), map_, writes=writes)
 
     @property
     def endpoint(self) -> str:
@@ -263,7 +269,7 @@ class ModbusServer(AsyncResource):
 
     @property
     def clients(self) -> int:
-        return len(self._connections)
+        return len(self.connections)
 
     def for_us(self, request: Request) -> bool:
         """Whether a request names this server: its ``unit_id``, or 0 or 255, which Modbus TCP
@@ -335,10 +341,10 @@ class ModbusServer(AsyncResource):
         server, self._server = self._server, None
         if server is not None:
             server.close()
-        for connection in list(self._connections):
-            connection._drop()
-        if self._writes:
-            await asyncio.gather(*self._writes, return_exceptions=True)
+        for connection in list(self.connections):
+            connection.drop()
+        if self.writes_in_flight:
+            await asyncio.gather(*self.writes_in_flight, return_exceptions=True)
         if server is not None:
             await server.wait_closed()
         self.guard.close()
@@ -352,21 +358,28 @@ class ModbusServer(AsyncResource):
         """The sinks' common interface: take scans into the image (never blocks)."""
         self.image.update(scans)
 
-    async def run(
-        self,
-        observe: Callable[[list[Scan]], object] | None = None,
-        stored: Callable[[list[Scan]], object] | None = None,
-    ) -> None:
-        """Consume the poller's scans until it is closed (or this task is cancelled);
-        ``observe`` sees every batch first (the metrics collector), ``stored`` once its values
-        are what a client reads."""
-        poller = self.poller
-        async for batch in poller.scans(wait=poller.config.batch_wait):
-            if observe is not None:
-                observe(batch)
-            self.image.update(batch)
-            if stored is not None:
-                stored(batch)
+    def probe(self, sample: Sample) -> None:
+        """Every sample is taken (a value its registers cannot hold reads as an exception)."""
+
+    def health(self) -> Health:
+        if self._server is None:
+            return Health(self.name, f"not listening on {self.settings.endpoint}")
+        return Health(self.name, figures=(("clients", self.clients),))
+
+    def summary(self) -> str:
+        image = self.image
+        return (
+            f"modbus {self.endpoint}: {sum(image.requests.values())} requests,"
+            f" {sum(image.exceptions.values())} exception answers,"
+            f" {image.writes_confirmed} writes confirmed"
+        )
+
+    def announce(self) -> str:
+        return f"Modbus server listening on {self.endpoint}"
+
+    def metrics(self) -> Iterator[Metric]:
+        """The server's own figures for ``/metrics`` (see :class:`ModbusCollector`)."""
+        return self.collector().collect()
 
     def collector(self) -> ModbusCollector:
         return ModbusCollector(self)
@@ -379,7 +392,7 @@ class ModbusCollector:
     def __init__(self, server: ModbusServer) -> None:
         self.server = server
 
-    def collect(self) -> Iterator[Any]:
+    def collect(self) -> Iterator[Metric]:
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
         image = self.server.image

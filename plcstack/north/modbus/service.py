@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from plcstack.errors import AddressError, ConnectionLost, PlcTimeout, RemoteProtocolError
@@ -159,8 +159,12 @@ class RegisterImage:
             hits.append(hit)
         return hits
 
-    def plan_write(self, request: Request) -> list[tuple[MapEntry, object]]:
-        """The (tag, value) writes of a write request, checked before anything is sent."""
+    def plan_write(
+        self, request: Request, allowed: Callable[[str, str], WriteResult | None]
+    ) -> list[tuple[MapEntry, object]]:
+        """The (tag, value) writes of a write request, checked before anything is sent: every
+        tag it covers whole, and admitted by the run's allow-list (``allowed``, the write
+        path's), so a request is refused whole rather than half written."""
         hits = self._span(request)
         jobs: list[tuple[MapEntry, object]] = []
         index = 0
@@ -177,13 +181,16 @@ class RegisterImage:
                     f"a write must cover whole tags: {entry.describe()} is only partly written",
                 )
             value = entry.layout.decode(words, self.order)
-            if not entry.tag.writable:
+            refusal = allowed(entry.plc, entry.tag.name)
+            if refusal is not None:
                 raise _NotWritable(
                     entry,
                     value,
-                    NOT_WRITABLE,
+                    refusal.code,
                     f"{entry.describe()} is read-only for north-side clients (set writable ="
-                    " true in its configuration)",
+                    " true in its configuration)"
+                    if refusal.code == NOT_WRITABLE
+                    else refusal.message,
                 )
             jobs.append((entry, value))
             index += size
@@ -194,7 +201,7 @@ class RegisterImage:
         grammar, the poller's write_tag, audit with source ``modbus`` and the client's address
         ``peer``); :class:`Refused` at the first refusal or failure."""
         try:
-            jobs = self.plan_write(request)
+            jobs = self.plan_write(request, writes.allowed)
         except _NotWritable as refusal:
             entry = refusal.entry
             writes.refuse(

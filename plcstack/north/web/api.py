@@ -46,13 +46,15 @@ class ConsoleApi(Protocol):
 
     def plc_rows(self, plc: str | None) -> list[dict[str, Any]]: ...
 
-    async def write(self, plc: str, tag: str, value: Any, *, peer: str | None) -> web.Response: ...
+    async def write(
+        self, plc: str, tag: str, value: object, *, peer: str | None
+    ) -> web.Response: ...
 
     def refuse(
         self,
         plc: str,
         tag: str,
-        value: Any,
+        value: object,
         code: str,
         message: str,
         *,

@@ -29,6 +29,8 @@ from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from plcstack.errors import ConfigError
+from plcstack.north.face import FaceBase, PollerView
+from plcstack.north.health import Health, healthz_body
 from plcstack.north.history import History
 from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.trace import TraceSink
@@ -75,26 +77,33 @@ _compact = functools.partial(json.dumps, separators=(",", ":"))
 MAX_SHOWN = 200
 
 
-class WebConsole:
-    """The web console and REST API of one poller (see the package docstring)."""
+class WebConsole(FaceBase):
+    """The web console and REST API of one poller (see the package docstring); a face of the
+    runtime (:class:`~plcstack.north.face.Face`). ``writes``: the run's one write path
+    (default: one on ``poller`` without an audit); ``supervisor``: the run's (default: its
+    own); ``health``: every part of the run, for ``/healthz``; ``history``: the run's embedded
+    history, if it has one."""
 
     def __init__(
         self,
-        poller: Any,
+        poller: PollerView,
         settings: WebSettings | None = None,
         *,
         writes: WritePath | None = None,
+        supervisor: Supervisor | None = None,
+        health: Callable[[], list[Health]] | None = None,
         history: History | None = None,
         reachable: Callable[[str], bool | None] | None = None,
         trace: TraceSink | None = None,
     ) -> None:
         self.poller = poller
+        #: every part of the run, for ``/healthz`` (default: this console alone)
+        self.parts = health if health is not None else lambda: [self.health()]
         #: the embedded history the trends and ``/api/history`` read (None: not configured)
         self.history = history
         #: the flight recorder the capture download reads (None: no ``[trace]``)
         self.trace = trace
-        #: the run's one write path (North passes its own, which audits)
-        self.writes = writes or WritePath(poller if hasattr(poller, "write_tag") else None)
+        self.writes = writes if writes is not None else WritePath(poller)
         self.settings = settings or WebSettings()
         self.state = ConsoleState(
             poller.config.plcs, trend_seconds=self.settings.trend_seconds, reachable=reachable
@@ -107,8 +116,8 @@ class WebConsole:
         self._listener: asyncio.Server | None = None
         #: connections at once and per host, first request, idle; what they refused and closed
         self.guard = FaceGuard("web", "web console", self.settings.limits, log)
-        #: runs the push to the browsers; North sets its run's supervisor before ``start``
-        self.supervisor: Supervisor | None = None
+        #: runs the push to the browsers
+        self.supervisor = supervisor if supervisor is not None else Supervisor()
         self._pusher: Supervised | None = None
         self._writes: set[asyncio.Task[Any]] = set()
         files = resources.files(__package__ or "plcstack.north.web")
@@ -155,6 +164,8 @@ class WebConsole:
                 web.get("/plc/{plc}", self._plc),
                 web.get("/events", self._events),
                 web.get("/static/{name}", self._file),
+                web.get("/healthz", self._healthz),
+                web.get("/livez", self._livez),
                 *routes(self),
                 *history_routes(self),
                 *capture_routes(self),
@@ -194,8 +205,6 @@ class WebConsole:
         self._runner, self._listener = runner, listener
         self.port = listener.sockets[0].getsockname()[1]  # the port taken when [web] port = 0
         guard.announce(self.url)
-        if self.supervisor is None:
-            self.supervisor = Supervisor()
         self._pusher = self.supervisor.start(self.name, self.hub.run)
         # where to point the browser, on stderr as the simulators say where they listen
         print(
@@ -203,6 +212,11 @@ class WebConsole:
             file=sys.stderr,
             flush=True,
         )
+
+    def health(self) -> Health:
+        if self._listener is None:
+            return Health(self.name, f"not listening on {self.settings.host}:{self.settings.port}")
+        return Health(self.name, figures=(("browsers", len(self.hub.clients)),))
 
     async def aclose(self) -> None:
         if self._pusher is not None:
@@ -230,7 +244,7 @@ class WebConsole:
 
     def rows_of(self, names: list[str]) -> list[dict[str, Any]]:
         """The rows of these PLCs (health, counters, how many tags)."""
-        stats = getattr(self.poller, "stats", {})
+        stats = self.poller.stats
         health, plcs = self.state.health, self.state.plcs
         return [
             plc_row(name, health[name], stats.get(name), len(plcs[name].tags)) for name in names
@@ -246,7 +260,7 @@ class WebConsole:
             page=query.get("page", "1"),
         )
 
-    async def write(self, plc: str, tag: str, value: Any, *, peer: str | None) -> web.Response:
+    async def write(self, plc: str, tag: str, value: object, *, peer: str | None) -> web.Response:
         """One write from the web, after the token was checked (see :mod:`.api`): through the
         north side's one write path (allow-list, value grammar, ``write_tag``, audit with the
         HTTP client's address as ``peer``)."""
@@ -267,7 +281,7 @@ class WebConsole:
         self,
         plc: str,
         tag: str,
-        value: Any,
+        value: object,
         code: str,
         message: str,
         *,
@@ -324,6 +338,15 @@ class WebConsole:
                 capture=self.trace is not None,
             )
         )
+
+    async def _healthz(self, request: web.Request) -> web.Response:
+        """200 while every part of the run is healthy, else 503 naming each that is not."""
+        healthy, text = healthz_body(self.parts())
+        return web.Response(text=text, status=200 if healthy else 503, content_type="text/plain")
+
+    async def _livez(self, request: web.Request) -> web.Response:
+        """200 while the process runs (and its event loop answers)."""
+        return web.Response(text="alive\n", content_type="text/plain")
 
     async def _file(self, request: web.Request) -> web.Response:
         name = request.match_info["name"]

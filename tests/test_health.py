@@ -1,0 +1,86 @@
+"""Health that tells the truth: ``/healthz`` of the metrics endpoint and of the web console
+answers 200 only while every part of the run is healthy, and names each one that is not.
+
+Before: ``/healthz`` answered ``ok`` while the broker was down (``plcstack_mqtt_connected`` 0)
+and while the audit file could not be written.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+from plcstack.config import load_config
+from plcstack.north.pipeline import North
+from plcstack.north.web.server import WebConsole
+from plcstack.poll.engine import Poller
+from tests.aio_helpers import eventually
+from tests.servers import Mosquitto
+from tests.test_north_metrics import http
+
+
+async def test_healthz_names_the_broker_and_the_audit_until_they_are_back(
+    tmp_path: Path, mosquitto: Mosquitto
+) -> None:
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[mqtt]\nurl = "{mosquitto.url}"\nreconnect_max = 0.2\n'
+        '[audit]\npath = "/dev/full"\n'  # opens, then every line fails: No space left
+        "[web]\nport = 0\n[metrics]\nport = 0\n"
+        '[[plc]]\nname = "press1"\nurl = "e71+tcp://127.0.0.1:1"\n'
+        '[plc.tags]\nstrokes = { address = "D100" }\n'
+    )
+    loaded = load_config(path)
+    config, north_config = loaded.poll, loaded.north
+    mosquitto.stop()  # the broker is away when the run starts
+    poller = Poller(config)
+    async with poller, North(poller, north_config) as north:
+        mqtt, metrics, web = north.mqtt, north.metrics, north.face(WebConsole)
+        assert mqtt is not None and metrics is not None and web is not None
+        consumer = asyncio.create_task(north.run())  # the dead PLC's scans fill the queue
+        await eventually(lambda: mqtt.last_error is not None, "a connection attempt failed")
+        await eventually(lambda: len(mqtt.buffer) > 0, "messages wait for the broker")
+        north.writes.refuse("web", None, "press1", "strokes", 1, "busy", "test", peer=None)
+        down = [
+            await http(port, b"GET /healthz HTTP/1.0\r\n\r\n") for port in (metrics.port, web.port)
+        ]
+        alive = [
+            await http(port, b"GET /livez HTTP/1.0\r\n\r\n") for port in (metrics.port, web.port)
+        ]
+        mosquitto.start()
+        await eventually(lambda: mqtt.connected, "the broker is back", timeout=10)
+        north.writes.refuse("web", None, "press1", "strokes", 1, "busy", "test", peer=None)
+        audit_only = await http(metrics.port, b"GET /healthz HTTP/1.0\r\n\r\n")
+        consumer.cancel()
+        await asyncio.gather(consumer, return_exceptions=True)
+    assert alive == [(200, b"alive\n")] * 2
+    for status, body in down:
+        assert status == 503
+        lines = body.decode().splitlines()
+        assert [line.split(":")[0] for line in lines] == ["mqtt", "audit"], lines
+        assert f"MQTT broker {mosquitto.url}: connect: nothing listens there" in lines[0]
+        assert " since 20" in lines[0] and " messages waiting" in lines[0]
+        assert lines[1].startswith("audit: cannot write /dev/full (No space left on device)")
+        assert lines[1].endswith("1 lines not written")
+    status, body = audit_only
+    assert status == 503 and body.decode().splitlines()[0].startswith("audit: cannot write")
+    assert len(body.decode().splitlines()) == 1  # the broker is healthy again: not named
+
+
+async def test_healthz_is_200_with_every_part_named_while_all_is_well(tmp_path: Path) -> None:
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[audit]\npath = "{tmp_path / "writes.jsonl"}"\n[metrics]\nport = 0\n'
+        '[[plc]]\nname = "press1"\nurl = "e71+tcp://127.0.0.1:1"\n'
+        '[plc.tags]\nstrokes = { address = "D100" }\n'
+    )
+    loaded = load_config(path)
+    config, north_config = loaded.poll, loaded.north
+    poller = Poller(config)
+    async with poller, North(poller, north_config) as north:
+        assert north.metrics is not None
+        healthy = await http(north.metrics.port, b"GET /healthz HTTP/1.0\r\n\r\n")
+    stopped = [h.line() for h in north.health() if not h.ok]
+    assert healthy == (200, b"ok\npoller: ok\nmetrics: ok\naudit: ok, 0 lines not written\n")
+    # after the run: the poller is not running, and no face is listening
+    assert stopped == ["poller: the poller is not running", "metrics: not listening on 127.0.0.1:0"]
