@@ -56,7 +56,7 @@ class Damaged(Exception):
 def damaged(exc: sqlite3.Error) -> bool:
     """Whether ``exc`` says the file itself is bad (to be moved aside), not that the disk is
     full or busy."""
-    name = str(getattr(exc, "sqlite_errorname", ""))
+    name = exc.sqlite_errorname or ""
     return name.startswith(("SQLITE_CORRUPT", "SQLITE_NOTADB"))
 
 
