@@ -220,10 +220,10 @@ class InfluxSink(FaceBase):
 
             try:
                 self._ssl = ssl.create_default_context(cafile=self.settings.ca_file)
-            except (OSError, ssl.SSLError) as exc:
+            except OSError as exc:  # ssl.SSLError is an OSError
                 raise ConfigError(
                     f"[influx] ca_file {self.settings.ca_file}: cannot be used:"
-                    f" {getattr(exc, 'strerror', None) or exc}"
+                    f" {exc.strerror or exc}"
                 ) from None
 
     async def start(self) -> None:
