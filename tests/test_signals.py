@@ -52,30 +52,33 @@ async def test_a_hangup_handler_is_called_for_each_hangup() -> None:
                 await asyncio.sleep(0.01)
 
 
-def _start(argv: list[str], cwd: Path) -> subprocess.Popen[str]:
+def _start(argv: list[str], cwd: Path) -> subprocess.Popen[bytes]:
+    # unbuffered: a line read must not take the next one into a buffer select() cannot see
     return subprocess.Popen(
         [sys.executable, "-m", "plcstack", *argv],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
-        text=True,
+        bufsize=0,
         env=ENV,
         cwd=cwd,
     )
 
 
-def _wait_for(proc: subprocess.Popen[str], text: str, timeout: float = 20.0) -> None:
+def _wait_for(proc: subprocess.Popen[bytes], text: str, timeout: float = 20.0) -> None:
     """Until ``text`` appears on the process's stdout or stderr (read line by line)."""
     assert proc.stdout is not None and proc.stderr is not None
     deadline = time.monotonic() + timeout
     streams = [proc.stdout, proc.stderr]
+    said: list[str] = []
     while time.monotonic() < deadline:
         ready, _, _ = select.select(streams, [], [], 0.2)
         for stream in ready:
-            line = stream.readline()
+            line = stream.readline().decode()
+            said.append(line)
             if text in line:
                 return
         assert proc.poll() is None, f"{proc.args!r} ended: {proc.communicate()}"
-    raise AssertionError(f"{proc.args!r} never said {text!r}")
+    raise AssertionError(f"{proc.args!r} never said {text!r}, only {said}")
 
 
 @pytest.mark.slow  # five interpreters start: a few seconds on a loaded machine
@@ -92,7 +95,7 @@ def test_sighup_ends_no_plcstack_command(tmp_path: Path) -> None:
         _start(["sim", "e71", "--port", str(e71_port)], tmp_path),
         _start(["sim", "as511", "--port", str(as511_port)], tmp_path),
     ]
-    procs: list[subprocess.Popen[str]] = []
+    procs: list[subprocess.Popen[bytes]] = []
     try:
         for sim in sims:
             _wait_for(sim, "listening on")
@@ -113,7 +116,8 @@ def test_sighup_ends_no_plcstack_command(tmp_path: Path) -> None:
         for proc in [*procs, *sims]:
             proc.send_signal(signal.SIGTERM)
         for proc in [*procs, *sims]:
-            _out, err = proc.communicate(timeout=20)
+            _out, raw = proc.communicate(timeout=20)
+            err = raw.decode()
             assert proc.returncode == 0, (proc.args, err)
             # poll and serve read their file again (and say so); the others ignore it, once
             said = "the configuration it started with" if proc in procs[:2] else "SIGHUP received"
