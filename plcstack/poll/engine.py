@@ -51,16 +51,18 @@ global GC settings.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from typing import Any, Self
 
 from plcstack.clients import connect
 from plcstack.clients.base import Client
 from plcstack.clients.flight import ConnectTurns, Slots
-from plcstack.errors import AddressError, PlcError
+from plcstack.errors import AddressError, LocalProtocolError, PlcError
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.poll.diff import PlcChanges, plc_changes
 from plcstack.poll.plan import ScanPlan, TagPlan, build_plan, encode_tag
 from plcstack.poll.samples import Quality, Sample, Scan, ScanQueue, flatten
 from plcstack.poll.scanner import GroupState, PlcState, Scanner
@@ -73,6 +75,7 @@ _log = logging.getLogger(__name__)
 
 __all__ = [
     "LATENCY_WINDOW",
+    "Applied",
     "LatencyWindow",
     "PlcStats",
     "Poller",
@@ -112,6 +115,43 @@ def default_client_factory(plc: PlcConfig) -> Client:
     return client
 
 
+@dataclasses.dataclass(frozen=True)
+class Applied:
+    """What :meth:`Poller.apply` did, by PLC name."""
+
+    added: tuple[str, ...] = ()
+    #: each removed PLC's last statistics (its connection is closed)
+    removed: Mapping[str, PlcStats] = dataclasses.field(default_factory=dict)
+    reconnected: tuple[str, ...] = ()
+    replanned: tuple[str, ...] = ()
+    #: ``[poll]`` keys of the whole poller that changed and take effect at the next start
+    not_applied: tuple[str, ...] = ()
+    #: how long the apply took (seconds, wall clock: closing connections is waited for)
+    seconds: float = 0.0
+
+
+def _plans(
+    plc: PlcConfig, client: Client, intervals: Mapping[str, float]
+) -> tuple[list[GroupState], dict[str, TagPlan]]:
+    """The scan groups of ``plc`` (a plan per group with tags) on ``client``, and each tag's
+    plan; :class:`AddressError` naming the PLC for an address the client refuses."""
+    groups: list[GroupState] = []
+    tags: dict[str, TagPlan] = {}
+    for name, interval in intervals.items():
+        members = tuple(t for t in plc.tags if t.group == name)
+        if not members:
+            continue
+        try:
+            plan = build_plan(client, members, max_gap=plc.max_gap)
+        except AddressError as exc:
+            exc.plc = plc.name
+            raise
+        groups.append(GroupState(name, interval, members, plan))
+        for tag_plan in plan.tags:
+            tags[tag_plan.tag.name] = tag_plan
+    return groups, tags
+
+
 class Poller(AsyncResource):
     """Polls every PLC of a :class:`PollConfig`: :meth:`scans` for :class:`Scan` objects, or
     iterate over it for their :class:`Sample` objects one by one.
@@ -132,7 +172,8 @@ class Poller(AsyncResource):
         connect_turns: ConnectTurns | None = None,
     ) -> None:
         self.config = config
-        factory = client_factory or default_client_factory
+        #: builds the client of a PLC (at start and for the PLCs a reload adds)
+        self._factory = factory = client_factory or default_client_factory
         #: where the scans go (``queue``: one shared with other pollers)
         self.queue = queue if queue is not None else ScanQueue(config.queue)
         #: the concurrency cap's slots (``poll.concurrency``), shared by both kinds of scan
@@ -155,26 +196,26 @@ class Poller(AsyncResource):
                 plc.client.transport.abort()
             raise
 
-    def _prepare(self, plc: PlcConfig, factory: ClientFactory) -> PlcState:
+    def _prepare(
+        self,
+        plc: PlcConfig,
+        factory: ClientFactory,
+        intervals: Mapping[str, float] | None = None,
+        stats: PlcStats | None = None,
+    ) -> PlcState:
+        """A PLC's client (not connected) and plans; ``stats``: the counters it goes on with."""
         try:
             client = factory(plc)
         except AddressError as exc:
             raise AddressError(exc.message, plc=plc.name, request=exc.request) from None
-        groups: list[GroupState] = []
-        tags: dict[str, TagPlan] = {}
-        for name, interval in self.config.groups.items():
-            members = tuple(t for t in plc.tags if t.group == name)
-            if not members:
-                continue
-            try:
-                plan = build_plan(client, members, max_gap=plc.max_gap)
-            except AddressError as exc:
-                exc.plc = plc.name
-                raise
-            groups.append(GroupState(name, interval, members, plan))
-            for tag_plan in plan.tags:
-                tags[tag_plan.tag.name] = tag_plan
-        stats = PlcStats()
+        try:
+            groups, tags = _plans(
+                plc, client, self.config.groups if intervals is None else intervals
+            )
+        except BaseException:
+            client.transport.abort()
+            raise
+        stats = stats if stats is not None else PlcStats()
         self.queue.count_drops(plc.name, stats)
         client.connect_turns = self._connects
         return PlcState(plc, client, groups, stats, tags, plc.order, client.byte_order)
@@ -211,42 +252,157 @@ class Poller(AsyncResource):
         self._ticker = Ticker(loop, time.perf_counter, self._resolution)
         # Schedules run on time.perf_counter (monotonic, sub-microsecond), not loop.time()
         # (millisecond resolution under uvloop); asyncio.sleep only ever gets relative delays.
+        self._begin(list(self._plcs.values()))
+
+    def _begin(self, plcs: list[PlcState]) -> None:
+        """Start scanning ``plcs``, their first scans spread over an interval (at most a
+        second) so hundreds of PLCs configured alike do not all send in the same millisecond,
+        every interval."""
+        assert self._ticker is not None  # started
         now = time.perf_counter()
-        count = len(self._plcs)
-        for i, plc in enumerate(self._plcs.values()):
+        count = len(plcs)
+        for i, plc in enumerate(plcs):
             for group in plc.groups:
-                # Spread the first scans (over one interval, at most a second) so hundreds of PLCs
-                # configured alike do not all send in the same millisecond, every interval.
                 spread = min(group.interval, 1.0)
                 group.next_due = now + spread * (i / count if count > 1 else 0.0)
-        for plc in self._plcs.values():
-            plc.scanners = [
-                Scanner(plc, g, self._ticker, self.queue, self._slots) for g in plc.groups
-            ]
-            for scanner in plc.scanners:
-                scanner.start()
+        for plc in plcs:
+            self._scan(plc)
+
+    def _scan(self, plc: PlcState) -> None:
+        """Start a scanner for each of ``plc``'s groups, on their ``next_due``."""
+        assert self._ticker is not None  # started
+        plc.scanners = [Scanner(plc, g, self._ticker, self.queue, self._slots) for g in plc.groups]
+        for scanner in plc.scanners:
+            scanner.start()
 
     async def aclose(self) -> None:
         """Stop polling, close every connection; iteration ends after the buffered samples."""
         if self._closed:
             return
         self._closed = True
-        tasks = []
-        for plc in self._plcs.values():
-            for scanner in plc.scanners:
-                scan = scanner.close()
-                if scan is not None:
-                    tasks.append(scan)
-            # a callback request in flight dies with its connection, as a cancelled read does
-            plc.client.abandon_exchange()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        self._update_connection_stats()  # what the last clients counted, kept after closing
+        await asyncio.gather(*(self._close(plc) for plc in self._plcs.values()))
         if self._ticker is not None:
             self._ticker.close()
-        await asyncio.gather(
-            *(p.client.aclose() for p in self._plcs.values()), return_exceptions=True
-        )
         self._update_connection_stats()
         self.queue.wake()
+
+    async def _close(self, plc: PlcState) -> None:
+        """Stop ``plc``'s scans and close its connection (a request in flight dies with it, as
+        a cancelled read does); never raises."""
+        tasks = [t for s in (*plc.scanners, *plc.retired) if (t := s.close()) is not None]
+        plc.client.abandon_exchange()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        try:
+            await plc.client.aclose()
+        except Exception as exc:  # its connection is gone either way
+            _log.warning("%s: closing its connection failed: %s", plc.config.name, exc)
+
+    # -- reconfigured while it runs ---------------------------------------------------------
+    async def apply(self, changes: PlcChanges) -> Applied:
+        """Change the PLCs while polling, as ``changes`` (:func:`~plcstack.poll.diff.plc_changes`
+        of this poller's configuration and the new one) says; returns what happened.
+
+        Added PLCs start scanning. Removed PLCs stop: their scans end, their connections close,
+        and their last statistics are in the result. A PLC whose URL or a connection option
+        changed closes its connection and opens one to the new URL, its counters going on. A PLC
+        whose tags or groups changed is planned again on its open connection: its scanners of
+        the old plan end (a request in flight is never cut) and the new ones go on from their
+        group's next scan. Every other PLC keeps its connection and its schedule.
+
+        Every new client and plan is built before anything changes: an address that cannot be
+        planned raises :class:`AddressError` and the poller goes on as it was. ``[poll]`` keys
+        of the whole poller (``concurrency``, ``queue``, ``batch_wait``) are not changed while
+        it runs: they are named in :attr:`Applied.not_applied`.
+        """
+        if self._closed:
+            raise LocalProtocolError(
+                "the poller is closed: start a new one with the new configuration"
+            )
+        if changes.old != self.config:
+            raise LocalProtocolError(
+                "these changes were made from another configuration than the poller's:"
+                " make them with plc_changes(poller.config, new)"
+            )
+        started = time.perf_counter()
+        new = changes.new
+        current = self._plcs
+        # everything that can fail, before anything changes
+        fresh: dict[str, PlcState] = {}
+        plans: dict[str, tuple[list[GroupState], dict[str, TagPlan]]] = {}
+        try:
+            for plc in changes.added:
+                fresh[plc.name] = self._prepare(plc, self._factory, new.groups)
+            for plc in changes.reconnected:
+                stats = current[plc.name].stats
+                fresh[plc.name] = self._prepare(plc, self._factory, new.groups, stats)
+            for plc in changes.replanned:
+                plans[plc.name] = _plans(plc, current[plc.name].client, new.groups)
+        except BaseException:
+            for state in fresh.values():
+                state.client.transport.abort()
+            raise
+        self.config = new
+        # planned again on the open connection: the old scanners end, the new take their time
+        for plc in changes.replanned:
+            old = current[plc.name]
+            groups, tags = plans[plc.name]
+            state = PlcState(
+                plc, old.client, groups, old.stats, tags, plc.order, old.byte_order,
+                connects_before=old.connects_before, failures_before=old.failures_before,
+            )  # fmt: skip
+            self._take_over(old, state)
+            current[plc.name] = state
+        # removed, and reconnected: the old connection closes before the new one opens
+        closing = [current[p.name] for p in (*changes.removed, *changes.reconnected)]
+        self._update_connection_stats()
+        await asyncio.gather(*(self._close(plc) for plc in closing))
+        removed = {p.name: current.pop(p.name).stats for p in changes.removed}
+        for plc in changes.removed:
+            self.queue.forget(plc.name)
+        for plc in changes.reconnected:
+            old = current[plc.name]
+            state = fresh[plc.name]
+            state.connects_before = old.connects_before + old.client.stats.connects
+            state.failures_before = old.failures_before + old.client.stats.connect_failures
+            current[plc.name] = state
+        for plc in changes.added:
+            current[plc.name] = fresh[plc.name]
+        self._plcs = {p.name: current[p.name] for p in new.plcs}
+        if self._running:
+            self._begin([fresh[p.name] for p in (*changes.reconnected, *changes.added)])
+        return Applied(
+            added=tuple(p.name for p in changes.added),
+            removed=removed,
+            reconnected=tuple(p.name for p in changes.reconnected),
+            replanned=tuple(p.name for p in changes.replanned),
+            not_applied=changes.poller,
+            seconds=time.perf_counter() - started,
+        )
+
+    async def reconfigure(self, config: PollConfig) -> Applied:
+        """:meth:`apply` of the changes from this poller's configuration to ``config``."""
+        return await self.apply(plc_changes(self.config, config))
+
+    def _take_over(self, old: PlcState, new: PlcState) -> None:
+        """``new``'s scanners take over from ``old``'s on the same connection: a group of the
+        same name keeps its next scan (the one after, if the old scanner's request is in flight
+        now: that scan is delivered), a new group starts at once."""
+        new.retired = [s for s in (*old.retired, *old.scanners) if not s.ended]
+        if not self._running:
+            return
+        now = time.perf_counter()
+        before = {g.name: (g, s) for g, s in zip(old.groups, old.scanners, strict=True)}
+        for group in new.groups:
+            due = now
+            if group.name in before:
+                was, scanner = before[group.name]
+                due = was.next_due + (group.interval if scanner.busy else 0.0)
+                due = min(due, now + group.interval)
+            group.next_due = due
+        for scanner in old.scanners:
+            scanner.retire()
+        self._scan(new)
 
     async def aopen(self) -> None:
         await self.start()
@@ -300,8 +456,8 @@ class Poller(AsyncResource):
     def _update_connection_stats(self) -> None:
         for plc in self._plcs.values():
             cs = plc.client.stats
-            plc.stats.reconnects = max(0, cs.connects - 1)
-            plc.stats.connect_failures = cs.connect_failures
+            plc.stats.reconnects = max(0, plc.connects_before + cs.connects - 1)
+            plc.stats.connect_failures = plc.failures_before + cs.connect_failures
 
     @property
     def stats(self) -> dict[str, PlcStats]:

@@ -179,6 +179,10 @@ class ScanQueue:
         """Count the samples of ``plc`` dropped from here in ``stats.drops``."""
         self._owners[plc] = stats
 
+    def forget(self, plc: str) -> None:
+        """Count no more drops of ``plc`` on its own (it was removed; the total still counts)."""
+        self._owners.pop(plc, None)
+
     def trim(self) -> None:
         """Drop the oldest scans while more than :attr:`limit` samples are held (never the
         newest), counting their samples against their PLC."""

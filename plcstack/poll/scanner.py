@@ -82,6 +82,13 @@ class PlcState:
     order: WordOrder = Endian.BIG
     byte_order: ByteOrder = Endian.BIG
     scanners: list[Scanner] = field(default_factory=list)
+    #: scanners of earlier plans still ending a scan on this connection (a reload planned
+    #: the PLC again): closed with it
+    retired: list[Scanner] = field(default_factory=list)
+    #: connections and failed connects of the clients this PLC had before its current one
+    #: (a reload that changed its URL): the counters go on, never back
+    connects_before: int = 0
+    failures_before: int = 0
 
 
 def advance(stats: PlcStats, group: GroupState, end: float) -> None:
@@ -136,11 +143,14 @@ class Scanner:
     waiting on the ticker never runs, an awaited scan in progress is cancelled (the caller
     awaits what ``close`` returns), and the poller abandons a callback request in flight; that
     request's slot of the concurrency cap is given back at once, since its ``done`` will never
-    come.
+    come. ``retire`` stops it on a connection that stays open (a reload planned the group
+    again): no next scan, but a request in flight is never cut (cutting it would cost the
+    connection), and the scan it belongs to is delivered.
     """
 
     __slots__ = (
         "_address",
+        "_busy",
         "_closed",
         "_count",
         "_done_cb",
@@ -149,6 +159,7 @@ class Scanner:
         "_group_name",
         "_holding",
         "_items",
+        "_keep",
         "_limit",
         "_name",
         "_offset",
@@ -191,6 +202,10 @@ class Scanner:
         self._offset = 0.0
         self._task: asyncio.Task[None] | None = None
         self._closed = False
+        #: a request of this scanner is in flight (cutting it would cost the connection)
+        self._busy = False
+        #: closed by ``retire``: the scan in flight is still delivered
+        self._keep = False
         #: the concurrency cap's slots, and whether this scanner's callback request holds one
         #: (so that ``done``, a refusal, a raising ``start_read`` and ``close`` give it back
         #: exactly once between them)
@@ -209,11 +224,32 @@ class Scanner:
     def close(self) -> asyncio.Task[None] | None:
         """Stop scanning; returns the awaited scan in progress (cancelled), if any."""
         self._closed = True
+        self._keep = False
         self._give_back()
         task = self._task
         if task is not None:
             task.cancel()
         return task
+
+    def retire(self) -> asyncio.Task[None] | None:
+        """Stop scanning on a connection that stays open: no next scan; a scan waiting for its
+        time is cancelled, one with a request in flight ends and is delivered. Returns the
+        task still running, if any (it ends by itself)."""
+        self._closed = self._keep = True
+        task = self._task
+        if task is not None and not self._busy:
+            task.cancel()  # waiting on the ticker or for a slot: nothing is cut
+        return task
+
+    @property
+    def busy(self) -> bool:
+        """Whether a request of this scanner is in flight."""
+        return self._busy
+
+    @property
+    def ended(self) -> bool:
+        """Closed or retired, with nothing in flight and no task left."""
+        return self._closed and not self._busy and (self._task is None or self._task.done())
 
     def _use(self, plan: ScanPlan) -> None:
         """Take what ``_fire`` and ``_done`` need of ``plan`` once, not on every scan: the
@@ -244,6 +280,7 @@ class Scanner:
             wall = _wall_clock()
             self._start = start = _clock()
             self._offset = wall - start
+            self._busy = True
             try:
                 started = self._start_read(self._address, self._count, self._done_cb)  # type: ignore[misc]  # count: set
             except Exception as exc:  # a client bug: this scan's failure, as a read's would be
@@ -253,6 +290,7 @@ class Scanner:
             if started:
                 self._stats.scans += 1
                 return
+            self._busy = False
             self._give_back()  # nothing was sent: the awaited scan waits for a slot itself
         self._task = asyncio.get_running_loop().create_task(self._scan_task())
 
@@ -264,7 +302,10 @@ class Scanner:
         # delivery that fails cannot keep the slot.
         if self._holding:  # tested here: no call per request without a cap
             self._give_back()
+        self._busy = False
         if self._closed:
+            if self._keep:  # retired: the scan is delivered, no next one
+                self._complete(reply, self._start, end, self._offset)
             return
         self._complete(reply, self._start, end, self._offset)
         self._ticker.call_at(self._group.next_due, self._fire_cb)
@@ -345,6 +386,7 @@ class Scanner:
                     await slots.acquire()
                 wall = _wall_clock()
                 start = _clock()
+                self._busy = True
                 try:
                     reply: Sequence[int | bool] | Exception = await self._plc.client.read(
                         request.address, request.count
@@ -352,22 +394,29 @@ class Scanner:
                 except Exception as exc:
                     reply = exc
                 finally:
+                    self._busy = False
                     if slots is not None:
                         slots.release()
                 self._complete(reply, start, _clock(), wall - start)
                 continue
+            self._busy = True
             try:
                 await self.scan()
             except Exception:  # scan turns read failures into samples: this is a bug
                 _log.exception("%s: a scan failed", self._name, extra={"plc": self._name})
+            finally:
+                self._busy = False
             advance(self._stats, group, _clock())
 
     async def _scan_task(self) -> None:
         """One scan with its requests awaited, then the next on the ticker."""
+        self._busy = True
         try:
             await self.scan()
         except Exception:  # scan turns read failures into samples: this is a bug
             _log.exception("%s: a scan failed", self._name, extra={"plc": self._name})
+        finally:
+            self._busy = False
         self._task = None
         if not self._closed:
             group = self._group
