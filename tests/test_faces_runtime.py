@@ -16,6 +16,7 @@ import pytest
 from plcstack.clients import connect
 from plcstack.config import parse_config
 from plcstack.errors import ConfigError, PlcErrorResponse
+from plcstack.sim import e71 as e71_sim
 from plcstack.sim import s5lan as lan_sim
 from plcstack.transports.guard import Limits
 from tests.ports import free_port
@@ -150,3 +151,54 @@ def test_a_faces_guard_limits_are_its_tables_keys() -> None:
     assert face.guard_limits == Limits(4, 1, 2.0, None)
     (plain,) = parse_config(PLC.format(url="s5lan://127.0.0.1:5010") + GATEWAY).gateway
     assert plain.guard_limits == Limits(8, 6, 10.0, 600.0)
+
+
+async def test_an_e71_face_of_the_file_in_the_other_code_and_transport(tmp_path: Path) -> None:
+    plc = await e71_sim.start()  # binary, TCP
+    port = free_port()
+    config = tmp_path / "plant.toml"
+    config.write_text(
+        f"""
+[poll]
+interval = 0.05
+
+[[plc]]
+name = "press2"
+url = "{plc.url}"
+
+[plc.tags]
+strokes = "D100"
+
+[[gateway]]
+protocol = "e71"
+listen = "127.0.0.1:{port}"
+plc = "press2"
+transport = "udp"
+code = "ascii"
+writable = "D100-199"
+"""
+    )
+    async with plc:
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "plcstack", "poll", str(config), "--duration", "30",
+            "--format", "none",
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=ROOT,
+        )  # fmt: skip
+        assert proc.stderr is not None
+        try:
+            async with asyncio.timeout(20):
+                while "listening on" not in (line := (await proc.stderr.readline()).decode()):
+                    assert line, "plcstack poll ended before its face listened"
+            assert line == f"e71 face (udp, ascii) of press2 listening on 127.0.0.1:{port} (UDP)\n"
+            async with connect(f"e71+udp://127.0.0.1:{port}?code=ascii") as face:
+                await face.write("D100", [1234])
+                assert await face.read("D100", 2) == [1234, 0]
+                with pytest.raises(PlcErrorResponse) as refused:
+                    await face.write("D200", [1])
+                assert refused.value.code == 0x55
+        finally:
+            proc.terminate()
+            _, err = await asyncio.wait_for(proc.communicate(), 10)
+        assert proc.returncode == 0, err.decode()
+        assert plc.memory.read_words("D", 100, 1) == [1234]
+        assert "faces of press2: " in err.decode()
