@@ -19,7 +19,7 @@ import time
 import zoneinfo
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import aiohttp
 import pytest
@@ -29,7 +29,9 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim.melsec_memory import MelsecMemory
 from tests.web_helpers import HOSTILE, TOKEN, Console, running_console
 
-playwright_api = pytest.importorskip("playwright.async_api")
+if TYPE_CHECKING:
+    from playwright.async_api._context_manager import PlaywrightContextManager
+
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 WAIT_MS = 10_000
@@ -38,11 +40,25 @@ ZONE = "America/New_York"
 pytestmark = pytest.mark.asyncio(loop_scope="module")
 
 
+def async_playwright() -> PlaywrightContextManager:
+    """Playwright's entry point. Without Playwright every test here FAILS naming it (a skip
+    would let the console go untested in a browser and the run still look green)."""
+    try:
+        from playwright.async_api import async_playwright
+    except ImportError as exc:
+        pytest.fail(
+            f"Playwright cannot be imported ({exc}); the browser tests drive Chromium with it:"
+            " pip install -e '.[test]' (no browser download is needed, /usr/bin/chromium is used)",
+            pytrace=False,
+        )
+    return async_playwright()
+
+
 @pytest_asyncio.fixture(loop_scope="module", scope="module")
 async def browser() -> AsyncIterator[Any]:
     if not shutil.which(CHROMIUM):
         pytest.fail(f"no Chromium at {CHROMIUM} (Debian's package 'chromium', see .ci/run)")
-    async with playwright_api.async_playwright() as p:
+    async with async_playwright() as p:
         chromium = await p.chromium.launch(executable_path=CHROMIUM)
         try:
             yield chromium
@@ -247,7 +263,7 @@ async def test_a_page_rebinding_its_name_to_the_console_reads_nothing(console: C
     for the script's request; the console's own names still work in the same browser."""
     port = console.web.port
     rule = "--host-resolver-rules=MAP attacker.example 127.0.0.1"
-    async with playwright_api.async_playwright() as p:
+    async with async_playwright() as p:
         chromium = await p.chromium.launch(executable_path=CHROMIUM, args=[rule])
         try:
             page = await chromium.new_page()
