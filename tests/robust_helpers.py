@@ -15,7 +15,7 @@ from typing import Any
 
 from plcstack.clients.as511 import AS511Client
 from plcstack.clients.base import Client
-from tests.aio_helpers import ends_quietly
+from tests.aio_helpers import ends_quietly, eventually
 
 __all__ = [
     "GOOD",
@@ -156,10 +156,25 @@ class Script:
 
 
 class MisbehavingProxy:
-    """TCP proxy client -> proxy -> simulator. ``script.mode`` applies to answers while set."""
+    """TCP proxy client -> proxy -> simulator. ``script.mode`` applies to answers while set.
 
-    def __init__(self, upstream_host: str, upstream_port: int) -> None:
+    ``upstream_free``, for a simulator that takes one connection at a time (S5-LAN): true once
+    it has let go of its connection; each new connection waits for it before connecting
+    upstream. A client's close and its next connect reach a real module in order on one path;
+    through the proxy they are two independent connections, and the proxy's close of the old
+    one (a few loop passes after the client's, and under load delivered by the kernel after a
+    later connect) lost the race to the new one often enough to be refused as a second client.
+    """
+
+    def __init__(
+        self,
+        upstream_host: str,
+        upstream_port: int,
+        *,
+        upstream_free: Callable[[], bool] | None = None,
+    ) -> None:
         self.upstream = (upstream_host, upstream_port)
+        self.upstream_free = upstream_free
         self.script = Script()
         self.server: asyncio.Server | None = None
         self.port = 0
@@ -188,6 +203,8 @@ class MisbehavingProxy:
     async def _handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.script.connections += 1
         self._writers.add(writer)
+        if self.upstream_free is not None:
+            await eventually(self.upstream_free, "the simulator let go of its last connection", 5)
         try:
             up_reader, up_writer = await asyncio.open_connection(*self.upstream)
         except OSError:

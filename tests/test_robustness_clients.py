@@ -93,7 +93,9 @@ def _via(url: str, port: int) -> str:
 async def _target(name: str) -> AsyncIterator[tuple[Target, MisbehavingProxy]]:
     starter, address, setter = STARTERS[name]
     sim = await starter()
-    proxy = await MisbehavingProxy(sim.host, sim.port).start()
+    # the S5-LAN module takes one connection: each reconnect waits until it let go of the last
+    free = (lambda: sim.active_connections == 0) if name == "s5lan" else None
+    proxy = await MisbehavingProxy(sim.host, sim.port, upstream_free=free).start()
     try:
         yield Target(sim, _via(sim.url, proxy.port), address, setter(sim)), proxy
     finally:
