@@ -24,7 +24,7 @@ from plcstack.codecs.e71_framing import COMMAND_NAMES, REQUEST_RULES
 from plcstack.codecs.s5lan import AREA_LETTERS, ERR_MEANINGS
 from plcstack.wire.dissectors import PROTOCOLS, write_dissectors
 from plcstack.wire.pcapng import read_capture
-from tests.wire_helpers import run_tool, tshark_fields
+from tests.wire_helpers import run_tool, tshark_fields, tshark_value_tables
 from tests.wire_vectors import (
     AS511,
     E71_VECTORS,
@@ -489,12 +489,7 @@ def test_the_as511_golden_dialogues_decode_step_by_step(
 def test_the_dissectors_tables_are_the_codecs(plugins: Path) -> None:
     """Every value table of every dissector, as tshark has registered it, against the codec
     table it was generated from: they cannot drift apart."""
-    proc = run_tool("tshark", ["-G", "values"], home=plugins)
-    tables: dict[str, dict[int, str]] = {}
-    for line in proc.stdout.splitlines():
-        parts = line.split("\t")
-        if len(parts) == 4 and parts[0] == "V" and parts[1].split(".")[0] in PROTOCOLS:
-            tables.setdefault(parts[1], {})[int(parts[2], 0)] = parts[3]
+    tables = tshark_value_tables(plugins, PROTOCOLS)
     assert tables["melsec1e.command"] == COMMAND_NAMES
     assert set(COMMAND_NAMES) == set(REQUEST_RULES)
     assert tables["melsec1e.end_code"] == END_CODES
