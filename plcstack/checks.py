@@ -22,6 +22,7 @@ from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final, Generic, TypeVar
+from urllib.parse import urlsplit
 
 from plcstack.errors import ConfigError, check_keys
 
@@ -29,6 +30,7 @@ __all__ = [
     "NAME_RULE",
     "Listen",
     "Notice",
+    "ServerUrl",
     "Table",
     "TableSpec",
     "changed_tables",
@@ -83,6 +85,17 @@ class Listen:
         if not port.isascii() or not port.isdigit() or int(port) > 65535:
             raise ValueError(f"must be {form} with a port 0..65535, not {text!r}")
         return cls(host, int(port))
+
+
+@dataclass(frozen=True, slots=True)
+class ServerUrl:
+    """A server's URL as :meth:`Table.url` checked it: the ``text`` as written, its
+    ``scheme``, ``host`` (without brackets) and ``port`` (None: the scheme's default)."""
+
+    text: str
+    scheme: str
+    host: str
+    port: int | None
 
 
 @dataclass(frozen=True, slots=True)
@@ -401,6 +414,36 @@ class Table:
         if self.base is None or path.is_absolute():
             return str(path)
         return str(self.base / path)
+
+    def url(self, key: str, default: str, schemes: Collection[str]) -> ServerUrl:
+        """A server's URL (``mqtt://broker:1883``, ``http://influx:8086``): one of
+        ``schemes``, a host, a port that is a port, no query, and no credentials (a file names
+        the environment variables that hold them, ``username_env`` and ``password_env``)."""
+        value = self.values.get(key, default)
+        if not isinstance(value, str) or not value.strip():
+            raise self.error(key, f"must be a non-empty string, not {value!r}")
+        forms = " or ".join(f"{scheme}://HOST:PORT" for scheme in schemes)
+        parts = urlsplit(value)
+        host = parts.hostname
+        if parts.scheme not in schemes or not host or parts.query or parts.fragment:
+            raise self.error(key, f"must be {forms}, not {value!r}")
+        try:
+            port = parts.port
+        except ValueError:
+            raise self.error(key, f"has a bad port: {value!r}") from None
+        if parts.username is not None or parts.password is not None:
+            raise self.error(
+                key,
+                "must not carry credentials: name the environment variables that hold them"
+                " with username_env and password_env",
+            )
+        return ServerUrl(value, parts.scheme, host, port)
+
+    def optional_url(self, key: str, schemes: Collection[str]) -> ServerUrl | None:
+        """:meth:`url`, or None without the key."""
+        if key not in self.values:
+            return None
+        return self.url(key, "", schemes)
 
     def listen(self, default: Listen) -> Listen:
         """``listen = "HOST:PORT"`` (``default`` without it). The old ``host`` and ``port``

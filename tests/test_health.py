@@ -15,7 +15,7 @@ from plcstack.north.pipeline import North
 from plcstack.north.web.server import WebConsole
 from plcstack.poll.engine import Poller
 from tests.aio_helpers import eventually
-from tests.servers import Mosquitto
+from tests.servers import Influxd, Mosquitto
 from tests.test_north_metrics import http
 
 
@@ -84,3 +84,47 @@ async def test_healthz_is_200_with_every_part_named_while_all_is_well(tmp_path: 
     assert healthy == (200, b"ok\npoller: ok\nmetrics: ok\naudit: ok, 0 lines not written\n")
     # after the run: the poller is not running, and no face is listening
     assert stopped == ["poller: the poller is not running", "metrics: not listening on 127.0.0.1:0"]
+
+
+async def test_healthz_names_influxdb_while_it_cannot_be_written_to(
+    tmp_path: Path, influxd: Influxd
+) -> None:
+    """The Influx writer is a face like the others: its outage in /healthz, named, with the
+    lines that wait; healthy again once InfluxDB takes writes."""
+    influxd.create_database("plant")
+    path = tmp_path / "plant.toml"
+    path.write_text(
+        f'[influx]\nurl = "{influxd.url}"\ndatabase = "plant"\nbatch_wait = "50ms"\n'
+        'reconnect_max = "200ms"\n[metrics]\nlisten = "127.0.0.1:0"\n'
+        '[[plc]]\nname = "press1"\nurl = "e71+tcp://127.0.0.1:1"\n'
+        '[plc.tags]\nstrokes = { address = "D100" }\n'
+    )
+    loaded = load_config(path)
+    influxd.stop()
+    poller = Poller(loaded.poll)
+    async with poller, North(poller, loaded.north) as north:
+        metrics = north.metrics
+        assert metrics is not None
+        consumer = asyncio.create_task(north.run())  # the dead PLC's scans are lines too
+        await eventually(
+            lambda: any(h.name == "influx" and not h.ok for h in north.health()),
+            "the writer found InfluxDB away",
+        )
+        down = await http(metrics.port, b"GET /healthz HTTP/1.0\r\n\r\n")
+        influxd.start()
+        await eventually(
+            lambda: all(h.ok for h in north.health() if h.name == "influx"),
+            "InfluxDB takes writes again",
+            timeout=10,
+        )
+        up = await http(metrics.port, b"GET /healthz HTTP/1.0\r\n\r\n")
+        consumer.cancel()
+        await asyncio.gather(consumer, return_exceptions=True)
+    status, body = down
+    assert status == 503
+    (line,) = body.decode().splitlines()
+    assert line.startswith(f"influx: InfluxDB at {influxd.url} cannot be written to:"), line
+    assert "connection refused" in line and " since 20" in line, line
+    assert line.endswith(" lines waiting"), line
+    status, body = up
+    assert status == 200 and "\ninflux: ok, " in body.decode(), body

@@ -23,6 +23,7 @@ from plcstack.errors import ConfigError
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.influx_config import InfluxSettings, parse_influx
 from plcstack.north.influx_sink import InfluxSink, classify
+from plcstack.north.mqtt import parse_mqtt
 from plcstack.poll.config import parse_poll_config as parse_config
 from plcstack.poll.samples import Quality, Sample, Scan
 from tests.ports import free_port
@@ -177,7 +178,7 @@ async def test_wrong_credentials_stop_the_writer_once(
     assert errors[0].startswith(
         f"influx: InfluxDB at {influx_auth.url} refused the credentials (401"
     )
-    assert sink.problem is not None and "refused the credentials" in sink.problem
+    assert sink.link.problem is not None and "refused the credentials" in sink.link.problem
 
 
 async def test_right_credentials_write(influx_auth: Influxd) -> None:
@@ -307,7 +308,7 @@ def test_answers_are_told_apart() -> None:
     ("table", "message"),
     [
         ({"url": "http://h:8086"}, 'url needs database = "NAME"'),
-        ({"database": "x"}, "database need url ="),
+        ({"database": "x"}, "database needs url ="),
         ({"url": "udp://h:8089", "database": "x"}, "url must be http://HOST:PORT"),
         ({"url": "http://u:p@h:8086", "database": "x"}, "must not carry credentials"),
         ({"url": "http://h:8086", "database": "x", "username_env": "U"}, "go together"),
@@ -330,3 +331,16 @@ def test_config_paths_and_write_url(tmp_path: Path) -> None:
     assert parsed.buffer_path == str(tmp_path / "q.sqlite")
     assert parsed.write_url == "http://h:8086/write?db=plant%201&precision=ns&rp=a%26b"
     assert parse_influx({}) == InfluxSettings()
+
+
+def test_config_reads_durations_and_sizes_as_mqtt_does() -> None:
+    """[influx] and [mqtt] take the same spellings: durations with units, sizes with units."""
+    parsed = parse_influx(
+        {"url": "http://h:8086", "database": "p", "batch_wait": "250ms", "timeout": "1m",
+         "buffer_memory": "1 MiB", "buffer_max": "2 GiB"}
+    )  # fmt: skip
+    assert (parsed.batch_wait, parsed.timeout) == (0.25, 60.0)
+    assert (parsed.buffer_memory, parsed.buffer_max) == (1 << 20, 2 << 30)
+    assert parse_influx({"url": "http://h", "database": "p", "batch_wait": 0}).batch_wait == 0
+    mqtt = parse_mqtt({"buffer_memory": "1 MiB", "buffer_max": "2 GiB"})
+    assert (mqtt.buffer_memory, mqtt.buffer_max) == (parsed.buffer_memory, parsed.buffer_max)

@@ -53,12 +53,21 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol, TypedDict
 
+from plcstack.checks import Table
 from plcstack.north.queue_file import DiskFailure, QueueFile, Row
 
 log = logging.getLogger("plcstack.north.buffer")
 
-__all__ = ["DiskFailure", "Message", "StoreAndForward"]
+__all__ = [
+    "BufferKeys",
+    "BufferSettings",
+    "DiskFailure",
+    "Message",
+    "StoreAndForward",
+    "buffer_keys",
+]
 
 #: accounting overhead per message (seq, qos, retain, row overhead), bytes
 OVERHEAD = 16
@@ -68,6 +77,39 @@ READ_AHEAD = 256
 SPILL_CHUNK = 64 << 10
 #: what the memory part may hold while the disk refuses, at least (see the module docstring)
 REFUSED_MEMORY = 1 << 20
+
+
+class BufferKeys(TypedDict):
+    """The keys that configure a sink's queue, the same in every table that has one
+    (``[mqtt]``, ``[influx]``): where it spills to disk, its memory part, its whole budget."""
+
+    buffer_path: str | None
+    buffer_memory: int
+    buffer_max: int
+
+
+def buffer_keys(t: Table) -> BufferKeys:
+    """``buffer_path`` (relative to the TOML file), ``buffer_memory`` and ``buffer_max``
+    (bytes, or text with a unit: ``"4 MiB"``) of a sink's table, read by the one set of
+    checks."""
+    return BufferKeys(
+        buffer_path=t.file("buffer_path"),
+        buffer_memory=t.size("buffer_memory", 4 << 20, 0, 1 << 40),
+        buffer_max=t.size("buffer_max", 256 << 20, 1024, 1 << 44),
+    )
+
+
+class BufferSettings(Protocol):
+    """What a sink's settings say of its queue (:class:`BufferKeys`, read)."""
+
+    @property
+    def buffer_path(self) -> str | None: ...
+
+    @property
+    def buffer_memory(self) -> int: ...
+
+    @property
+    def buffer_max(self) -> int: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,6 +181,15 @@ class StoreAndForward:
                 # microsecond), so its messages go first when it opens later (:meth:`_adopt`)
                 self._next_seq = time.time_ns() // 1000
             self._trim()
+
+    @classmethod
+    def configured(cls, settings: BufferSettings) -> StoreAndForward:
+        """The queue a sink's table asks for (its :class:`BufferKeys`)."""
+        return cls(
+            settings.buffer_path,
+            memory_bytes=settings.buffer_memory,
+            max_bytes=settings.buffer_max,
+        )
 
     @property
     def _refused_memory(self) -> int:

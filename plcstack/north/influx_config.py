@@ -29,11 +29,11 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-from urllib.parse import quote, urlsplit
+from urllib.parse import quote
 
 from plcstack.checks import Table
-from plcstack.errors import ConfigError, check_keys
+from plcstack.errors import ConfigError
+from plcstack.north.buffer import buffer_keys
 from plcstack.north.influx import DEFAULT_LAYOUT, DEFAULT_MEASUREMENT, LAYOUTS
 
 __all__ = ["InfluxSettings", "parse_influx"]
@@ -94,95 +94,48 @@ class InfluxSettings:
         return values[0], values[1]
 
 
-def parse_influx(table: Any, *, base: Path | None = None) -> InfluxSettings:
-    """The ``[influx]`` table (``base``: the TOML file's directory, for relative paths); a
-    :class:`~plcstack.checks.Table` of the one loader brings its own."""
-    if isinstance(table, Table):
-        table, base = table.values, table.base
-    if not isinstance(table, dict):
-        raise ConfigError("[influx] must be a table")
-    check_keys(table, _KEYS, "influx")
-
-    def text(key: str, default: str | None) -> str | None:
-        value = table.get(key, default)
-        if value is not None and (not isinstance(value, str) or not value.strip()):
-            raise ConfigError(f"[influx] {key} must be a non-empty string")
-        return value
-
-    def integer(key: str, default: int, lo: int, hi: int) -> int:
-        value = table.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-            raise ConfigError(f"[influx] {key} must be an integer in {lo}..{hi}, got {value!r}")
-        return value
-
-    def seconds(key: str, default: float, lo: float, hi: float) -> float:
-        value = table.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:
-            raise ConfigError(f"[influx] {key} must be {lo:g}..{hi:g} seconds, got {value!r}")
-        return float(value)
-
-    def file(key: str) -> str | None:
-        value = text(key, None)
-        if value is None or base is None or Path(value).is_absolute():
-            return value
-        return str(base / value)
-
-    measurement = text("measurement", DEFAULT_MEASUREMENT) or DEFAULT_MEASUREMENT
-    layout = table.get("layout", DEFAULT_LAYOUT)
-    if layout not in LAYOUTS:
-        raise ConfigError(
-            f"[influx] layout must be {' or '.join(f'{chr(34)}{x}{chr(34)}' for x in LAYOUTS)},"
-            f" not {layout!r}",
-            key="influx.layout",
-        )
-    url = text("url", None)
+def parse_influx(table: object, *, base: Path | None = None) -> InfluxSettings:
+    """The ``[influx]`` table (``base``: the TOML file's directory, for relative paths), read
+    by the one set of checks (:class:`~plcstack.checks.Table`): durations take units
+    (``batch_wait = "500ms"``), sizes too (``buffer_max = "1 GiB"``)."""
+    t = Table.of(table, "influx", base=base)
+    t.keys(_KEYS)
+    measurement = t.text("measurement", DEFAULT_MEASUREMENT)
+    layout = t.choice("layout", DEFAULT_LAYOUT, LAYOUTS)
+    url = t.optional_url("url", ("http", "https"))
     if url is None:
-        extra = [key for key in _WRITER_KEYS if key in table]
+        extra = [key for key in _WRITER_KEYS if key in t]
         if extra:
-            raise ConfigError(
-                f'[influx] {", ".join(extra)} need url = "http://HOST:PORT" (the InfluxDB the'
-                " writer sends to); without url [influx] only shapes --format influx"
+            also = f" (as do {', '.join(extra[1:])})" if len(extra) > 1 else ""
+            raise t.error(
+                extra[0],
+                f'needs url = "http://HOST:PORT" (the InfluxDB the writer sends to){also};'
+                " without url [influx] only shapes --format influx",
             )
         return InfluxSettings(measurement, layout)
-    parts = urlsplit(url)
-    try:
-        port = parts.port
-    except ValueError:
-        raise ConfigError(f"[influx] url has a bad port: {url!r}") from None
-    if parts.scheme not in ("http", "https") or not parts.hostname or parts.query:
-        raise ConfigError(
-            f"[influx] url must be http://HOST:PORT or https://HOST:PORT (InfluxDB 1.x; the"
-            f" writer adds /write and its query), got {url!r}"
-        )
-    if parts.username or parts.password:
-        raise ConfigError(
-            "[influx] url must not carry credentials: name environment variables with"
-            " username_env and password_env"
-        )
-    del port
-    database = text("database", None)
-    if database is None:
-        raise ConfigError('[influx] url needs database = "NAME" (the InfluxDB database)')
-    username_env, password_env = text("username_env", None), text("password_env", None)
+    if "database" not in t:
+        raise t.error("url", 'needs database = "NAME" (the InfluxDB database)')
+    username_env, password_env = t.optional_text("username_env"), t.optional_text("password_env")
     if (username_env is None) != (password_env is None):
-        raise ConfigError("[influx] username_env and password_env go together (HTTP basic auth)")
-    ca_file = file("ca_file")
-    if ca_file is not None and parts.scheme != "https":
-        raise ConfigError("[influx] ca_file needs an https:// url")
+        key = "username_env" if username_env is not None else "password_env"
+        raise t.error(key, "and its partner go together: username_env and password_env")
+    ca_file = t.file("ca_file")
+    if ca_file is not None and url.scheme != "https":
+        raise t.error("ca_file", "needs an https:// url")
     return InfluxSettings(
         measurement=measurement,
         layout=layout,
-        url=url,
-        database=database,
-        retention_policy=text("retention_policy", None),
+        url=url.text,
+        database=t.text("database", ""),
+        retention_policy=t.optional_text("retention_policy"),
         username_env=username_env,
         password_env=password_env,
         ca_file=ca_file,
-        batch_size=integer("batch_size", 5000, 1, 100_000),
-        batch_wait=seconds("batch_wait", 1.0, 0.0, 60.0),
-        timeout=seconds("timeout", 10.0, 0.5, 300.0),
-        reconnect_max=seconds("reconnect_max", 30.0, 0.1, 3600.0),
-        buffer_path=file("buffer_path"),
-        buffer_memory=integer("buffer_memory", 4 << 20, 0, 1 << 40),
-        buffer_max=integer("buffer_max", 256 << 20, 1024, 1 << 44),
+        batch_size=t.integer("batch_size", 5000, 1, 100_000),
+        batch_wait=t.seconds(
+            "batch_wait", 1.0, hi=60, zero="each line goes as soon as the writer is free"
+        ),
+        timeout=t.seconds("timeout", 10.0, lo=0.5, hi=300),
+        reconnect_max=t.seconds("reconnect_max", 30.0, lo=0.1, hi=3600),
+        **buffer_keys(t),
     )

@@ -34,7 +34,6 @@ import base64
 import contextlib
 import logging
 import ssl
-import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -42,7 +41,7 @@ from urllib.parse import urlsplit
 
 from plcstack.north.buffer import Message, StoreAndForward
 from plcstack.north.face import FaceBase
-from plcstack.north.health import Health
+from plcstack.north.health import Condition, Health
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.influx_config import InfluxSettings
 from plcstack.north.supervise import Supervised, Supervisor
@@ -131,23 +130,14 @@ class InfluxSink(FaceBase):
             raise ValueError("an Influx writer needs [influx] url")
         self.settings = settings
         self.format = InfluxFormat(plcs, layout=settings.layout, measurement=settings.measurement)
-        self.buffer = (
-            buffer
-            if buffer is not None
-            else StoreAndForward(
-                settings.buffer_path,
-                memory_bytes=settings.buffer_memory,
-                max_bytes=settings.buffer_max,
-            )
-        )
+        self.buffer = buffer if buffer is not None else StoreAndForward.configured(settings)
         self.stats = InfluxStats()
         self.supervisor = supervisor if supervisor is not None else Supervisor()
         self.env = env
         #: InfluxDB took the last request (False before the first and while it fails)
         self.connected = False
-        #: why writing does not work now (None while it does), and since when (Unix time)
-        self.problem: str | None = None
-        self.since: float | None = None
+        #: why writing does not work now (no problem while it does), and since when
+        self.link = Condition(self.name)
         #: the credentials were refused: nothing is sent any more in this run
         self.stopped = False
         self._headers = {"Content-Type": "text/plain; charset=utf-8"}
@@ -195,7 +185,7 @@ class InfluxSink(FaceBase):
             put(topic, line.encode())
         n = len(lines)
         self.stats.submitted += n
-        if self.problem is not None:  # InfluxDB cannot be written to: these wait
+        if self.link.problem is not None:  # InfluxDB cannot be written to: these wait
             self._hold()
         self._idle.clear()
         self._wake.set()
@@ -235,7 +225,7 @@ class InfluxSink(FaceBase):
         queue (on disk with ``buffer_path``, for the next run)."""
         self._closing = True
         self._full.set()  # a batch waiting for more lines goes now
-        if self._task is not None and self.problem is None and drain > 0:
+        if self._task is not None and self.link.problem is None and drain > 0:
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(drain):
                     await self._idle.wait()
@@ -354,7 +344,7 @@ class InfluxSink(FaceBase):
             self.stats.replayed += sum(1 for m in part if m.seq <= self._held_through)
         if not self.connected:
             self.connected = True
-            if self.problem is not None:
+            if self.link.clear():
                 log.warning(
                     "%s: InfluxDB at %s takes writes again; %d lines waiting are written first",
                     self.name,
@@ -362,7 +352,6 @@ class InfluxSink(FaceBase):
                     len(self.buffer),
                     extra={"face": self.name},
                 )
-            self.problem = self.since = None
         if not len(self.buffer):
             self._idle.set()
 
@@ -401,11 +390,7 @@ class InfluxSink(FaceBase):
         """Note why writes fail; True if that is news (then it is logged)."""
         self.connected = False
         self._hold()
-        news = problem != self.problem
-        if self.problem is None:
-            self.since = time.time()
-        self.problem = problem
-        return news
+        return self.link.fail(problem)
 
     def _failed(self, reason: str) -> None:
         self.stats.failures += 1
@@ -428,28 +413,13 @@ class InfluxSink(FaceBase):
         if self._note(problem):
             log.error("%s: %s", self.name, problem, extra={"face": self.name})
 
-    def health_problem(self) -> str | None:
-        """Why writing does not work now, since when and how many lines wait (one line for
-        ``/healthz``); None while it works. A disk under ``buffer_path`` that refuses writes
-        counts too."""
-        problems = []
-        if self.problem is not None:
-            since = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(self.since or time.time()))
-            problems.append(f"{self.problem} since {since}")
-        disk = self.buffer.failure
-        if disk is not None:
-            problems.append(disk.describe())
-        if not problems:
-            return None
-        return f"{self.name}: {'; '.join(problems)}, {len(self.buffer)} lines waiting"
-
     def health(self) -> Health:
         """Unhealthy while InfluxDB cannot be written to or the disk under ``buffer_path``
         refuses writes: since when, why, how many lines wait."""
         waiting = (("lines waiting", len(self.buffer)),)
         problems: list[tuple[str, float]] = []
-        if self.problem is not None:
-            problems.append((self.problem, self.since or time.time()))
+        if self.link.problem is not None and self.link.since is not None:
+            problems.append((self.link.problem, self.link.since))
         disk = self.buffer.failure
         if disk is not None:
             problems.append((disk.describe(), disk.since))
@@ -477,16 +447,12 @@ class InfluxSink(FaceBase):
         for name, doc, value in counters:
             yield CounterMetricFamily(f"plcstack_influx_{name}", doc, value=float(value))
         gauges = (
-            ("up", "1 while InfluxDB takes writes", float(self.problem is None)),
+            ("up", "1 while InfluxDB takes writes", float(self.link.problem is None)),
             ("backlog_lines", "lines waiting to be written", float(len(buffer))),
             ("backlog_bytes", "bytes waiting to be written", float(buffer.backlog_bytes)),
         )
         for gauge, text, level in gauges:
             yield GaugeMetricFamily(f"plcstack_influx_{gauge}", text, value=level)
-
-    def collect(self) -> Iterator[Metric]:
-        """A prometheus-client collector of :meth:`metrics` (registered with the run's)."""
-        return self.metrics()
 
 
 def _no_answer(exc: BaseException, timeout: float, where: str) -> str:

@@ -40,11 +40,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
-from urllib.parse import urlsplit
 
 from plcstack.checks import Table
 from plcstack.errors import ConfigError, PlcError
-from plcstack.north.buffer import Message, StoreAndForward
+from plcstack.north.buffer import Message, StoreAndForward, buffer_keys
 from plcstack.north.health import Condition, Health
 from plcstack.north.layout import (
     JsonLayout,
@@ -178,15 +177,9 @@ def parse_mqtt(table: object, *, base: Path | None = None) -> MqttSettings:
     """
     t = Table.of(table, "mqtt", base=base)
     t.keys(_MQTT_KEYS)
-    url = t.text("url", "mqtt://127.0.0.1:1883")
-    parts = urlsplit(url)
-    if parts.scheme not in ("mqtt", "mqtts") or not parts.hostname:
-        raise t.error("url", f"must be mqtt://HOST[:PORT] or mqtts://..., not {url!r}")
-    tls = parts.scheme == "mqtts"
-    try:
-        port = parts.port or (8883 if tls else 1883)
-    except ValueError:
-        raise t.error("url", f"has a bad port: {url!r}") from None
+    url = t.url("url", "mqtt://127.0.0.1:1883", ("mqtt", "mqtts"))
+    tls = url.scheme == "mqtts"
+    port = url.port or (8883 if tls else 1883)
     mode = t.choice("mode", "json", ("json", "sparkplug"))
     prefix = t.text("prefix", "plcstack")
     if any(c in prefix for c in "+#\x00"):
@@ -194,7 +187,7 @@ def parse_mqtt(table: object, *, base: Path | None = None) -> MqttSettings:
     if "key_file" in t and "cert_file" not in t:
         raise t.error("key_file", "needs cert_file (the client certificate it belongs to)")
     return MqttSettings(
-        host=parts.hostname,
+        host=url.host,
         port=port,
         tls=tls or "ca_file" in t or "cert_file" in t,
         client_id=t.text("client_id", "plcstack"),
@@ -210,10 +203,8 @@ def parse_mqtt(table: object, *, base: Path | None = None) -> MqttSettings:
         key_file=t.file("key_file"),
         keepalive=t.integer("keepalive", 30, 5, 3600),
         timeout=t.seconds("timeout", 10.0, lo=0.5, hi=300),
-        buffer_path=t.file("buffer_path"),
         state_path=t.file("state_path"),
-        buffer_memory=t.size("buffer_memory", 4 << 20, 0, 1 << 40),
-        buffer_max=t.size("buffer_max", 256 << 20, 1024, 1 << 44),
+        **buffer_keys(t),
         inflight=t.integer("inflight", 64, 1, 65535),
         reconnect_max=t.seconds("reconnect_max", 30.0, lo=0.1, hi=3600),
     )
@@ -270,15 +261,7 @@ class MqttSink:
             if layout is not None
             else JsonLayout(settings.prefix, settings.client_id, settings.qos, plcs=plcs)
         )
-        self.buffer = (
-            buffer
-            if buffer is not None
-            else StoreAndForward(
-                settings.buffer_path,
-                memory_bytes=settings.buffer_memory,
-                max_bytes=settings.buffer_max,
-            )
-        )
+        self.buffer = buffer if buffer is not None else StoreAndForward.configured(settings)
         self.stats = SinkStats()
         self.connected = False
         #: the broker connection's health: not connected since when, and why
