@@ -16,7 +16,7 @@ from typing import Any, Final
 
 from plcstack.errors import ConfigError
 
-__all__ = ["MAX_TOML_DEPTH", "TomlFile", "toml_key", "toml_line"]
+__all__ = ["MAX_TOML_DEPTH", "TomlFile", "toml_key", "toml_line", "toml_string"]
 
 #: deepest nesting of tables and arrays a config may use; ours needs 4 ([[plc]] > tags > tag)
 MAX_TOML_DEPTH: Final = 32
@@ -142,6 +142,30 @@ def toml_key(*parts: str) -> str:
     return ".".join(
         p if re.fullmatch(r"[\w\-]+", p) else '"' + p.replace('"', "") + '"' for p in parts
     )
+
+
+_ESCAPES: Final = {
+    '"': '\\"',
+    "\\": "\\\\",
+    "\b": "\\b",
+    "\t": "\\t",
+    "\n": "\\n",
+    "\f": "\\f",
+    "\r": "\\r",
+}
+
+
+def toml_string(text: str) -> str:
+    """A TOML basic string: quotes, backslashes and every control character escaped."""
+    out = []
+    for char in text:
+        if char in _ESCAPES:
+            out.append(_ESCAPES[char])
+        elif ord(char) < 0x20 or ord(char) == 0x7F:
+            out.append(f"\\u{ord(char):04X}")
+        else:
+            out.append(char)
+    return '"' + "".join(out) + '"'
 
 
 def _depth(value: Any) -> int:

@@ -27,6 +27,7 @@ from plcstack.poll.config import (
 from plcstack.poll.engine import default_client_factory
 from plcstack.poll.plan import build_plan
 from plcstack.tags.table import TagListError
+from plcstack.tomlfile import toml_string
 from plcstack.url import parse_url
 from plcstack.values import RAW
 
@@ -96,28 +97,6 @@ _MELSEC_LIKE = re.compile(r"^\s*(D|W|R|X|Y|TN|CN)[0-9A-F]+\s*$", re.IGNORECASE)
 # -- TOML ---------------------------------------------------------------------------------------
 
 _BARE = re.compile(r"^[A-Za-z0-9_-]+$")
-_ESCAPES = {
-    '"': '\\"',
-    "\\": "\\\\",
-    "\b": "\\b",
-    "\t": "\\t",
-    "\n": "\\n",
-    "\f": "\\f",
-    "\r": "\\r",
-}
-
-
-def toml_string(text: str) -> str:
-    """A TOML basic string: quotes, backslashes and every control character escaped."""
-    out = []
-    for char in text:
-        if char in _ESCAPES:
-            out.append(_ESCAPES[char])
-        elif ord(char) < 0x20 or ord(char) == 0x7F:
-            out.append(f"\\u{ord(char):04X}")
-        else:
-            out.append(char)
-    return '"' + "".join(out) + '"'
 
 
 def toml_key(key: str) -> str:
