@@ -29,6 +29,7 @@ from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from plcstack.errors import ConfigError
+from plcstack.north.control import ConfigControl
 from plcstack.north.face import FaceBase, PollerView
 from plcstack.north.health import Health, healthz_body
 from plcstack.north.history import History
@@ -36,6 +37,7 @@ from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.north.trace import TraceSink
 from plcstack.north.web.api import MAX_PENDING_WRITES, peer_of, refusal, routes
 from plcstack.north.web.capture import capture_routes
+from plcstack.north.web.config_api import config_routes
 from plcstack.north.web.events import EventClient, EventHub
 from plcstack.north.web.history import history_routes
 from plcstack.north.web.hosts import HostCheck
@@ -82,7 +84,8 @@ class WebConsole(FaceBase):
     runtime (:class:`~plcstack.north.face.Face`). ``writes``: the run's one write path
     (default: one on ``poller`` without an audit); ``supervisor``: the run's (default: its
     own); ``health``: every part of the run, for ``/healthz``; ``history``: the run's embedded
-    history, if it has one."""
+    history, if it has one; ``control``: the running configuration (``/api/config``; None: the
+    run cannot be reconfigured)."""
 
     def __init__(
         self,
@@ -95,8 +98,11 @@ class WebConsole(FaceBase):
         history: History | None = None,
         reachable: Callable[[str], bool | None] | None = None,
         trace: TraceSink | None = None,
+        control: ConfigControl | None = None,
     ) -> None:
         self.poller = poller
+        #: the running configuration: shown, read again, replaced (None: not reconfigurable)
+        self.control = control
         #: every part of the run, for ``/healthz`` (default: this console alone)
         self.parts = health if health is not None else lambda: [self.health()]
         #: the embedded history the trends and ``/api/history`` read (None: not configured)
@@ -169,6 +175,7 @@ class WebConsole(FaceBase):
                 *routes(self),
                 *history_routes(self),
                 *capture_routes(self),
+                *config_routes(self),
             ]
         )
         http_log = logging.Logger(_http_log.name)  # not in the registry: it goes with the console
