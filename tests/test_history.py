@@ -15,7 +15,7 @@ import pytest
 
 from plcstack.errors import ConfigError
 from plcstack.north.config import parse_north
-from plcstack.north.history import History, HistorySettings, parse_history
+from plcstack.north.history import History, HistoryBusy, HistorySettings, parse_history
 from plcstack.north.history.store import HistoryFile
 from plcstack.north.history.writer import Writer
 from plcstack.poll.samples import Quality, Scan, make_sample
@@ -251,8 +251,13 @@ async def test_a_full_disk_keeps_the_points_in_memory_until_it_has_room(
                         await h.flush()
                 failures = h.writer.stats.failures
                 assert failures > 0
+                down = h.health()
                 filler.unlink()
                 await h.flush()
+            assert down.problem is not None and down.since == T0, down
+            assert down.problem.startswith(f"cannot write to {disk / 'h.sqlite'} (Operational")
+            assert "full" in down.problem and dict(down.figures)["points waiting in memory"] > 0
+            assert h.health().ok  # writing again: healthy, said in /healthz as "history: ok"
             lines = [r.getMessage() for r in caplog.records]
             assert len(lines) == 2, lines
             assert "cannot write to" in lines[0] and "full" in lines[0]
@@ -308,3 +313,45 @@ async def test_a_query_waits_for_no_commit(tmp_path: Path) -> None:
         assert len(got) <= 4
     finally:
         await h.aclose()
+
+
+async def test_a_reload_closes_the_history_and_opens_it_again(tmp_path: Path) -> None:
+    """What a reload of a changed [history] does to the face: the old one closes (its points
+    written, the write-ahead log emptied, the file released), the new one opens the same file
+    with the new table (a shorter retention deletes at once) or a new file."""
+    path, clock = tmp_path / "h.sqlite", Clock()
+    old = history(path, clock, checkpoint_every=0.0)
+    await old.start()
+    for i in range(10):
+        old.submit(scan(T0 + i, count=i))
+    await old.flush()  # a checkpoint: one block of the first ten seconds
+    for i in range(650, 660):
+        old.submit(scan(T0 + i, count=i))  # queued, not yet written: the close writes them
+    await old.aclose()
+    wal = path.with_name(path.name + "-wal")
+    assert not wal.exists() or wal.stat().st_size == 0  # checkpointed into the file
+    with pytest.raises(HistoryBusy, match="not open"):
+        await old.query("p", "count", T0, T0 + 700)
+
+    clock.now = T0 + 700
+    new = history(path, clock, retention=600.0)  # the reloaded table: the same file
+    await new.start()  # the old one let go of it: no "in use by process"
+    try:
+        assert new.writer.stats.expired == 1  # the first block is older than the new retention
+        got = await new.query("p", "count", T0, T0 + 700)
+        assert got == [(T0 + i, i) for i in range(650, 660)]
+        new.submit(scan(T0 + 700, count=700))
+        await new.flush()
+        assert (await new.query("p", "count", T0 + 690, T0 + 710))[-1] == (T0 + 700, 700)
+    finally:
+        await new.aclose()
+
+    moved = history(tmp_path / "elsewhere.sqlite", clock)  # a reload to a new path
+    await moved.start()
+    try:
+        assert await moved.query("p", "count", T0, T0 + 800) == []
+        again = history(path, clock)  # the old file is free for anyone
+        await again.start()
+        await again.aclose()
+    finally:
+        await moved.aclose()

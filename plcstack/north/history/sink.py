@@ -13,14 +13,17 @@ from __future__ import annotations
 
 import asyncio
 import bisect
+import contextlib
 import logging
+import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from plcstack.errors import ConfigError
 from plcstack.north.face import FaceBase
+from plcstack.north.health import Health
 from plcstack.north.history.blocks import BlockError, decode_block
 from plcstack.north.history.downsample import Downsampler
 from plcstack.north.history.settings import HistorySettings
@@ -28,6 +31,9 @@ from plcstack.north.history.store import Damaged, HistoryFile
 from plcstack.north.history.writer import Writer
 from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.poll.samples import Scan
+
+if TYPE_CHECKING:
+    from prometheus_client.core import Metric
 
 __all__ = ["COMMIT_EVERY", "MAX_QUERIES", "QUEUE_LIMIT", "History", "HistoryBusy"]
 
@@ -78,6 +84,11 @@ class History(FaceBase):
         self._read_pool: ThreadPoolExecutor | None = None
         self._reader: HistoryFile | None = None
         self._open = False
+        #: queries answered, and the seconds they took in all (``/metrics``)
+        self.queries = 0
+        self.query_seconds = 0.0
+        #: queries refused (too many at once, not open, the file unreadable)
+        self.query_refusals = 0
 
     # -- the sink protocol ----------------------------------------------------------------------
     def submit(self, scans: Sequence[Scan]) -> None:
@@ -150,6 +161,73 @@ class History(FaceBase):
             f" {self.settings.path}, {self.dropped + stats.dropped} dropped"
         )
 
+    def health(self) -> Health:
+        """Unhealthy while its commits fail (a full disk, an I/O error): why, since when, and
+        the points that wait in memory meanwhile."""
+        writer = self.writer
+        figures = (("points waiting in memory", writer.open_points),)
+        failure = writer.failure
+        if failure is None:
+            return Health(self.name, figures=figures)
+        reason, since = failure
+        return Health(self.name, f"cannot write to {writer.path} ({reason})", since, figures)
+
+    def disk_bytes(self) -> int:
+        """Bytes the history takes on disk: its file and the file's write-ahead log."""
+        total = 0
+        for suffix in ("", "-wal", "-shm"):
+            with contextlib.suppress(OSError):
+                total += os.stat(f"{self.writer.path}{suffix}").st_size
+        return total
+
+    def metrics(self) -> Iterator[Metric]:
+        """The history's figures for ``/metrics`` (prometheus-client metric families)."""
+        from prometheus_client.core import (
+            CounterMetricFamily,
+            GaugeMetricFamily,
+            SummaryMetricFamily,
+        )
+
+        stats = self.writer.stats
+        counters = (
+            ("points_taken", "samples taken into the history (committed within a second)",
+             stats.taken),
+            ("points_stored", "points written into blocks by checkpoints", stats.stored),
+            ("dropped_points", "samples dropped: the writer fell behind or the points waiting"
+             " for a failing disk reached their bound", self.dropped + stats.dropped),
+            ("write_errors", "commits that failed (disk full, I/O error); their points waited"
+             " in memory", stats.failures),
+            ("expired_points", "points deleted by retention", stats.expired),
+            ("trimmed_points", "points deleted by max_size, oldest first", stats.trimmed),
+            ("query_refusals", "queries refused: too many at once, or the history not open",
+             self.query_refusals),
+        )  # fmt: skip
+        for name, doc, value in counters:
+            yield CounterMetricFamily(f"plcstack_history_{name}", doc, value=float(value))
+        yield SummaryMetricFamily(
+            "plcstack_history_query_seconds",
+            "history queries answered, and the seconds they took",
+            count_value=self.queries,
+            sum_value=self.query_seconds,
+        )
+        yield GaugeMetricFamily(
+            "plcstack_history_disk_bytes",
+            "bytes the history takes on disk (its file and write-ahead log)",
+            value=float(self.disk_bytes()),
+        )
+        yield GaugeMetricFamily(
+            "plcstack_history_write_lag_seconds",
+            "from the arrival of the oldest sample of the last commit to that commit",
+            value=stats.lag,
+        )
+        oldest = GaugeMetricFamily(
+            "plcstack_history_oldest_point_age_seconds",
+            "age of the oldest point the history holds (none while it holds none)",
+        )
+        if self.writer.oldest_ms is not None:
+            oldest.add_metric([], max(0.0, self.clock() - self.writer.oldest_ms / 1000.0))
+        yield oldest
+
     # -- writing --------------------------------------------------------------------------------
     def _take(self) -> list[Sequence[Scan]]:
         batches, self._pending, self._held = self._pending, [], 0
@@ -180,17 +258,26 @@ class History(FaceBase):
         (min and max per bucket beyond that), oldest first; the first may be older than
         ``start``: the value that held then. A bad-quality point's value is None."""
         if not self._open or self._read_pool is None:
+            self.query_refusals += 1
             raise HistoryBusy("the history is not open")
         if self._queries >= MAX_QUERIES:
+            self.query_refusals += 1
             raise HistoryBusy(f"{MAX_QUERIES} history queries are already running")
         self._queries += 1
+        began = time.perf_counter()
         try:
             loop = asyncio.get_running_loop()
-            return await loop.run_in_executor(
+            found = await loop.run_in_executor(
                 self._read_pool, self._query, (plc, tag), start, end, points
             )
+        except HistoryBusy:
+            self.query_refusals += 1
+            raise
         finally:
             self._queries -= 1
+        self.queries += 1
+        self.query_seconds += time.perf_counter() - began
+        return found
 
     def _query(
         self, key: tuple[str, str], start: float, end: float, limit: int

@@ -215,6 +215,12 @@ class HistoryFile:
             ).rowcount
         return deleted
 
+    def oldest(self) -> int | None:
+        """The first point's time (ms) of the oldest block (the one that retention deletes
+        first, found by its index), None without blocks."""
+        row = self.db.execute("SELECT t0 FROM blocks ORDER BY t1 LIMIT 1").fetchone()
+        return None if row is None else int(row[0])
+
     def stats(self) -> tuple[int, int]:
         """(blocks, points) stored."""
         row = self.db.execute("SELECT COUNT(*), COALESCE(SUM(n), 0) FROM blocks").fetchone()

@@ -110,7 +110,12 @@ class Writer:
         self._sids: dict[tuple[str, str], int] = {}
         self._last_checkpoint = time.monotonic()
         self._failing: str | None = None
+        #: when the commits began to fail (Unix time; None while they work)
+        self._failing_since: float | None = None
         self._dropping = 0
+        #: the time (ms) of the oldest point the history holds, None: none yet (read on the
+        #: event loop for /metrics; set in the writer thread)
+        self.oldest_ms: int | None = None
         #: the arrival of the oldest sample of the round being written
         self._oldest = 0.0
 
@@ -201,7 +206,14 @@ class Writer:
         self.stats.lag = max(0.0, self.clock() - self._oldest) if segment[0] else 0.0
         if self._failing is not None:
             log.warning("history: writing to %s again (%s before)", self.path, self._failing)
-            self._failing = None
+            self._failing = self._failing_since = None
+
+    @property
+    def failure(self) -> tuple[str, float] | None:
+        """Why the commits fail now and since when (Unix time); None while they work."""
+        if self._failing is None or self._failing_since is None:
+            return None
+        return self._failing, self._failing_since
 
     def _take(self, batches: Sequence[Sequence[Scan]], now: float) -> list[Any]:
         """The samples into their open blocks; the journal segment's columns."""
@@ -249,6 +261,8 @@ class Writer:
             self._dropping = 0
         self.stats.taken += taken
         self._oldest = oldest
+        if taken and self.oldest_ms is None:
+            self.oldest_ms = min(times)
         return [blocks, times, kinds, numbers, others]
 
     def _commit(self, segment: list[Any], *, final: bool) -> None:
@@ -290,6 +304,7 @@ class Writer:
             self.stats.stored += points
             self.stats.checkpoints += 1
             self._last_checkpoint = time.monotonic()
+            self._note_oldest(file)
 
     def _checkpoint(self, file: HistoryFile) -> int:
         """Inside the commit's transaction: the open blocks as rows, the journal emptied, the
@@ -321,12 +336,22 @@ class Writer:
         except BaseException:
             file.rollback()
             raise
+        self._note_oldest(file)
+
+    def _note_oldest(self, file: HistoryFile) -> None:
+        """After retention and size did their work: the oldest point kept (on disk, else in
+        the open blocks)."""
+        oldest = file.oldest()
+        if oldest is None:
+            oldest = min((min(b.times) for b in self.blocks.values() if len(b)), default=None)
+        self.oldest_ms = oldest
 
     def _failed(self, exc: sqlite3.Error) -> None:
         """A commit that did not happen (disk full, I/O error): its points stay in memory."""
         self.stats.failures += 1
         reason = f"{type(exc).__name__}: {exc}"
         if self._failing is None:
+            self._failing_since = self.clock()
             log.warning(
                 "history: cannot write to %s (%s); points wait in memory (up to %d) and are"
                 " written when it works again",
