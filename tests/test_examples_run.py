@@ -73,9 +73,15 @@ async def test_north_config_publishes_to_a_real_broker(
     text = (EXAMPLES / "north.toml").read_text(encoding="utf-8")
     async with await e71.start() as sim:
         sim.memory.write_words("D", 100, [7])
-        text = text.replace("e71+tcp://127.0.0.1:5000", sim.url)
-        text = text.replace("mqtt://127.0.0.1:1883", mosquitto.url)
-        text = text.replace("port = 9108", f"port = {free_port()}")
+        # the example's addresses, each on this run's own (one that no longer matches fails
+        # here, not as a port another test holds)
+        for documented, ours in (
+            ("e71+tcp://127.0.0.1:5000", sim.url),
+            ("mqtt://127.0.0.1:1883", mosquitto.url),
+            ('listen = "127.0.0.1:9108"', f'listen = "127.0.0.1:{free_port()}"'),
+        ):
+            assert documented in text, documented
+            text = text.replace(documented, ours)
         config = tmp_path / "north.toml"
         config.write_text(text, encoding="utf-8")
         host, port = mosquitto.url.removeprefix("mqtt://").split(":")
