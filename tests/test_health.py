@@ -8,13 +8,19 @@ and while the audit file could not be written.
 from __future__ import annotations
 
 import asyncio
+import re
 from pathlib import Path
 
+import pytest
+
 from plcstack.config import load_config
+from plcstack.north import queue_file
 from plcstack.north.pipeline import North
 from plcstack.north.web.server import WebConsole
 from plcstack.poll.engine import Poller
+from plcstack.sim import e71 as e71_sim
 from tests.aio_helpers import eventually
+from tests.disk_helpers import fill, small_disk
 from tests.servers import Influxd, Mosquitto
 from tests.test_north_metrics import http
 
@@ -128,3 +134,79 @@ async def test_healthz_names_influxdb_while_it_cannot_be_written_to(
     assert line.endswith(" lines waiting"), line
     status, body = up
     assert status == 200 and "\ninflux: ok, " in body.decode(), body
+
+
+async def healthz(*ports: int) -> list[tuple[int, bytes]]:
+    return [await http(port, b"GET /healthz HTTP/1.0\r\n\r\n") for port in ports]
+
+
+async def livez(*ports: int) -> list[tuple[int, bytes]]:
+    return [await http(port, b"GET /livez HTTP/1.0\r\n\r\n") for port in ports]
+
+
+async def test_healthz_names_full_disks_under_the_queue_and_the_audit_until_they_have_room(
+    tmp_path: Path, mosquitto: Mosquitto, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A live PLC, the broker away, the disk under ``buffer_path`` and the one under the audit
+    full (two 256 KiB tmpfs): ``/healthz`` of the metrics endpoint and of the console is 503,
+    naming the broker (why, since when, messages waiting), the queue's file (full, messages
+    lost) and the audit file; with room on both disks and the broker back it is 200 again.
+    ``/livez`` is 200 throughout."""
+    # a disk that took writes again counts as recovered after this long without a refusal
+    monkeypatch.setattr(queue_file, "SETTLE_SECONDS", 0.2)
+    with small_disk(tmp_path / "queue") as queue, small_disk(tmp_path / "audit") as audit:
+        async with await e71_sim.start() as sim:
+            path = tmp_path / "plant.toml"
+            path.write_text(
+                f'[poll]\ninterval = 0.02\n[mqtt]\nurl = "{mosquitto.url}"\nreconnect_max = 0.2\n'
+                f'buffer_path = "{queue / "q.sqlite"}"\nbuffer_memory = 0\n'
+                f'[audit]\npath = "{audit / "writes.jsonl"}"\n'
+                "[web]\nport = 0\n[metrics]\nport = 0\n"
+                f'[[plc]]\nname = "press1"\nurl = "{sim.url}"\n'
+                '[plc.tags]\nstrokes = { address = "D100" }\n'
+            )
+            loaded = load_config(path)
+            mosquitto.stop()
+            async with Poller(loaded.poll) as poller, North(poller, loaded.north) as north:
+                mqtt, metrics, web = north.mqtt, north.metrics, north.face(WebConsole)
+                assert mqtt is not None and metrics is not None and web is not None
+                ports = (metrics.port, web.port)
+                consumer = asyncio.create_task(north.run())
+                try:
+                    await eventually(lambda: len(mqtt.buffer) > 0, "messages wait on disk")
+                    fillers = [fill(queue), fill(audit)]
+                    north.writes.refuse("web", None, "press1", "strokes", 1, "busy", "t", peer=None)
+                    await eventually(lambda: mqtt.buffer.failure is not None, "the disk is full")
+                    down, alive = await healthz(*ports), await livez(*ports)
+                    for filler in fillers:
+                        filler.unlink()
+                    mosquitto.start()
+                    await eventually(lambda: mqtt.connected, "the broker is back")
+                    north.writes.refuse("web", None, "press1", "strokes", 1, "busy", "t", peer=None)
+                    await eventually(
+                        lambda: mqtt.buffer.failure is None, "the queue's disk takes writes"
+                    )
+                    up, alive_again = await healthz(*ports), await livez(*ports)
+                finally:
+                    consumer.cancel()
+                    await asyncio.gather(consumer, return_exceptions=True)
+    assert alive == alive_again == [(200, b"alive\n")] * 2
+    for status, body in down:
+        assert status == 503
+        lines = body.decode().splitlines()
+        assert [line.split(":")[0] for line in lines] == ["mqtt", "audit"], lines
+        # each problem with its own since when; the figures of the part at the end
+        broker, disk_full = lines[0].split("; store-and-forward file ")
+        assert broker.startswith(f"mqtt: MQTT broker {mosquitto.url}: connect: nothing listens")
+        assert re.search(r"\) since 20\S+Z \(\d+ s ago\)$", broker), broker
+        assert re.fullmatch(
+            rf"{re.escape(str(queue / 'q.sqlite'))} cannot be written \(database or disk is full\),"
+            r" \d+ messages lost since 20\S+Z \(\d+ s ago\), [1-9]\d* messages waiting",
+            disk_full,
+        ), disk_full
+        assert lines[1].startswith(
+            f"audit: cannot write {audit / 'writes.jsonl'} (No space left on device)"
+        )
+    for status, body in up:
+        assert status == 200, body
+        assert body.decode().splitlines()[0] == "ok"

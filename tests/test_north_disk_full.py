@@ -78,7 +78,7 @@ def test_a_full_disk_is_one_error_counted_losses_and_one_warning_when_it_is_back
         assert q.on_disk == 0 and q.dropped == q.lost_to_disk > 0
         failure = q.failure
         assert failure is not None and failure.lost == q.dropped and "full" in failure.error
-        assert "q.sqlite cannot be written since" in failure.describe()
+        assert "q.sqlite cannot be written (" in failure.describe()
         assert f"{q.dropped} messages lost" in failure.describe()
         # the newest are kept, in order, within the memory the refusal leaves
         kept = [int(m.payload[:5]) for m in q.peek(len(q))]

@@ -16,15 +16,21 @@ from __future__ import annotations
 
 import datetime
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-__all__ = ["Condition", "Health", "healthz_body", "unhealthy"]
+__all__ = ["Condition", "Health", "healthz_body", "several", "unhealthy"]
 
 
 def _iso(when: float) -> str:
     stamp = datetime.datetime.fromtimestamp(when, datetime.UTC)
     return stamp.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def _since(when: float, now: float | None) -> str:
+    """`` since 2026-11-25T21:50:01Z (12 s ago)``."""
+    age = max(0, round((time.time() if now is None else now) - when))
+    return f" since {_iso(when)} ({age} s ago)"
 
 
 @dataclass(frozen=True, slots=True)
@@ -51,11 +57,26 @@ class Health:
         else:
             text = f"{self.name}: {self.problem}"
             if self.since is not None:
-                age = max(0, round((time.time() if now is None else now) - self.since))
-                text += f" since {_iso(self.since)} ({age} s ago)"
+                text += _since(self.since, now)
         if self.figures:
             text += ", " + ", ".join(f"{value} {what}" for what, value in self.figures)
         return text
+
+
+def several(
+    name: str,
+    problems: Sequence[tuple[str, float | None]],
+    figures: tuple[tuple[str, int], ...] = (),
+    now: float | None = None,
+) -> Health:
+    """The health of a part that can have more than one problem at once (its broker away and
+    the disk under its queue full): each problem said with its own since when, in the order
+    given; healthy without any."""
+    if not problems:
+        return Health(name, figures=figures)
+    *first, (last, since) = problems
+    text = "".join(f"{p}{_since(s, now) if s is not None else ''}; " for p, s in first)
+    return Health(name, text + last, since, figures)
 
 
 def unhealthy(parts: Iterable[Health]) -> list[Health]:

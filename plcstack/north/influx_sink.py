@@ -41,7 +41,7 @@ from urllib.parse import urlsplit
 
 from plcstack.north.buffer import Message, StoreAndForward
 from plcstack.north.face import FaceBase
-from plcstack.north.health import Condition, Health
+from plcstack.north.health import Condition, Health, several
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.influx_config import InfluxSettings
 from plcstack.north.supervise import Supervised, Supervisor
@@ -417,14 +417,13 @@ class InfluxSink(FaceBase):
         """Unhealthy while InfluxDB cannot be written to or the disk under ``buffer_path``
         refuses writes: since when, why, how many lines wait."""
         waiting = (("lines waiting", len(self.buffer)),)
-        problems: list[tuple[str, float]] = []
-        if self.link.problem is not None and self.link.since is not None:
+        problems: list[tuple[str, float | None]] = []
+        if self.link.problem is not None:
             problems.append((self.link.problem, self.link.since))
         disk = self.buffer.failure
         if disk is not None:
             problems.append((disk.describe(), disk.since))
-        if not problems:
-            return Health(self.name, figures=waiting)
+        return several(self.name, problems, waiting)
         since = min(when for _, when in problems)
         return Health(self.name, "; ".join(text for text, _ in problems), since, waiting)
 

@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING, Any
 from plcstack.checks import Table
 from plcstack.errors import ConfigError, PlcError
 from plcstack.north.buffer import Message, StoreAndForward, buffer_keys
-from plcstack.north.health import Condition, Health
+from plcstack.north.health import Condition, Health, several
 from plcstack.north.layout import (
     JsonLayout,
     MqttLayout,
@@ -329,14 +329,13 @@ class MqttSink:
         """Unhealthy while the broker is not connected (since when, why, how many messages
         wait) or the queue reports a problem of its own (a full disk)."""
         waiting = (("messages waiting", len(self.buffer)),)
-        problems: list[tuple[str, float]] = []
-        if self.link.problem is not None and self.link.since is not None:
+        problems: list[tuple[str, float | None]] = []
+        if self.link.problem is not None:
             problems.append((self.link.problem, self.link.since))
         disk = self.buffer.failure
         if disk is not None:
             problems.append((disk.describe(), disk.since))
-        if not problems:
-            return Health(self.name, figures=waiting)
+        return several(self.name, problems, waiting)
         since = min(when for _, when in problems)
         return Health(self.name, "; ".join(text for text, _ in problems), since, waiting)
 

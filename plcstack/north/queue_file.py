@@ -19,7 +19,6 @@ us) is abandoned: moved aside and replaced by a new one; the caller counts what 
 from __future__ import annotations
 
 import contextlib
-import datetime
 import logging
 import sqlite3
 import time
@@ -66,11 +65,11 @@ class DiskFailure:
     lost: int
 
     def describe(self) -> str:
-        """``store-and-forward file F cannot be written since T (reason); N messages lost``."""
-        stamp = datetime.datetime.fromtimestamp(self.since, datetime.UTC)
+        """``store-and-forward file F cannot be written (reason), N messages lost`` (since
+        :attr:`since`, which the health line adds)."""
         return (
-            f"store-and-forward file {self.path} cannot be written since"
-            f" {stamp.strftime('%Y-%m-%dT%H:%M:%SZ')} ({self.error}); {self.lost} messages lost"
+            f"store-and-forward file {self.path} cannot be written ({self.error}),"
+            f" {self.lost} messages lost"
         )
 
 
