@@ -59,6 +59,11 @@ def metrics(p: Any) -> dict[str, Any]:
     return {m.name: metric_value(m) for m in p.metrics}
 
 
+def _deaths(sub: Any) -> list[int]:
+    """The bdSeq of each NDEATH the subscriber saw (a redelivered copy once)."""
+    return [metrics(p)["bdSeq"] for _, p in decode(unique(sub), "NDEATH")]
+
+
 def host_view(messages: list[tuple[str, bytes]]) -> list[tuple[str, bytes]]:
     """The messages a host acts on: an NDEATH whose bdSeq is not that of the node's last NBIRTH
     is stale (a Will of an earlier session, delivered late) and is left out."""
@@ -154,9 +159,17 @@ async def test_sparkplug_session_births_data_deaths_rebirth_and_dcmd(mosquitto: 
         await sink.aclose()
 
 
-async def test_sparkplug_store_and_forward_marks_replayed_data_historical(
-    mosquitto: Mosquitto,
-) -> None:
+async def test_sparkplug_store_and_forward_marks_replayed_data_historical() -> None:
+    # Sparkplug publishes at QoS 0, which a broker queues for no offline session by default:
+    # after the restart, whichever of the edge node and this subscriber reconnected first decided
+    # whether the replay was seen. The broker here queues QoS 0 for the subscriber's persistent
+    # session (as one holding a host's session would), so the order of the reconnects is no
+    # matter and everything the node published is seen.
+    with Mosquitto(extra_config="queue_qos0_messages true") as mosquitto:
+        await _store_and_forward_marks_replayed_data_historical(mosquitto)
+
+
+async def _store_and_forward_marks_replayed_data_historical(mosquitto: Mosquitto) -> None:
     config = PollConfig((PlcConfig("p", "e71+tcp://127.0.0.1:1", TAGS[:1]),), {"default": 60})
     settings = MqttSettings(
         host=mosquitto.host, port=mosquitto.port, client_id="edge2", mode="sparkplug",
@@ -181,6 +194,8 @@ async def test_sparkplug_store_and_forward_marks_replayed_data_historical(
             state = (sink.connected, len(sink.buffer), sink.stats, mosquitto.log())
             raise AssertionError(f"replay did not arrive: {kinds} {state}") from None
         await sink.aclose()
+        # the close's NDEATH (bdSeq 1) is on its way: seen before this subscriber leaves
+        await sub.wait_for(lambda s: _deaths(s).count(1) >= 1)
     # the broker may deliver a message to the subscriber again after its own restart (QoS 1, at
     # least once): the same topic and bytes, dropped here
     data = [p for _, p in decode(unique(sub), "DDATA")]
@@ -191,7 +206,7 @@ async def test_sparkplug_store_and_forward_marks_replayed_data_historical(
     # messages. A host ignores an NDEATH whose bdSeq is not its node's current one (Sparkplug B
     # 3.0, host rules for NDEATH), and so does this check. The new session (bdSeq 1) died once:
     # at the sink's close, after everything else.
-    deaths = [metrics(p)["bdSeq"] for _, p in decode(unique(sub), "NDEATH")]
+    deaths = _deaths(sub)
     assert deaths.count(1) == 1 and set(deaths) <= {0, 1}, deaths
     last_topic, last_payload = host_view(unique(sub))[-1]
     assert "/NDEATH/" in last_topic and metrics(Payload.FromString(last_payload))["bdSeq"] == 1
