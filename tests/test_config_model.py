@@ -239,6 +239,18 @@ VALUES = [
     ("influx", 'database = "p"', '[influx] database needs url = "http://HOST:PORT"'),
     ("mqtt", 'url = "mqtt://u:pw@h"', "[mqtt] url must not carry credentials"),
     ("opcua", "max_clients = 0", "opcua.max_clients must be 1..10000"),
+    (
+        "opcua",
+        "max_clients_per_host = 4",
+        "[opcua] max_clients_per_host is not taken here: the"
+        " OPC UA library (asyncua) admits connections without telling hosts apart",
+    ),
+    (
+        "opcua",
+        'idle_timeout = "5m"',
+        "[opcua] idle_timeout is not taken here: the OPC UA"
+        " library (asyncua) ends an idle session by its session timeout",
+    ),
     ("opcua", 'path = "plcstack"', '[opcua] path must be a URL path such as "/plcstack"'),
     ("audit", 'path = "a"\nbackups = -1', "[audit] backups must be 0..1000, not -1"),
 ]

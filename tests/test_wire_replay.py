@@ -300,17 +300,22 @@ async def test_sim_replay_on_the_command_line(tmp_path: Path) -> None:
     assert "request(s) were not in the capture" in log
 
 
-async def test_a_mismatch_is_logged_once_per_request(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
-) -> None:
+async def record_one_read(capture: Path) -> Path:
+    """``capture``: a pcapng of one read of D0 from an E71 simulator (which is gone after)."""
     e71 = await e71_sim.start()
-    capture = tmp_path / "one.pcapng"
     try:
         with PcapngCapture(capture) as file, capturing(file):
             async with plcstack.connect(e71.url) as plc:
                 await plc.read("D0", 1)
     finally:
         await e71.aclose()
+    return capture
+
+
+async def test_a_mismatch_is_said_once_per_burst(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    capture = await record_one_read(tmp_path / "one.pcapng")
     sim = await replay.start(capture, repeat=False)
     try:
         url = f"e71+tcp://{sim.url}"

@@ -288,6 +288,15 @@ _KEYS = {
     "max_clients",
     "first_request_timeout",
 }
+#: the face-guard keys other faces take that this one cannot keep, and why (said when a file
+#: has them, rather than "unknown key")
+_NOT_TAKEN = {
+    "max_clients_per_host": "the OPC UA library (asyncua) admits connections without telling"
+    " hosts apart and offers no hook to refuse one by its host; max_clients bounds them all",
+    "idle_timeout": "the OPC UA library (asyncua) ends an idle session by its session timeout,"
+    " which the client asks for and asyncua holds to 5 s..10 minutes; first_request_timeout"
+    " bounds a connection that activates no session",
+}
 DEFAULT_LISTEN = Listen("127.0.0.1", 4840)
 DEFAULT_PATH = "/plcstack"
 
@@ -310,6 +319,9 @@ def load_opcua_config(path: str | Path) -> OpcUaConfig:
 def parse_opcua_config(section: object, *, base: Path | None = None) -> OpcUaConfig:
     """Build an :class:`OpcUaConfig` from the ``[opcua]`` table's contents."""
     t = Table.of(section, "opcua", base=base)
+    for key, why in _NOT_TAKEN.items():
+        if key in t:
+            raise t.error(key, f"is not taken here: {why}")
     t.keys(_KEYS)
     options: dict[str, Any] = {"endpoint": _endpoint(t)}
     for key in ("namespace", "server_name", "anonymous"):

@@ -46,8 +46,8 @@ from plcstack.sim.base import (
     Limits,
     Simulator,
     TcpSimulator,
-    add_idle_timeout_argument,
-    idle_timeout_of,
+    add_guard_arguments,
+    limits_of,
     module_guard,
 )
 from plcstack.sim.s5memory import BLOCK_HEADER_BYTES, BlockType, S5AccessError, S5Memory
@@ -570,7 +570,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--pty", action="store_true", help="serve on a new pseudo-terminal instead of TCP"
     )
-    add_idle_timeout_argument(parser)
+    add_guard_arguments(parser, DEFAULT_MAX_CONNECTIONS)
     parser.add_argument("--host", default="127.0.0.1", help="TCP address (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5020, help="TCP port (default 5020; 0 = any)")
     parser.add_argument(
@@ -586,7 +586,7 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         sim = pty_sim
     else:
         tcp_sim = await start(
-            host=args.host, port=args.port, baud=args.baud, idle_timeout=idle_timeout_of(args)
+            host=args.host, port=args.port, baud=args.baud, limits=limits_of(args)
         )
         announce(f"listening on {tcp_sim.host}:{tcp_sim.port} (TCP)")
         sim = tcp_sim

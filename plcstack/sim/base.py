@@ -15,6 +15,7 @@ from abc import abstractmethod
 from collections.abc import Iterator
 from typing import Any
 
+from plcstack.checks import parse_seconds
 from plcstack.resource import AsyncResource
 from plcstack.transports.guard import (
     CLOSE_LINGER,
@@ -38,11 +39,11 @@ __all__ = [
     "Simulator",
     "TcpSimulator",
     "UdpSimulator",
-    "add_idle_timeout_argument",
+    "add_guard_arguments",
     "bound_address",
     "check_idle_timeout",
     "close_writer",
-    "idle_timeout_of",
+    "limits_of",
     "module_guard",
 ]
 
@@ -62,11 +63,12 @@ def module_guard(
     max_connections: int = DEFAULT_MAX_CONNECTIONS,
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
     limits: Limits | None = None,
+    logger: logging.Logger = log,
 ) -> FaceGuard:
     """The guard of a simulated module's listener: ``limits`` (a gateway's face passes its
     own), or the module's: ``max_connections`` from any host (a module does not tell hosts
     apart), a first request within :data:`FIRST_REQUEST_TIMEOUT`, ``idle_timeout``. Its log
-    lines go to ``plcstack.sim``."""
+    lines go to ``logger`` (default ``plcstack.sim``)."""
     if limits is None:
         if max_connections < 1:
             raise ValueError("max_connections must be at least 1")
@@ -76,7 +78,7 @@ def module_guard(
             first_request_timeout=FIRST_REQUEST_TIMEOUT,
             idle_timeout=check_idle_timeout(idle_timeout),
         )
-    return FaceGuard(face, title, limits, log)
+    return FaceGuard(face, title, limits, logger)
 
 
 def check_idle_timeout(idle_timeout: float | None) -> float | None:
@@ -88,21 +90,82 @@ def check_idle_timeout(idle_timeout: float | None) -> float | None:
     return check_seconds("idle_timeout", idle_timeout)
 
 
-def add_idle_timeout_argument(parser: argparse.ArgumentParser) -> None:
-    """``--idle-timeout SECONDS`` of every ``plcstack sim`` (0 = never close idle connections)."""
+def _cli_seconds(text: str) -> float:
+    """A duration on the command line as a table takes it (``10``, ``2.5``, ``"500ms"``,
+    ``"10m"``); 0 turns the limit off."""
+    try:
+        value: object = float(text)
+    except ValueError:
+        value = text
+    try:
+        return parse_seconds(value, zero=True)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _cli_count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if not 1 <= value <= 10_000:
+        raise argparse.ArgumentTypeError(f"must be a whole number 1..10000, not {text!r}")
+    return value
+
+
+def add_guard_arguments(parser: argparse.ArgumentParser, max_connections: int) -> None:
+    """The limits of every ``plcstack sim``, with the names of a listening face's keys
+    (``max_clients``, ``max_clients_per_host``, ``first_request_timeout``, ``idle_timeout``);
+    ``max_connections``: the module's own number of connections, the default."""
+    parser.set_defaults(module_connections=max_connections)
+    parser.add_argument(
+        "--max-clients",
+        type=_cli_count,
+        default=None,
+        metavar="N",
+        help=f"connections at once; more are closed at once and counted (default"
+        f" {max_connections}, as the module serves)",
+    )
+    parser.add_argument(
+        "--max-clients-per-host",
+        type=_cli_count,
+        default=None,
+        metavar="N",
+        help="connections at once from one host (default: as many as --max-clients; a module"
+        " does not tell hosts apart)",
+    )
+    parser.add_argument(
+        "--first-request-timeout",
+        type=_cli_seconds,
+        default=FIRST_REQUEST_TIMEOUT,
+        metavar="SECONDS",
+        help=f"close a connection that sent no complete request this long after connecting"
+        f" (default {FIRST_REQUEST_TIMEOUT:g}; 0 = no limit; 500ms, 1m as in a table)",
+    )
     parser.add_argument(
         "--idle-timeout",
-        type=float,
+        type=_cli_seconds,
         default=DEFAULT_IDLE_TIMEOUT,
         metavar="SECONDS",
         help="close a connection that sent nothing for this long (default 600; 0 = never)",
     )
 
 
-def idle_timeout_of(args: argparse.Namespace) -> float | None:
-    """The ``--idle-timeout`` of parsed CLI arguments as ``start()`` takes it (0 -> None)."""
-    value: float | None = getattr(args, "idle_timeout", DEFAULT_IDLE_TIMEOUT)
-    return None if value == 0 else value
+def limits_of(args: argparse.Namespace) -> Limits:
+    """The :func:`add_guard_arguments` of parsed CLI arguments as a simulator's ``limits``;
+    ValueError (the CLI's exit 2) for a per-host cap above the total."""
+    total: int = args.max_clients or args.module_connections
+    per_host: int = args.max_clients_per_host or total
+    if per_host > total:
+        raise ValueError(
+            f"--max-clients-per-host {per_host} cannot be more than --max-clients ({total})"
+        )
+    return Limits(
+        max_clients=total,
+        max_clients_per_host=per_host,
+        first_request_timeout=args.first_request_timeout or None,
+        idle_timeout=args.idle_timeout or None,
+    )
 
 
 class ConnectionCount:

@@ -58,8 +58,8 @@ from plcstack.sim.base import (
     Simulator,
     TcpSimulator,
     UdpSimulator,
-    add_idle_timeout_argument,
-    idle_timeout_of,
+    add_guard_arguments,
+    limits_of,
     module_guard,
 )
 from plcstack.sim.e71_module import execute_extension, module_of
@@ -465,7 +465,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         help="frame coding the clients must use, like DIP switch SW2 (default binary; "
         "a client sets ?code=ascii)",
     )
-    add_idle_timeout_argument(parser)
+    add_guard_arguments(parser, MAX_CONNECTIONS)
     parser.add_argument(
         "--transport",
         choices=("tcp", "udp"),
@@ -499,7 +499,7 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         port=args.port,
         code=args.code,
         transport=args.transport,
-        idle_timeout=idle_timeout_of(args),
+        limits=limits_of(args),
     )
     assert isinstance(sim, (E71TcpSimulator, E71UdpSimulator))
     announce(f"listening on {sim.host}:{sim.port} ({args.transport.upper()})")

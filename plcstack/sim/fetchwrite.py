@@ -34,8 +34,8 @@ from plcstack.sim.base import (
     DEFAULT_MAX_CONNECTIONS,
     ClientGone,
     TcpSimulator,
-    add_idle_timeout_argument,
-    idle_timeout_of,
+    add_guard_arguments,
+    limits_of,
     module_guard,
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
@@ -369,7 +369,7 @@ async def start(
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1)")
     parser.add_argument("--port", type=int, default=5030, help="TCP port (default 5030)")
-    add_idle_timeout_argument(parser)
+    add_guard_arguments(parser, DEFAULT_MAX_CONNECTIONS)
     parser.add_argument(
         "--mk",
         action="store_true",
@@ -403,7 +403,7 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         db_start_unit=args.db_start,
         write_port=args.write_port,
         life_ack=args.life_ack,
-        idle_timeout=idle_timeout_of(args),
+        limits=limits_of(args),
     )
     line = f"listening on {sim.host}:{sim.port} (TCP)"
     if sim.write_port is not None:

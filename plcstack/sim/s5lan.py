@@ -38,9 +38,9 @@ from plcstack.sim.base import (
     DEFAULT_IDLE_TIMEOUT,
     ClientGone,
     TcpSimulator,
-    add_idle_timeout_argument,
+    add_guard_arguments,
     close_writer,
-    idle_timeout_of,
+    limits_of,
     module_guard,
 )
 from plcstack.sim.s5memory import Area, BlockType, S5Memory
@@ -313,7 +313,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="delay answers like the module: 50 ms + 1.5 ms per data byte",
     )
-    add_idle_timeout_argument(parser)
+    add_guard_arguments(parser, 1)
 
 
 async def serve_cli(args: argparse.Namespace, announce: Callable[[str], Any]) -> None:
@@ -321,7 +321,7 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], Any]) ->
         host=args.host,
         port=args.port,
         realistic_timing=args.realistic_timing,
-        idle_timeout=idle_timeout_of(args),
+        limits=limits_of(args),
     )
     announce(f"listening on {sim.host}:{sim.port} (TCP)")
     await sim.serve_forever()

@@ -25,12 +25,15 @@ from typing import Any
 
 from plcstack.sim.base import (
     DEFAULT_IDLE_TIMEOUT,
+    DEFAULT_MAX_CONNECTIONS,
     Simulator,
-    add_idle_timeout_argument,
+    add_guard_arguments,
     close_writer,
-    idle_timeout_of,
+    limits_of,
+    module_guard,
 )
 from plcstack.transports import tap
+from plcstack.transports.guard import FRAME_TIMEOUT, FaceGuard, FrameDeadline, Limits, earliest
 from plcstack.transports.peer import peer_address
 from plcstack.wire.script import Match, Script
 from plcstack.wire.streams import Conversation, conversations, exchanges
@@ -81,16 +84,17 @@ def _port_of(server: str) -> int:
 
 
 class _Replayer:
-    """One server being replayed: its script, the mismatches said, what to log."""
+    """One server being replayed: its script, its guard (the limits of every simulator; a
+    request not in the capture is said once per host per burst with its bytes), what to log."""
 
-    def __init__(self, recorded: Recorded, *, repeat: bool, timing: bool) -> None:
+    def __init__(self, recorded: Recorded, *, repeat: bool, timing: bool, guard: FaceGuard) -> None:
         self.recorded = recorded
         self.script = recorded.script(repeat)
         self.timing = timing
-        self._said: set[bytes] = set()
+        self.guard = guard
         self._rounds_said = 1
 
-    def decide(self, data: bytes, peer: str) -> Match:
+    def decide(self, data: bytes, peer: str, host: str | None = None) -> Match:
         match = self.script.match(data)
         if self.script.rounds > self._rounds_said:
             self._rounds_said = self.script.rounds
@@ -101,18 +105,12 @@ class _Replayer:
                     self.recorded.name,
                 )
         if match.kind == "mismatch":
-            key = bytes(data[:64])
-            level = logging.WARNING if key not in self._said else logging.DEBUG
-            self._said.add(key)
-            log.log(
-                level,
-                "replay of %s: the request from %s is not in the capture: %s; the nearest "
-                "recorded request %s differs at byte %d; no answer, the connection is closed",
-                self.recorded.name,
+            self.guard.malformed(
                 peer,
-                data[:64].hex(" "),
-                match.nearest[:64].hex(" "),
-                match.differs_at,
+                host,
+                f"a request that is not in the capture: {data[:64].hex(' ')}; the nearest"
+                f" recorded request {match.nearest[:64].hex(' ')} differs at byte"
+                f" {match.differs_at}; no answer, the connection is closed",
             )
         return match
 
@@ -139,6 +137,12 @@ class ReplaySimulator(Simulator):
         return {r.recorded.name: r.script for r in self._replayers}
 
     @property
+    def guards(self) -> dict[str, FaceGuard]:
+        """The guard of each replayed server, by its recorded name (what it refused, closed,
+        and the requests not in the capture, as ``malformed``)."""
+        return {r.recorded.name: r.guard for r in self._replayers}
+
+    @property
     def mismatches(self) -> int:
         return sum(r.script.mismatches for r in self._replayers)
 
@@ -156,6 +160,7 @@ class ReplaySimulator(Simulator):
         for line in self._ptys:
             line.close()
         for replayer in self._replayers:
+            replayer.guard.close()  # the counts of bursts not said yet
             if replayer.script.mismatches:
                 log.warning(
                     "replay of %s: %d request(s) were not in the capture",
@@ -164,35 +169,55 @@ class ReplaySimulator(Simulator):
                 )
 
     # -- TCP -------------------------------------------------------------------------------
-    async def _serve_tcp(
-        self, replayer: _Replayer, host: str, port: int, idle: float | None
-    ) -> str:
+    async def _serve_tcp(self, replayer: _Replayer, host: str, port: int) -> str:
+        guard = replayer.guard
+
         async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            visit = guard.admit(writer.get_extra_info("peername"))
+            if visit is None:  # a cap refused it (counted and said)
+                writer.transport.abort()
+                return
             task = asyncio.current_task()
             if task is not None:
                 self._tasks.add(task)
-            peer = peer_address(writer.get_extra_info("peername")) or "?"
             pending = b""
+            # a request begun must be complete within FRAME_TIMEOUT of its first byte: the
+            # idle deadline restarts with every byte, so a trickle would hold a slot for ever
+            frame = FrameDeadline(FRAME_TIMEOUT)
             try:
                 while True:
-                    async with asyncio.timeout(idle):
-                        data = await reader.read(65536)
+                    due = frame.due
+                    try:
+                        async with asyncio.timeout_at(earliest(visit.due, due)):
+                            data = await reader.read(65536)
+                    except TimeoutError:
+                        if due is not None and asyncio.get_running_loop().time() >= due:
+                            visit.frame_late()
+                            return
+                        if visit.expired() is not None:
+                            return
+                        continue
                     if not data:
                         return
+                    visit.touch()
                     pending += data
                     while pending:
-                        match = replayer.decide(pending, peer)
+                        match = replayer.decide(pending, visit.peer, visit.host)
                         if match.kind == "wait":
                             break
                         if match.kind == "mismatch" or match.exchange is None:
                             return
+                        visit.served()
                         await replayer.delay(match)
                         writer.write(b"".join(match.answers))
                         await writer.drain()
                         pending = pending[match.taken :]
-            except (TimeoutError, ConnectionError, OSError, asyncio.CancelledError):
+                    frame.note(bool(pending))
+            except (ConnectionError, OSError, asyncio.CancelledError):
                 return
             finally:
+                visit.leave()
+                frame.cancel()
                 if task is not None:
                     self._tasks.discard(task)
                 await close_writer(writer)
@@ -212,7 +237,7 @@ class ReplaySimulator(Simulator):
                 self.transport = transport  # type: ignore[assignment]
 
             def datagram_received(self, data: bytes, addr: Any) -> None:
-                match = replayer.decide(data, peer_address(addr) or "?")
+                match = replayer.decide(data, peer_address(addr) or "?", str(addr[0]))
                 if match.kind != "answer" or match.exchange is None:
                     return
                 delay = match.exchange.delay
@@ -273,7 +298,7 @@ class _PtyLine:
     async def _answer(self) -> None:
         try:
             while self._pending:
-                match = self.replayer.decide(self._pending, self.path)
+                match = self.replayer.decide(self._pending, self.path, self.path)
                 if match.kind == "wait":
                     return
                 if match.kind == "mismatch" or match.exchange is None:
@@ -321,13 +346,17 @@ async def start(
     repeat: bool = True,
     timing: bool = False,
     idle_timeout: float | None = DEFAULT_IDLE_TIMEOUT,
+    limits: Limits | None = None,
 ) -> ReplaySimulator:
     """Replay the servers of ``capture`` (a file, or its bytes); returns once each listens.
 
     ``same_ports`` binds each TCP/UDP server on its recorded port (on ``host``), else on a
     free one; ``port`` binds the one server of the replay there (``ValueError`` when there
     are several: choose one with ``servers``); ``servers`` limits the replay to these
-    recorded servers (names as :attr:`Recorded.name` or their address). Raises
+    recorded servers (names as :attr:`Recorded.name` or their address). Each TCP server is
+    guarded as every simulator is (:func:`~plcstack.sim.base.module_guard`): 16 connections
+    from any host, a first request within 10 s, ``idle_timeout``; ``limits`` replaces them.
+    Raises
     ``ValueError`` for a file that holds no conversation to replay, ``OSError`` for one that
     cannot be read or a port in use.
     """
@@ -349,13 +378,22 @@ async def start(
     sim = ReplaySimulator()
     try:
         for recorded in found:
-            replayer = _Replayer(recorded, repeat=repeat, timing=timing)
+            guard = module_guard(
+                "replay",
+                f"replay of {recorded.name}",
+                DEFAULT_MAX_CONNECTIONS,
+                idle_timeout,
+                limits,
+                logger=log,
+            )
+            replayer = _Replayer(recorded, repeat=repeat, timing=timing, guard=guard)
             sim._replayers.append(replayer)
             bind = port if port is not None else 0
             if same_ports and recorded.kind != "serial":
                 bind = _port_of(recorded.server)
             if recorded.kind == "tcp":
-                where = await sim._serve_tcp(replayer, host, bind, idle_timeout)
+                where = await sim._serve_tcp(replayer, host, bind)
+                guard.announce(where)
             elif recorded.kind == "udp":
                 where = await sim._serve_udp(replayer, host, bind)
             else:
@@ -404,7 +442,7 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--timing", action="store_true", help="answer after the delay recorded for each answer"
     )
-    add_idle_timeout_argument(parser)
+    add_guard_arguments(parser, DEFAULT_MAX_CONNECTIONS)
 
 
 async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -> None:
@@ -416,7 +454,7 @@ async def serve_cli(args: argparse.Namespace, announce: Callable[[str], None]) -
         servers=args.server,
         repeat=not args.once,
         timing=args.timing,
-        idle_timeout=idle_timeout_of(args),
+        limits=limits_of(args),
     )
     for name, where in sim.listening.items():
         exchanges_ = len(sim.scripts[name].exchanges)
