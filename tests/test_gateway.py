@@ -5,6 +5,7 @@ queue), at full speed and at emulated 9600 baud."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import os
 import re
 import subprocess
@@ -16,8 +17,11 @@ from pathlib import Path
 import pytest
 
 from plcstack import gateway
+from plcstack.cli import build_parser
+from plcstack.cli.gateway import face_settings
 from plcstack.clients import connect
 from plcstack.clients.as511 import AS511Client
+from plcstack.config import parse_config
 from plcstack.errors import AddressError, PlcErrorResponse
 from plcstack.gateway.allow import WriteAllowList
 from plcstack.sim import as511 as sim_as511
@@ -282,6 +286,80 @@ async def test_gateway_needs_a_server_and_an_s5_plc() -> None:
         await gateway.start("e71+tcp://127.0.0.1:1", s5lan=LOOP)
     with pytest.raises(AddressError, match="needs an E71 PLC"):
         await gateway.start("s5lan://127.0.0.1:1", e71=LOOP)
+
+
+SHORTCUT = [
+    ("s5lan://10.0.0.6:5010", "--s5lan", "0.0.0.0:2000", "--fetchwrite", "2001", "--mk",
+     "--writable", "DB10-20, M", "--queue-size", "8", "--max-wait", "0.5"),
+    ("e71+tcp://10.0.0.5:5000", "--e71", "5000", "--e71-udp", "0.0.0.0:5001", "--e71-code",
+     "ascii", "--writable", "D100-199"),
+    ("as511:///dev/ttyUSB0", "--as511", "0.0.0.0:5021", "--s5lan", "5010",
+     "--s5lan-connections", "4"),
+]  # fmt: skip
+ENTRIES = [
+    """
+[[gateway]]
+protocol = "s5lan"
+listen = "0.0.0.0:2000"
+plc = "p"
+writable = "DB10-20, M"
+queue = 8
+max_wait = 0.5
+
+[[gateway]]
+protocol = "fetchwrite"
+listen = "127.0.0.1:2001"
+plc = "p"
+mk = true
+writable = "DB10-20, M"
+queue = 8
+max_wait = 0.5
+""",
+    """
+[[gateway]]
+protocol = "e71"
+listen = "127.0.0.1:5000"
+plc = "p"
+code = "ascii"
+writable = "D100-199"
+
+[[gateway]]
+protocol = "e71"
+listen = "0.0.0.0:5001"
+plc = "p"
+transport = "udp"
+code = "ascii"
+writable = "D100-199"
+""",
+    """
+[[gateway]]
+protocol = "s5lan"
+listen = "127.0.0.1:5010"
+plc = "p"
+max_connections = 4
+
+[[gateway]]
+protocol = "as511"
+listen = "0.0.0.0:5021"
+plc = "p"
+""",
+]
+
+
+@pytest.mark.parametrize(("argv", "entries"), list(zip(SHORTCUT, ENTRIES, strict=True)))
+def test_the_command_is_a_shortcut_for_the_gateway_entries_of_a_file(
+    argv: tuple[str, ...], entries: str
+) -> None:
+    """plcstack gateway's options are the [[gateway]] entries of one PLC, run by the same code
+    (the PLC named by its URL); the defaults are the entries' own."""
+    args = build_parser().parse_args(["gateway", *argv])
+    url = argv[0]
+    plc = f'[[plc]]\nname = "p"\nurl = "{url}"\n[plc.tags]\nv = "{_TAG[url[:3]]}"\n'
+    faces = parse_config(plc + entries).gateway
+    assert face_settings(args) == [dataclasses.replace(f, plc=url) for f in faces]
+
+
+_TAG = {"s5l": "DB1.DW0", "e71": "D0", "as5": "DB1.DW0"}
 
 
 def _env() -> dict[str, str]:

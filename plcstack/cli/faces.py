@@ -1,5 +1,5 @@
-"""The native faces (``[[gateway]]``) of a ``plcstack poll`` run, and the write record every face
-command shares: each face write goes to the run's one write path (log and audit, ``source``
+"""The native faces (``[[gateway]]``) of a ``plcstack poll`` or ``plcstack gateway`` run, and the
+write record they share: each face write goes to the run's one write path (log and audit, ``source``
 ``gateway``)."""
 
 from __future__ import annotations
@@ -32,13 +32,19 @@ def face_written(writes: WritePath, plc: str, write: FaceWrite) -> None:
 
 
 def gateway_faces(
-    faces: Sequence[FaceSettings], client_of: Callable[[str], Client], writes: WritePath
+    faces: Sequence[FaceSettings],
+    client_of: Callable[[str], Client],
+    writes: WritePath,
+    *,
+    cache_max_age: float | None = None,
 ) -> GatewayFaces:
-    """The faces of a run on the poller's clients (``client_of``), each write through
-    ``writes``; the value before a write is read in its turn when the run keeps an audit."""
+    """The faces of a run on the PLCs' clients (``client_of``: the poller's, or the one
+    ``plcstack gateway`` holds), each write through ``writes``; the value before a write is
+    read in its turn when the run keeps an audit."""
     return GatewayFaces(
         faces,
         client_of,
+        cache_max_age=cache_max_age,
         read_previous=writes.audit is not None,
         on_write=functools.partial(face_written, writes),
     )

@@ -23,16 +23,20 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import functools
 import sys
 from typing import Any
 
 from plcstack import gateway
 from plcstack.cli import UsageError, plain_text, print_error
-from plcstack.cli.faces import face_written
+from plcstack.cli.faces import gateway_faces
 from plcstack.cli.signals import Signals, StopEvent, ended_early
+from plcstack.clients import connect
 from plcstack.clients.as511 import AS511Client
 from plcstack.errors import AddressError
+from plcstack.gateway.as511face import As511Executor
+from plcstack.gateway.e71face import E71Executor
+from plcstack.gateway.faces import FaceSettings, PlcFaces
+from plcstack.gateway.store import ClientStore, GatewayStats
 from plcstack.north.audit import Audit, AuditSettings
 from plcstack.north.writes import WritePath
 from plcstack.systemd.notify import Notifier
@@ -90,20 +94,25 @@ def register(subparsers: Any) -> None:
         help="serve repeated reads from a cache at most this old (default: off)",
     )
     parser.add_argument(
-        "--queue-size", type=int, default=32, help="requests that may wait for the PLC (32)"
+        "--queue-size",
+        type=int,
+        default=None,
+        help="requests that may wait for the PLC (32); [[gateway]]'s queue",
     )
     parser.add_argument(
         "--max-wait",
         type=float,
-        default=2.0,
+        default=None,
         metavar="SECONDS",
-        help="answer a request that waited longer with a timeout error, unexecuted (2)",
+        help="answer a request that waited longer with a timeout error, unexecuted (2);"
+        " [[gateway]]'s max_wait",
     )
     parser.add_argument(
         "--s5lan-connections",
         type=int,
-        default=gateway.DEFAULT_S5LAN_CONNECTIONS,
-        help=f"S5-LAN clients at once (default {gateway.DEFAULT_S5LAN_CONNECTIONS})",
+        default=None,
+        help=f"S5-LAN clients at once (default {gateway.DEFAULT_S5LAN_CONNECTIONS});"
+        " [[gateway]]'s max_connections",
     )
     parser.add_argument(
         "--duration", type=float, default=None, help="stop after SECONDS (default: until Ctrl-C)"
@@ -132,46 +141,57 @@ def parse_endpoint(text: str | None, option: str) -> tuple[str, int] | None:
     return host or "127.0.0.1", port
 
 
-async def run(args: argparse.Namespace) -> int:
-    s5lan = parse_endpoint(args.s5lan, "--s5lan")
-    fetchwrite = parse_endpoint(args.fetchwrite, "--fetchwrite")
-    e71 = parse_endpoint(args.e71, "--e71")
-    e71_udp = parse_endpoint(args.e71_udp, "--e71-udp")
-    as511 = parse_endpoint(args.as511, "--as511")
-    if all(x is None for x in (s5lan, fetchwrite, e71, e71_udp, as511)):
+def face_settings(args: argparse.Namespace) -> list[FaceSettings]:
+    """The ``[[gateway]]`` entries the command's options stand for, in front of the PLC at
+    the URL (named by its URL); :class:`UsageError` for options that say none or a bad one."""
+    endpoints = {
+        key: parse_endpoint(vars(args)[key], f"--{key.replace('_', '-')}")
+        for key in ("s5lan", "fetchwrite", "e71", "e71_udp", "as511")
+    }
+    if all(x is None for x in endpoints.values()):
         raise UsageError("gateway: give --s5lan and/or --fetchwrite (an E71: --e71, --e71-udp)")
-    if args.duration is not None and not args.duration > 0:
-        raise UsageError("--duration must be greater than 0")
-    audit = Audit(AuditSettings(args.audit)) if args.audit else None
-    if audit is not None:
-        audit.open()
-    writes = WritePath(None, audit=audit)
-    written = functools.partial(face_written, writes, args.plc)
-
     try:
-        gw = await gateway.start(
+        return gateway.faces_of(
             args.plc,
-            s5lan=s5lan,
-            fetchwrite=fetchwrite,
+            **endpoints,
             mk=args.mk,
-            e71=e71,
-            e71_udp=e71_udp,
             e71_code=args.e71_code,
-            as511=as511,
             writable=args.writable,
             queue_size=args.queue_size,
             max_wait=args.max_wait,
-            cache_max_age=args.cache_max_age,
             s5lan_connections=args.s5lan_connections,
-            read_previous=audit is not None,
-            on_write=written,
         )
+    except AddressError as exc:
+        raise UsageError(f"gateway: {exc}") from None
+
+
+async def run(args: argparse.Namespace) -> int:
+    faces = face_settings(args)
+    if args.duration is not None and not args.duration > 0:
+        raise UsageError("--duration must be greater than 0")
+    try:
+        client = connect(args.plc)
+    except AddressError as exc:
+        raise UsageError(f"gateway: {exc}") from None
+    audit = Audit(AuditSettings(args.audit)) if args.audit else None
+    try:
+        if audit is not None:
+            audit.open()
+        # the faces as plcstack poll runs them: each write through the run's one write path
+        writes = WritePath(None, audit=audit)
+        clients = {args.plc: client}
+        natives = gateway_faces(
+            faces, clients.__getitem__, writes, cache_max_age=args.cache_max_age
+        )
+        await natives.aopen()
     except (AddressError, OSError) as exc:
+        await client.aclose()
         if audit is not None:
             audit.close()
         if isinstance(exc, AddressError):
             raise UsageError(f"gateway: {exc}") from None
         raise UsageError(f"gateway cannot start: {exc.strerror or exc}") from None
+    (faces_of_plc,) = natives.plcs
     stop = StopEvent()
     signals = Signals(stop)
     signals.__enter__()
@@ -179,48 +199,52 @@ async def run(args: argparse.Namespace) -> int:
     try:
         listening = [
             f"{face.protocol} listening on {server.host}:{server.port} ({face.transport.upper()})"
-            for face, server in zip(gw.faces.settings, gw.servers, strict=True)
+            for face, server in zip(faces_of_plc.settings, faces_of_plc.servers, strict=True)
         ]
         for line in listening:
             print(line, flush=True)
-        print(f"writable: {gw.faces.settings[0].allow_list()}", flush=True)
+        print(f"writable: {faces[0].allow_list()}", flush=True)
         # under systemd: ready now that it listens
         status = f"gateway to {args.plc}: {'; '.join(listening)}"
         async with notifying(ServiceNotifier(Notifier.from_environment(), status=lambda: status)):
             stopper = asyncio.create_task(stop.wait())
-            watched: set[asyncio.Task[Any]] = {stopper}
-            if gw.share.worker is not None:
-                watched.add(gw.share.worker)  # the PLC side: its failure ends the run, said
+            # the PLC side: the queue of its connection stopping ends the run, said
+            watcher = asyncio.create_task(natives.watch(), name="the gateway")
             done, _ = await asyncio.wait(
-                watched, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
+                {stopper, watcher}, timeout=args.duration, return_when=asyncio.FIRST_COMPLETED
             )
             failure = ended_early(done - {stopper}, stop)
-            stopper.cancel()
+            for task in (stopper, watcher):
+                task.cancel()
+            await asyncio.gather(stopper, watcher, return_exceptions=True)
     finally:
         signals.__exit__()
-        await gw.aclose()
+        await natives.aclose()
+        await client.aclose()
         if audit is not None:
             audit.close()
-        print(_summary(gw), file=sys.stderr)
+        print(_summary(faces_of_plc), file=sys.stderr)
     if failure is not None:
         print_error(f"gateway: {failure}")
         return 1
     return stop.exit_code()
 
 
-def _summary(gw: gateway.Gateway) -> str:
+def _summary(faces: PlcFaces) -> str:
     """The counts said on stderr at the end of a run."""
-    if gw.executor is not None:
-        c = gw.executor.counts
+    executor = next((a for a in faces.answering if isinstance(a, E71Executor)), None)
+    store = next((a for a in faces.answering if isinstance(a, ClientStore)), None)
+    pg = next((a for a in faces.answering if isinstance(a, As511Executor)), None)
+    if executor is not None:
+        c = executor.counts
         return (
             f"gateway: {sum(c.values())} requests; answered by the PLC {c['ok']}; busy "
             f"{c['busy']}, expired {c['expired']}, denied {c['denied']}, failed {c['failed']}"
         )
-    s = gw.stats
-    line = "AS511" if isinstance(gw.share.client, AS511Client) else "PLC"
-    pg = gw.pg
-    if gw.store is None and pg is not None:
+    if store is None and pg is not None:
         return f"gateway: {pg.transactions} PG transactions, {pg.refused} refused"
+    s = store.stats if store is not None else GatewayStats()
+    line = "AS511" if isinstance(faces.share.client, AS511Client) else "PLC"
     return (
         f"gateway: {s.reads} reads, {s.writes} writes; {line} {s.line_reads} reads, "
         f"{s.line_writes} writes; cache hits {s.cache_hits}; busy {s.busy}, "

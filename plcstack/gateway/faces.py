@@ -534,17 +534,21 @@ class FacesApplied:
 class GatewayFaces(AsyncResource):
     """Every face of a run: a :class:`PlcFaces` per PLC with faces, on the PLC's client
     (``client_of(name)``: the poller's, looked up again by :meth:`apply`). ``on_write(plc,
-    write)`` is told of each write. No face at all is fine: a reload may add some."""
+    write)`` is told of each write; ``cache_max_age``: the S5 faces' read cache (see
+    :class:`~plcstack.gateway.store.ClientStore`; off by default). No face at all is fine: a
+    reload may add some."""
 
     def __init__(
         self,
         faces: Sequence[FaceSettings],
         client_of: Callable[[str], Client],
         *,
+        cache_max_age: float | None = None,
         read_previous: bool = False,
         on_write: Callable[[str, FaceWrite], None] | None = None,
     ) -> None:
         self.client_of = client_of
+        self.cache_max_age = cache_max_age
         self.read_previous = read_previous
         self.on_write = on_write
         self.settings = tuple(faces)
@@ -566,6 +570,7 @@ class GatewayFaces(AsyncResource):
             settings,
             queue_size=queue,
             max_wait=wait,
+            cache_max_age=self.cache_max_age,
             read_previous=self.read_previous,
             on_write=hook,
         )
