@@ -26,6 +26,7 @@ is ever written with a marker in it.
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import logging
 from collections.abc import Coroutine
@@ -45,6 +46,7 @@ log = logging.getLogger("plcstack.web")
 #: the largest configuration text ``POST /api/config`` takes (a plant of 1000 PLCs with ten
 #: tags each is about 600 KiB)
 MAX_CONFIG_BYTES = 4 << 20
+_compact = functools.partial(json.dumps, separators=(",", ":"))
 
 
 class ConfigConsole(Protocol):
@@ -65,7 +67,7 @@ def _answer(status: int, errors: list[str]) -> web.Response:
 
 def _outcome(outcome: ApplyOutcome) -> web.Response:
     if outcome.ok:
-        return web.json_response({"ok": True, "summary": outcome.summary})
+        return web.json_response({"ok": True, "summary": outcome.summary}, dumps=_compact)
     return _answer(400, list(outcome.errors))
 
 
