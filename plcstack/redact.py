@@ -21,6 +21,7 @@ line: a text is never written with a marker standing where a secret was.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import hmac
 import re
@@ -62,6 +63,7 @@ class RedactionError(ValueError):
     and where, never the secret."""
 
 
+@functools.lru_cache(maxsize=4096)  # a plant's file repeats a few key names many times
 def is_secret_key(name: str) -> bool:
     """Whether a key's value is a secret: ``password_hash``, and any key named like a password,
     token, secret or credential in any case (``Password``, ``api-token``), but not one that
@@ -254,66 +256,37 @@ def _rewrite(text: str, change: Callable[[str, int], str], *, bare: bool) -> str
     return "".join(out)
 
 
+#: a string in any of TOML's four forms (a multi-line one with the up to two quotes before its
+#: closing three that belong to its content), or a comment
+_TOKEN: Final = re.compile(
+    r'(?P<string>"""(?:[^"\\]|\\.|"(?!""))*"""(?:"{1,2})?'
+    r"|'''[\s\S]*?'''(?:'{1,2})?"
+    r'|"(?:[^"\\\n]|\\.)*"'
+    r"|'[^'\n]*')"
+    r"|(?P<comment>#[^\n]*)",
+    re.S,
+)
+
+
 def _tokens(text: str) -> Iterator[tuple[str, int, int]]:
     """``(kind, start, end)`` of each string (any of TOML's four forms), comment and stretch of
     bare text between them, in order, covering ``text``."""
-    n = len(text)
-    i = bare = 0
-    while i < n:
-        c = text[i]
-        if c == "#":
-            end = text.find("\n", i)
-            kind, end = "comment", n if end < 0 else end
-        elif c in "\"'":
-            kind = "string"
-            end = _multi_end(text, i, c) if text.startswith(c * 3, i) else _line_end(text, i, c)
-        else:
-            i += 1
-            continue
-        if bare < i:
-            yield "bare", bare, i
-        yield kind, i, end
-        i = bare = end
-    if bare < n:
-        yield "bare", bare, n
-
-
-def _line_end(text: str, start: int, quote: str) -> int:
-    """The end of a one-line string opened at ``start`` (escapes only in ``"...")."""
-    i, n = start + 1, len(text)
-    while i < n:
-        c = text[i]
-        if c == "\\" and quote == '"':
-            i += 2
-            continue
-        if c == quote:
-            return i + 1
-        if c == "\n":
-            return i
-        i += 1
-    return n
-
-
-def _multi_end(text: str, start: int, quote: str) -> int:
-    """The end of a multi-line string opened at ``start``: its closing three quotes and the
-    up to two more that belong to its content."""
-    i, n = start + 3, len(text)
-    while i < n:
-        if text[i] == "\\" and quote == '"':
-            i += 2
-            continue
-        if text.startswith(quote * 3, i):
-            end = i + 3
-            for _ in range(2):
-                if end < n and text[end] == quote:
-                    end += 1
-            return end
-        i += 1
-    return n
+    bare = 0
+    for m in _TOKEN.finditer(text):
+        start, end = m.span()
+        if bare < start:
+            yield "bare", bare, start
+        yield ("string" if m.group("string") is not None else "comment"), start, end
+        bare = end
+    if bare < len(text):
+        yield "bare", bare, len(text)
 
 
 def _decode(raw: str) -> str | None:
-    """A string token's value as tomllib reads it; None if it is not one."""
+    """A string token's value as tomllib reads it; None if it is not one. A one-line string
+    without a backslash is its text between the quotes; any other is read by tomllib."""
+    if raw[:3] not in ('"""', "'''") and "\\" not in raw:
+        return raw[1:-1]
     try:
         value = tomllib.loads("v = " + raw).get("v")
     except (tomllib.TOMLDecodeError, RecursionError):

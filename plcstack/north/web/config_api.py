@@ -118,20 +118,21 @@ def config_routes(console: ConfigConsole) -> list[web.RouteDef]:
             assert refusal is not None
             return refusal
         try:
-            text = redact(control.text())
+            # in a thread: a plant's file of 1 MB takes a good part of a second
+            text = await asyncio.to_thread(redact, control.text())
         except RedactionError as exc:
             log.error("web console: GET /api/config: %s", exc)
             return _answer(503, [str(exc)])
         return web.Response(text=text, content_type="application/toml", charset="utf-8")
 
-    async def applied(run: Coroutine[object, object, ApplyOutcome]) -> web.Response:
-        """Run one change (``busy`` held until it ends) and answer with its outcome. The
-        change is shielded: a client that goes away (or a change that restarts this console)
-        does not cut it in half; its log line and audit record say how it ended."""
-        await busy.acquire()
+    def apply(run: Coroutine[object, object, ApplyOutcome]) -> asyncio.Future[ApplyOutcome]:
+        """Start one change; ``busy`` (taken by the caller) is released when it ends. The
+        change is shielded by the caller: a client that goes away (or a change that restarts
+        this console) does not cut it in half; its log line and audit record say how it
+        ended."""
         task = asyncio.ensure_future(run)
         task.add_done_callback(_released)
-        return _outcome(await asyncio.shield(task))
+        return task
 
     def _released(task: asyncio.Future[ApplyOutcome]) -> None:
         busy.release()
@@ -145,30 +146,48 @@ def config_routes(console: ConfigConsole) -> list[web.RouteDef]:
             return refusal
         if busy.locked():
             return refused(request, 409, "another configuration change is being applied")
-        return await applied(control.reload(who=who(request)))
+        await busy.acquire()  # free: taken at once
+        return _outcome(await asyncio.shield(apply(control.reload(who=who(request)))))
 
     async def replace(request: web.Request) -> web.Response:
         control, refusal = check(request)
         if control is None:
             assert refusal is not None
             return refusal
-        raw, problem = await _body(request)
-        if problem is not None:
-            return refused(request, 413 if raw is None else 400, problem)
+        # taken before the body is read: one body of up to 4 MiB in memory at a time
         if busy.locked():
             return refused(request, 409, "another configuration change is being applied")
-        assert raw is not None
+        await busy.acquire()  # free: taken at once
+        try:
+            text, refusal = await replacement(request, control)
+        except BaseException:
+            busy.release()
+            raise
+        if text is None:
+            busy.release()
+            assert refusal is not None
+            return refusal
+        return _outcome(await asyncio.shield(apply(control.replace(text, who=who(request)))))
+
+    async def replacement(
+        request: web.Request, control: ConfigControl
+    ) -> tuple[str | None, web.Response | None]:
+        """The body as the text to apply, its markers replaced by the running secrets; or
+        the refusal (too large, not UTF-8, a marker that stands for no running secret)."""
+        raw, problem = await _body(request)
+        if raw is None:
+            return None, refused(request, 413, problem or "")
         try:
             text = raw.decode("utf-8")
         except UnicodeDecodeError as exc:
-            return refused(
-                request, 400, f"the body is not UTF-8 text ({exc.reason} at byte {exc.start})"
-            )
+            why = f"the body is not UTF-8 text ({exc.reason} at byte {exc.start})"
+            return None, refused(request, 400, why)
         try:
-            text = restore(text, control.text(), source=str(control.path))
+            # in a thread: a plant's file of 1 MB takes a good part of a second
+            path = str(control.path)
+            return await asyncio.to_thread(restore, text, control.text(), source=path), None
         except RedactionError as exc:
-            return _answer(400, str(exc).splitlines())
-        return await applied(control.replace(text, who=who(request)))
+            return None, _answer(400, str(exc).splitlines())
 
     return [
         web.get("/api/config", show),
