@@ -25,6 +25,18 @@ session's client, the gateway's S5-LAN or FETCH/WRITE client. It is null for MQT
 writes (the broker delivers a message without its publisher's address) and for a write from
 Python. ``peer`` was added last, so a reader that knows the keys before it is unaffected.
 
+A change of the running configuration (a reload on SIGHUP or from the web console, a file
+replaced through ``POST /api/config``) is a line of its own kind, told apart by ``"kind":
+"config"`` (a write's line has no ``kind``)::
+
+    {"time": "2026-11-25T21:52:10.004Z", "kind": "config", "source": "SIGHUP",
+     "file": "/etc/plcstack/plant.toml", "result": "ok",
+     "summary": "PLCs added: press9; removed: none; changed: none"}
+
+``source`` says who asked (``SIGHUP``, or the web console with its client's address);
+``result`` is ``ok`` (applied) or ``refused`` (the file did not load: nothing changed), and
+``summary`` what was applied or the first error.
+
 A line is written and flushed before the answer goes back to the client. Rotation is by size:
 before a line would take the file past ``max_bytes``, ``FILE.N`` becomes ``FILE.N+1`` (the
 oldest beyond ``backups`` is deleted), ``FILE`` becomes ``FILE.1``, and a new ``FILE`` starts. A
@@ -178,6 +190,22 @@ class Audit:
             "may_have_executed": may_have_executed,
             "peer": peer,
         }
+        return self._append(entry)
+
+    def config_change(self, *, source: str, file: str, ok: bool, summary: str, now: float) -> bool:
+        """Append and flush the line of one change of the running configuration (see the
+        module docstring); False (logged, counted) if it could not be written."""
+        entry = {
+            "time": _iso(now),
+            "kind": "config",
+            "source": source,
+            "file": file,
+            "result": "ok" if ok else "refused",
+            "summary": summary,
+        }
+        return self._append(entry)
+
+    def _append(self, entry: dict[str, Any]) -> bool:
         line = json.dumps(entry, ensure_ascii=False, default=repr) + "\n"
         size = len(line.encode("utf-8"))
         try:
@@ -224,7 +252,7 @@ class Audit:
             self._file = None
         reason = f"{exc.strerror or exc}"
         log.error(
-            "audit: cannot write %s (%s); this write is not in the audit: %s",
+            "audit: cannot write %s (%s); this record is not in the audit: %s",
             self.path,
             reason,
             json.dumps(entry, default=repr),

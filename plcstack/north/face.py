@@ -16,6 +16,9 @@ web console, the metrics endpoint). Each implements :class:`Face`, in the shape 
   did (one line for stderr at the end of a run), ``announce()`` where a client finds it (said
   on stderr once every PLC's first scan is in, so a client that connects then reads values),
   ``metrics()`` its own figures for ``/metrics`` (prometheus-client metric families);
+* ``await update_plcs(update)`` tells it which PLCs a reload added, removed or changed
+  (:class:`PlcUpdate`, after the poller applied them: the poller view already shows the new
+  PLCs and tags); it makes the PLCs it serves match, and leaves every other PLC as it was;
 * ``await aclose()`` stops it; a second call does nothing.
 
 A face is built with what it needs passed in (:mod:`plcstack.north.faces` builds each from the
@@ -27,6 +30,7 @@ the poller's read view (:class:`PollerView`) and the run's health. No face probe
 from __future__ import annotations
 
 from collections.abc import AsyncIterator, Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 from plcstack.clients.base import Client
@@ -38,7 +42,7 @@ from plcstack.poll.stats import PlcStats
 if TYPE_CHECKING:
     from prometheus_client.core import Metric
 
-__all__ = ["Face", "FaceBase", "PollerView", "ScanSource"]
+__all__ = ["Face", "FaceBase", "PlcUpdate", "PollerView", "ScanSource"]
 
 
 class PollerView(Protocol):
@@ -86,6 +90,23 @@ class ScanSource(PollerView, Protocol):
     def drain(self) -> list[Scan]: ...
 
 
+@dataclass(frozen=True)
+class PlcUpdate:
+    """The PLCs a reload changed, by name, as each face learns them: after the poller applied
+    them, so ``view`` (the run's poller view) shows the new configuration and tags.
+    ``changed``: a PLC whose URL, tags or scan groups changed (its tags may differ now);
+    every PLC not named keeps what it has."""
+
+    view: PollerView
+    added: tuple[str, ...] = ()
+    removed: tuple[str, ...] = ()
+    changed: tuple[str, ...] = ()
+
+    @property
+    def empty(self) -> bool:
+        return not (self.added or self.removed or self.changed)
+
+
 class Face(Protocol):
     """What every face and sink of the north side implements; see the module docstring."""
 
@@ -101,6 +122,8 @@ class Face(Protocol):
     def submit(self, scans: Sequence[Scan]) -> None: ...
 
     def probe(self, sample: Sample) -> None: ...
+
+    async def update_plcs(self, update: PlcUpdate) -> None: ...
 
     def health(self) -> Health: ...
 
@@ -129,6 +152,9 @@ class FaceBase:
 
     def probe(self, sample: Sample) -> None:
         """Every sample is taken."""
+
+    async def update_plcs(self, update: PlcUpdate) -> None:
+        """Nothing kept per PLC: the next scans say the rest."""
 
     def health(self) -> Health:
         return Health(self.name)

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
 from plcstack.north.config import NorthConfig
+from plcstack.north.control import ConfigControl
 from plcstack.north.face import Face, PollerView
 from plcstack.north.health import Health
 from plcstack.north.history import History
@@ -29,7 +30,17 @@ from plcstack.north.trace import TraceSink
 from plcstack.north.writes import WritePath
 from plcstack.output import float32_tags
 
-__all__ = ["FACES", "FaceContext", "FaceKind", "Need", "build_faces", "missing", "needs_of"]
+__all__ = [
+    "FACES",
+    "FaceContext",
+    "FaceKind",
+    "Need",
+    "build_face",
+    "build_faces",
+    "missing",
+    "needs_of",
+    "restarts",
+]
 
 _F = TypeVar("_F")
 
@@ -40,8 +51,10 @@ Need = tuple[str, str, str]
 @dataclass(frozen=True)
 class FaceContext:
     """What a face is built with: the run's poller view, its north-side configuration, its one
-    write path, its supervisor, its metrics collector, the health of the whole run, and the
-    faces built before it (the web console reads the history's)."""
+    write path, its supervisor, its metrics collector, the health of the whole run, the
+    running configuration's control (what the web console's ``/api/config`` asks; None: the
+    run cannot be reconfigured) and the faces built before it (the web console reads the
+    history's)."""
 
     poller: PollerView
     config: NorthConfig
@@ -52,6 +65,7 @@ class FaceContext:
     #: whether a PLC is reachable (None before its first scan), by the rule of the MQTT status
     reachable: Callable[[str], bool | None]
     earlier: tuple[Face, ...] = ()
+    control: ConfigControl | None = None
 
     def built(self, kind: type[_F]) -> _F | None:
         """The face of one class built before this one, if any."""
@@ -61,11 +75,14 @@ class FaceContext:
 @dataclass(frozen=True)
 class FaceKind:
     """One kind of face: ``build`` returns it, or None when the configuration has no table for
-    it; ``needs`` lists the optional libraries the configured table needs."""
+    it; ``needs`` lists the optional libraries the configured table needs; ``uses``: the
+    tables of the faces it is built with (:meth:`FaceContext.built`), restarted with it when
+    one of those restarts."""
 
     table: str
     build: Callable[[FaceContext], Face | None]
     needs: Callable[[NorthConfig], list[Need]]
+    uses: tuple[str, ...] = ()
 
 
 def _mqtt(ctx: FaceContext) -> Face | None:
@@ -157,6 +174,7 @@ def _web(ctx: FaceContext) -> Face | None:
         history=ctx.built(History),
         reachable=ctx.reachable,
         trace=ctx.built(TraceSink),
+        control=ctx.control,
     )
 
 
@@ -186,7 +204,12 @@ FACES: tuple[FaceKind, ...] = (
         lambda c: [("[opcua]", "asyncua", "opcua")] if c.opcua is not None else [],
     ),
     FaceKind("modbus", _modbus, _none),
-    FaceKind("web", _web, lambda c: [("[web] or --web-port", "aiohttp", "web")] if c.web else []),
+    FaceKind(
+        "web",
+        _web,
+        lambda c: [("[web] or --web-port", "aiohttp", "web")] if c.web else [],
+        uses=("history", "trace"),
+    ),
     FaceKind(
         "metrics",
         _metrics,
@@ -195,15 +218,35 @@ FACES: tuple[FaceKind, ...] = (
 )
 
 
-def build_faces(ctx: FaceContext) -> list[Face]:
-    """The faces ``ctx.config`` configures, built (a face that cannot be built raises a
-    :class:`~plcstack.errors.ConfigError` naming what is wrong; nothing is started yet)."""
-    faces: list[Face] = []
+def build_faces(ctx: FaceContext) -> dict[str, Face]:
+    """The faces ``ctx.config`` configures, built, by the table of their kind, in the order of
+    :data:`FACES` (a face that cannot be built raises a :class:`~plcstack.errors.ConfigError`
+    naming what is wrong; nothing is started yet)."""
+    faces: dict[str, Face] = {}
     for kind in FACES:
-        face = kind.build(dataclasses.replace(ctx, earlier=tuple(faces)))
+        face = build_face(kind, ctx, faces)
         if face is not None:
-            faces.append(face)
+            faces[kind.table] = face
     return faces
+
+
+def build_face(kind: FaceKind, ctx: FaceContext, built: Mapping[str, Face]) -> Face | None:
+    """One face of ``kind`` (None: ``ctx.config`` has no table for it), built with the faces
+    of the kinds it uses from ``built``."""
+    earlier = tuple(built[table] for table in kind.uses if table in built)
+    return kind.build(dataclasses.replace(ctx, earlier=earlier))
+
+
+def restarts(tables: Collection[str]) -> list[FaceKind]:
+    """The kinds of face a change of ``tables`` restarts, in the order of :data:`FACES`: each
+    kind whose table changed, and each that uses one of them."""
+    out: list[FaceKind] = []
+    names: set[str] = set()
+    for kind in FACES:
+        if kind.table in tables or names.intersection(kind.uses):
+            out.append(kind)
+            names.add(kind.table)
+    return out
 
 
 def needs_of(config: NorthConfig) -> list[Need]:

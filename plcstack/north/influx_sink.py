@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
 from plcstack.north.buffer import Message, StoreAndForward
-from plcstack.north.face import FaceBase
+from plcstack.north.face import FaceBase, PlcUpdate
 from plcstack.north.health import Condition, Health, several
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.influx_config import InfluxSettings
@@ -172,6 +172,14 @@ class InfluxSink(FaceBase):
         if self.format.layout == "fields":
             return self.format.lines(scans)
         return self.format.text(scans).splitlines()
+
+    async def update_plcs(self, update: PlcUpdate) -> None:
+        """The lines of the PLCs of a reloaded configuration (a float32 tag added is written
+        at float32 precision)."""
+        settings = self.settings
+        self.format = InfluxFormat(
+            update.view.config.plcs, layout=settings.layout, measurement=settings.measurement
+        )
 
     def submit(self, scans: Sequence[Scan]) -> None:
         """Queue the lines of these scans (never blocks, never raises for the network): all

@@ -58,7 +58,8 @@ from typing import Any, NamedTuple, Protocol
 
 from plcstack.errors import ConnectionLost, PlcTimeout
 from plcstack.north.buffer import Message
-from plcstack.output import shorten
+from plcstack.north.face import PlcUpdate
+from plcstack.output import float32_tags, shorten
 from plcstack.poll.config import PlcConfig
 from plcstack.poll.samples import Quality, Sample, Scan
 
@@ -250,6 +251,12 @@ class MqttLayout(Protocol):
         """What a message received on a subscription asks for."""
         ...
 
+    def update_plcs(self, update: PlcUpdate, now: float) -> list[Publish]:
+        """Take the PLCs a reload added, removed and changed; the messages that say so to the
+        broker's subscribers (a removed PLC's ``offline`` status or DDEATH, an added one's
+        DBIRTH), queued after what waits."""
+        ...
+
 
 #: the failures that say the PLC itself cannot be reached (not a bad value in one group)
 _UNREACHABLE = (PlcTimeout, ConnectionLost)
@@ -309,6 +316,18 @@ class Reachability:
     def get(self, plc: str) -> bool | None:
         """The PLC's state: None before its first scan."""
         return self._state.get(plc)
+
+    def reconfigure(
+        self, groups: Mapping[str, Collection[str]], changed: Collection[str] = ()
+    ) -> None:
+        """The PLCs and scan groups of a reloaded configuration: a PLC no longer in ``groups``
+        is forgotten, a PLC in ``changed`` starts again from unknown (its groups may differ),
+        every other keeps its state."""
+        self._expected = {plc: frozenset(names) for plc, names in groups.items()}
+        for plc in [p for p in self._state.keys() | self._groups.keys()
+                    if p not in groups or p in changed]:  # fmt: skip
+            self._state.pop(plc, None)
+            self._groups.pop(plc, None)
 
 
 class JsonLayout:
@@ -397,6 +416,21 @@ class JsonLayout:
 
     def probe(self, sample: Sample) -> None:
         data_payload(sample.plc, "", [sample])
+
+    def update_plcs(self, update: PlcUpdate, now: float) -> list[Publish]:
+        """A removed PLC's retained status says ``offline`` (nobody polls it any more) and its
+        write requests are refused as an unknown PLC's; an added one's are taken; a changed
+        one's status is decided again from its next scans."""
+        plcs = update.view.config.plcs
+        out = []
+        for plc in update.removed:
+            self._statuses.pop(plc, None)
+            status = status_payload(False, now)
+            out.append(Publish(status_topic(self.prefix, plc), status, 1, True))
+        self.plc_by_level = {topic_level(p.name): p.name for p in plcs}
+        self.float32 = float32_tags(plcs)
+        self.reachability.reconfigure(scan_groups(plcs), update.changed)
+        return out
 
     def prepare(self, message: Message, replayed: bool) -> bytes | None:
         return message.payload

@@ -58,7 +58,7 @@ from __future__ import annotations
 import asyncio
 import bisect
 import logging
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -200,6 +200,14 @@ class PlcstackCollector:
                 if not ok:
                     self._observe_failure(s)
             up[scan.plc] = ok  # as of the scan's last sample
+
+    def forget(self, plcs: Collection[str]) -> None:
+        """Drop the series of PLCs a reload removed: they are not exported any more."""
+        for plc in plcs:
+            self._up.pop(plc, None)
+            self._histograms.pop(plc, None)
+        for key in [k for k in self._failures if k[0] in plcs]:
+            del self._failures[key]
 
     def _observe_failure(self, s: Sample) -> None:
         kind = s.error_type

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 from plcstack.checks import Table
 from plcstack.errors import ConfigError, PlcError
 from plcstack.north.buffer import Message, StoreAndForward, buffer_keys
+from plcstack.north.face import PlcUpdate
 from plcstack.north.health import Condition, Health, several
 from plcstack.north.layout import (
     JsonLayout,
@@ -297,6 +298,13 @@ class MqttSink:
     def probe(self, sample: Sample) -> None:
         """Raise if the layout cannot encode ``sample``; queues nothing, changes no state."""
         self.layout.probe(sample)
+
+    async def update_plcs(self, update: PlcUpdate) -> None:
+        """The PLCs a reload changed: the layout's messages about them (a removed PLC's
+        ``offline`` status or DDEATH, an added one's DBIRTH) join the queue after what
+        waits, so a subscriber sees them in order with the data."""
+        for message in self.layout.update_plcs(update, time.time()):
+            self._put(message)
 
     def _put(self, message: Publish) -> None:
         self.buffer.put(*message)

@@ -62,7 +62,7 @@ from asyncua.ua.status_codes import StatusCodes as _S
 from plcstack.errors import (
     PlcError,
 )
-from plcstack.north.face import FaceBase, PollerView
+from plcstack.north.face import FaceBase, PlcUpdate, PollerView
 from plcstack.north.health import Health
 from plcstack.north.opcua_config import (
     OpcUaConfig,
@@ -161,6 +161,11 @@ class _Binding:
             raise ValueError("array for a scalar")
         # the one value grammar of every north side (KY "12,255", lists of count values)
         return parse_write_value(self.tag, value, plc=self.plc)
+
+
+def _same(a: _Binding | None, b: _Binding | None) -> bool:
+    """Whether two bindings make the same variable (a reload keeps it as it is)."""
+    return a is not None and b is not None and a.tag == b.tag and a.vtype == b.vtype
 
 
 def same_value(a: Any, b: Any) -> bool:
@@ -554,24 +559,64 @@ class OpcUaServer(FaceBase):
         self.guard.announce(self.url)
 
     async def _build(self, server: Server, idx: int) -> None:
+        for binding in self._by_tag.values():
+            binding.nodeid = _node(f"{binding.plc}.{binding.tag.name}", idx)
+        await self._add(server, self.poller.plcs, list(self._by_tag.values()))
+
+    async def _add(self, server: Server, folders: Iterable[str], bindings: list[_Binding]) -> None:
+        """Add the folders of PLCs ``folders`` and the variables of ``bindings`` (in folders
+        there already or added here), each reading Bad_WaitingForInitialData."""
         session = server.iserver.isession
-        groups = self.poller.config.groups
-        urls = {p.name: p.url for p in self.poller.config.plcs}
-        for plc in self.poller.plcs:
-            folder = _node(plc, idx)
-            items = [_folder_item(plc, urls.get(plc, ""), idx)]
-            for (owner, _), binding in self._by_tag.items():
-                if owner != plc:
-                    continue
-                binding.nodeid = _node(f"{plc}.{binding.tag.name}", idx)
-                items.append(_tag_item(binding, folder, idx, groups[binding.tag.group]))
-                items.extend(_eu_items(binding, idx))
-            for result in await session.add_nodes(items):
+        idx = self.namespace_index
+        config = self.poller.config
+        urls = {p.name: p.url for p in config.plcs}
+        for plc in folders:
+            for result in await session.add_nodes([_folder_item(plc, urls.get(plc, ""), idx)]):
                 result.StatusCode.check()
-        self.bindings = {b.nodeid: b for b in self._by_tag.values()}
+        items = []
+        for binding in bindings:
+            interval = config.groups[binding.tag.group]
+            items.append(_tag_item(binding, _node(binding.plc, idx), idx, interval))
+            items.extend(_eu_items(binding, idx))
+        for result in await session.add_nodes(items) if items else ():
+            result.StatusCode.check()
         waiting = ua.DataValue(StatusCode=_status(INITIAL_STATUS))
-        for binding in self.bindings.values():
+        for binding in bindings:
+            self.bindings[binding.nodeid] = binding
             await server.write_attribute_value(binding.nodeid, waiting)
+
+    async def update_plcs(self, update: PlcUpdate) -> None:
+        """The address space of a reloaded configuration: a removed PLC's folder and
+        variables are deleted (a client's monitored items on them report BadNodeIdUnknown); an
+        added PLC's appear, reading Bad_WaitingForInitialData until its first scan; of a
+        changed PLC only the variables whose tag changed are replaced. Every other variable
+        stays with its value and its subscriptions."""
+        view, idx = update.view, self.namespace_index
+        wanted: dict[tuple[str, str], _Binding] = {}
+        for plc in (*update.added, *update.changed):
+            for name, (tag, bits) in view.tags(plc).items():
+                nodeid = _node(f"{plc}.{name}", idx)
+                wanted[(plc, name)] = _Binding(plc, tag, nodeid, variant_type(tag, bits))
+        touched = {*update.added, *update.changed, *update.removed}
+        gone = [
+            key
+            for key, b in self._by_tag.items()
+            if key[0] in touched and not _same(b, wanted.get(key))
+        ]
+        new = [b for key, b in wanted.items() if not _same(self._by_tag.get(key), b)]
+        server = self._server
+        if server is not None:
+            nodes = [server.get_node(self._by_tag[key].nodeid) for key in gone]
+            nodes += [server.get_node(_node(plc, idx)) for plc in update.removed]
+            if nodes:
+                await server.delete_nodes(nodes, recursive=True)
+        for key in gone:
+            binding = self._by_tag.pop(key)
+            self.bindings.pop(binding.nodeid, None)
+            self._pending.pop(key, None)
+        self._by_tag.update({(b.plc, b.tag.name): b for b in new})
+        if server is not None:
+            await self._add(server, update.added, new)
 
     async def aclose(self) -> None:
         """Stop listening; PLC writes still in flight finish (their outcome is logged)."""

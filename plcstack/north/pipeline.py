@@ -31,15 +31,18 @@ is (``/healthz`` of the metrics endpoint and of the web console alike).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
+from dataclasses import dataclass
 from typing import TypeVar
 
 from plcstack.errors import ConfigError, PlcError
 from plcstack.north.audit import Audit
 from plcstack.north.config import NorthConfig
-from plcstack.north.face import Face, ScanSource
-from plcstack.north.faces import FaceContext, build_faces
+from plcstack.north.control import ConfigControl
+from plcstack.north.face import Face, PlcUpdate, ScanSource
+from plcstack.north.faces import FACES, FaceContext, build_face, build_faces, restarts
 from plcstack.north.health import Health
 from plcstack.north.layout import Reachability, scan_groups
 from plcstack.north.metrics import MetricsServer, PlcstackCollector
@@ -50,11 +53,27 @@ from plcstack.north.writes import WritePath
 from plcstack.poll.samples import Scan
 from plcstack.resource import AsyncResource
 
-__all__ = ["North"]
+__all__ = ["RUN_TABLES", "FacesApplied", "North"]
 
 log = logging.getLogger("plcstack.north")
 
 _F = TypeVar("_F")
+
+#: north-side tables that belong to the whole run rather than to one face: a change of one of
+#: them takes effect at the next start (a reload says so; it never ignores it silently)
+RUN_TABLES = ("report", "audit")
+
+
+@dataclass(frozen=True)
+class FacesApplied:
+    """What :meth:`North.apply` did to the faces."""
+
+    #: the faces closed and started again from their changed tables (``[web]``, ``[mqtt]``)
+    restarted: tuple[str, ...] = ()
+    #: one line per face that could not take the change or start again (the others go on)
+    failed: tuple[str, ...] = ()
+    #: changed tables of the whole run, applied at the next start (``[report]``, ``[audit]``)
+    not_applied: tuple[str, ...] = ()
 
 
 def _describe(exc: BaseException) -> str:
@@ -62,10 +81,30 @@ def _describe(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
+async def _close(face: Face) -> None:
+    """Close one face; a failure is said, never raised (the others still close)."""
+    try:
+        await face.aclose()
+    except Exception as exc:
+        log.error("%s: closing failed: %s", face.name, _describe(exc), extra={"face": face.name})
+
+
+async def _started(face: Face | None) -> Face | None:
+    """``face`` started (closed again if its start fails part way)."""
+    if face is not None:
+        try:
+            await face.start()
+        except BaseException:
+            await _close(face)
+            raise
+    return face
+
+
 class North(AsyncResource):
     """The north side of one run; see the module docstring. ``faces``: faces built by the
     caller, fed first (the stdout formats); the configured ones follow. ``supervisor``: the
-    run's, when the caller's faces were built with it (default: a new one)."""
+    run's, when the caller's faces were built with it (default: a new one). ``control``: the
+    running configuration, for the faces that show or change it (the web console)."""
 
     def __init__(
         self,
@@ -74,6 +113,7 @@ class North(AsyncResource):
         *,
         faces: Sequence[Face] = (),
         supervisor: Supervisor | None = None,
+        control: ConfigControl | None = None,
     ) -> None:
         self.poller = poller
         self.config = config
@@ -87,11 +127,13 @@ class North(AsyncResource):
         #: whether each PLC is reachable, by the rule the MQTT status uses: changes are logged
         self.reachability = Reachability(scan_groups(poller.config.plcs))
         self._offline: set[str] = set()
+        #: the caller's faces, then the configured ones by the table of their kind
+        self._callers: list[Face] = list(faces)
         self.faces: list[Face] = list(faces)
         self.collector = PlcstackCollector(
             poller, rbe=self.rbe, supervisor=self.supervisor, faces=lambda: self.faces
         )
-        context = FaceContext(
+        self._context = FaceContext(
             poller,
             config,
             self.writes,
@@ -99,8 +141,12 @@ class North(AsyncResource):
             self.collector,
             self.health,
             self.reachability.get,
+            control=control,
         )
-        self.faces.extend(build_faces(context))
+        self._configured = build_faces(self._context)
+        self.faces.extend(self._configured.values())
+        #: the faces a reload could not start again, by table: in :meth:`health` until one does
+        self._down: dict[str, Health] = {}
         #: set once every PLC's first scan is in (a PLC that does not answer: once that scan
         #: failed): a client that connects to a face then reads values
         self.ready = asyncio.Event()
@@ -132,6 +178,7 @@ class North(AsyncResource):
         is down (see :mod:`plcstack.north.health`)."""
         parts = [Health("poller", None if self._running else "the poller is not running")]
         parts += [face.health() for face in self.faces]
+        parts += self._down.values()
         if self.audit is not None:
             parts.append(self.audit.health())
         parts += self.supervisor.health()
@@ -165,18 +212,68 @@ class North(AsyncResource):
     async def aclose(self) -> None:
         self._running = False
         for face in self.faces:
-            try:
-                await face.aclose()
-            except Exception as exc:  # the others still close; this one is said
-                log.error(
-                    "%s: closing failed: %s",
-                    face.name,
-                    _describe(exc),
-                    extra={"face": face.name},
-                )
+            await _close(face)
         await self.supervisor.aclose()
         if self.audit is not None:
             self.audit.close()
+
+    # -- reconfigured while it runs ------------------------------------------------------------
+    async def apply(
+        self, config: NorthConfig, update: PlcUpdate, tables: Collection[str] = ()
+    ) -> FacesApplied:
+        """A reload's part on the north side, after the poller applied the PLC changes: every
+        face that goes on learns the PLCs added, removed and changed (``update``); each face
+        whose table changed (``tables``, or one it is built with) is closed, built from
+        ``config`` and started alone. A face that cannot take the change or start is one ERROR
+        line and named in :meth:`health`; the others go on. ``[report]`` and ``[audit]`` are the
+        whole run's and wait for the next start (:attr:`FacesApplied.not_applied`)."""
+        removed = set(update.removed)
+        if not update.empty:
+            plcs = self.poller.config.plcs
+            self.reachability.reconfigure(scan_groups(plcs), update.changed)
+            self.rbe.forget(removed | set(update.changed))
+            self.collector.forget(removed)
+            self._offline -= removed
+            self._waiting -= removed
+        not_applied = tuple(f"[{t}]" for t in tables if t in RUN_TABLES)
+        kinds = restarts([t for t in tables if t not in RUN_TABLES])
+        again = {kind.table for kind in kinds}
+        failed: list[str] = []
+        if not update.empty:
+            for face in self._callers + [f for t, f in self._configured.items() if t not in again]:
+                try:
+                    await face.update_plcs(update)
+                except Exception as exc:  # that face is behind; the others go on
+                    line = f"{face.name}: could not take the changed PLCs: {_describe(exc)}"
+                    log.error("%s", line, extra={"face": face.name})
+                    failed.append(line)
+        # what a restarted face is built from; the run's own tables stay as they started
+        self.config = dataclasses.replace(
+            config, report=self.config.report, audit=self.config.audit
+        )
+        context = dataclasses.replace(self._context, config=self.config)
+        restarted: list[str] = []
+        for kind in kinds:
+            old = self._configured.pop(kind.table, None)
+            self._down.pop(kind.table, None)
+            if old is not None:
+                await _close(old)
+            try:
+                fresh = await _started(build_face(kind, context, self._configured))
+            except Exception as exc:  # this face is down; the others go on
+                what = str(exc) if isinstance(exc, PlcError) else _describe(exc)
+                line = f"[{kind.table}] cannot start after the reload: {what}"
+                log.error("%s; the other faces go on", line, extra={"face": kind.table})
+                self._down[kind.table] = Health(f"[{kind.table}]", line)
+                failed.append(line)
+                continue
+            if fresh is not None:  # None: its table is gone
+                self._configured[kind.table] = fresh
+                restarted.append(fresh.name)
+        order = [kind.table for kind in FACES]
+        self._configured = {t: self._configured[t] for t in order if t in self._configured}
+        self.faces = self._callers + list(self._configured.values())
+        return FacesApplied(tuple(restarted), tuple(failed), not_applied)
 
     def summary(self) -> list[str]:
         """One line per face for stderr at the end of a run: what it did (sent, not delivered

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import fnmatch
 import math
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -124,6 +124,15 @@ class ReportByException:
         else:
             self.suppressed += 1
         return report
+
+    def forget(self, plcs: Collection[str]) -> None:
+        """Drop what is kept of the tags of ``plcs`` (removed or changed by a reload): their
+        next samples are reported as the first ones are."""
+        if not plcs:
+            return
+        for kept in (self._last, self._policies):
+            for key in [k for k in kept if k[0] in plcs]:
+                del kept[key]
 
     def filter(self, scans: Iterable[Scan]) -> list[Scan]:
         """The scans with only their reported samples; a scan with none is left out, a scan

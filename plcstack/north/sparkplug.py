@@ -50,7 +50,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from plcstack.north.buffer import Message
-from plcstack.north.face import PollerView
+from plcstack.north.face import PlcUpdate, PollerView
 from plcstack.north.layout import (
     Command,
     Publish,
@@ -324,6 +324,62 @@ class SparkplugLayout:
         self._add_metrics(p, plc, samples, birth=True)
         return bytes(p.SerializeToString())
 
+    def _forget(self, plc: str) -> None:
+        """Drop a device's metrics and their definitions (removed, or defined again)."""
+        for table in (self._datatypes, self._configs):
+            for key in [k for k in table if k[0] == plc]:
+                del table[key]
+
+    def update_plcs(self, update: PlcUpdate, now: float) -> list[Publish]:
+        """A removed PLC dies (DDEATH, unless it is dead already) and is forgotten; an added
+        one is born (DBIRTH, its metrics null until its first scan); a changed one whose
+        metrics differ dies and is born again with the new ones (a host takes a device's
+        metrics from its birth), each metric that stays keeping its last value. Every other
+        device keeps its birth: no NBIRTH."""
+        out: list[Publish] = []
+        for plc in update.removed:
+            if plc not in self.tags:
+                continue
+            if self.reachability.get(plc) is not False:
+                out.append(self._death(plc, now))
+            del self.tags[plc]
+            self._last.pop(plc, None)
+            self._dead.discard(plc)
+            self._forget(plc)
+        view = update.view
+        configs = {p.name: p for p in view.config.plcs}
+        reborn: list[str] = []
+        for plc in (*update.added, *update.changed):
+            tags = view.tags(plc)
+            specs = list(configs[plc].tags)  # in the file's order, as at start
+            types = {name: declared_datatype(tag, bits) for name, (tag, bits) in tags.items()}
+            was = {t.name: t for t in self.tags.get(plc, ())}
+            if was == {t.name: t for t in specs} and all(
+                self._datatypes.get((plc, n)) == d for n, d in types.items()
+            ):
+                continue  # a new connection, the same metrics
+            if plc in self.tags and self.reachability.get(plc) is not False:
+                out.append(self._death(plc, now))
+            self._forget(plc)
+            self.tags[plc] = specs
+            self._datatypes.update({(plc, name): d for name, d in types.items()})
+            self._configs.update({(plc, t.name): t for t in specs})
+            last = self._last.setdefault(plc, {})
+            for name in [n for n in last if n not in tags]:
+                del last[name]
+            self._dead.discard(plc)
+            reborn.append(plc)
+            out.append(Publish(self.topic("DBIRTH", plc), self._dbirth(plc, now), self.qos, False))
+        self._plc_by_level = {topic_level(p): p for p in self.tags}
+        groups = {plc: {t.group for t in specs} for plc, specs in self.tags.items()}
+        self.reachability.reconfigure(groups, reborn)
+        return out
+
+    def _death(self, plc: str, now: float) -> Publish:
+        p = Payload()
+        p.timestamp = int(now * 1000)
+        return Publish(self.topic("DDEATH", plc), bytes(p.SerializeToString()), self.qos, False)
+
     # -- what the sink asks of a layout ---------------------------------------------------------
     def will(self, now: float) -> tuple[str, bytes]:
         """NDEATH with the new session's bdSeq (called once per connection attempt, before the
@@ -371,6 +427,8 @@ class SparkplugLayout:
         out: list[Publish] = []
         for scan in scans:
             plc, samples = scan.plc, scan.samples
+            if plc not in self.tags:
+                continue  # no device of this node (yet, or any more): no DDATA without a birth
             last = self._last.setdefault(plc, {})
             for s in samples:
                 last[s.tag] = s

@@ -26,7 +26,7 @@ from typing import Protocol
 
 from plcstack.checks import Table
 from plcstack.clients.base import Client
-from plcstack.north.face import FaceBase
+from plcstack.north.face import FaceBase, PlcUpdate
 from plcstack.north.layout import Reachability
 from plcstack.poll.samples import Scan
 from plcstack.wire.ring import DEFAULT_RING, MIN_INTERVAL, FlightRecorder
@@ -88,6 +88,13 @@ class TraceSink(FaceBase):
         """Record every PLC's connection of ``poller`` from its next connect on."""
         for plc in poller.plcs:
             poller.client(plc).transport.record_to(self.recorder.ring(plc))
+
+    async def update_plcs(self, update: PlcUpdate) -> None:
+        """Record the connections of the PLCs a reload added or changed (a changed URL is a
+        new connection) from their next connect on."""
+        view = update.view
+        for plc in (*update.added, *update.changed):
+            view.client(plc).transport.record_to(self.recorder.ring(plc))
 
     def submit(self, scans: Sequence[Scan]) -> None:
         for scan in scans:

@@ -34,7 +34,7 @@ from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING
 
 from plcstack.errors import ConfigError, PlcError, RemoteProtocolError
-from plcstack.north.face import PollerView
+from plcstack.north.face import PlcUpdate, PollerView
 from plcstack.north.health import Health
 from plcstack.north.modbus.config import MapEntry, ModbusSettings, build_map
 from plcstack.north.modbus.frames import (
@@ -360,6 +360,13 @@ class ModbusServer(AsyncResource):
 
     def probe(self, sample: Sample) -> None:
         """Every sample is taken (a value its registers cannot hold reads as an exception)."""
+
+    async def update_plcs(self, update: PlcUpdate) -> None:
+        """The registers of a reloaded configuration: a removed PLC's are gone, an added one's
+        read as not polled yet until its first scan, every other keeps its value."""
+        view = update.view
+        tags = {plc.name: view.tags(plc.name) for plc in view.config.plcs}
+        self.image.remap(build_map(tags, source=view.config.source))
 
     def health(self) -> Health:
         if self._server is None:

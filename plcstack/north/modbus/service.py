@@ -110,9 +110,23 @@ class RegisterImage:
     def __post_init__(self) -> None:
         self._index: dict[str, dict[int, tuple[_Slot, int]]] = {}
         self._by_tag: dict[tuple[str, str], _Slot] = {}
+        self._map({})
+
+    def remap(self, entries: list[MapEntry]) -> None:
+        """The map of a reloaded configuration: a tag mapped as before keeps its registers
+        and its latest value; a new or changed one reads as not polled yet; the registers of
+        one no longer mapped are gone (exception 0x02)."""
+        self.entries = entries
+        self._map(self._by_tag)
+
+    def _map(self, before: dict[tuple[str, str], _Slot]) -> None:
+        self._index, self._by_tag = {}, {}
         for entry in self.entries:
-            slot = _Slot(entry)
-            self._by_tag[(entry.plc, entry.tag.name)] = slot
+            key = (entry.plc, entry.tag.name)
+            slot = before.get(key)
+            if slot is None or slot.entry != entry:
+                slot = _Slot(entry)
+            self._by_tag[key] = slot
             table = self._index.setdefault(entry.layout.table, {})
             for offset in range(entry.layout.size):
                 table[entry.layout.start + offset] = (slot, offset)

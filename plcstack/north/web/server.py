@@ -30,7 +30,7 @@ from aiohttp.http_exceptions import HttpProcessingError
 
 from plcstack.errors import ConfigError
 from plcstack.north.control import ConfigControl
-from plcstack.north.face import FaceBase, PollerView
+from plcstack.north.face import FaceBase, PlcUpdate, PollerView
 from plcstack.north.health import Health, healthz_body
 from plcstack.north.history import History
 from plcstack.north.supervise import Supervised, Supervisor
@@ -141,6 +141,11 @@ class WebConsole(FaceBase):
     # -- the sink protocol ----------------------------------------------------------------------
     def submit(self, scans: Sequence[Scan]) -> None:
         self.state.submit(scans)
+
+    async def update_plcs(self, update: PlcUpdate) -> None:
+        """A removed PLC's row is gone, an added one's appears (see
+        :meth:`ConsoleState.reconfigure`)."""
+        self.state.reconfigure(update.view.config.plcs, update.changed)
 
     async def start(self) -> None:
         """Listen; a :class:`ConfigError` naming the address if that is not possible."""

@@ -16,7 +16,7 @@ console started (precise to a few milliseconds for weeks), values float32 (a cha
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -136,6 +136,31 @@ class ConsoleState:
         self._epoch = clock()
         self._reachability = Reachability()
         self._reachable = reachable
+
+    def reconfigure(self, plcs: Sequence[PlcConfig], changed: Collection[str] = ()) -> None:
+        """The PLCs of a reloaded configuration: a removed PLC's row and tags are gone, an
+        added one's row is unknown until its first scan; of a PLC in ``changed`` the tags
+        whose configuration differs start afresh. Everything else keeps its values, trends
+        and health."""
+        before = self.tags
+        self.plcs = {p.name: p for p in plcs}
+        self.tags = {(p.name, t.name): t for p in plcs for t in p.tags}
+        self.displays = {key: TagDisplay(t) for key, t in self.tags.items()}
+        self.float32 = frozenset(key for key, d in self.displays.items() if d.float32)
+        kept = {key for key, tag in self.tags.items() if before.get(key) == tag}
+        for table in (
+            self.latest, self.good, self.stale_since, self.changed_at, self.trends, self.changed
+        ):  # fmt: skip
+            for key in [k for k in table if k not in kept]:
+                del table[key]
+        health = {}
+        for name in self.plcs:
+            h = self.health.get(name)
+            if h is None or name in changed:
+                h = PlcHealth()
+                h.bad_tags = sum(1 for key in self.stale_since if key[0] == name)
+            health[name] = h
+        self.health = health
 
     def submit(self, scans: Iterable[Scan]) -> None:
         """Take one batch of scans (the north side's sink protocol)."""
