@@ -25,17 +25,20 @@ import asyncio
 import contextlib
 import dataclasses
 import fnmatch
+import time
 from collections.abc import AsyncIterator, Callable, Coroutine, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 
 from plcstack.clients.base import Client
-from plcstack.errors import AddressError
+from plcstack.errors import AddressError, LocalProtocolError
 from plcstack.north.write_values import WriteValueError
 from plcstack.north.writes import UNKNOWN_PLC
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
+from plcstack.poll.diff import PlcChanges
 from plcstack.poll.engine import (
+    Applied,
     ClientFactory,
     PlcStats,
     Poller,
@@ -314,6 +317,48 @@ class Worker:
         """A tag write through the PLC's polling connection, if this worker holds the PLC (the
         same single-flight path as a Poller's); another PLC's is refused, nothing sent."""
         await self._poller_of(plc, f"write {tag}").write_tag(plc, tag, value)
+
+    # -- reconfigured while it runs (a reload) --------------------------------------------------
+    async def apply(self, changes: PlcChanges) -> Applied:
+        """The fleet's file changed (SIGHUP): the difference applied to the PLCs this worker
+        polls, as a :class:`~plcstack.poll.engine.Poller` applies it. A removed PLC stops (its
+        lease released); a changed one it polls is reconnected or planned again on its open
+        connection (:meth:`Poller.apply`); an added one starts where rendezvous hashing gives
+        it to this worker (every worker reads the same file). Every new URL and address is
+        checked before anything changes."""
+        if changes.old != self.config:
+            raise LocalProtocolError(
+                "these changes were made from another configuration than the worker's:"
+                " make them with plc_changes(worker.config, new)"
+            )
+        started = time.perf_counter()
+        new = changes.new
+        touched = (*changes.added, *changes.reconnected, *changes.replanned)
+        check = Poller(dataclasses.replace(new, plcs=touched), client_factory=self._factory)
+        for name in check.plcs:
+            check.client(name).transport.abort()
+        self.config = new
+        self._plcs = {p.name: p for p in new.plcs}
+        self._tags = {name: self._tags[name] for name in self._plcs if name in self._tags}
+        self._tags.update({name: check.tags(name) for name in check.plcs})
+        self._wanted_cache = None
+        removed: dict[str, PlcStats] = {}
+        for plc in changes.removed:
+            await self._stop(plc.name)
+            removed[plc.name] = self._stats.pop(plc.name, PlcStats())
+        for plc in (*changes.reconnected, *changes.replanned):
+            run = self._runs.get(plc.name)
+            if run is not None:
+                await run.poller.reconfigure(dataclasses.replace(new, plcs=(plc,)))
+        self._kick()  # the added PLCs this worker is given start in its next reconcile
+        return Applied(
+            added=tuple(p.name for p in changes.added),
+            removed=removed,
+            reconnected=tuple(p.name for p in changes.reconnected),
+            replanned=tuple(p.name for p in changes.replanned),
+            not_applied=changes.poller,
+            seconds=time.perf_counter() - started,
+        )
 
     # -- events -----------------------------------------------------------------------------------
     def _event(self, text: str) -> None:
