@@ -101,8 +101,8 @@ def test_sighup_ends_no_plcstack_command(tmp_path: Path) -> None:
             _wait_for(sim, "listening on")
         gateway = ["gateway", f"as511+tcp://127.0.0.1:{as511_port}", "--s5lan", str(s5lan_port)]
         procs = [
-            _start(["poll", "poll.toml", "--format", "none", "--web-port", "0"], tmp_path),
-            _start(["serve", "modbus", "serve.toml"], tmp_path),
+            _start(["-v", "poll", "poll.toml", "--format", "none", "--web-port", "0"], tmp_path),
+            _start(["-v", "serve", "modbus", "serve.toml"], tmp_path),
             _start(gateway, tmp_path),
         ]
         _wait_for(procs[0], "web console on")
@@ -119,8 +119,10 @@ def test_sighup_ends_no_plcstack_command(tmp_path: Path) -> None:
             _out, raw = proc.communicate(timeout=20)
             err = raw.decode()
             assert proc.returncode == 0, (proc.args, err)
-            # poll and serve read their file again (and say so); the others ignore it, once
-            said = "the configuration it started with" if proc in procs[:2] else "SIGHUP received"
+            # poll and serve read their file again and apply it (and say so); the others ignore
+            # it, once
+            reloaded = "reload (SIGHUP): PLCs added: none; removed: none; changed: none"
+            said = reloaded if proc in procs[:2] else "SIGHUP received"
             assert err.count(said) == 1, (proc.args, err)
             assert "Traceback" not in err
     finally:

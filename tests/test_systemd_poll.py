@@ -35,7 +35,7 @@ async def test_poll_under_systemd(tmp_path: Path) -> None:
         env = {**os.environ, "NOTIFY_SOCKET": sock.address, "WATCHDOG_USEC": "600000"}
         started = time.monotonic()
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "plcstack", "poll", str(config), "--format", "none",
+            sys.executable, "-m", "plcstack", "-v", "poll", str(config), "--format", "none",
             "--duration", "60", cwd=ROOT, env=env, stderr=asyncio.subprocess.PIPE,
         )  # fmt: skip
         try:
@@ -82,7 +82,7 @@ async def test_poll_under_systemd(tmp_path: Path) -> None:
     text = err.decode()
     assert proc.returncode == 0, text
     assert "does not load, nothing changed" in text
-    assert "this run keeps the configuration it started with" in text
+    assert "reload (SIGHUP): PLCs added: none; removed: none; changed: none" in text
 
 
 async def _ready_then_stopping(tmp_path: Path, *args: str) -> tuple[str, str]:

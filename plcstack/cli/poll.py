@@ -16,6 +16,7 @@ face that cannot start (a port taken, a certificate unreadable: the line names i
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import sys
 from collections.abc import Callable, Sequence
@@ -24,11 +25,13 @@ from typing import Any, TextIO
 from plcstack.cli import plain_text, print_error
 from plcstack.cli.faces import gateway_faces
 from plcstack.cli.pcap import add_pcap_options, with_pcap
+from plcstack.cli.reload import RuntimeControl
 from plcstack.cli.run_options import add_run_options, overrides_of, seconds
-from plcstack.cli.runtime import run_north
-from plcstack.config import load_config
-from plcstack.config.overrides import apply_overrides
-from plcstack.north.face import Face, ScanSource
+from plcstack.cli.runtime import RuntimePoller, run_north
+from plcstack.config import Config
+from plcstack.config.overrides import Overrides, apply_overrides
+from plcstack.errors import ConfigError
+from plcstack.north.face import Face
 from plcstack.north.faces import missing, needs_of
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.pipeline import North
@@ -70,30 +73,46 @@ def register(subparsers: Any) -> None:
     poll.set_defaults(func=with_pcap(run_poll))
 
 
+def _prepared(overrides: Overrides, args: argparse.Namespace, config: Config) -> Config:
+    """What this run makes of a loaded file, at start and at every reload: the command line
+    over it, and the part of the PLCs its ``--shard`` polls."""
+    config = apply_overrides(config, overrides)
+    poll = scale_cli.select(config.poll, args)
+    return config if poll is config.poll else dataclasses.replace(config, poll=poll)
+
+
 async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     out = out if out is not None else sys.stdout
+    # the scale-out options, None where a caller's namespace (not the parser's) has none
+    args = argparse.Namespace(**{"shard": None, "mqtt": None, "nats": None, **vars(args)})
     # read once; relative file paths in [mqtt] are taken relative to the TOML file
-    whole = apply_overrides(load_config(args.config), overrides_of(args))
+    try:
+        control = RuntimeControl.load(
+            args.config, functools.partial(_prepared, overrides_of(args), args)
+        )
+    except ConfigError:
+        raise
+    except ValueError as exc:  # --shard and --mqtt, a bad --shard
+        print_error(f"poll: {exc}")
+        return 2
+    whole = control.config
     config, north_config = whole.poll, whole.north
     needs = needs_of(north_config)
-    if getattr(args, "mqtt", None) is not None:
+    if args.mqtt is not None:
         needs.append(("--mqtt (scale-out)", "aiomqtt", "scale"))
-    if getattr(args, "nats", None) is not None:
+    if args.nats is not None:
         needs.append(("--nats (scale-out)", "nats", "scale"))
     problem = missing(needs)
     if problem is not None:
         print_error(f"poll: {problem}")
         return 2
-    # the scale-out options, None where a caller's namespace (not the parser's) has none
-    args = argparse.Namespace(**{"shard": None, "mqtt": None, "nats": None, **vars(args)})
     try:
-        config = scale_cli.select(config, args)
         worker = scale_cli.make_worker(config, args)  # --mqtt: one worker of a cluster
     except ValueError as exc:
         print_error(f"poll: {exc}")
         return 2
     # every URL and address checked here, before anything is sent
-    poller: ScanSource = worker if worker is not None else Poller(config)
+    poller: RuntimePoller = worker if worker is not None else Poller(config)
     text: Callable[[Sequence[Scan]], str] | None = None
     if args.format == "influx":
         text = InfluxFormat(
@@ -106,14 +125,15 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     elif args.format != "none":
         text = functools.partial(each_line, FORMATS[args.format])
     faces: list[Face] = [StdoutLines(text, out)] if text is not None else []
-    north = North(poller, north_config, faces=faces)  # every face of the file, built
+    # every face of the file, built
+    north = North(poller, north_config, faces=faces, control=control)
     # [[gateway]]: the native faces, on the PLCs' connections (not a scale-out worker's)
     natives = None
     if whole.gateway and isinstance(poller, Poller):
         natives = gateway_faces(whole.gateway, poller.client, north.writes)
     return await run_north(
         "poll",
-        args.config,
+        control,
         poller,
         north,
         duration=getattr(args, "duration", None),

@@ -8,8 +8,10 @@ delivers the scans of the last requests, and prints the poller's statistics and 
 face on stderr.
 
 Signals (:mod:`plcstack.cli.signals`): SIGINT (Ctrl-C) and SIGTERM stop the run cleanly (exit
-130 and 0); SIGHUP never ends it: it reads the file again, between ``RELOADING=1`` and
-``READY=1`` under systemd, and a file that does not load is one ERROR line and changes nothing.
+130 and 0); SIGHUP never ends it: it reads the file again and applies the difference
+(:mod:`plcstack.cli.reload`, the path the web console's ``/api/config`` takes too), between
+``RELOADING=1`` and ``READY=1`` under systemd; a file that does not load is one ERROR line and
+changes nothing.
 
 Under systemd (``NOTIFY_SOCKET``): ``READY=1`` once every PLC had its first scan, the PLCs
 online and offline as ``STATUS``, watchdog pings while requests keep ending, ``STOPPING=1``
@@ -26,12 +28,11 @@ import contextlib
 import logging
 import os
 import sys
-from typing import TextIO
+from typing import Protocol, TextIO
 
 from plcstack.cli import print_error
+from plcstack.cli.reload import ReconfigurablePoller, Running, RuntimeControl
 from plcstack.cli.signals import Signals, StopEvent, ended_early
-from plcstack.config import load_config
-from plcstack.errors import ConfigError
 from plcstack.gateway.faces import GatewayFaces
 from plcstack.north.face import ScanSource
 from plcstack.north.pipeline import North
@@ -41,7 +42,13 @@ from plcstack.systemd.service import FleetStatus, ScanWatch, ServiceNotifier, st
 
 log = logging.getLogger("plcstack.cli.runtime")
 
-__all__ = ["run_north", "silence_stdout"]
+__all__ = ["RuntimePoller", "run_north", "silence_stdout"]
+
+
+class RuntimePoller(ScanSource, ReconfigurablePoller, Protocol):
+    """A poller as the runtime drives it and a reload changes it (a
+    :class:`~plcstack.poll.engine.Poller`, or a scale-out :class:`~plcstack.scale.worker.
+    Worker`)."""
 
 
 def silence_stdout(out: TextIO) -> None:
@@ -56,8 +63,8 @@ def silence_stdout(out: TextIO) -> None:
 
 async def run_north(
     command: str,
-    path: str,
-    poller: ScanSource,
+    control: RuntimeControl,
+    poller: RuntimePoller,
     north: North,
     *,
     duration: float | None,
@@ -65,8 +72,9 @@ async def run_north(
     out: TextIO | None = None,
     natives: GatewayFaces | None = None,
 ) -> int:
-    """Run ``poller`` and every face of ``north`` (both of the file at ``path``) until
-    stopped; the exit code (see the module docstring). ``command`` prefixes the error line
+    """Run ``poller`` and every face of ``north`` (both of the configuration of ``control``,
+    which a reload changes) until stopped; the exit code (see the module docstring).
+    ``command`` prefixes the error line
     (``poll``, ``serve opcua``). ``natives``: the file's ``[[gateway]]`` faces on the PLCs'
     connections (a face that cannot listen: one line, exit 2; a PLC's face queue that ends ends
     the run)."""
@@ -90,9 +98,11 @@ async def run_north(
                         return 2
                     for line in natives.listening():
                         print(line, file=sys.stderr, flush=True)
+                control.attach(Running(poller, north, natives, service))
                 failure = await _serve(
-                    poller, north, out, stop, duration, stats_every, service, path, hangups, natives
-                )
+                    poller, north, out, stop, duration, stats_every, service, control, hangups,
+                    natives,
+                )  # fmt: skip
             finally:
                 if natives is not None:
                     await natives.aclose()  # before the poller closes the PLCs' connections
@@ -125,26 +135,14 @@ def service_of(poller: ScanSource, north: North) -> ServiceNotifier:
     )
 
 
-async def _reloads(path: str, service: ServiceNotifier, hangups: asyncio.Event) -> None:
-    """Each SIGHUP (``systemctl reload``) reads the file again, between ``RELOADING=1`` and
-    ``READY=1``: a file that does not load is said in one ERROR line and changes nothing."""
+async def _reloads(control: RuntimeControl, hangups: asyncio.Event) -> None:
+    """Each SIGHUP (``systemctl reload``) reads the file again and applies the difference
+    (:meth:`RuntimeControl.reload`): a file that does not load is said in one ERROR line and
+    changes nothing."""
     while True:
         await hangups.wait()
         hangups.clear()
-        service.reloading()
-        try:
-            load_config(path)
-        except (ConfigError, OSError) as exc:
-            problem = " ".join(str(exc).split())
-            log.error("reload: %s does not load, nothing changed: %s", path, problem)
-            service.reloaded(problem)
-            continue
-        log.warning(
-            "reload: %s loads; this run keeps the configuration it started with:"
-            " restart it to apply a change",
-            path,
-        )
-        service.reloaded()
+        await control.reload(who="SIGHUP")
 
 
 async def _serve(
@@ -155,7 +153,7 @@ async def _serve(
     duration: float | None,
     stats_every: float | None,
     service: ServiceNotifier,
-    path: str,
+    control: RuntimeControl,
     hangups: asyncio.Event,
     natives: GatewayFaces | None,
 ) -> str | None:
@@ -167,7 +165,7 @@ async def _serve(
     stopper = asyncio.create_task(stop.wait(), name="the stop")
     announcer = asyncio.create_task(_announce(north), name="the announcement")
     notifier = asyncio.create_task(service.run(), name="the notifications to the service manager")
-    reloader = asyncio.create_task(_reloads(path, service, hangups), name="the reload on SIGHUP")
+    reloader = asyncio.create_task(_reloads(control, hangups), name="the reload on SIGHUP")
     helpers = {consumer, stopper, notifier, reloader}
     if stats_every is not None:
         helpers.add(asyncio.create_task(_report_stats(poller, stats_every), name="the statistics"))

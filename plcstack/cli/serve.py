@@ -28,10 +28,9 @@ import sys
 from typing import Any
 
 from plcstack.cli import plain_text, print_error, serve_modbus
-from plcstack.cli.run_options import add_run_options, overrides_of
+from plcstack.cli.run_options import add_run_options
 from plcstack.cli.serve_run import run_served
-from plcstack.config import load_config
-from plcstack.config.overrides import apply_overrides
+from plcstack.north.config import NorthConfig
 from plcstack.north.opcua_config import OpcUaConfig, hash_password
 
 
@@ -76,7 +75,9 @@ async def run_opcua(args: argparse.Namespace) -> int:
         print_error("serve opcua: asyncua is not installed; pip install 'plcstack[opcua]'")
         return 2
     # -v (INFO) logs every write; the log options are the ones every subcommand has
-    whole = apply_overrides(load_config(args.config), overrides_of(args))  # read once
-    config, north_config = whole.poll, whole.north
-    north_config = dataclasses.replace(north_config, opcua=north_config.opcua or OpcUaConfig())
-    return await run_served(args, "serve opcua", config, north_config)
+    return await run_served(args, "serve opcua", _with_opcua)
+
+
+def _with_opcua(north: NorthConfig) -> NorthConfig:
+    """The OPC UA server runs: with the file's ``[opcua]``, else its defaults."""
+    return dataclasses.replace(north, opcua=north.opcua or OpcUaConfig())

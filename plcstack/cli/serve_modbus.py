@@ -24,10 +24,9 @@ import dataclasses
 from typing import Any
 
 from plcstack.cli import plain_text
-from plcstack.cli.run_options import add_run_options, overrides_of
+from plcstack.cli.run_options import add_run_options
 from plcstack.cli.serve_run import run_served
-from plcstack.config import load_config
-from plcstack.config.overrides import apply_overrides
+from plcstack.north.config import NorthConfig
 from plcstack.north.modbus.config import ModbusSettings
 
 
@@ -44,8 +43,9 @@ def register(servers: Any) -> None:
 
 
 async def run_modbus(args: argparse.Namespace) -> int:
-    whole = apply_overrides(load_config(args.config), overrides_of(args))  # read once
-    config, north_config = whole.poll, whole.north
-    modbus = north_config.modbus or ModbusSettings()
-    north_config = dataclasses.replace(north_config, modbus=modbus)
-    return await run_served(args, "serve modbus", config, north_config)
+    return await run_served(args, "serve modbus", _with_modbus)
+
+
+def _with_modbus(north: NorthConfig) -> NorthConfig:
+    """The Modbus server runs: with the file's ``[modbus]``, else its defaults."""
+    return dataclasses.replace(north, modbus=north.modbus or ModbusSettings())
