@@ -22,7 +22,13 @@ import pytest
 from plcstack.poll.config import parse_poll_config as parse_config
 from plcstack.poll.stats import PlcStats
 from plcstack.systemd.notify import Notifier, monotonic_usec
-from plcstack.systemd.service import FleetStatus, ScanWatch, ServiceNotifier, stall_limit
+from plcstack.systemd.service import (
+    FleetStatus,
+    ScanWatch,
+    ServiceNotifier,
+    StallLimit,
+    stall_limit,
+)
 from tests.systemd_helpers import NotifySocket
 
 
@@ -332,3 +338,38 @@ def test_fleet_status() -> None:
     assert fleet.ready()
     assert fleet.status() == "8 PLCs: 7 online, 1 offline (p3); faces: mqtt, web"
     assert FleetStatus(lambda: {"a": PlcStats()}, lambda _: True).status() == "1 PLC: 1 online"
+
+
+def test_the_scan_watch_follows_a_reload_of_the_scan_intervals() -> None:
+    """A reload that slows the scans down (10 s where 0.1 s was): the watchdog judges by the
+    new limit, so systemd does not kill a service whose scans go on. Before: the limit of
+    the start (about 1 s here) held for ever, and the pings stopped."""
+    text = """
+[groups]
+default = {interval}
+[[plc]]
+name = "a"
+url = "e71+tcp://127.0.0.1:5000?timeout=0.2&connect_timeout=0.2"
+[plc.tags]
+x = {{ address = "D0" }}
+"""
+    configs = [parse_config(text.format(interval=0.1))]
+    now = [100.0]
+    stats = {"a": PlcStats()}
+    watch = ScanWatch(lambda: stats, StallLimit(lambda: configs[0]), clock=lambda: now[0])
+    assert watch.limit == 2 * (0.1 + 0.4)
+    assert watch() is None
+    configs[0] = parse_config(text.format(interval=10.0))  # the reloaded file
+    now[0] += 5  # no request ended: a 10 s scan is not due yet
+    assert watch.limit == 2 * (10.0 + 0.4)
+    assert watch() is None
+    now[0] += 20
+    assert watch() is not None and "(the scans' own limit: 21 s)" in (watch() or "")
+
+
+def test_fleet_status_names_the_faces_a_reload_left() -> None:
+    faces = ["mqtt"]
+    fleet = FleetStatus(lambda: {"a": PlcStats()}, lambda _: True, lambda: faces)
+    assert fleet.status() == "1 PLC: 1 online; faces: mqtt"
+    faces.append("web")  # [web] added by a reload
+    assert fleet.status() == "1 PLC: 1 online; faces: mqtt, web"

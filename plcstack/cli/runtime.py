@@ -38,7 +38,7 @@ from plcstack.north.face import ScanSource
 from plcstack.north.pipeline import North
 from plcstack.poll.stats import format_stats
 from plcstack.systemd.notify import Notifier
-from plcstack.systemd.service import FleetStatus, ScanWatch, ServiceNotifier, stall_limit
+from plcstack.systemd.service import FleetStatus, ScanWatch, ServiceNotifier, StallLimit
 
 log = logging.getLogger("plcstack.cli.runtime")
 
@@ -122,16 +122,19 @@ def service_of(poller: ScanSource, north: North) -> ServiceNotifier:
     """What this run tells systemd (nothing without ``NOTIFY_SOCKET``): ready once the faces
     listen (they do when it runs) and every PLC had its first scan, the PLCs online and
     offline and the faces, watchdog pings while requests keep ending."""
-    limit = stall_limit(poller.config)
+    # the faces and the scans' limit as they are now: a reload may change both
     fleet = FleetStatus(
-        lambda: poller.stats, north.reachability.get, [face.name for face in north.faces]
+        lambda: poller.stats,
+        north.reachability.get,
+        lambda: [face.name for face in north.faces],
     )
+    limit = StallLimit(lambda: poller.config)
     return ServiceNotifier(
         Notifier.from_environment(),
         ready=fleet.ready,
         status=fleet.status,
         alive=ScanWatch(lambda: poller.stats, limit),
-        ready_within=limit,
+        ready_within=limit(),
     )
 
 

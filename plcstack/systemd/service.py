@@ -29,7 +29,14 @@ from plcstack.poll.stats import PlcStats
 from plcstack.systemd.notify import Notifier
 from plcstack.url import parse_url
 
-__all__ = ["FleetStatus", "ScanWatch", "ServiceNotifier", "notifying", "stall_limit"]
+__all__ = [
+    "FleetStatus",
+    "ScanWatch",
+    "ServiceNotifier",
+    "StallLimit",
+    "notifying",
+    "stall_limit",
+]
 
 log = logging.getLogger("plcstack.systemd")
 
@@ -207,6 +214,24 @@ def stall_limit(config: PollConfig) -> float:
     return 2 * (slowest + deadline)
 
 
+class StallLimit:
+    """:func:`stall_limit` of the configuration a poller applies now (``config()``): a reload
+    that slows the scans down (a minute where a second was) must not leave the watchdog
+    waiting by the old limit, and systemd kill a service whose scans go on. Computed again
+    only when the configuration is another one."""
+
+    def __init__(self, config: Callable[[], PollConfig]) -> None:
+        self._config = config
+        self._of: PollConfig | None = None
+        self._limit = 0.0
+
+    def __call__(self) -> float:
+        config = self._config()
+        if config is not self._of:
+            self._of, self._limit = config, stall_limit(config)
+        return self._limit
+
+
 def _seconds(text: str | None, default: float) -> float:
     try:
         return float(text) if text else default
@@ -224,12 +249,14 @@ class ScanWatch:
     def __init__(
         self,
         stats: Callable[[], Mapping[str, PlcStats]],
-        limit: float,
+        limit: float | Callable[[], float],
         *,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        """``limit``: seconds, or what says them now (:class:`StallLimit`: a reload may change
+        the scan intervals)."""
         self._stats = stats
-        self.limit = limit
+        self._limit = limit
         self._clock = clock
         self._total = -1
         self._since = clock()
@@ -242,12 +269,19 @@ class ScanWatch:
             self._total, self._since = total, now
             return None
         idle = now - self._since
-        if idle <= self.limit:
+        limit = self.limit
+        if idle <= limit:
             return None
         return (
             f"no request of any of the {len(stats)} PLCs has ended (answered or failed) for"
-            f" {idle:.0f} s (the scans' own limit: {self.limit:.0f} s)"
+            f" {idle:.0f} s (the scans' own limit: {limit:.0f} s)"
         )
+
+    @property
+    def limit(self) -> float:
+        """Seconds without a request ending after which the scans count as stopped, now."""
+        limit = self._limit
+        return limit if isinstance(limit, float | int) else limit()
 
 
 class FleetStatus:
@@ -258,11 +292,17 @@ class FleetStatus:
         self,
         stats: Callable[[], Mapping[str, PlcStats]],
         reachable: Callable[[str], bool | None],
-        faces: Sequence[str] = (),
+        faces: Sequence[str] | Callable[[], Sequence[str]] = (),
     ) -> None:
+        """``faces``: their names, or what says them now (a reload may add or remove one)."""
         self._stats = stats
         self._reachable = reachable
-        self.faces = list(faces)
+        self._faces = faces
+
+    @property
+    def faces(self) -> list[str]:
+        faces = self._faces
+        return list(faces() if callable(faces) else faces)
 
     def ready(self) -> bool:
         """Every PLC had its first scan (answered or failed)."""
@@ -289,8 +329,9 @@ class FleetStatus:
         if waiting:
             parts.append(f"{len(waiting)} before their first scan ({_names(waiting)})")
         text = f"{total} PLC{'s' if total != 1 else ''}: {', '.join(parts)}"
-        if self.faces:
-            text += f"; faces: {', '.join(self.faces)}"
+        faces = self.faces
+        if faces:
+            text += f"; faces: {', '.join(faces)}"
         return text
 
 
