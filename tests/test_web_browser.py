@@ -54,12 +54,18 @@ def async_playwright() -> PlaywrightContextManager:
     return async_playwright()
 
 
+#: the name a rebinding attacker's page is served under: it resolves to the console's address
+#: (a rule of the module's one browser; no other test uses the name)
+ATTACKER = "attacker.example"
+
+
 @pytest_asyncio.fixture(loop_scope="module", scope="module")
 async def browser() -> AsyncIterator[Any]:
     if not shutil.which(CHROMIUM):
         pytest.fail(f"no Chromium at {CHROMIUM} (Debian's package 'chromium', see .ci/run)")
+    rule = f"--host-resolver-rules=MAP {ATTACKER} 127.0.0.1"
     async with async_playwright() as p:
-        chromium = await p.chromium.launch(executable_path=CHROMIUM)
+        chromium = await p.chromium.launch(executable_path=CHROMIUM, args=[rule])
         try:
             yield chromium
         finally:
@@ -256,26 +262,21 @@ async def test_a_hostile_name_is_shown_as_text(page: Any, console: Console) -> N
     assert await page.evaluate("window.pwned") is None
 
 
-async def test_a_page_rebinding_its_name_to_the_console_reads_nothing(console: Console) -> None:
+async def test_a_page_rebinding_its_name_to_the_console_reads_nothing(
+    page: Any, console: Console
+) -> None:
     """DNS rebinding as a browser on the plant network meets it: ``attacker.example`` resolves
     to the console's address, so the attacker's page and the console are one origin to the
     browser. Before: the page and its script read every value (200). Now: 421 for the page and
     for the script's request; the console's own names still work in the same browser."""
     port = console.web.port
-    rule = "--host-resolver-rules=MAP attacker.example 127.0.0.1"
-    async with async_playwright() as p:
-        chromium = await p.chromium.launch(executable_path=CHROMIUM, args=[rule])
-        try:
-            page = await chromium.new_page()
-            response = await page.goto(f"http://attacker.example:{port}/")
-            assert response is not None and response.status == 421
-            read = "fetch('/api/tags').then(r => r.status + ' ' + r.headers.get('content-type'))"
-            assert await page.evaluate(read) == "421 text/plain; charset=utf-8"
-            response = await page.goto(f"http://localhost:{port}/")
-            assert response is not None and response.status == 200
-            assert (await page.evaluate("fetch('/api/tags').then(r => r.status)")) == 200
-        finally:
-            await chromium.close()
+    response = await page.goto(f"http://{ATTACKER}:{port}/")
+    assert response is not None and response.status == 421
+    read = "fetch('/api/tags').then(r => r.status + ' ' + r.headers.get('content-type'))"
+    assert await page.evaluate(read) == "421 text/plain; charset=utf-8"
+    response = await page.goto(f"http://localhost:{port}/")
+    assert response is not None and response.status == 200
+    assert (await page.evaluate("fetch('/api/tags').then(r => r.status)")) == 200
 
 
 async def test_the_last_value_stays_marked_stale_when_the_simulator_stops(page: Any) -> None:
