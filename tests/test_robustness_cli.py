@@ -1,4 +1,4 @@
-"""Promise 3: error messages, end to end through ``python -m plcstack read`` in a subprocess.
+"""Promise 3: error messages, end to end through the ``plcstack read`` command line.
 
 For each protocol one PLC error code: exit 1 and exactly one stderr line that names the URL, the
 request and the meaning of the code. A bad address: exit 2, one line, and the PLC sees no bytes.
@@ -8,10 +8,7 @@ The simulators (and the byte-counting proxies in front of them) run in the test'
 from __future__ import annotations
 
 import asyncio
-import os
-import sys
 from collections.abc import Awaitable, Callable
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -23,31 +20,17 @@ from plcstack.sim import e71 as e71_sim
 from plcstack.sim import fetchwrite as fw_sim
 from plcstack.sim import s5lan as s5lan_sim
 from plcstack.sim.melsec_memory import MelsecMemory
+from tests.cli_helpers import cli_in_process
 from tests.ports import free_port
 from tests.robust_helpers import MisbehavingProxy, record_loop_errors
 
-ROOT = Path(__file__).resolve().parents[1]
-
 
 async def _cli(*args: str) -> tuple[int, list[str], str]:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "plcstack",
-        *args,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-        cwd=ROOT,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
-    try:
-        out, err = await asyncio.wait_for(proc.communicate(), 30)
-    except TimeoutError:
-        proc.kill()
-        await proc.wait()
-        raise
-    assert proc.returncode is not None
-    return proc.returncode, err.decode().splitlines(), out.decode()
+    """``plcstack ARGS`` as ``python -m plcstack`` runs it (its ``main``), in this process: the
+    entry point itself is proven in test_cli_basic.py; a new interpreter per case was most of
+    this file's CPU time."""
+    code, out, err = await cli_in_process(*args)
+    return code, err.splitlines(), out
 
 
 async def _expected_error(url: str, address: str) -> PlcErrorResponse:
@@ -104,7 +87,7 @@ async def _bad_address_over_tcp(name: str) -> None:
     proxy = await MisbehavingProxy(sim.host, sim.port).start()
     url = sim.url.replace(f":{sim.port}", f":{proxy.port}", 1)
     try:
-        # read for every protocol, write for one (the subprocesses dominate the cost)
+        # read for every protocol, write for one
         verb, extra = ("write", ["1"]) if name == "s5lan" else ("read", [])
         code, err, out = await _cli(verb, url, bad, *extra)
         assert (code, out) == (2, ""), (name, err)
@@ -124,7 +107,7 @@ async def _bad_address_with_plc_unreachable() -> None:
 
 
 async def test_bad_address_is_exit_2_and_nothing_is_sent() -> None:
-    """All protocols at once (the subprocesses dominate the cost and run in parallel)."""
+    """All protocols at once."""
     await asyncio.gather(
         *(_bad_address_over_tcp(name) for name in TCP_BAD), _bad_address_with_plc_unreachable()
     )
