@@ -1,6 +1,7 @@
 """The rule of tests/conftest.py holds: a test whose event loop logged an unhandled exception
 fails, also when the failed task is only freed by the garbage collector (a reference cycle), in
-the first test of a module and in a later one (the conftest freezes the heap between them)."""
+the first test of a module and in a later one (the conftest freezes the heap between them), and
+when a module's fixture held it until its module ended (frozen while alive, freed after)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-INNER_CONFTEST = "from tests.conftest import _no_unhandled_loop_errors  # noqa: F401\n"
+INNER_CONFTEST = (
+    "from tests.conftest import _no_unhandled_loop_errors, pytest_fixture_post_finalizer"
+    "  # noqa: F401\n"
+)
 
 INNER_TESTS = """
 import asyncio
@@ -48,6 +52,41 @@ def test_declared() -> None:
 """
 
 
+# a module fixture's failed task in a cycle: alive when the heap is frozen, garbage at module end
+WIDE_FIXTURE_TESTS = """
+import asyncio
+from collections.abc import Iterator
+
+import pytest
+
+
+async def _fail() -> None:
+    raise ValueError("held by a module's fixture")
+
+
+@pytest.fixture(scope="module")
+def held() -> Iterator[dict[str, object]]:
+    loop = asyncio.new_event_loop()
+    task = loop.create_task(_fail())
+    loop.run_until_complete(asyncio.sleep(0))
+    loop.close()
+    holder: dict[str, object] = {"task": task}
+    holder["self"] = holder
+    del task
+    yield holder
+
+
+def test_uses_it(held: dict[str, object]) -> None:
+    assert "task" in held
+
+
+def test_uses_it_again(held: dict[str, object]) -> None:
+    assert "task" in held
+"""
+
+NEXT_MODULE_TESTS = "def test_next() -> None:\n    pass\n"
+
+
 def test_a_failed_task_in_a_cycle_fails_its_own_test(
     pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -63,20 +102,28 @@ def test_a_failed_task_in_a_cycle_fails_its_own_test(
         "[pytest]\nasyncio_default_fixture_loop_scope = function\n"
         "markers =\n    loop_errors_expected: on purpose\n"
     )
-    pytester.makepyfile(test_one=INNER_TESTS, test_two=INNER_TESTS)
+    pytester.makepyfile(
+        test_one=INNER_TESTS,
+        test_two=INNER_TESTS,
+        test_wide=WIDE_FIXTURE_TESTS,
+        test_x_next=NEXT_MODULE_TESTS,
+    )
     monkeypatch.setenv("PYTHONPATH", str(ROOT))  # the inner conftest imports tests.conftest
     result = pytester.runpytest_subprocess("-p", "no:xdist", "-p", "no:cacheprovider", "-rE")
     # the rule fails a test at teardown, so pytest counts its call as passed and adds an error
-    result.assert_outcomes(passed=8, errors=4)
+    result.assert_outcomes(passed=11, errors=5)
     failed = sorted(line.split()[1] for line in result.outlines if line.startswith("ERROR test_"))
     assert failed == [
         f"{m}::{t}"
         for m in ("test_one.py", "test_two.py")
         for t in ("test_first_of_module", "test_later_in_module")
-    ]
+    ] + ["test_x_next.py::test_next"]  # the module fixture's task: in the next module's first
     result.stdout.fnmatch_lines(
         [
             "the event loop logged 1 unhandled exception(s):",
             "  Task exception was never retrieved (ValueError: nobody looks at me)",
         ]
+    )
+    result.stdout.fnmatch_lines(
+        ["  Task exception was never retrieved (ValueError: held by a module's fixture)"]
     )
