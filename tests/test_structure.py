@@ -20,7 +20,9 @@ prove on small samples that it finds what it should.
 from __future__ import annotations
 
 import ast
-from collections.abc import Iterable, Mapping
+import functools
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -61,6 +63,39 @@ LIBRARY_PROBES: dict[str, dict[str, str]] = {
 OVERSIZED_FOR_NOW: dict[str, str] = {}
 
 
+@dataclass(frozen=True)
+class _Nodes:
+    """What the checks below look at in one module: its imports, its uses of a private
+    attribute and its calls of a plain name with arguments."""
+
+    imports: tuple[ast.Import | ast.ImportFrom, ...]
+    private_attributes: tuple[ast.Attribute, ...]
+    calls: tuple[ast.Call, ...]
+
+
+@functools.cache
+def _nodes(text: str) -> _Nodes:
+    """One parse and one walk of a module's text for all the checks (each goes over the whole
+    package: parsing it again for each was most of this file's time). Only these few nodes are
+    kept, not the trees: the garbage collection after each test walks what is kept."""
+    imports, attributes, calls = [], [], []
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.Import | ast.ImportFrom):
+            imports.append(node)
+        elif isinstance(node, ast.Attribute) and _private(node.attr):
+            attributes.append(node)
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.args:
+            calls.append(node)
+    return _Nodes(tuple(imports), tuple(attributes), tuple(calls))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _walked_once_per_module() -> Iterator[None]:
+    """The nodes are kept while this module's tests run, not for the rest of the session."""
+    yield
+    _nodes.cache_clear()
+
+
 def module_name(path: Path) -> str:
     parts = list(path.relative_to(ROOT).with_suffix("").parts)
     if parts[-1] == "__init__":
@@ -85,7 +120,7 @@ def import_edges(modules: Mapping[str, tuple[Path, str]]) -> dict[str, set[str]]
     edges: dict[str, set[str]] = {name: set() for name in modules}
     for name, (path, text) in modules.items():
         package = name if _is_package(path) else name.rpartition(".")[0]
-        for node in ast.walk(ast.parse(text)):
+        for node in _nodes(text).imports:
             if isinstance(node, ast.Import):
                 edges[name].update(a.name for a in node.names if a.name in modules)
             elif isinstance(node, ast.ImportFrom):
@@ -147,7 +182,7 @@ def private_imports(text: str) -> list[str]:
     """``from x import _y``: a private name of another module."""
     return [
         f"{node.lineno}: from {node.module or '.'} import {alias.name}"
-        for node in ast.walk(ast.parse(text))
+        for node in _nodes(text).imports
         if isinstance(node, ast.ImportFrom)
         for alias in node.names
         if _private(alias.name)
@@ -162,11 +197,10 @@ def foreign_privates(text: str) -> list[str]:
     """``x._y`` where ``x`` is not ``self`` or ``cls``: a private attribute of another object
     (a named tuple's ``_replace`` and its kin are public)."""
     found = []
-    for node in ast.walk(ast.parse(text)):
-        if isinstance(node, ast.Attribute) and _private(node.attr):
-            if _own(node.value) or node.attr in NAMEDTUPLE_METHODS:
-                continue
-            found.append(f"{node.lineno}: {ast.unparse(node)}")
+    for node in _nodes(text).private_attributes:
+        if _own(node.value) or node.attr in NAMEDTUPLE_METHODS:
+            continue
+        found.append(f"{node.lineno}: {ast.unparse(node)}")
     return found
 
 
@@ -175,9 +209,8 @@ def probes(text: str) -> list[str]:
     another object asked what it might have. A ``getattr`` of a computed name (a field of a
     record chosen at run time) is reflection, not a probe."""
     found = []
-    for node in ast.walk(ast.parse(text)):
-        if not isinstance(node, ast.Call) or not isinstance(node.func, ast.Name) or not node.args:
-            continue
+    for node in _nodes(text).calls:
+        assert isinstance(node.func, ast.Name)
         name, args = node.func.id, node.args
         if _own(args[0]):
             continue
