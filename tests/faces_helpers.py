@@ -8,18 +8,15 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager, suppress
 from typing import Any, Literal, Protocol
 
-from plcstack.clients.share import SharedConnection
 from plcstack.codecs._common import NEED_DATA
 from plcstack.codecs.e71 import Code
 from plcstack.gateway import e71server
-from plcstack.gateway.allow import DeviceAllowList, WriteAllowList
 from plcstack.gateway.e71face import E71Executor
+from plcstack.gateway.faces import FaceSettings, PlcFaces
 from plcstack.gateway.record import FaceWrite
 from plcstack.gateway.store import ClientStore
 from plcstack.poll.config import parse_poll_config
 from plcstack.poll.engine import Poller
-from plcstack.sim import fetchwrite as fw_sim
-from plcstack.sim import s5lan as lan_sim
 from plcstack.sim.base import TcpSimulator
 
 __all__ = ["KINDS", "RawDatagrams", "RawStream", "Transport", "e71_faces", "polled", "s5_faces"]
@@ -138,20 +135,26 @@ class RawDatagrams:
 async def s5_faces(
     poller: Poller, *, writable: str = "", read_previous: bool = False, mk: bool = False
 ) -> AsyncIterator[tuple[TcpSimulator, TcpSimulator, ClientStore, list[FaceWrite]]]:
-    """S5-LAN and FETCH/WRITE faces of the poller's PLC ``kiln1``, and the writes they told."""
-    share = SharedConnection(poller.client("kiln1"), name="kiln1")
+    """S5-LAN and FETCH/WRITE faces of the poller's PLC ``kiln1``, as two ``[[gateway]]``
+    entries run them (64 clients at once each), and the writes they told."""
     writes: list[FaceWrite] = []
-    store = ClientStore(
-        share,
-        writable=WriteAllowList.parse(writable),
+    faces = [
+        FaceSettings("s5lan", "127.0.0.1", 0, "kiln1", writable, max_connections=64),
+        FaceSettings("fetchwrite", "127.0.0.1", 0, "kiln1", writable, mk=mk, max_connections=64),
+    ]
+    running = PlcFaces(
+        "kiln1",
+        poller.client("kiln1"),
+        faces,
         read_previous=read_previous,
         on_write=writes.append,
     )
-    async with share:
-        lan = await lan_sim.start(store=store, max_connections=64)
-        fw = await fw_sim.start(store=store, mk=mk, max_connections=64)
-        async with lan, fw:
-            yield lan, fw, store, writes
+    async with running:
+        lan, fw = running.servers
+        (store,) = set(running.answering)  # one store serves both: one allow-list
+        assert isinstance(lan, TcpSimulator) and isinstance(fw, TcpSimulator)
+        assert isinstance(store, ClientStore)
+        yield lan, fw, store, writes
 
 
 @asynccontextmanager
@@ -164,22 +167,29 @@ async def e71_faces(
         list[FaceWrite],
     ]
 ]:
-    """One E71 face of each transport and code in front of the poller's PLC ``kiln1``."""
-    share = SharedConnection(poller.client("kiln1"), name="kiln1", max_wait=max_wait)
+    """One E71 face of each transport and code in front of the poller's PLC ``kiln1``, as
+    ``[[gateway]]`` entries run them (64 clients at once each)."""
     writes: list[FaceWrite] = []
-    executor = E71Executor(
-        share,
-        writable=DeviceAllowList.parse(writable),
-        on_write=writes.append,
+    settings = [
+        FaceSettings(
+            "e71", "127.0.0.1", 0, "kiln1", writable, transport=transport, code=code.value,
+            max_connections=64, max_wait=max_wait,
+        )
+        for transport, code in KINDS
+    ]  # fmt: skip
+    running = PlcFaces(
+        "kiln1",
+        poller.client("kiln1"),
+        settings,
+        max_wait=max_wait,
         read_previous=read_previous,
+        on_write=writes.append,
     )
-    async with share:
-        faces = {
-            (transport, code): await e71server.start(executor, transport=transport, code=code)
-            for transport, code in KINDS
-        }
-        try:
-            yield faces, executor, writes
-        finally:
-            for face in faces.values():
-                await face.aclose()
+    async with running:
+        faces: dict[tuple[Transport, Code], E71Face] = {}
+        for kind, server in zip(KINDS, running.servers, strict=True):
+            assert isinstance(server, e71server.E71TcpFace | e71server.E71UdpFace)
+            faces[kind] = server
+        (executor,) = set(running.answering)  # one executor serves all: one allow-list
+        assert isinstance(executor, E71Executor)
+        yield faces, executor, writes

@@ -1,5 +1,5 @@
 """64 idle sockets from one host against every kind of listening face that speaks a PLC
-protocol: the gateway's S5-LAN, FETCH/WRITE and E71 faces and the simulators of every
+protocol: the gateway's S5-LAN, FETCH/WRITE, E71 and AS511 faces and the simulators of every
 protocol. A legitimate client is served within the first-request deadline (at once where the
 per-host cap leaves it a slot), the refusals are counted, and the log says them once when they
 begin and once with their count.
@@ -23,7 +23,7 @@ from plcstack.clients import connect
 from plcstack.errors import PlcError
 from plcstack.gateway.faces import FaceSettings, PlcFaces
 from plcstack.sim import as511, e71, fetchwrite, s5lan
-from plcstack.sim.base import TcpSimulator
+from plcstack.sim.base import Simulator, TcpSimulator
 from plcstack.transports.guard import TOTALS, Limits
 from tests.aio_helpers import eventually
 from tests.guard_helpers import ATTACKER, IDLE_SOCKETS, guard_lines, idle_sockets
@@ -45,8 +45,14 @@ async def face(kind: str) -> AsyncIterator[tuple[TcpSimulator, str, str]]:
 
     if kind.startswith("gateway-"):
         protocol = kind.removeprefix("gateway-")
-        plc = await (e71.start() if protocol == "e71" else s5lan.start())
-        cap = {"s5lan": 8, "fetchwrite": 16, "e71": 32}[protocol]
+        plc: Simulator
+        if protocol == "e71":
+            plc = await e71.start()
+        elif protocol == "as511":
+            plc = await as511.start()
+        else:
+            plc = await s5lan.start()
+        cap = {"s5lan": 8, "fetchwrite": 16, "e71": 32, "as511": 1}[protocol]
         limits = Limits(cap, first_request_timeout=FIRST)
         settings = FaceSettings(protocol, "127.0.0.1", 0, "kiln1", limits=limits)  # type: ignore[arg-type]
         client = connect(plc.url)
@@ -54,7 +60,8 @@ async def face(kind: str) -> AsyncIterator[tuple[TcpSimulator, str, str]]:
             async with PlcFaces("kiln1", client, [settings]) as faces:
                 (server,) = faces.servers
                 assert isinstance(server, TcpSimulator)
-                yield server, server.url, ADDRESS["e71" if protocol == "e71" else "s5"]
+                family = protocol if protocol in ("e71", "as511") else "s5"
+                yield server, server.url, ADDRESS[family]
         finally:
             await client.aclose()
             await plc.aclose()
@@ -92,6 +99,7 @@ KINDS = [
     "gateway-s5lan",
     "gateway-fetchwrite",
     "gateway-e71",
+    "gateway-as511",
     "sim-e71",
     "sim-s5lan",
     "sim-fetchwrite",
@@ -153,7 +161,7 @@ async def test_64_idle_sockets_lock_no_client_out(
 GARBAGE = {"e71": bytes([0x65]) + bytes(11), "s5lan": bytes(26), "fetchwrite": bytes(16)}
 
 
-@pytest.mark.parametrize("kind", [k for k in KINDS if k != "sim-as511"])  # AS511: no garbage
+@pytest.mark.parametrize("kind", [k for k in KINDS if not k.endswith("as511")])  # AS511: no garbage
 async def test_one_clients_garbage_is_said_once_per_burst(
     kind: str, caplog: pytest.LogCaptureFixture
 ) -> None:
