@@ -35,15 +35,9 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass
 
 from plcstack.clients import connect
-from plcstack.clients.share import SharedConnection
-from plcstack.gateway import e71server
-from plcstack.gateway.e71face import E71Executor
-from plcstack.gateway.store import ClientStore
+from plcstack.gateway.faces import FaceSettings, GatewayFaces
 from plcstack.poll.config import parse_poll_config
 from plcstack.poll.engine import Poller
-from plcstack.sim import fetchwrite as fw_server
-from plcstack.sim import s5lan as lan_server
-from plcstack.sim.base import Simulator
 
 WORDS = 64
 
@@ -139,23 +133,21 @@ async def simulator(kind: Kind) -> AsyncIterator[str]:
 
 @asynccontextmanager
 async def face_of(kind: Kind, poller: Poller) -> AsyncIterator[str]:
-    """The face of the poller's PLC; yields the URL its clients use."""
-    share = SharedConnection(poller.client("plc"), name="plc")
-    async with share:
-        server: Simulator
-        if kind.face == "e71":
-            server = await e71server.start(E71Executor(share), max_connections=64)
-            url = server.url
-        else:
-            store = ClientStore(share)
-            if kind.face == "s5lan":
-                server = await lan_server.start(store=store, max_connections=64)
-                url = server.url
-            else:
-                server = await fw_server.start(store=store, mk=True, max_connections=64)
-                url = server.url
-        async with server:
-            yield url
+    """The face of the poller's PLC as a ``[[gateway]]`` entry runs it in ``plcstack poll``
+    (64 clients at once); yields the URL its clients use."""
+    protocol = "fetchwrite" if kind.face == "fetchwrite+mk" else kind.face
+    settings = FaceSettings(
+        protocol,  # type: ignore[arg-type]
+        "127.0.0.1",
+        0,
+        "plc",
+        mk=kind.face == "fetchwrite+mk",
+        max_connections=64,
+    )
+    async with GatewayFaces([settings], poller.client) as natives:
+        (faces,) = natives.plcs
+        (server,) = faces.servers
+        yield server.url
 
 
 @dataclass
