@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import os
 import re
+import sys
 import tomllib
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -23,6 +24,8 @@ from plcstack.north.web.config_api import MAX_CONFIG_BYTES
 from plcstack.north.web.server import WebConsole
 from plcstack.north.web.settings import WebSettings
 from plcstack.poll.engine import Poller
+from plcstack.sim import e71 as e71_sim
+from plcstack.sim.melsec_memory import MelsecMemory
 from plcstack.tomlfile import TomlFile
 from tests.web_helpers import TOKEN, TOKEN_ENV
 
@@ -273,3 +276,91 @@ async def test_one_change_at_a_time(tmp_path: Path) -> None:
         {"ok": False, "errors": ["another configuration change is being applied"]},
     )
     assert len(files.changes) == 1
+
+
+# -- end to end: plcstack poll, its runtime's control -------------------------------------------
+@contextlib.asynccontextmanager
+async def plcstack_poll(path: Path) -> AsyncIterator[str]:
+    """``plcstack poll FILE --format none`` as a process, with the write token in its
+    environment; the console's base URL, from the line it says on stderr."""
+    env = {**os.environ, TOKEN_ENV: TOKEN}
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "plcstack", "poll", str(path), "--format", "none",
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.PIPE, env=env,
+    )  # fmt: skip
+    assert proc.stderr is not None
+    said: list[str] = []
+    try:
+        async with asyncio.timeout(20):
+            while not (m := re.search(r"web console on (http://\S+)/ ", said[-1] if said else "")):
+                line = await proc.stderr.readline()
+                assert line, f"plcstack poll ended: {''.join(said)}"
+                said.append(line.decode())
+        drain = asyncio.create_task(proc.stderr.read())  # the rest of its log, read as it comes
+        yield m.group(1)
+    finally:
+        if proc.returncode is None:
+            proc.terminate()
+        async with asyncio.timeout(20):
+            code = await proc.wait()
+    log = (await drain).decode()
+    assert code == 0, f"plcstack poll: exit {code}: {''.join(said)}{log}"
+
+
+async def test_plcstack_poll_takes_a_new_plc_over_rest_and_refuses_a_broken_file(
+    tmp_path: Path,
+) -> None:
+    """One ``plcstack poll`` with ``[web]``: ``POST /api/config`` adding a PLC starts polling
+    it (its value on ``/api/tags``), the file written and the old one kept as ``FILE.bak``;
+    a text that does not load is 400 with its FILE:LINE and changes nothing."""
+    memory = MelsecMemory()
+    memory.write_words("D", 100, [1500])
+    memory.write_words("D", 200, [4711])
+    path = tmp_path / "plant.toml"
+    start = (
+        f'[poll]\ninterval = 0.1\n[web]\nlisten = "127.0.0.1:0"\nwrite_token_env = "{TOKEN_ENV}"\n'
+    )
+    async with await e71_sim.start(memory) as sim:
+        first = (
+            start + f'[[plc]]\nname = "press1"\nurl = "{sim.url}"\ntags = {{ speed = "D100" }}\n'
+        )
+        second = (
+            first + f'[[plc]]\nname = "press2"\nurl = "{sim.url}"\ntags = {{ level = "D200" }}\n'
+        )
+        broken = (
+            second + f'[[plc]]\nname = "press3"\nurl = "{sim.url}"\ntags = {{ x = "DB1.DW0" }}\n'
+        )
+        path.write_text(first)
+        async with plcstack_poll(path) as base, aiohttp.ClientSession() as http:
+            async with http.get(base + "/api/config", headers=AUTH) as r:
+                shown = await r.text()
+            async with http.post(base + "/api/config", headers=AUTH, data=second) as r:
+                added = r.status, await r.json()
+
+            async def level() -> object:
+                async with http.get(base + "/api/tags?plc=press2") as r:
+                    rows = await r.json()
+                return rows[0]["value"] if rows else None
+
+            for _ in range(200):  # polled every 0.1 s: its value within 10 s
+                if await level() == 4711:
+                    break
+                await asyncio.sleep(0.05)
+            else:
+                raise AssertionError("press2 was not polled within 10 s of its POST")
+            async with http.post(base + "/api/config", headers=AUTH, data=broken) as r:
+                refused = r.status, await r.json()
+            async with http.get(base + "/api/plcs") as r:
+                plcs = sorted(row["name"] for row in await r.json())
+            written, kept = path.read_text(), path.with_name("plant.toml.bak").read_text()
+    assert shown == first
+    assert added == (
+        200,
+        {"ok": True, "summary": "PLCs added: press2; removed: none; changed: none"},
+    )
+    status, body = refused
+    assert status == 400 and body["ok"] is False, body
+    assert body["errors"][0].endswith(f"({path}:14)"), body
+    assert "S5" in body["errors"][0], body
+    assert plcs == ["press1", "press2"]
+    assert (written, kept) == (second, first)

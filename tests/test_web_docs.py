@@ -1,12 +1,14 @@
 """docs/web.md's quickstart runs as written: its configuration and every command of its ``sh``
-block, against a real ``plcstack sim e71`` and a real ``plcstack poll`` (both subprocesses), with
-real ``curl``; the documented ports replaced by free ones. A trailing comment that shows output
-must match (JSON compared as JSON)."""
+blocks, against a real ``plcstack sim e71`` and a real ``plcstack poll`` (both subprocesses),
+with real ``curl`` (each line in ``/bin/sh``, in the configuration's directory); the documented
+ports replaced by free ones. A trailing comment that shows output must match: JSON compared as
+JSON, a comment with ``...`` (any text) as a pattern of the whole output."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import shutil
 import subprocess
@@ -22,9 +24,10 @@ from tests.servers import free_port
 PAGE = Path(__file__).resolve().parents[1] / "docs" / "web.md"
 
 
-def _block(text: str, lang: str) -> str:
-    section = text.split("## Quickstart", 1)[1]
-    return section.split(f"```{lang}\n", 1)[1].split("```", 1)[0]
+def _blocks(text: str, lang: str) -> list[str]:
+    """The ``lang`` blocks of the Quickstart section, in order."""
+    section = text.split("## Quickstart", 1)[1].split("\n## ", 1)[0]
+    return re.findall(rf"```{lang}\n(.*?)```", section, flags=re.S)
 
 
 def _wait_line(proc: subprocess.Popen[str], stream: str, needle: str) -> str:
@@ -60,8 +63,9 @@ def test_web_quickstart_runs(tmp_path: Path, background: list[subprocess.Popen[s
     if shutil.which("curl") is None:
         pytest.fail("the quickstart uses curl, which is not installed")
     text = PAGE.read_text(encoding="utf-8")
-    toml = _block(text, "toml")
-    lines = [line.strip() for line in _block(text, "sh").splitlines() if line.strip()]
+    toml = _blocks(text, "toml")[0]
+    lines = [line.strip() for block in _blocks(text, "sh") for line in block.splitlines()]
+    lines = [line for line in lines if line]
     web_port = str(free_port())
     env = dict(os.environ)
     plcstack = [sys.executable, "-m", "plcstack"]
@@ -100,11 +104,24 @@ def test_web_quickstart_runs(tmp_path: Path, background: list[subprocess.Popen[s
             assert comment in _wait_line(proc, "stderr", "web console on")
         else:
             if argv[0] == "plcstack":
-                argv = [*plcstack, *argv[1:]]
-            done = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=30)
+                run: str | list[str] = [*plcstack, *argv[1:]]
+            else:  # as written, in /bin/sh (quotes, redirections), beside the configuration
+                run = substitute(command.strip())
+            done = subprocess.run(
+                run,
+                shell=isinstance(run, str),
+                cwd=tmp_path,
+                env=env,
+                capture_output=True,
+                text=True,
+                timeout=30,
+            )
             assert done.returncode == 0, (line, done.stderr)
             out = done.stdout.strip()
-            if argv[0] == "curl":
+            if "..." in comment:
+                pattern = ".*".join(re.escape(part) for part in comment.split("..."))
+                assert re.fullmatch(pattern, out), (line, out)
+            elif argv[0] == "curl" and out:
                 json.loads(out)  # every answer is JSON
                 if comment:
                     assert json.loads(out) == json.loads(comment), line
