@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import re
 import sys
@@ -18,11 +19,13 @@ import aiohttp
 from plcstack.config import load_config
 from plcstack.config.load import read_config
 from plcstack.errors import ConfigError
+from plcstack.north.audit import Audit, AuditSettings
 from plcstack.north.control import ApplyOutcome
 from plcstack.north.opcua_config import hash_password
 from plcstack.north.web.config_api import MAX_CONFIG_BYTES
 from plcstack.north.web.server import WebConsole
 from plcstack.north.web.settings import WebSettings
+from plcstack.north.writes import WritePath
 from plcstack.poll.engine import Poller
 from plcstack.sim import e71 as e71_sim
 from plcstack.sim.melsec_memory import MelsecMemory
@@ -95,7 +98,7 @@ class FileControl:
 
 @contextlib.asynccontextmanager
 async def console(
-    path: Path, *, token: str | None = TOKEN, control: bool = True
+    path: Path, *, token: str | None = TOKEN, control: bool = True, audit: Path | None = None
 ) -> AsyncIterator[tuple[str, FileControl]]:
     path.write_text(PLANT, encoding="utf-8")  # noqa: ASYNC240 (a test's file, written once)
     files = FileControl(path)
@@ -104,9 +107,11 @@ async def console(
         os.environ[TOKEN_ENV] = token
     try:
         async with Poller(load_config(path).poll) as poller:
+            audited = None if audit is None else Audit(AuditSettings(str(audit)))
             web = WebConsole(
                 poller,
                 WebSettings(port=0, write_token_env=TOKEN_ENV),
+                writes=WritePath(poller, audit=audited),
                 control=files if control else None,
             )
             await web.start()
@@ -276,6 +281,32 @@ async def test_one_change_at_a_time(tmp_path: Path) -> None:
         {"ok": False, "errors": ["another configuration change is being applied"]},
     )
     assert len(files.changes) == 1
+
+
+async def test_each_change_refused_here_is_a_record_of_the_audit(tmp_path: Path) -> None:
+    """A refused change is audited as a refused write is; a refused read is not a change."""
+    audit = tmp_path / "writes.jsonl"
+    async with (
+        console(tmp_path / "plant.toml", audit=audit) as (base, _),
+        aiohttp.ClientSession() as http,
+    ):
+        wrong = {"Authorization": "Bearer wrong"}
+        for method, route, headers, body in [
+            ("GET", "/api/config", wrong, b""),
+            ("POST", "/api/config/reload", wrong, b""),
+            ("POST", "/api/config", AUTH, b"x" * (MAX_CONFIG_BYTES + 1)),
+            ("POST", "/api/config", AUTH, b"password = '<redacted:0123456789ab>'\n"),
+        ]:
+            async with http.request(method, base + route, headers=headers, data=body) as r:
+                assert r.status >= 400
+    records = [json.loads(line) for line in audit.read_text().splitlines()]
+    assert [(r["kind"], r["result"]) for r in records] == [("config", "refused")] * 3
+    sources = [re.sub(r":\d+", ":PORT", r["source"]) for r in records]
+    assert sources == ["web 127.0.0.1:PORT"] + ["web 127.0.0.1:PORT (token)"] * 2
+    assert records[0]["summary"].startswith("a valid 'Authorization: Bearer TOKEN' is required")
+    assert records[1]["summary"] == f"the body is larger than {MAX_CONFIG_BYTES} bytes"
+    assert records[2]["summary"].startswith(f"{tmp_path / 'plant.toml'}:1: <redacted:0123456789ab>")
+    assert {r["file"] for r in records} == {str(tmp_path / "plant.toml")}
 
 
 # -- end to end: plcstack poll, its runtime's control -------------------------------------------

@@ -21,6 +21,11 @@ with such a marker keeps the running secret it stands for, so a file can be fetc
 and sent back without anyone seeing its secrets; a marker that stands for no running secret
 (shown by an earlier run, or the secret changed since) is refused with its line, and no file
 is ever written with a marker in it.
+
+A change refused here (no token or a wrong one, too large, not UTF-8, another change running, a
+marker that stands for no running secret) is said once per client per burst at WARNING and is
+one record of the ``[audit]`` (``"kind": "config"``, ``"result": "refused"``), as the runtime
+records each change it applies or refuses.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import asyncio
 import functools
 import json
 import logging
+import time
 from collections.abc import Coroutine
 from typing import Protocol
 
@@ -36,6 +42,7 @@ from aiohttp import web
 
 from plcstack.north.control import ApplyOutcome, ConfigControl
 from plcstack.north.web.api import peer_of, token_matches
+from plcstack.north.writes import WritePath
 from plcstack.redact import RedactionError, redact, restore
 from plcstack.transports.guard import FaceGuard
 
@@ -51,15 +58,17 @@ _compact = functools.partial(json.dumps, separators=(",", ":"))
 
 class ConfigConsole(Protocol):
     """What the routes need of the console: its write token, the running configuration's
-    control, and its guard (refusals said once per client per burst)."""
+    control, its guard (refusals said once per client per burst) and the run's write path
+    (whose audit records each refused change)."""
 
     token: str | None
     control: ConfigControl | None
     guard: FaceGuard
+    writes: WritePath
 
 
 def _answer(status: int, errors: list[str]) -> web.Response:
-    response = web.json_response({"ok": False, "errors": errors}, status=status, dumps=json.dumps)
+    response = web.json_response({"ok": False, "errors": errors}, status=status, dumps=_compact)
     if status == 401:
         response.headers["WWW-Authenticate"] = 'Bearer realm="plcstack"'
     return response
@@ -75,8 +84,20 @@ def config_routes(console: ConfigConsole) -> list[web.RouteDef]:
     busy = asyncio.Lock()  # one change from the console at a time; the next is told so
 
     def refused(request: web.Request, status: int, message: str) -> web.Response:
+        """A refusal decided here: said once per client per burst and, for a change (a
+        ``POST``), one record of the audit, as every write refused on its route is."""
         peer = peer_of(request) or "?"
         host = request.remote or peer
+        audit = console.writes.audit
+        if request.method == "POST" and audit is not None:
+            authorized = status not in (401, 403)
+            audit.config_change(
+                source=f"web {peer}" + (" (token)" if authorized else ""),
+                file=str(console.control.path) if console.control is not None else "",
+                ok=False,
+                summary=message,
+                now=time.time(),
+            )
         console.guard.bursts.event(
             (host, f"config {status}"),
             f"web console: refused {request.method} {request.path} from {peer}: {message}"
@@ -84,7 +105,7 @@ def config_routes(console: ConfigConsole) -> list[web.RouteDef]:
             f"web console: {{n}} more {request.method} {request.path} of {host} refused since"
             f" {{since}}: {message}",
         )
-        return _answer(status, [message])
+        return _answer(status, message.splitlines())
 
     def check(request: web.Request) -> tuple[ConfigControl | None, web.Response | None]:
         """The control, or the refusal: no token, a wrong one, a run without control."""
@@ -187,7 +208,7 @@ def config_routes(console: ConfigConsole) -> list[web.RouteDef]:
             path = str(control.path)
             return await asyncio.to_thread(restore, text, control.text(), source=path), None
         except RedactionError as exc:
-            return None, _answer(400, str(exc).splitlines())
+            return None, refused(request, 400, str(exc))
 
     return [
         web.get("/api/config", show),
