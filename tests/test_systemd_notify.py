@@ -277,6 +277,33 @@ async def test_reload_and_stop_hooks(sock: NotifySocket) -> None:
     ]
 
 
+async def test_nothing_but_the_reload_says_ready_after_reloading(sock: NotifySocket) -> None:
+    """A reload that takes a while (faces closed and started again): READY=1 comes when it is
+    over, not from the status loop in the meantime. Before: the loop saw the service not
+    ready, found every PLC scanned and said READY=1 within 50 ms of RELOADING=1."""
+    service = ServiceNotifier(  # a 100 ms watchdog: the loop looks every 50 ms
+        Notifier(sock.address, watchdog_usec=100_000),
+        ready=lambda: True,
+        status=lambda: "2 PLCs: 2 online",
+    )
+    task = await _running(service)
+    try:
+        await sock.arrival("READY")
+        service.reloading()
+        reloading = await sock.arrival("RELOADING")
+        await asyncio.sleep(0.3)  # six looks of the loop while the reload goes on
+        meanwhile = [m.names[0] for m in sock.received() if m.at > reloading.at]
+        # a ping is said after the loop's look at readiness: the loop did look, said no READY
+        assert meanwhile and set(meanwhile) == {"WATCHDOG"}, meanwhile
+        service.reloaded()
+        ready = await sock.arrival("READY", after=reloading.at)
+        assert ready.fields == (("READY", "1"), ("STATUS", "2 PLCs: 2 online"))
+        await asyncio.sleep(0.1)
+        assert [m for m in sock.with_field("READY") if m.at > reloading.at] == [ready]
+    finally:
+        await _stop(task)
+
+
 async def test_without_a_socket_nothing_happens() -> None:
     service = ServiceNotifier(Notifier(None), ready=lambda: True)
     assert not service.enabled

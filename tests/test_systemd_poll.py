@@ -4,8 +4,9 @@ listening.
 
 One run, in the order a service lives it: READY only after both PLCs had their first scan (one
 answers, one refuses the connection), with the status naming the offline one; watchdog pings at
-half the asked interval; SIGHUP between RELOADING=1 (dated) and READY=1, also when the file no
-longer loads (the run goes on); SIGTERM says STOPPING=1 and the run ends with 0.
+half the asked interval; SIGHUP between RELOADING=1 (dated) and READY=1, also when the reload
+adds a PLC (READY=1 once it is applied) and when the file no longer loads (the run goes on);
+SIGTERM says STOPPING=1 and the run ends with 0.
 """
 
 from __future__ import annotations
@@ -57,8 +58,22 @@ async def test_poll_under_systemd(tmp_path: Path) -> None:
             reloading = await sock.arrival("RELOADING", after=hangup)
             assert reloading.names[:2] == ["RELOADING", "MONOTONIC_USEC"]
             assert int(reloading.get("MONOTONIC_USEC") or 0) >= before
+            # sd_notify(3): RELOADING=1 carries CLOCK_MONOTONIC in µs of when the reload began
+            assert int(reloading.get("MONOTONIC_USEC") or 0) <= reloading.at * 1e6
             again = await sock.arrival("READY", after=reloading.at)
             assert again.get("STATUS") == "2 PLCs: 1 online, 1 offline (oven2)"
+
+            # a reload that changes something: READY=1 only once it is applied (the status
+            # counts the added PLC), and nothing says READY=1 between the two
+            text = config.read_text()
+            press1 = "[[plc]]" + text.split("[[plc]]")[1]
+            config.write_text(text + press1.replace('"press1"', '"kiln3"'))
+            hangup = time.monotonic()
+            proc.send_signal(signal.SIGHUP)
+            reloading = await sock.arrival("RELOADING", after=hangup)
+            applied = await sock.arrival("READY", after=reloading.at)
+            assert (applied.get("STATUS") or "").startswith("3 PLCs: "), applied
+            assert [m for m in sock.with_field("READY") if m.at > reloading.at] == [applied]
 
             config.write_text("[[plc]]\nname = 'x'\n")  # no url: does not load
             hangup = time.monotonic()
@@ -83,6 +98,7 @@ async def test_poll_under_systemd(tmp_path: Path) -> None:
     assert proc.returncode == 0, text
     assert "does not load, nothing changed" in text
     assert "reload (SIGHUP): PLCs added: none; removed: none; changed: none" in text
+    assert "reload (SIGHUP): PLCs added: kiln3; removed: none; changed: none" in text
 
 
 async def _ready_then_stopping(tmp_path: Path, *args: str) -> tuple[str, str]:

@@ -136,7 +136,17 @@ class RuntimeControl:
             service = running.service if running is not None else None
             if service is not None:
                 service.reloading()
-            outcome = await self._apply_locked(read, who, write, running)
+            try:
+                outcome = await self._apply_locked(read, who, write, running)
+            except BaseException as exc:  # READY=1 all the same: systemd waits for it
+                if service is not None:
+                    what = " ".join(str(exc).split())
+                    service.reloaded(
+                        status=f"reload failed part way: {type(exc).__name__}: {what}"
+                        if what
+                        else f"reload failed part way: {type(exc).__name__}"
+                    )
+                raise
             if service is not None:
                 service.reloaded(None if outcome.ok else " ".join(outcome.errors))
             return outcome

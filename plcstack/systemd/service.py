@@ -76,6 +76,10 @@ class ServiceNotifier:
         self._stall: str | None = None
         #: ``READY=1`` was sent (and not yet followed by ``RELOADING=1``)
         self.is_ready = False
+        #: between ``RELOADING=1`` and the reload's ``READY=1``: nothing else is said (a
+        #: reload that restarts faces takes a while; ``READY=1`` before it is over would tell
+        #: systemd the new configuration is in force while it is not yet)
+        self._reloading = False
         self._stopping = False
         #: watchdog pings sent, and the ones held back because ``alive()`` said why not
         self.pings = 0
@@ -99,9 +103,11 @@ class ServiceNotifier:
         next_ping = start
         while True:
             now = clock()
-            if not self.is_ready and not self._stopping:
+            if self._stopping or self._reloading:
+                pass  # the command says when that is over
+            elif not self.is_ready:
                 self._try_ready(now - start)
-            elif not self._stopping:
+            else:
                 self._say_status()
             if interval is not None and now >= next_ping:
                 self._ping()
@@ -156,17 +162,22 @@ class ServiceNotifier:
         """A reload begins: ``RELOADING=1`` (with ``MONOTONIC_USEC``); call :meth:`reloaded`
         when it is over, whatever its outcome."""
         self.is_ready = False
+        self._reloading = True
         self.notifier.reloading("reloading the configuration")
 
-    def reloaded(self, problem: str | None = None) -> None:
+    def reloaded(self, problem: str | None = None, *, status: str | None = None) -> None:
         """The reload is over: ``READY=1``, with the status, or with ``problem`` (the file that
-        did not load; the service runs on as before)."""
+        did not load; the service runs on as before), or with ``status`` as it is given (a
+        reload that failed part way)."""
         text = self._text()
         if problem is not None:
             text = f"reload failed, running as before: {problem}"
+        if status is not None:
+            text = status
         self.notifier.ready(text)
         self._said = text
         self.is_ready = True
+        self._reloading = False
 
     def stopping(self, status: str | None = None) -> None:
         """The command begins to stop: ``STOPPING=1``, once."""
