@@ -86,13 +86,33 @@ async def test_north_config_publishes_to_a_real_broker(
         config.write_text(text, encoding="utf-8")
         host, port = mosquitto.url.removeprefix("mqtt://").split(":")
         async with subscriber(host, int(port), "plcstack/press1/#") as sub:
-            poll = asyncio.create_task(
-                run("-m", "plcstack", "poll", str(config), "--format", "none", "--duration", "2")
+            # run until the first scan arrived, then stopped as a service is (SIGTERM, exit 0):
+            # a fixed --duration could end before a loaded machine had published anything
+            poll = await asyncio.create_subprocess_exec(
+                sys.executable,
+                "-m",
+                "plcstack",
+                "poll",
+                str(config),
+                "--format",
+                "none",
+                stdout=asyncio.subprocess.PIPE,
+                stderr=asyncio.subprocess.PIPE,
             )
-            await sub.wait_for(
-                lambda s: any(t == "plcstack/press1/data/default" for t, _ in s.messages),
-                timeout=20,
-            )
-            await poll
+            try:
+                await sub.wait_for(
+                    lambda s: (
+                        poll.returncode is not None
+                        or any(t == "plcstack/press1/data/default" for t, _ in s.messages)
+                    ),
+                    timeout=20,
+                )
+            finally:
+                if poll.returncode is None:
+                    poll.terminate()
+                async with asyncio.timeout(20):
+                    _, err = await poll.communicate()
+            assert poll.returncode == 0, err.decode()
     data = [json.loads(m) for t, m in sub.messages if t == "plcstack/press1/data/default"]
+    assert data, f"plcstack poll published no data: {err.decode()}"
     assert data[0]["values"]["strokes"] == 7 and data[0]["values"]["running"] is False
