@@ -21,8 +21,9 @@ unfrozen, collected, frozen again): above all the values of fixtures wider than 
 class, session), which die when their scope ends. So the first test of a module collects fully
 when such a fixture was torn down since the last full collection, so that what it held is freed
 and still reports (at worst in the first test of the next module), and at least every
-``FULL_COLLECTION_EVERY`` modules for anything else (a test that kept an object past its end).
-A full collection at every module start cost about 0.15 s each, a sixth of the suite's CPU.
+``FULL_COLLECTION_EVERY`` modules for anything else (a test that kept an object past its end),
+and after the last test of the process. A full collection at every module start cost about
+0.15 s each, a sixth of the suite's CPU.
 """
 
 from __future__ import annotations
@@ -89,22 +90,31 @@ class _Heap:
     starts = 0
     #: a fixture wider than a test was torn down since the last full collection
     wide_fixture_ended = True
+    #: the test being torn down is the last of this process
+    last_test = False
 
 
 def _collect_garbage(module: str) -> None:
     """Collect what the test left in reference cycles, walking only objects made since the heap
     was last frozen; when a new module starts, freeze what is left, after a full collection if
-    one is due."""
-    if module == _Heap.module:
+    one is due; after the last test, a full collection, so nothing frozen goes unreported."""
+    if module == _Heap.module and not _Heap.last_test:
         gc.collect()
         return
-    _Heap.module = module
-    _Heap.starts += 1
-    if _Heap.wide_fixture_ended or _Heap.starts >= FULL_COLLECTION_EVERY:
+    if module != _Heap.module:
+        _Heap.module = module
+        _Heap.starts += 1
+    if _Heap.wide_fixture_ended or _Heap.starts >= FULL_COLLECTION_EVERY or _Heap.last_test:
         _Heap.wide_fixture_ended, _Heap.starts = False, 0
         gc.unfreeze()
     gc.collect()
     gc.freeze()
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_teardown(nextitem: pytest.Item | None) -> None:
+    """Before the test's fixtures end: whether it is the last one (see _collect_garbage)."""
+    _Heap.last_test = nextitem is None
 
 
 def pytest_fixture_post_finalizer(fixturedef: pytest.FixtureDef[object]) -> None:

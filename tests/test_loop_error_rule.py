@@ -1,7 +1,8 @@
 """The rule of tests/conftest.py holds: a test whose event loop logged an unhandled exception
 fails, also when the failed task is only freed by the garbage collector (a reference cycle), in
 the first test of a module and in a later one (the conftest freezes the heap between them), and
-when a module's fixture held it until its module ended (frozen while alive, freed after)."""
+when a module's fixture held it until its module ended or a module kept it past its test (frozen
+while alive, freed after)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 INNER_CONFTEST = (
-    "from tests.conftest import _no_unhandled_loop_errors, pytest_fixture_post_finalizer"
-    "  # noqa: F401\n"
+    "from tests.conftest import (  # noqa: F401\n"
+    "    _no_unhandled_loop_errors, pytest_fixture_post_finalizer, pytest_runtest_teardown\n"
+    ")\n"
 )
 
 INNER_TESTS = """
@@ -86,6 +88,32 @@ def test_uses_it_again(held: dict[str, object]) -> None:
 
 NEXT_MODULE_TESTS = "def test_next() -> None:\n    pass\n"
 
+# a failed task in a cycle kept past its test by the module (frozen while alive), dropped by the
+# last test of the session: found by the full collection after the last test
+LAST_MODULE_TESTS = """
+import asyncio
+
+kept: list[dict[str, object]] = []
+
+
+async def _fail() -> None:
+    raise ValueError("kept past its test")
+
+
+def test_keeps_one() -> None:
+    loop = asyncio.new_event_loop()
+    task = loop.create_task(_fail())
+    loop.run_until_complete(asyncio.sleep(0))
+    loop.close()
+    holder: dict[str, object] = {"task": task}
+    holder["self"] = holder
+    kept.append(holder)
+
+
+def test_drops_it() -> None:
+    kept.clear()
+"""
+
 
 def test_a_failed_task_in_a_cycle_fails_its_own_test(
     pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch
@@ -107,17 +135,21 @@ def test_a_failed_task_in_a_cycle_fails_its_own_test(
         test_two=INNER_TESTS,
         test_wide=WIDE_FIXTURE_TESTS,
         test_x_next=NEXT_MODULE_TESTS,
+        test_y_last=LAST_MODULE_TESTS,
     )
     monkeypatch.setenv("PYTHONPATH", str(ROOT))  # the inner conftest imports tests.conftest
     result = pytester.runpytest_subprocess("-p", "no:xdist", "-p", "no:cacheprovider", "-rE")
     # the rule fails a test at teardown, so pytest counts its call as passed and adds an error
-    result.assert_outcomes(passed=11, errors=5)
+    result.assert_outcomes(passed=13, errors=6)
     failed = sorted(line.split()[1] for line in result.outlines if line.startswith("ERROR test_"))
     assert failed == [
         f"{m}::{t}"
         for m in ("test_one.py", "test_two.py")
         for t in ("test_first_of_module", "test_later_in_module")
-    ] + ["test_x_next.py::test_next"]  # the module fixture's task: in the next module's first
+    ] + [
+        "test_x_next.py::test_next",  # the module fixture's task: in the next module's first
+        "test_y_last.py::test_drops_it",  # the task kept past its test: in the last test
+    ]
     result.stdout.fnmatch_lines(
         [
             "the event loop logged 1 unhandled exception(s):",
@@ -126,4 +158,7 @@ def test_a_failed_task_in_a_cycle_fails_its_own_test(
     )
     result.stdout.fnmatch_lines(
         ["  Task exception was never retrieved (ValueError: held by a module's fixture)"]
+    )
+    result.stdout.fnmatch_lines(
+        ["  Task exception was never retrieved (ValueError: kept past its test)"]
     )
