@@ -73,8 +73,11 @@ class History(FaceBase):
         self.commit_every = commit_every
         self.queue_limit = queue_limit
         self.writer = writer or Writer(settings, clock=clock)
-        #: samples dropped because the writer was :data:`QUEUE_LIMIT` behind
+        #: samples dropped because the writer was :data:`QUEUE_LIMIT` behind, or because they
+        #: came after :meth:`aclose` began (``late``)
         self.dropped = 0
+        self.late = 0
+        self._closed = False
         self._pending: list[Sequence[Scan]] = []
         self._held = 0
         self._dropping = 0
@@ -95,6 +98,16 @@ class History(FaceBase):
         n = 0
         for scan in scans:
             n += len(scan.samples)
+        if self._closed:  # a reload closes this history and opens another: these fall between
+            if not self.late:
+                log.warning(
+                    "history: samples arrive while %s closes (a reload restarts the history):"
+                    " they are not recorded until it is open again; counted as dropped",
+                    self.settings.path,
+                )
+            self.late += n
+            self.dropped += n
+            return
         if self._held + n > self.queue_limit:
             if not self._dropping:
                 log.warning(
@@ -125,7 +138,10 @@ class History(FaceBase):
         self._task = self.supervisor.start(self.name, self._run)
 
     async def aclose(self) -> None:
-        """Write what is queued, checkpoint, close the file."""
+        """Write what is queued, checkpoint, close the file. Samples submitted from now on
+        are counted as dropped (said once): a reload that restarts the history hands the
+        next ones to the history it opens."""
+        self._closed = True
         if self._task is not None:
             await self._task.stop()
             self._task = None
