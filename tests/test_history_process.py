@@ -91,7 +91,7 @@ async def test_kill_9_leaves_a_sound_file_and_loses_at_most_the_last_second(
         points = await history.query("press", "count", killed - 60, killed, points=100_000)
     finally:
         await history.aclose()
-    values = [v for _, v in points]
-    assert len(points) == history.writer.stats.recovered
+    values = [v for _, v in points if isinstance(v, int)]
+    assert len(values) == len(points) == history.writer.stats.recovered
     assert values == sorted(values) and len(set(values)) > 10  # the counter, as it moved
     assert killed - points[-1][0] < 2.5, "more than the last second was lost"

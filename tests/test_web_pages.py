@@ -17,7 +17,7 @@ from plcstack.north.web.display import TagDisplay
 from plcstack.north.web.events import EventHub
 from plcstack.north.web.overview import PAGE_SIZE, select
 from plcstack.north.web.pages import overview_page
-from plcstack.north.web.state import ConsoleState, plc_row
+from plcstack.north.web.state import ConsoleState, PlcRow, plc_row
 from plcstack.poll.config import PlcConfig, PollConfig, TagConfig
 from plcstack.poll.samples import Quality, Scan, make_sample
 from plcstack.values import Scale
@@ -169,9 +169,23 @@ async def drain(client: Any) -> list[bytes]:
         names.append(data.split(b"\n", 1)[0])
 
 
+def _row(name: str) -> PlcRow:
+    return {
+        "name": name,
+        "tags": 2,
+        "up": True,
+        "state": "online",
+        "since": None,
+        "last_error": None,
+        "error_time": None,
+        "bad_tags": 0,
+        "requests": 0,
+    }
+
+
 def test_the_overview_stream_carries_the_rows_it_shows() -> None:
     state = fleet(3, tags=2)
-    rows = [{"name": f"line{i:04d}", "n": 0} for i in range(3)]
+    rows = [_row(f"line{i:04d}") for i in range(3)]
     hub = EventHub(state, lambda plc: rows, plcs_every=0.5)
 
     async def scenario() -> list[Any]:
@@ -179,7 +193,7 @@ def test_the_overview_stream_carries_the_rows_it_shows() -> None:
         assert client is not None
         snapshot = await client.next()
         for row in rows:
-            row["n"] = 1  # every row changes
+            row["requests"] = 1  # every row changes
         hub.push()
         await client.next()  # the snapshot's counts
         pushed = await client.next()
@@ -192,7 +206,7 @@ def test_the_overview_stream_carries_the_rows_it_shows() -> None:
 
 def test_the_overview_stream_carries_no_tags() -> None:
     state = fleet(3, tags=2)
-    hub = EventHub(state, lambda plc: [{"name": "line0000"}], plcs_every=0.5)
+    hub = EventHub(state, lambda plc: [_row("line0000")], plcs_every=0.5)
 
     async def scenario() -> tuple[list[bytes], list[bytes]]:
         overview = hub.connect(None, overview=True)

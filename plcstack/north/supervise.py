@@ -25,7 +25,6 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable, Coroutine, Sequence
-from typing import Any
 
 from plcstack.errors import PlcError
 from plcstack.north.health import Health
@@ -33,7 +32,10 @@ from plcstack.poll.samples import Quality, Sample, Scan
 from plcstack.resource import cancel_until_done
 from plcstack.transports.backoff import Backoff
 
-__all__ = ["Supervised", "Supervisor"]
+__all__ = ["Job", "Supervised", "Supervisor"]
+
+#: what a supervised task runs: a coroutine function of no arguments, called again on a restart
+Job = Callable[[], Coroutine[object, object, None]]
 
 log = logging.getLogger("plcstack.north.supervise")
 
@@ -58,7 +60,10 @@ class Supervised:
     """One supervised task: the current task of a factory that the supervisor restarts."""
 
     def __init__(
-        self, supervisor: Supervisor, name: str, factory: Callable[[], Coroutine[Any, Any, None]]
+        self,
+        supervisor: Supervisor,
+        name: str,
+        factory: Job,
     ) -> None:
         self.supervisor = supervisor
         self.name = name
@@ -138,7 +143,7 @@ class Supervisor:
         self.errors[name] = self.errors.get(name, 0) + n
 
     # -- tasks ----------------------------------------------------------------------------------
-    def start(self, name: str, factory: Callable[[], Coroutine[Any, Any, None]]) -> Supervised:
+    def start(self, name: str, factory: Job) -> Supervised:
         """Run ``factory()`` as a task named ``name``, restarted with backoff when it fails."""
         handle = Supervised(self, name, factory)
         self._tasks.append(handle)

@@ -31,6 +31,7 @@ from plcstack.north.history.store import Damaged, HistoryFile
 from plcstack.north.history.writer import Writer
 from plcstack.north.supervise import Supervised, Supervisor
 from plcstack.poll.samples import Scan
+from plcstack.values import TagValue
 
 if TYPE_CHECKING:
     from prometheus_client.core import Metric
@@ -269,7 +270,7 @@ class History(FaceBase):
     # -- queries --------------------------------------------------------------------------------
     async def query(
         self, plc: str, tag: str, start: float, end: float, points: int = 1000
-    ) -> list[tuple[float, Any]]:
+    ) -> list[tuple[float, TagValue | None]]:
         """The points of one tag from ``start`` to ``end`` (Unix seconds), at most ``points``
         (min and max per bucket beyond that), oldest first; the first may be older than
         ``start``: the value that held then. A bad-quality point's value is None."""

@@ -31,7 +31,7 @@ from typing import Any, Protocol
 
 from aiohttp import web
 
-from plcstack.north.web.state import ConsoleState, tag_row
+from plcstack.north.web.state import ConsoleState, PlcRow, tag_row
 from plcstack.transports.peer import peer_address
 
 __all__ = ["MAX_PENDING_WRITES", "ConsoleApi", "json_body", "peer_of", "routes"]
@@ -44,7 +44,7 @@ class ConsoleApi(Protocol):
     state: ConsoleState
     token: str | None
 
-    def plc_rows(self, plc: str | None) -> list[dict[str, Any]]: ...
+    def plc_rows(self, plc: str | None) -> list[PlcRow]: ...
 
     async def write(
         self, plc: str, tag: str, value: object, *, peer: str | None

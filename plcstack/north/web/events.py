@@ -40,7 +40,7 @@ import logging
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from plcstack.north.web.state import ConsoleState
+from plcstack.north.web.state import ConsoleState, PlcRow
 from plcstack.poll.samples import Sample
 
 __all__ = ["MAX_CLIENTS", "PUSH_EVERY", "QUEUE_LIMIT", "EventClient", "EventHub", "sse"]
@@ -134,7 +134,7 @@ class EventHub:
     def __init__(
         self,
         state: ConsoleState,
-        plc_rows: Callable[[str | None], list[dict[str, Any]]],
+        plc_rows: Callable[[str | None], list[PlcRow]],
         *,
         push_every: float = PUSH_EVERY,
         plcs_every: float = PLCS_EVERY,
@@ -149,7 +149,7 @@ class EventHub:
         self.clients: set[EventClient] = set()
         self.dropped = 0
         self._since_plcs = 0.0
-        self._last_plcs: dict[str, dict[str, Any]] = {}
+        self._last_plcs: dict[str, PlcRow] = {}
         self._last_counts: dict[str, int] = {}
 
     def connect(

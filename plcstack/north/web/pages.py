@@ -18,12 +18,11 @@ from __future__ import annotations
 
 import datetime
 import html
-from collections.abc import Iterable
-from typing import Any
+from collections.abc import Iterable, Mapping
 from urllib.parse import quote, urlencode
 
 from plcstack.north.web.overview import PAGE_SIZE, SORTS, Selection
-from plcstack.north.web.state import ConsoleState
+from plcstack.north.web.state import ConsoleState, PlcRow
 
 __all__ = [
     "PLC_HEAD",
@@ -107,7 +106,20 @@ def document(
     )
 
 
-def plc_rows_html(rows: Iterable[dict[str, Any]], *, link: bool, error: bool = True) -> str:
+#: the row the page's template is rendered from (the script fills its cells)
+_EMPTY_ROW: PlcRow = {
+    "name": "",
+    "tags": 0,
+    "up": None,
+    "state": "unknown",
+    "since": None,
+    "last_error": None,
+    "error_time": None,
+    "bad_tags": 0,
+}
+
+
+def plc_rows_html(rows: Iterable[PlcRow], *, link: bool, error: bool = True) -> str:
     """PLC rows: state, since when, tags (and how many are bad), the error while it matters
     (offline, or some tags bad; not with ``error=False``), requests, errors, p99."""
     out = []
@@ -115,12 +127,14 @@ def plc_rows_html(rows: Iterable[dict[str, Any]], *, link: bool, error: bool = T
         name = esc(r["name"])
         label = f'<a href="/plc/{esc(quote(r["name"], safe=""))}">{name}</a>' if link else name
         state = r["state"]
-        bad = r.get("bad_tags") or 0
-        tags = f"{r.get('tags', '')}" + (f" ({bad} bad)" if bad else "")
+        bad = r["bad_tags"]
+        tags = f"{r['tags'] if r['name'] else ''}" + (f" ({bad} bad)" if bad else "")
         last = r["last_error"] if state in ("offline", "errors") else None
         error_cell = f'<td class="last_error">{error_text(last)}</td>' if error else ""
+        values: Mapping[str, object] = r
         cells = "".join(
-            f'<td class="{c} num">{esc("" if r.get(c) is None else r[c])}</td>' for c in _STAT_CELLS
+            f'<td class="{c} num">{esc("" if values.get(c) is None else values[c])}</td>'
+            for c in _STAT_CELLS
         )
         out.append(
             f'<tr data-plc="{name}"><td class="name">{label}</td>'
@@ -177,7 +191,7 @@ def pager(selection: Selection) -> str:
 def overview_page(
     state: ConsoleState,
     selection: Selection,
-    rows: list[dict[str, Any]],
+    rows: list[PlcRow],
     *,
     trend_seconds: int,
     history: bool,
@@ -187,9 +201,7 @@ def overview_page(
         f'<option value="{key}"{" selected" if key == selection.sort else ""}>{esc(text)}</option>'
         for key, text in SORTS.items()
     )
-    template = plc_rows_html(
-        [{"name": "", "state": "unknown", "since": None, "last_error": None}], link=True
-    )
+    template = plc_rows_html([_EMPTY_ROW], link=True)
     body = (
         f"{_counts(state.counts())}"
         '<form id="filter" method="get" action="/" role="search">'

@@ -15,7 +15,6 @@
 from __future__ import annotations
 
 import json
-from typing import Any
 from urllib.parse import quote
 
 from plcstack.north.web.pages import (
@@ -26,7 +25,7 @@ from plcstack.north.web.pages import (
     plc_rows_html,
     time_tag,
 )
-from plcstack.north.web.state import ConsoleState
+from plcstack.north.web.state import ConsoleState, PlcRow
 from plcstack.poll.config import TagConfig
 
 __all__ = ["PER_CHART", "RANGES", "plc_page"]
@@ -146,7 +145,7 @@ _CONFIRM = (
 def plc_page(
     state: ConsoleState,
     plc: str,
-    plc_rows: list[dict[str, Any]],
+    plc_rows: list[PlcRow],
     *,
     trend_seconds: int,
     writes_enabled: bool,

@@ -45,7 +45,7 @@ from plcstack.north.web.overview import Selection, select
 from plcstack.north.web.pages import esc, overview_page
 from plcstack.north.web.plc_page import plc_page
 from plcstack.north.web.settings import WebSettings
-from plcstack.north.web.state import ConsoleState, plc_row
+from plcstack.north.web.state import ConsoleState, PlcRow, plc_row
 from plcstack.north.writes import WritePath
 from plcstack.poll.samples import Scan
 from plcstack.transports.guard import FaceGuard, GuardedProtocol
@@ -251,10 +251,10 @@ class WebConsole(FaceBase):
         self.guard.close()
 
     # -- data -----------------------------------------------------------------------------------
-    def plc_rows(self, plc: str | None) -> list[dict[str, Any]]:
+    def plc_rows(self, plc: str | None) -> list[PlcRow]:
         return self.rows_of(list(self.state.health) if plc is None else [plc])
 
-    def rows_of(self, names: list[str]) -> list[dict[str, Any]]:
+    def rows_of(self, names: list[str]) -> list[PlcRow]:
         """The rows of these PLCs (health, counters, how many tags)."""
         stats = self.poller.stats
         health, plcs = self.state.health, self.state.plcs

@@ -18,7 +18,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NotRequired, TypedDict
 
 from plcstack.north.layout import Reachability
 from plcstack.north.web.display import TagDisplay
@@ -272,10 +272,29 @@ def tag_row(state: ConsoleState, s: Sample) -> dict[str, Any]:
     }
 
 
-def plc_row(name: str, health: PlcHealth, stats: PlcStats | None, tags: int = 0) -> dict[str, Any]:
+class PlcRow(TypedDict):
+    """One PLC's row as the console's pages, events and REST API carry it; the counters are
+    there once the poller has statistics of the PLC."""
+
+    name: str
+    tags: int
+    up: bool | None
+    state: str
+    since: float | None
+    last_error: str | None
+    error_time: float | None
+    bad_tags: int
+    requests: NotRequired[int]
+    errors: NotRequired[int]
+    reconnects: NotRequired[int]
+    p50_ms: NotRequired[float | None]
+    p99_ms: NotRequired[float | None]
+
+
+def plc_row(name: str, health: PlcHealth, stats: PlcStats | None, tags: int = 0) -> PlcRow:
     """One PLC's health and counters (``tags``: how many it has); p50/p99 in ms over its last
     256 requests."""
-    row: dict[str, Any] = {
+    row: PlcRow = {
         "name": name,
         "tags": tags,
         "up": health.up,
@@ -287,11 +306,9 @@ def plc_row(name: str, health: PlcHealth, stats: PlcStats | None, tags: int = 0)
     }
     if stats is not None:
         p50, p99 = stats.percentiles((50, 99), newest=PERCENTILE_WINDOW)
-        row.update(
-            requests=stats.requests,
-            errors=stats.errors,
-            reconnects=stats.reconnects,
-            p50_ms=None if p50 is None else round(p50 * 1000.0, 3),
-            p99_ms=None if p99 is None else round(p99 * 1000.0, 3),
-        )
+        row["requests"] = stats.requests
+        row["errors"] = stats.errors
+        row["reconnects"] = stats.reconnects
+        row["p50_ms"] = None if p50 is None else round(p50 * 1000.0, 3)
+        row["p99_ms"] = None if p99 is None else round(p99 * 1000.0, 3)
     return row
