@@ -22,17 +22,21 @@ from plcstack.cli import main
 from plcstack.logs import JsonFormatter, formatter, journal_priority, on_journal
 from plcstack.sim import e71
 from plcstack.sim.melsec_memory import MelsecMemory
+from tests.aio_helpers import eventually
 from tests.systemd_helpers import two_plcs
 
 ROOT = Path(__file__).resolve().parent.parent
 
 TERMINAL = re.compile(r"\d\d:\d\d:\d\d (DEBUG|INFO|WARNING|ERROR|CRITICAL) plcstack[\w.]*: .+")
 JOURNAL = re.compile(r"<[2-7]>plcstack[\w.]*: .+")
+#: what every format says of the two PLCs of ``poll_with_stderr``
+SAID = ("PLC press1 is online", "PLC oven2 is offline: ")
 
 
 async def poll_with_stderr(tmp_path: Path, *options: str, journal: str | None = None) -> list[str]:
-    """``plcstack OPTIONS poll`` of one PLC that answers and one that refuses, for 0.6 s, stderr
-    into a file; ``journal``: what JOURNAL_STREAM says ("this": the file's own device:inode).
+    """``plcstack OPTIONS poll`` of one PLC that answers and one that refuses, stderr into a
+    file, until it said both (then SIGTERM: a fixed --duration can end first on a loaded
+    machine); ``journal``: what JOURNAL_STREAM says ("this": the file's own device:inode).
     The stderr lines, without the statistics table."""
     sim = await e71.start(MelsecMemory())
     config = two_plcs(tmp_path, sim.url, 0.2)
@@ -45,10 +49,22 @@ async def poll_with_stderr(tmp_path: Path, *options: str, journal: str | None = 
                 env["JOURNAL_STREAM"] = f"{st.st_dev}:{st.st_ino}" if journal == "this" else journal
             proc = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "plcstack", *options, "poll", str(config),
-                "--format", "none", "--duration", "0.6", "-v",
+                "--format", "none", "-v",
                 cwd=ROOT, env=env, stdout=asyncio.subprocess.DEVNULL, stderr=stream,
             )  # fmt: skip
-            assert await asyncio.wait_for(proc.wait(), 30) == 0, err.read_text()
+            try:
+                await eventually(
+                    lambda: (
+                        proc.returncode is not None or all(said in err.read_text() for said in SAID)
+                    ),
+                    "plcstack poll said both PLCs' states",
+                    timeout=30,
+                )
+            finally:
+                if proc.returncode is None:
+                    proc.terminate()
+                code = await asyncio.wait_for(proc.wait(), 30)
+            assert code == 0, err.read_text()
     finally:
         await sim.aclose()
     text = err.read_text()

@@ -136,12 +136,19 @@ temperature = {{ address = "DB10.DW0", type = "int16" }}
             encoding="utf-8",
         )
         path = tmp_path / "poll.pcapng"
-        async with plcstack_process(
-            "poll", str(config), "--duration", "0.5", "--pcap", str(path)
-        ) as proc:
-            out, err = await asyncio.wait_for(proc.communicate(), 30)
+        async with plcstack_process("poll", str(config), "--pcap", str(path)) as proc:
+            # until each PLC was read twice, then stopped as a service is (SIGTERM, exit 0): a
+            # fixed --duration 0.5 ended before the second read of one of them under load
+            assert proc.stdout is not None
+            out = b""
+            async with asyncio.timeout(30):
+                while out.count(b'"strokes"') < 2 or out.count(b'"temperature"') < 2:
+                    line = await proc.stdout.readline()
+                    assert line, f"poll ended after {out!r}"
+                    out += line
+            proc.send_signal(signal.SIGTERM)
+            _, err = await asyncio.wait_for(proc.communicate(), 30)
             assert proc.returncode == 0, err.decode()
-        assert out.count(b'"strokes"') >= 2 and out.count(b'"temperature"') >= 2
         ports = {port for port, _ in payloads(path)}
         assert {e71.port, lan.port} <= ports
     finally:
