@@ -144,14 +144,24 @@ strokes = {{ address = "D100", type = "uint16" }}
     )
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "plcstack", "poll", str(config), "--duration", "2.5",
+        sys.executable, "-m", "plcstack", "poll", str(config),
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=env,
     )  # fmt: skip
     try:
-        assert proc.stdout is not None
+        assert proc.stdout is not None and proc.stderr is not None
         await asyncio.wait_for(proc.stdout.readline(), 30)  # polling: a first sample
         await sim.aclose()  # the PLC goes away while it is polled
-        _, err = await asyncio.wait_for(proc.communicate(), 30)
+        # until it said so, then stopped as a service is (SIGTERM): a fixed --duration could
+        # end first on a loaded machine
+        said_offline = b""
+        async with asyncio.timeout(30):
+            while b"press went offline" not in said_offline:
+                line = await proc.stderr.readline()
+                assert line, f"poll ended before saying the PLC went offline: {said_offline!r}"
+                said_offline += line
+        proc.terminate()
+        _, rest = await asyncio.wait_for(proc.communicate(), 30)
+        err = said_offline + rest
     finally:
         if proc.returncode is None:
             proc.kill()
