@@ -170,10 +170,19 @@ buffer_path = "queue.sqlite"
         async with subscriber(mosquitto.host, mosquitto.port, "plcstack/+/data/#") as sub:
             proc = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "plcstack", "poll", str(config), "--format", "none",
-                "--duration", "1", cwd=ROOT, stderr=asyncio.subprocess.PIPE,
+                cwd=ROOT, stderr=asyncio.subprocess.PIPE,
             )  # fmt: skip
-            _, stderr = await asyncio.wait_for(proc.communicate(), 30)
-            await sub.wait_for(lambda s: len(s.messages) > 0)
+            try:
+                # until it published, then stopped as a service is (SIGTERM): a fixed
+                # --duration could end before a loaded machine had published anything
+                await sub.wait_for(
+                    lambda s: proc.returncode is not None or len(s.messages) > 0, timeout=30
+                )
+            finally:
+                if proc.returncode is None:
+                    proc.terminate()
+                _, stderr = await asyncio.wait_for(proc.communicate(), 30)
+            assert sub.messages, stderr.decode()
     finally:
         await sim.aclose()
     err = stderr.decode()
