@@ -11,6 +11,7 @@ import os
 import signal
 import struct
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -175,24 +176,40 @@ temperature = {{ address = "DB10.DW0", type = "int16" }}
     return path
 
 
-async def _poll(config: Path, *extra: str, duration: float = 1.0) -> list[dict[str, object]]:
+async def _poll(
+    config: Path, *extra: str, enough: Callable[[list[dict[str, object]]], bool]
+) -> list[dict[str, object]]:
+    """``plcstack poll`` until its samples are ``enough``, then SIGTERM (exit 0): every sample
+    it printed. A fixed --duration gave a loaded machine fewer scans than the checks need, and
+    an idle one waited it out."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "plcstack",
-        "poll",
-        str(config),
-        "--duration",
-        str(duration),
-        *extra,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-        env=env,
-    )
-    out, err = await asyncio.wait_for(proc.communicate(), 60)
+        sys.executable, "-m", "plcstack", "poll", str(config), *extra,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=env,
+    )  # fmt: skip
+    samples: list[dict[str, object]] = []
+    try:
+        assert proc.stdout is not None
+        async with asyncio.timeout(30):
+            while not enough(samples):
+                line = await proc.stdout.readline()
+                assert line, f"poll ended after {len(samples)} samples"
+                samples.append(json.loads(line))
+        proc.terminate()
+        out, err = await asyncio.wait_for(proc.communicate(), 30)
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
     assert proc.returncode == 0, err.decode()
-    return [json.loads(line) for line in out.decode().splitlines()]
+    return samples + [json.loads(line) for line in out.decode().splitlines()]
+
+
+def _each_tag_at_least(n: int) -> Callable[[list[dict[str, object]]], bool]:
+    """Enough once each of the three tags of ``_config`` has ``n`` samples."""
+    return lambda samples: (
+        len(_series(samples)) == 3 and all(len(v) >= n for v in _series(samples).values())
+    )
 
 
 Series = dict[tuple[object, object], list[tuple[object, object]]]
@@ -228,8 +245,15 @@ async def test_a_replayed_poll_gives_the_same_samples(
     changer = asyncio.create_task(change())
     capture = tmp_path / "plant.pcapng"
     try:
+        config = _config(tmp_path / "plant.toml", e71.url, lan.url)
         recorded = await _poll(
-            _config(tmp_path / "plant.toml", e71.url, lan.url), "--pcap", str(capture)
+            config,
+            "--pcap",
+            str(capture),
+            enough=lambda s: (
+                _each_tag_at_least(5)(s)
+                and len({v for v, _ in _series(s)[("press", "strokes")]}) > 3
+            ),
         )
     finally:
         running = False
@@ -249,10 +273,10 @@ async def test_a_replayed_poll_gives_the_same_samples(
             f"e71+tcp://{urls[f'127.0.0.1:{e71_port}']}",
             f"s5lan://{urls[f'127.0.0.1:{lan_port}']}",
         )
-        # longer than the recording: where the recording's requests are used up the replay
-        # starts again from the first (the S5-LAN client numbers its requests in UserCode:
-        # they are still the recorded ones; how far a loaded machine gets is not asserted)
-        replayed = _series(await _poll(config, duration=1.6))
+        # five of each, as many as the recording has at least: where the recording's requests
+        # are used up the replay starts again from the first (the S5-LAN client numbers its
+        # requests in UserCode: they are still the recorded ones)
+        replayed = _series(await _poll(config, enough=_each_tag_at_least(5)))
         said = [r.getMessage() for r in caplog.records if r.name == "plcstack.wire.replay"]
         assert sim.mismatches == 0, said
     finally:
