@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 from collections.abc import AsyncIterator, Callable
 
 import pytest
@@ -187,3 +188,37 @@ async def test_a_worker_writes_the_plcs_it_holds_through_the_one_write_path(
         )
         assert "does not poll it now (worker b does)" in refused.message
         assert fleet.watch[theirs].sim.memory.read_words("D", 0, 1) == [0]
+
+
+async def test_a_worker_applies_a_reloaded_file_to_the_plcs_it_polls(
+    mosquitto: Mosquitto,
+) -> None:
+    """SIGHUP in a worker: the fleet's new file applied as a Poller applies it. A removed PLC
+    stops, an added one starts (alone, this worker owns every PLC), a changed one is planned
+    again on its open connection; the others keep their connection."""
+    from plcstack.poll.diff import plc_changes
+
+    async with Fleet(4, interval=INTERVAL) as fleet:
+        config = fleet_config(fleet)
+        first = dataclasses.replace(config, plcs=config.plcs[:3])
+        async with worker(first, "a", mosquitto.url, None) as a:
+            await until(lambda: a.owned == {"plc00", "plc01", "plc02"})
+            await until(lambda: all(a.stats[p].scans >= 2 for p in a.owned))
+            changed = dataclasses.replace(
+                config.plcs[2], tags=(TagConfig("x", "D0"), TagConfig("y", "D10"))
+            )
+            new = dataclasses.replace(
+                config, plcs=(config.plcs[0], changed, config.plcs[3])
+            )  # plc01 removed, plc02 changed, plc03 added
+            applied = await a.apply(plc_changes(first, new))
+            assert (applied.added, tuple(applied.removed), applied.replanned) == (
+                ("plc03",),
+                ("plc01",),
+                ("plc02",),
+            )
+            await until(lambda: a.owned == {"plc00", "plc02", "plc03"})
+            assert set(a.tags("plc02")) == {"x", "y"}
+            await until(lambda: fleet.watch["plc01"].sim.connection_count.current == 0)
+            for plc in ("plc00", "plc02"):  # one connection all along
+                assert fleet.watch[plc].sim.connection_count.total == 1, plc
+            await until(lambda: a.stats["plc03"].scans >= 2)
