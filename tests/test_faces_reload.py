@@ -10,7 +10,12 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
+import os
+import signal
+import subprocess
+import sys
 from collections.abc import AsyncIterator
+from pathlib import Path
 
 import pytest
 
@@ -26,6 +31,8 @@ from plcstack.sim.s5memory import S5Memory
 from plcstack.url import parse_url
 from tests.faces_helpers import RawStream
 from tests.ports import free_port
+
+ROOT = Path(__file__).resolve().parents[1]
 
 PLCS = """
 [poll]
@@ -255,3 +262,68 @@ async def test_watch_says_a_face_queue_that_stopped_by_itself_but_not_one_closed
             writer.close()
         for client in clients.values():
             await client.aclose()
+
+
+def _gateway(port: int, writable: str = "") -> str:
+    return (
+        f'\n[[gateway]]\nprotocol = "s5lan"\nlisten = "127.0.0.1:{port}"\nplc = "kiln1"\n'
+        f'writable = "{writable}"\n'
+    )
+
+
+async def _line_with(stream: asyncio.StreamReader, text: str) -> str:
+    async with asyncio.timeout(20):
+        while True:
+            line = (await stream.readline()).decode()
+            assert line, f"plcstack poll ended before it said {text!r}"
+            if text in line:
+                return line
+
+
+async def test_sighup_applies_gateway_entries_in_plcstack_poll_and_the_run_goes_on(
+    tmp_path: Path,
+) -> None:
+    """Before: a reload said [[gateway]] waited for a restart; and the run watched the face
+    queues of its start, so a reload that closed one would have ended the run."""
+    a, b = free_port(), free_port()
+    config = tmp_path / "plant.toml"
+    plc = '[poll]\ninterval = 0.05\n[[plc]]\nname = "kiln1"\nurl = "{url}"\n'
+    plc += '[plc.tags]\nv = "DB1.DW0"\n'
+    async with await lan_sim.start(_memory(0x1111)) as module:
+        plc = plc.format(url=module.url)
+        config.write_text(plc + _gateway(a, "DB10"))
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "plcstack", "-v", "poll", str(config), "--format", "none",
+            "--duration", "60",
+            stderr=subprocess.PIPE, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT,
+        )  # fmt: skip
+        assert proc.stderr is not None
+        try:
+            await _line_with(proc.stderr, f"listening on 127.0.0.1:{a}")
+            on_a = await RawStream.open("127.0.0.1", a, lan_codec.ClientConnection())
+            assert await _ask(on_a) == 0x1111
+            # a's entry changed, b new: a restarts alone, b starts
+            config.write_text(plc + _gateway(a, "DB10-11") + _gateway(b))
+            proc.send_signal(signal.SIGHUP)
+            said = await _line_with(proc.stderr, "reload (SIGHUP)")
+            assert f"[[gateway]] faces: 1 started (s5lan face of kiln1 on 127.0.0.1:{b}" in said
+            assert f"1 restarted (s5lan face of kiln1 on 127.0.0.1:{a} (TCP))" in said
+            assert await _closed(on_a)
+            on_b = await RawStream.open("127.0.0.1", b, lan_codec.ClientConnection())
+            assert await _ask(on_b) == 0x1111
+            # every face removed: their queue closes, and the run goes on
+            config.write_text(plc)
+            proc.send_signal(signal.SIGHUP)
+            said = await _line_with(proc.stderr, "reload (SIGHUP)")
+            assert "[[gateway]] faces: 0 started, 0 restarted, 2 closed" in said, said
+            assert await _closed(on_b)
+            await asyncio.sleep(0.5)
+            assert proc.returncode is None, "the run ended when its faces were closed"
+            await on_a.aclose()
+            await on_b.aclose()
+        finally:
+            if proc.returncode is None:
+                proc.terminate()
+            _, err = await asyncio.wait_for(proc.communicate(), 10)
+        assert proc.returncode == 0, err.decode()
+        assert module.connection_count.peak == 1

@@ -127,9 +127,10 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
     faces: list[Face] = [StdoutLines(text, out)] if text is not None else []
     # every face of the file, built
     north = North(poller, north_config, faces=faces, control=control)
-    # [[gateway]]: the native faces, on the PLCs' connections (not a scale-out worker's)
+    # [[gateway]]: the native faces, on the PLCs' connections (not a scale-out worker's);
+    # none in the file is none yet: a reload may add some
     natives = None
-    if whole.gateway and isinstance(poller, Poller):
+    if isinstance(poller, Poller):
         natives = gateway_faces(whole.gateway, poller.client, north.writes)
     return await run_north(
         "poll",

@@ -32,7 +32,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -200,10 +200,16 @@ class RuntimeControl:
         faces = await running.north.apply(new.north, update, tables)
         waiting = [f"[poll] {key}" for key in applied.not_applied] + list(faces.not_applied)
         failed = list(faces.failed)
-        if "gateway" in changes.tables:
+        natives, said = running.natives, ""
+        if natives is not None:
+            # after the poller: a PLC it connected anew gets its faces on the new connection
+            native = await natives.apply(new.gateway)
+            failed.extend(native.failed)
+            if native.started or native.restarted or native.closed:  # failures: in failed
+                said = f"; [[gateway]] {replace(native, failed=()).summary()}"
+        elif "gateway" in changes.tables:
             waiting.append("[[gateway]]")
-        line = _line(update, faces.restarted, waiting, failed)
-        return line, failed
+        return _line(update, faces.restarted, waiting, failed) + said, failed
 
     def _refuse(self, who: str, exc: Exception) -> ApplyOutcome:
         """A file that does not load: one ERROR line, the same errors as at start, nothing

@@ -172,10 +172,11 @@ async def _serve(
     helpers = {consumer, stopper, notifier, reloader}
     if stats_every is not None:
         helpers.add(asyncio.create_task(_report_stats(poller, stats_every), name="the statistics"))
-    # a PLC's face queue that ends ends the run (its faces close them, not this)
-    watched = helpers | set(natives.workers if natives is not None else ())
+    if natives is not None:
+        # a PLC's face queue that stops by itself ends the run; one a reload closed does not
+        helpers.add(asyncio.create_task(natives.watch(), name="the native faces"))
     try:
-        done, _ = await asyncio.wait(watched, timeout=duration, return_when=asyncio.FIRST_COMPLETED)
+        done, _ = await asyncio.wait(helpers, timeout=duration, return_when=asyncio.FIRST_COMPLETED)
     finally:
         for task in (*helpers, announcer):
             task.cancel()
