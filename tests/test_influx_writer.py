@@ -174,10 +174,11 @@ async def test_wrong_credentials_stop_the_writer_once(
             await sink.aclose(drain=0)
     assert len(sink.buffer) == 4 and sink.stats.written == 0
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
-    assert len(errors) == 1, errors
+    assert len(errors) == 2, errors
     assert errors[0].startswith(
         f"influx: InfluxDB at {influx_auth.url} refused the credentials (401"
     )
+    assert errors[1].startswith("influx: 4 lines not written are lost as the writer closes")
     assert sink.link.problem is not None and "refused the credentials" in sink.link.problem
 
 
@@ -260,9 +261,13 @@ async def test_5xx_is_retried_in_order(
     assert "takes writes again" in said[1]
 
 
-async def test_an_outage_is_held_and_replayed(influx: Influxd, tmp_path: Path) -> None:
+async def test_an_outage_is_held_and_replayed(
+    influx: Influxd, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     """influxd stopped: lines wait; a stop of the writer keeps them on disk; the next writer
-    on the same file writes them first, then its own."""
+    on the same file writes them first, then its own (as a reload restarting the writer does).
+    Scans handed to the closed writer in between are counted and said once (before: queued in
+    the memory of a closed queue, lost without a word)."""
     path = tmp_path / "influx.sqlite"
     first = await running(
         InfluxSink(settings(influx.url, reconnect_max=0.2, buffer_path=str(path)), CONFIG.plcs)
@@ -276,6 +281,15 @@ async def test_an_outage_is_held_and_replayed(influx: Influxd, tmp_path: Path) -
         await asyncio.sleep(0.3)
     finally:
         await first.aclose()
+    with caplog.at_level(logging.WARNING, logger="plcstack.north.influx"):
+        first.submit([scan(90)])
+        first.submit([scan(91)])
+    assert first.stats.late == 2 and len(first.buffer) == 4  # the 4 kept on disk, no more
+    late = [r.getMessage() for r in caplog.records if "after the writer closed" in r.getMessage()]
+    assert late == [
+        "influx: lines arrive after the writer closed (a reload restarts it): they are not"
+        " written; counted"
+    ]
     assert first.stats.written == 1 and first.stats.held == 4
     assert "4 not delivered (kept in" in first.summary()
     influx.start()
@@ -344,3 +358,19 @@ def test_config_reads_durations_and_sizes_as_mqtt_does() -> None:
     assert parse_influx({"url": "http://h", "database": "p", "batch_wait": 0}).batch_wait == 0
     mqtt = parse_mqtt({"buffer_memory": "1 MiB", "buffer_max": "2 GiB"})
     assert (mqtt.buffer_memory, mqtt.buffer_max) == (parsed.buffer_memory, parsed.buffer_max)
+
+
+async def test_a_close_without_buffer_path_says_what_it_loses(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Before: the lines left in memory went with the closed writer without a word (the run's
+    summary said it at the end of a run, but a reload restarting the writer prints none)."""
+    sink = await running(InfluxSink(settings(f"http://127.0.0.1:{free_port()}"), CONFIG.plcs))
+    sink.submit([scan(0), scan(1)])
+    with caplog.at_level(logging.WARNING, logger="plcstack.north.influx"):
+        await sink.aclose(drain=0)
+    lost = [r.getMessage() for r in caplog.records if "lost as the writer closes" in r.getMessage()]
+    assert lost == [
+        "influx: 2 lines not written are lost as the writer closes ([influx] buffer_path would"
+        " keep them for the next writer)"
+    ]

@@ -69,6 +69,7 @@ class InfluxStats:
     held: int = 0  # lines that waited while InfluxDB could not be written to
     replayed: int = 0  # of ``written``: lines that had been held
     rejected: int = 0  # lines InfluxDB refused (400), dropped
+    late: int = 0  # lines of scans handed over after the writer closed (a reload restarting it)
     requests: int = 0  # POSTs answered (any status)
     failures: int = 0  # POSTs that failed (no answer, 5xx, 404) and were retried
 
@@ -147,6 +148,8 @@ class InfluxSink(FaceBase):
         self._wake = asyncio.Event()
         self._full = asyncio.Event()
         self._closing = False
+        #: the queue is closed: nothing more can be queued by this writer
+        self._closed = False
         self._idle = asyncio.Event()
         self._idle.set()
         #: every line up to this ``seq`` was counted in ``held`` (-1: none)
@@ -186,6 +189,16 @@ class InfluxSink(FaceBase):
         are encoded before the first is queued."""
         lines = self.lines(scans)
         if not lines:
+            return
+        if self._closed:  # a reload closed this writer and starts another: these fall between
+            if not self.stats.late:
+                log.warning(
+                    "%s: lines arrive after the writer closed (a reload restarts it): they are"
+                    " not written; counted",
+                    self.name,
+                    extra={"face": self.name},
+                )
+            self.stats.late += len(lines)
             return
         topic = self.settings.database
         put = self.buffer.put
@@ -243,7 +256,17 @@ class InfluxSink(FaceBase):
         if self._session is not None:
             await self._session.close()
             self._session = None
-        self.buffer.close()
+        self.buffer.close()  # what waits goes to disk (buffer_path): the next writer sends it
+        self._closed = True
+        waiting = len(self.buffer)
+        if waiting and self.settings.buffer_path is None:
+            log.warning(
+                "%s: %d lines not written are lost as the writer closes ([influx] buffer_path"
+                " would keep them for the next writer)",
+                self.name,
+                waiting,
+                extra={"face": self.name},
+            )
 
     async def wait_drained(self, timeout: float) -> None:
         """Wait until everything queued so far was written (``TimeoutError`` after it)."""
