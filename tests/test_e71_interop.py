@@ -1,10 +1,11 @@
 """The E71 simulator driven by an independent 1E client: HslCommunication's ``MelsecA1ENet``.
 
-Not a dependency of plcstack: the test is skipped unless the package is importable, e.g.
+Not a dependency of plcstack: marked ``hsl``, left out of the default run; with ``-m hsl`` it fails
+naming the package when it cannot import it. E.g.
 ``pip install --target /tmp/hsl --no-deps hslcommunication==1.2.0`` and
-``PYTHONPATH=/tmp/hsl python -m pytest tests/test_e71_interop.py``. HSL 1.2.0 is binary only and
-waits for data after end codes other than 00H/5BH (a limitation of that version), so only those
-paths are driven here.
+``PYTHONPATH=/tmp/hsl python -m pytest -m hsl tests/test_e71_interop.py``. HSL 1.2.0 is binary
+only and waits for data after end codes other than 00H/5BH (a limitation of that version), so
+only those paths are driven here.
 """
 
 from __future__ import annotations
@@ -15,11 +16,17 @@ from typing import Any
 import pytest
 
 from plcstack.sim import e71 as sim_e71
+from tests.peers import hsl_peer
 
-hsl: Any = pytest.importorskip("HslCommunication")
+pytestmark = pytest.mark.hsl
 
 
-async def test_hsl_melsec_a1enet_against_simulator() -> None:
+@pytest.fixture
+def hsl() -> Any:
+    return hsl_peer()
+
+
+async def test_hsl_melsec_a1enet_against_simulator(hsl: Any) -> None:
     sim = await sim_e71.start()
     try:
         sim.memory.write_words("D", 100, [0x1234, 0x9876, 0x0109])

@@ -1,6 +1,7 @@
 """Optional interop: PyPI ``hslcommunication`` 1.2.0 (an independent FETCH/WRITE client, spec E)
-against our simulator. Skipped unless the package is importable: its licence allows only local
-test use, so it is never a dependency. Run with ``PYTHONPATH=/path/to/hslpeer pytest ...``."""
+against our simulator. Its licence allows only local test use, so it is never a dependency: marked
+``hsl``, left out of the default run; ``PYTHONPATH=/path/to/hslpeer pytest -m hsl ...`` runs it,
+and fails naming the package when it cannot import it."""
 
 from __future__ import annotations
 
@@ -11,11 +12,17 @@ import pytest
 
 from plcstack.sim import fetchwrite as fwsim
 from plcstack.sim.s5memory import Area
+from tests.peers import hsl_peer
 
-hsl = pytest.importorskip("HslCommunication")
+pytestmark = pytest.mark.hsl
 
 
-async def test_hsl_client_against_simulator() -> None:
+@pytest.fixture
+def hsl() -> Any:
+    return hsl_peer()
+
+
+async def test_hsl_client_against_simulator(hsl: Any) -> None:
     async with await fwsim.start() as sim:
         peer: Any = hsl.SiemensFetchWriteNet("127.0.0.1", sim.port)
 
