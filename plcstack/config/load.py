@@ -16,7 +16,7 @@ from pathlib import Path
 from plcstack.checks import Notice, read_tables
 from plcstack.config.model import TABLES, Config
 from plcstack.errors import ConfigError
-from plcstack.gateway.faces import check_faces
+from plcstack.gateway.table import check_faces
 from plcstack.north.config import parse_north
 from plcstack.north.modbus.config import build_map
 from plcstack.poll.checks import check_plans, shared_connections

@@ -5,7 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from plcstack.checks import table_names, toml_array
-from plcstack.gateway.faces import FaceSettings, parse_gateway
+from plcstack.gateway.faces import FaceSettings
+from plcstack.gateway.table import parse_gateway
 from plcstack.north.config import NorthConfig
 from plcstack.poll.config import PlcConfig, PollConfig
 
