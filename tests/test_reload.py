@@ -26,7 +26,9 @@ import pytest
 from plcstack.cli.reload import Running, RuntimeControl
 from plcstack.config import load_config
 from plcstack.errors import ConfigError
+from plcstack.north.face import Face
 from plcstack.north.pipeline import North
+from plcstack.north.stdout import StdoutLines
 from plcstack.poll.engine import Poller
 from plcstack.sim import e71
 from plcstack.sim.base import TcpSimulator
@@ -57,11 +59,12 @@ class Run:
 
 
 @contextlib.asynccontextmanager
-async def running(path: Path) -> AsyncIterator[Run]:
-    """The runtime's parts as ``plcstack poll`` builds them, on the file at ``path``."""
+async def running(path: Path, *faces: Face) -> AsyncIterator[Run]:
+    """The runtime's parts as ``plcstack poll`` builds them, on the file at ``path``
+    (``faces``: the caller's, as the stdout lines are)."""
     control = RuntimeControl.load(path)
     poller = Poller(control.config.poll)
-    north = North(poller, control.config.north, control=control)
+    north = North(poller, control.config.north, faces=faces, control=control)
     await poller.start()
     try:
         await north.aopen()
@@ -324,3 +327,32 @@ async def test_sighup_applies_the_file_to_a_running_poll(tmp_path: Path) -> None
     assert len(said) == 1 and said[0].rstrip().endswith(
         "reload (SIGHUP): PLCs added: c; removed: b; changed: none"
     ), err
+
+
+async def test_stdout_lines_print_an_added_plcs_float32_tag_at_float32_precision(
+    tmp_path: Path,
+) -> None:
+    import io
+    import struct
+
+    from plcstack.poll.sinks import jsonl_text
+
+    path = tmp_path / "plant.toml"
+    memory = MelsecMemory()
+    memory.write_words("D", 100, list(struct.unpack("<2H", struct.pack("<f", 0.1))))
+    async with sims(1) as (a,):
+        b = await e71.start(memory)
+        try:
+            path.write_text(_file(_plc("a", a.url)))
+            out = io.StringIO()
+            config = load_config(path)
+            lines = StdoutLines(jsonl_text(config.plcs), out, remake=jsonl_text)
+            async with running(path, lines) as run:
+                tag = 'f = { address = "D100", type = "float32" }'
+                path.write_text(_file(_plc("a", a.url), _plc("b", b.url, tag)))
+                assert (await run.control.reload(who="SIGHUP")).ok
+                await eventually(lambda: '"plc": "b"' in out.getvalue(), "a line of b")
+        finally:
+            await b.aclose()
+    line = next(x for x in out.getvalue().splitlines() if '"plc": "b"' in x)
+    assert json.loads(line)["value"] == 0.1, line  # not 0.10000000149011612

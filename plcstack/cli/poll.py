@@ -31,11 +31,13 @@ from plcstack.cli.runtime import RuntimePoller, run_north
 from plcstack.config import Config
 from plcstack.config.overrides import Overrides, apply_overrides
 from plcstack.errors import ConfigError
+from plcstack.north.config import NorthConfig
 from plcstack.north.face import Face
 from plcstack.north.faces import missing, needs_of
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.pipeline import North
 from plcstack.north.stdout import StdoutLines
+from plcstack.poll.config import PlcConfig
 from plcstack.poll.engine import Poller
 from plcstack.poll.samples import Scan
 from plcstack.poll.sinks import FORMATS, each_line, jsonl_text
@@ -71,6 +73,11 @@ def register(subparsers: Any) -> None:
     scale_cli.add_arguments(poll)
     add_pcap_options(poll)
     poll.set_defaults(func=with_pcap(run_poll))
+
+
+def _influx_text(north: NorthConfig, plcs: Sequence[PlcConfig]) -> Callable[[Sequence[Scan]], str]:
+    """``--format influx``: the line protocol of ``plcs``, as ``[influx]`` lays it out."""
+    return InfluxFormat(plcs, layout=north.influx_layout, measurement=north.influx_measurement).text
 
 
 def _prepared(overrides: Overrides, args: argparse.Namespace, config: Config) -> Config:
@@ -113,18 +120,19 @@ async def run_poll(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return 2
     # every URL and address checked here, before anything is sent
     poller: RuntimePoller = worker if worker is not None else Poller(config)
-    text: Callable[[Sequence[Scan]], str] | None = None
+    # the lines of the file's PLCs (float32 tags at float32 precision): made again from the
+    # PLCs of a reloaded file
+    text_of: Callable[[Sequence[PlcConfig]], Callable[[Sequence[Scan]], str]] | None = None
     if args.format == "influx":
-        text = InfluxFormat(
-            config.plcs,
-            layout=north_config.influx_layout,
-            measurement=north_config.influx_measurement,
-        ).text
+        text_of = functools.partial(_influx_text, north_config)
     elif args.format == "jsonl":
-        text = jsonl_text(config.plcs)
+        text_of = jsonl_text
     elif args.format != "none":
-        text = functools.partial(each_line, FORMATS[args.format])
-    faces: list[Face] = [StdoutLines(text, out)] if text is not None else []
+        line = FORMATS[args.format]
+        text_of = lambda _: functools.partial(each_line, line)  # noqa: E731
+    faces: list[Face] = []
+    if text_of is not None:
+        faces.append(StdoutLines(text_of(config.plcs), out, remake=text_of))
     # every face of the file, built
     north = North(poller, north_config, faces=faces, control=control)
     # [[gateway]]: the native faces, on the PLCs' connections (not a scale-out worker's);

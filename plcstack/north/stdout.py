@@ -12,7 +12,8 @@ import contextlib
 from collections.abc import Callable, Sequence
 from typing import TextIO
 
-from plcstack.north.face import FaceBase
+from plcstack.north.face import FaceBase, PlcUpdate
+from plcstack.poll.config import PlcConfig
 from plcstack.poll.samples import Scan
 
 __all__ = ["StdoutLines"]
@@ -20,13 +21,25 @@ __all__ = ["StdoutLines"]
 
 class StdoutLines(FaceBase):
     """Writes ``text(scans)`` of every batch to ``out`` and flushes it (a batch is handed on
-    before the next scan is waited for)."""
+    before the next scan is waited for). ``remake(plcs)``: the text of the PLCs of a reloaded
+    file (a float32 tag added is printed at float32 precision); None: ``text`` serves any."""
 
     name = "stdout"
 
-    def __init__(self, text: Callable[[Sequence[Scan]], str], out: TextIO) -> None:
+    def __init__(
+        self,
+        text: Callable[[Sequence[Scan]], str],
+        out: TextIO,
+        *,
+        remake: Callable[[Sequence[PlcConfig]], Callable[[Sequence[Scan]], str]] | None = None,
+    ) -> None:
         self.text = text
         self.out = out
+        self.remake = remake
+
+    async def update_plcs(self, update: PlcUpdate) -> None:
+        if self.remake is not None:
+            self.text = self.remake(update.view.config.plcs)
 
     def submit(self, scans: Sequence[Scan]) -> None:
         self.out.write(self.text(scans))
