@@ -140,6 +140,8 @@ async def _steps(
     arrivals.gap.clear()  # from here on: the start's connects are over
     arrivals.worst.clear()
     out["cpu before"] = await _cpu(window)
+    # the same figures with no reload at all: what the machine's own stalls cost
+    _unchanged(out, "no reload", poller, arrivals, range(4 * STEP, n))
     arrivals.gap.clear()  # the gaps around the first apply
     # 1. SIGHUP: p0000-p0009 removed, p{n}..p{n+9} added, p0010-p0019 typed (replanned)
     second = [*first[STEP:], *range(n, n + STEP)]
