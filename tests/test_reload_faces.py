@@ -17,6 +17,7 @@ from plcstack.north.history import History, HistoryBusy
 from plcstack.north.web.server import WebConsole
 from plcstack.poll.diff import PlcChanges
 from plcstack.poll.engine import Applied, Poller
+from plcstack.poll.samples import Quality, Scan, make_sample
 from plcstack.sim.e71 import E71TcpSimulator
 from plcstack.systemd.notify import Notifier
 from plcstack.systemd.service import ServiceNotifier
@@ -93,3 +94,45 @@ async def test_a_reload_that_fails_part_way_still_ends_its_reloading(tmp_path: P
                     task.cancel()
                     await asyncio.gather(task, return_exceptions=True)
     assert (ready.get("STATUS") or "").startswith("reload failed part way: RuntimeError:")
+
+
+async def test_the_scans_reported_while_a_face_restarts_reach_the_face_started_again(
+    tmp_path: Path,
+) -> None:
+    """A face whose table changed is closed and started again; the scans reported meanwhile
+    wait for the new one. Before, they went to the one closing (counted as dropped by the
+    history, lost without a word by a closed MQTT queue)."""
+    path, store = tmp_path / "plant.toml", tmp_path / "h.sqlite"
+    async with sims(1) as (sim,):
+        path.write_text(_file(_plc("press1", sim.url), head=_history(store, "7d")))
+        async with running(path) as run:
+            old = run.north.face(History)
+            assert old is not None
+            fed: list[int] = []
+
+            async def feed() -> None:
+                while True:
+                    now = time.time()
+                    value = len(fed)
+                    sample = make_sample("press1", "fed", value, Quality.GOOD, now, now, None)
+                    run.north.deliver([Scan("press1", "default", now, now, (sample,))])
+                    fed.append(value)
+                    await asyncio.sleep(0)
+
+            feeder = asyncio.create_task(feed())
+            try:
+                await eventually(lambda: len(fed) >= 50, "scans fed before the reload")
+                path.write_text(_file(_plc("press1", sim.url), head=_history(store, "2h")))
+                outcome = await run.control.reload(who="test")
+                assert outcome.ok, outcome
+                during = len(fed)
+                await eventually(lambda: len(fed) >= during + 50, "scans fed after the reload")
+            finally:
+                feeder.cancel()
+                await asyncio.gather(feeder, return_exceptions=True)
+            new = run.north.face(History)
+            assert new is not None and new is not old
+            assert old.late == 0, f"{old.late} samples went to the history being closed"
+            await new.flush()
+            points = await new.query("press1", "fed", 0, time.time() + 1, points=100_000)
+    assert [value for _, value in points] == fed

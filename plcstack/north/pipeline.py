@@ -33,8 +33,9 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
+from collections import deque
 from collections.abc import Collection, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TypeVar
 
 from plcstack.errors import ConfigError, PlcError
@@ -59,6 +60,10 @@ log = logging.getLogger("plcstack.north")
 
 _F = TypeVar("_F")
 
+#: scans held for one face while a reload restarts it (a restart takes a second or two; at
+#: 1000 PLCs a second this is more than a minute of them)
+HOLD_LIMIT = 100_000
+
 #: north-side tables that belong to the whole run rather than to one face: a change of one of
 #: them takes effect at the next start (a reload says so; it never ignores it silently)
 RUN_TABLES = ("report", "audit")
@@ -74,6 +79,15 @@ class FacesApplied:
     failed: tuple[str, ...] = ()
     #: changed tables of the whole run, applied at the next start (``[report]``, ``[audit]``)
     not_applied: tuple[str, ...] = ()
+
+
+@dataclass
+class _Held:
+    """The scans kept for one face while a reload restarts it (the newest ``HOLD_LIMIT``) and
+    how many were reported meanwhile."""
+
+    scans: deque[Scan] = field(default_factory=lambda: deque(maxlen=HOLD_LIMIT))
+    total: int = 0
 
 
 def _describe(exc: BaseException) -> str:
@@ -147,6 +161,9 @@ class North(AsyncResource):
         self.faces.extend(self._configured.values())
         #: the faces a reload could not start again, by table: in :meth:`health` until one does
         self._down: dict[str, Health] = {}
+        #: the scans reported while a reload restarts a face, by its table: handed to the face
+        #: that starts again (the one closing takes no more), at most HOLD_LIMIT of them
+        self._held: dict[str, _Held] = {}
         #: set once every PLC's first scan is in (a PLC that does not answer: once that scan
         #: failed): a client that connects to a face then reads values
         self.ready = asyncio.Event()
@@ -257,23 +274,50 @@ class North(AsyncResource):
             old = self._configured.pop(kind.table, None)
             self._down.pop(kind.table, None)
             if old is not None:
+                # from here the scans for this face wait for the one that starts again
+                self._held[kind.table] = _Held()
+                self.faces = [face for face in self.faces if face is not old]
                 await _close(old)
             try:
                 fresh = await _started(build_face(kind, context, self._configured))
             except Exception as exc:  # this face is down; the others go on
                 what = str(exc) if isinstance(exc, PlcError) else _describe(exc)
                 line = f"[{kind.table}] cannot start after the reload: {what}"
+                held = self._held.pop(kind.table, None)
+                if held is not None and held.total:
+                    line += f"; {held.total} scans reported meanwhile are not delivered to it"
                 log.error("%s; the other faces go on", line, extra={"face": kind.table})
                 self._down[kind.table] = Health(f"[{kind.table}]", line)
                 failed.append(line)
                 continue
+            held = self._held.pop(kind.table, None)
             if fresh is not None:  # None: its table is gone
+                if held is not None:
+                    self._hand_over(fresh, held)
+                self.faces = [*self.faces, fresh]  # fed from now on, while others restart
                 self._configured[kind.table] = fresh
                 restarted.append(fresh.name)
         order = [kind.table for kind in FACES]
         self._configured = {t: self._configured[t] for t in order if t in self._configured}
         self.faces = self._callers + list(self._configured.values())
         return FacesApplied(tuple(restarted), tuple(failed), not_applied)
+
+    def _hand_over(self, face: Face, held: _Held) -> None:
+        """The scans reported while ``face`` restarted, to the face started again; a restart
+        that outlasted :data:`HOLD_LIMIT` scans lost the oldest, counted and said once here."""
+        lost = held.total - len(held.scans)
+        if lost:
+            self.supervisor.count(face.name, lost)
+            log.warning(
+                "%s: its restart outlasted %d scans: the %d oldest scans reported meanwhile"
+                " are not delivered to it",
+                face.name,
+                HOLD_LIMIT,
+                lost,
+                extra={"face": face.name},
+            )
+        if held.scans:
+            self.supervisor.submit(face.name, face.submit, list(held.scans), face.probe)
 
     def summary(self) -> list[str]:
         """One line per face for stderr at the end of a run: what it did (sent, not delivered
@@ -299,6 +343,9 @@ class North(AsyncResource):
             submit = self.supervisor.submit
             for face in self.faces:
                 submit(face.name, face.submit, reported, face.probe)
+            for held in self._held.values():  # a face a reload restarts: for the new one
+                held.scans.extend(reported)
+                held.total += len(reported)
         waiting = self._waiting
         if waiting:
             waiting.difference_update(scan.plc for scan in batch)
