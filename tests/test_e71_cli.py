@@ -1,8 +1,8 @@
 """The CLI against E71 simulators: `python -m plcstack read/write/sim e71`.
 
-``read``/``write`` end to end in subprocesses (``run_cli``); the error cases through the same
-``plcstack.cli.main`` in this process (``cli_in_process``, tests/cli_helpers.py), which saves a
-new interpreter per command."""
+A ``read`` end to end in a subprocess (``run_cli``) per transport; the other commands through the
+same ``plcstack.cli.main`` in this process (``cli_in_process``, tests/cli_helpers.py), which
+saves a new interpreter per command."""
 
 from __future__ import annotations
 
@@ -47,10 +47,11 @@ async def test_read_json_and_write(transport: str, code: str) -> None:
         assert (rc, err) == (0, "")
         assert out == '{"address": "D100", "values": [1, 2, 65535]}\n'
         assert json.loads(out) == {"address": "D100", "values": [1, 2, 65535]}
-        rc, out, err = await run_cli("write", sim.url, "M10", "true", "false", "1")
+        # the rest through the same main in this process (the entry point is proven above)
+        rc, out, err = await cli_in_process("write", sim.url, "M10", "true", "false", "1")
         assert rc == 0, err
         assert sim.memory.read_bits("M", 10, 3) == [True, False, True]
-        rc, out, _ = await run_cli("read", sim.url, "M10", "3", "--json")
+        rc, out, _ = await cli_in_process("read", sim.url, "M10", "3", "--json")
         assert out == '{"address": "M10", "values": [true, false, true]}\n'
     finally:
         await sim.aclose()
