@@ -13,6 +13,7 @@ from typing import Any
 
 import pytest
 
+from plcstack.cli import main
 from plcstack.clients import connect
 from plcstack.clients.as511 import AS511Client
 from plcstack.codecs.as511 import Job, PGState
@@ -315,7 +316,7 @@ def test_url_options() -> None:
 
 
 @pytest.mark.parametrize("mode", ["--pty", "--port=0"])
-def test_cli_sim_and_read(mode: str) -> None:
+def test_cli_sim_and_read(mode: str, capsys: pytest.CaptureFixture[str]) -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "plcstack", "sim", "as511", mode],
@@ -333,23 +334,14 @@ def test_cli_sim_and_read(mode: str) -> None:
         else:
             assert line.startswith("listening on 127.0.0.1:") and line.endswith(" (TCP)")
             url = "as511+tcp://" + line.removeprefix("listening on ").removesuffix(" (TCP)")
-        out = subprocess.run(
-            [sys.executable, "-m", "plcstack", "read", url, "DB5.DW0", "4", "--json"],
-            capture_output=True,
-            text=True,
-            env=env,
-            timeout=30,
-        )
-        assert out.returncode == 0, out.stderr
-        assert out.stdout.strip() == '{"address": "DB5.DW0", "values": [1280, 1281, 1282, 1283]}'
-        wrote = subprocess.run(
-            [sys.executable, "-m", "plcstack", "write", url, "DB50.DW0", "1"],
-            capture_output=True,
-            text=True,
-            env=env,
-            timeout=30,
-        )
-        assert wrote.returncode == 1 and "DB50 does not exist" in wrote.stderr
+        # the simulator is the command's own process (it takes signals); the read and the write
+        # run the same main in this one, which saves an interpreter each
+        capsys.readouterr()
+        assert main(["read", url, "DB5.DW0", "4", "--json"]) == 0, capsys.readouterr().err
+        out = capsys.readouterr().out
+        assert out.strip() == '{"address": "DB5.DW0", "values": [1280, 1281, 1282, 1283]}'
+        assert main(["write", url, "DB50.DW0", "1"]) == 1
+        assert "DB50 does not exist" in capsys.readouterr().err
     finally:
         proc.terminate()
         proc.wait(timeout=10)
