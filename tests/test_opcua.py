@@ -553,6 +553,10 @@ async def test_submit_is_the_sink_interface_and_keeps_the_newest_sample_per_tag(
     try:
         await sub.subscribe_data_change(plant.node(plant.anonymous, "oven2", "status"))
         await handler.until(lambda v, dv: v == 13)
+        # the PLC says 2 too from now on: the runtime's feed goes on polling, and a polled
+        # sample that comes while the submitted one waits replaces it (the newest wins); with
+        # the 13 it replaced the 2 for good on a loaded machine and no change was ever seen
+        plant.oven.write_area(Area.FLAGS, 20, b"\x02")
         before = server.coalesced
         now = time.time()
         server.submit(
@@ -568,6 +572,7 @@ async def test_submit_is_the_sink_interface_and_keeps_the_newest_sample_per_tag(
         seen = await handler.until(lambda v, dv: v != 13)
         assert seen.Value is not None and seen.Value.Value == 2
     finally:
+        plant.oven.write_area(Area.FLAGS, 20, b"\x0d")
         await sub.delete()
 
 
