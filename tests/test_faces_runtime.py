@@ -153,12 +153,20 @@ def test_a_faces_guard_limits_are_its_tables_keys() -> None:
     assert plain.guard_limits == Limits(8, 6, 10.0, 600.0)
 
 
-async def test_an_e71_face_of_the_file_in_the_other_code_and_transport(tmp_path: Path) -> None:
+@pytest.mark.parametrize("command", [["poll", "--format", "none"], ["serve", "modbus"]])
+async def test_an_e71_face_of_the_file_in_the_other_code_and_transport(
+    tmp_path: Path, command: list[str]
+) -> None:
+    """plcstack poll runs the file's [[gateway]] faces, and so does serve modbus, the same
+    runtime with its face on (before, serve modbus and serve opcua ran them not at all)."""
     plc = await e71_sim.start()  # binary, TCP
     port = free_port()
     config = tmp_path / "plant.toml"
     config.write_text(
         f"""
+[modbus]
+listen = "127.0.0.1:{free_port()}"
+
 [poll]
 interval = 0.05
 
@@ -167,7 +175,7 @@ name = "press2"
 url = "{plc.url}"
 
 [plc.tags]
-strokes = "D100"
+strokes = {{ address = "D100", modbus = "hr:0" }}
 
 [[gateway]]
 protocol = "e71"
@@ -180,15 +188,16 @@ writable = "D100-199"
     )
     async with plc:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "plcstack", "poll", str(config), "--duration", "30",
-            "--format", "none",
+            sys.executable, "-m", "plcstack", *command, str(config), "--duration", "30",
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(), cwd=ROOT,
         )  # fmt: skip
         assert proc.stderr is not None
         try:
             async with asyncio.timeout(20):
-                while "listening on" not in (line := (await proc.stderr.readline()).decode()):
-                    assert line, "plcstack poll ended before its face listened"
+                while "of press2 listening on" not in (
+                    line := (await proc.stderr.readline()).decode()
+                ):
+                    assert line, f"plcstack {command[0]} ended before its face listened"
             assert line == f"e71 face (udp, ascii) of press2 listening on 127.0.0.1:{port} (UDP)\n"
             async with connect(f"e71+udp://127.0.0.1:{port}?code=ascii") as face:
                 await face.write("D100", [1234])

@@ -3,8 +3,9 @@
 Both are shortcuts of ``plcstack poll CONFIG --format none`` that make sure their face runs
 (with its defaults when the file has no table for it): the same runtime, the same poller with
 one connection per PLC, and every other face the file configures (``[mqtt]``, ``[web]``,
-``[metrics]``, ...) on the same scans. Written once, so the two servers cannot drift apart in
-what their options mean or in what a write's audit line holds.
+``[metrics]``, ..., the ``[[gateway]]`` faces on the PLCs' connections) on the same scans.
+Written once, so the two servers cannot drift apart in what their options mean or in what a
+write's audit line holds.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import functools
 from collections.abc import Callable
 
 from plcstack.cli import print_error
+from plcstack.cli.faces import gateway_faces
 from plcstack.cli.reload import RuntimeControl
 from plcstack.cli.run_options import overrides_of
 from plcstack.cli.runtime import run_north
@@ -51,4 +53,6 @@ async def run_served(args: argparse.Namespace, command: str, with_face: WithFace
         return 2
     poller = Poller(config)  # every URL and address checked before anything is sent
     north = North(poller, north_config, control=control)
-    return await run_north(command, control, poller, north, duration=args.duration)
+    # [[gateway]]: the native faces on the PLCs' connections, as plcstack poll runs them
+    natives = gateway_faces(control.config.gateway, poller.client, north.writes)
+    return await run_north(command, control, poller, north, duration=args.duration, natives=natives)
