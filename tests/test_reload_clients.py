@@ -231,3 +231,43 @@ async def test_modbus_registers_of_a_removed_plc_go_and_an_added_ones_appear(
     finally:
         for sim in started:
             await sim.aclose()
+
+
+async def test_web_console_rows_of_a_removed_plc_go_and_an_added_ones_appear(
+    tmp_path: Path,
+) -> None:
+    """GET /api/plcs and a tag read over HTTP: after the reload the removed PLC is unknown, the
+    added one is listed, the unchanged one kept its value and its console (no restart)."""
+    import aiohttp
+
+    from plcstack.north.web.server import WebConsole
+
+    path = tmp_path / "plant.toml"
+    face = '[web]\nlisten = "127.0.0.1:0"\n'
+    async with sims(3) as (a, b, c):
+        path.write_text(_file(_plc("a", a.url), _plc("b", b.url), head=face))
+        async with running(path) as run, aiohttp.ClientSession() as http:
+            console = run.north.face(WebConsole)
+            assert console is not None
+            url = console.url.rstrip("/")
+
+            async def plcs() -> list[str]:
+                async with http.get(f"{url}/api/plcs") as r:
+                    return sorted(row["name"] for row in await r.json())
+
+            async def tags(plc: str) -> list[str]:
+                async with http.get(f"{url}/api/tags?plc={plc}") as r:
+                    return [row["tag"] for row in await r.json()]
+
+            assert await plcs() == ["a", "b"]
+            async with asyncio.timeout(10):
+                while await tags("a") != ["x"]:  # noqa: ASYNC110 - until a's first sample
+                    await asyncio.sleep(0.02)
+            path.write_text(_file(_plc("a", a.url), _plc("c", c.url), head=face))
+            outcome = await run.control.reload(who="SIGHUP")
+            assert outcome.summary == "PLCs added: c; removed: b; changed: none"
+            assert await plcs() == ["a", "c"]
+            async with http.get(f"{url}/api/tags?plc=b") as r:
+                assert r.status == 404, await r.text()
+            assert await tags("a") == ["x"]  # kept through the reload
+            assert run.north.face(WebConsole) is console
