@@ -148,6 +148,12 @@ async def test_removed_entries_close_and_a_new_plc_s_faces_start() -> None:
         assert await _closed(on_a)
         assert await _ask(on_b) == 0x2222
         assert [p.name for p in natives.plcs] == ["kiln2"]
+        # the closed PLC's faces still count in the run's last lines
+        first, now = natives.summary()
+        assert first.startswith("faces of kiln1 (until a reload): ") and now.startswith(
+            "faces of kiln2: "
+        )
+        assert int(first.split(": ")[1].split()[0]) >= 2  # kiln1's requests through a
         with pytest.raises(OSError):
             await asyncio.open_connection("127.0.0.1", a)
         await on_a.aclose()

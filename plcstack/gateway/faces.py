@@ -24,7 +24,12 @@ from typing import Final, Literal
 from plcstack.clients.as511 import AS511Client
 from plcstack.clients.base import Client
 from plcstack.clients.e71 import E71Client
-from plcstack.clients.share import DEFAULT_MAX_WAIT, DEFAULT_QUEUE_SIZE, SharedConnection
+from plcstack.clients.share import (
+    DEFAULT_MAX_WAIT,
+    DEFAULT_QUEUE_SIZE,
+    SharedConnection,
+    ShareStats,
+)
 from plcstack.errors import AddressError
 from plcstack.gateway import as511face, e71server
 from plcstack.gateway.allow import DeviceAllowList, WriteAllowList
@@ -419,6 +424,8 @@ class GatewayFaces(AsyncResource):
             self._plc(name, settings) for name, settings in _by_plc(faces).items()
         ]
         self._changing = asyncio.Lock()
+        #: the queue counts of each PLC's faces that a reload closed or started afresh
+        self._before: list[tuple[str, ShareStats]] = []
         #: a PLC's face queue that ended by itself (never by a close): what :meth:`watch` says
         self._ended: asyncio.Future[tuple[str, asyncio.Task[None]]] | None = None
 
@@ -475,12 +482,13 @@ class GatewayFaces(AsyncResource):
         ]
 
     def summary(self) -> list[str]:
-        """One line per PLC with faces: its queue's counts."""
+        """One line per PLC with faces: its queue's counts (first those of faces a reload
+        closed or started afresh, until then)."""
         lines = []
-        for plc in self.plcs:
-            s = plc.share.stats
+        every = [(f"{name} (until a reload)", s) for name, s in self._before]
+        for name, s in [*every, *((plc.name, plc.share.stats) for plc in self.plcs)]:
             lines.append(
-                f"faces of {plc.name}: {s.executed} requests on its connection, busy {s.busy},"
+                f"faces of {name}: {s.executed} requests on its connection, busy {s.busy},"
                 f" waited too long {s.expired}, client gone {s.skipped}, most waiting"
                 f" {s.queue_peak}"
             )
@@ -533,6 +541,7 @@ class GatewayFaces(AsyncResource):
             if name not in wanted or name in fresh:
                 closed.extend(ClosedFace(f, n) for f, n in _clients_of(plc))
                 await plc.aclose()
+                self._before.append((name, plc.share.stats))
         for name, plc in current.items():
             if name in wanted and name not in fresh:
                 closed.extend(await plc.close_except(wanted[name]))
