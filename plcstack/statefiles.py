@@ -19,7 +19,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["aside_name", "move_aside"]
+__all__ = ["aside_name", "fsync_directory", "move_aside"]
 
 
 def aside_name(path: Path, now: float) -> Path:
@@ -76,3 +76,14 @@ def move_aside(
                     companion.unlink()
     logger.warning("%s %s is damaged (%s): %s; %s", what, path, why, target_text, then)
     return target
+
+
+def fsync_directory(directory: Path) -> None:
+    """Make a rename in ``directory`` durable (POSIX: the directory's entry is flushed too);
+    not possible everywhere, never fatal."""
+    with contextlib.suppress(OSError):
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)

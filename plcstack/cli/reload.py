@@ -46,6 +46,7 @@ from plcstack.north.pipeline import North
 from plcstack.poll.config import PollConfig
 from plcstack.poll.diff import PlcChanges
 from plcstack.poll.engine import Applied
+from plcstack.statefiles import fsync_directory
 from plcstack.systemd.service import ServiceNotifier
 from plcstack.tomlfile import TomlFile
 
@@ -297,9 +298,4 @@ def _write_atomically(path: Path, text: str, *, backup: bool = True) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
-    with contextlib.suppress(OSError):
-        dirfd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(dirfd)
-        finally:
-            os.close(dirfd)
+    fsync_directory(directory)

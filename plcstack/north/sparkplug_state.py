@@ -30,7 +30,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from plcstack.statefiles import move_aside
+from plcstack.statefiles import fsync_directory, move_aside
 
 __all__ = ["BdSeqStore", "default_state_path"]
 
@@ -125,7 +125,7 @@ class BdSeqStore:
                 os.fsync(f.fileno())
             os.replace(tmp, self.path)
             tmp = None
-            _fsync_directory(self.path.parent)
+            fsync_directory(self.path.parent)
         except OSError as exc:
             if not self.failing:
                 log.warning(
@@ -144,13 +144,3 @@ class BdSeqStore:
             log.warning("sparkplug: bdSeq saved to %s again", self.path)
         self.failing = False
         return True
-
-
-def _fsync_directory(directory: Path) -> None:
-    """Make the rename itself durable (POSIX); not possible everywhere, never fatal."""
-    with contextlib.suppress(OSError):
-        fd = os.open(directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
