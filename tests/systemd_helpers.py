@@ -75,12 +75,16 @@ class NotifySocket:
                 continue
             except OSError:
                 return
+            # the wall clock first: a thread preempted between the two reads then puts the
+            # arrival a little late, never before the sender's own monotonic stamp (read in the
+            # other order, a 14 us preemption put a RELOADING=1 before its MONOTONIC_USEC)
+            wall = time.time()
             at = time.monotonic()
             for level, kind, stamp in ancillary:
                 if level == socket.SOL_SOCKET and kind == SO_TIMESTAMP:
                     seconds, micros = struct.unpack("@ll", stamp[: struct.calcsize("@ll")])
                     # the kernel's wall-clock stamp, on the monotonic clock the tests use
-                    at -= time.time() - (seconds + micros / 1e6)
+                    at -= wall - (seconds + micros / 1e6)
             fields = tuple(
                 (name, value)
                 for line in data.decode().split("\n")
