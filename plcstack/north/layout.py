@@ -288,10 +288,15 @@ class Reachability:
         self._expected = {plc: frozenset(names) for plc, names in (groups or {}).items()}
         self._groups: dict[str, dict[str, bool]] = {}
         self._state: dict[str, bool] = {}
+        #: PLCs a reload removed: the scans of their last requests, still on their way, decide
+        #: nothing (a removed PLC said offline is never said online again by them)
+        self._gone: set[str] = set()
 
     def update(self, scan: Scan) -> bool | None:
         """Record one scan; the PLC's new state if it changed (True reachable), else None."""
         plc, samples = scan.plc, scan.samples
+        if self._gone and plc in self._gone:
+            return None
         groups = self._groups.setdefault(plc, {})
         good = any(s.quality is Quality.GOOD for s in samples)
         groups[scan.group] = good
@@ -321,8 +326,11 @@ class Reachability:
         self, groups: Mapping[str, Collection[str]], changed: Collection[str] = ()
     ) -> None:
         """The PLCs and scan groups of a reloaded configuration: a PLC no longer in ``groups``
-        is forgotten, a PLC in ``changed`` starts again from unknown (its groups may differ),
-        every other keeps its state."""
+        is forgotten (and its late scans ignored until a reload adds it again), a PLC in
+        ``changed`` starts again from unknown (its groups may differ), every other keeps its
+        state."""
+        known = self._expected.keys() | self._state.keys() | self._groups.keys()
+        self._gone = (self._gone | known) - groups.keys()
         self._expected = {plc: frozenset(names) for plc, names in groups.items()}
         for plc in [p for p in self._state.keys() | self._groups.keys()
                     if p not in groups or p in changed]:  # fmt: skip
