@@ -480,6 +480,7 @@ def test_compact_numbers() -> None:
 
 
 # -- the CLI ---------------------------------------------------------------------------------------
+@pytest.mark.slow  # several seconds: run by the slow run
 def test_cli_smoke_writes_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from plcstack.cli import main
 
@@ -571,6 +572,7 @@ async def test_fleet_responders_share_listeners_but_give_every_plc_its_own_conne
         assert proc.wait(10) == 0
 
 
+@pytest.mark.slow  # several seconds: run by the slow run
 def test_fleet_alternate_runs_every_kind_per_round_in_abba_order() -> None:
     """One child, one set of responders, the kinds back to back and reversed every other round;
     a ratio per round from that round's runs, and their median."""

@@ -102,6 +102,7 @@ async def test_a_client_certificate_signed_by_the_brokers_ca_gets_in(tls_broker:
     assert sink.last_error is None
 
 
+@pytest.mark.slow  # several seconds: run by the slow run
 async def test_no_client_certificate_is_a_typed_error_naming_the_broker(
     tls_broker: TlsBroker, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -77,6 +77,7 @@ def test_first_request_timeout_is_read_and_checked() -> None:
             parse_opcua_config({"first_request_timeout": bad})
 
 
+@pytest.mark.slow  # several seconds: run by the slow run
 async def test_64_idle_sockets_are_closed_at_the_first_requests_deadline(
     caplog: pytest.LogCaptureFixture,
 ) -> None:

@@ -384,6 +384,7 @@ async def test_cli_poll_influx_and_config_error_exit_codes(tmp_path: Path) -> No
     assert "p" in result.stderr and "'x'" in result.stderr and result.stdout == ""
 
 
+@pytest.mark.slow  # several seconds: run by the slow run
 def test_demo_in_a_pipe_prints_samples_of_every_protocol_and_exits_0() -> None:
     protocols, _ = available_protocols()
     env = dict(os.environ, PYTHONPATH=str(ROOT))

@@ -50,6 +50,7 @@ async def test_command_prints_what_the_page_shows(
         assert out == ""
 
 
+@pytest.mark.slow  # several seconds: run by the slow run
 def test_the_example_files_copy_out_of_the_package_as_the_page_says(tmp_path: Path) -> None:
     """A wheel has no docs/tags/ to run the page's commands from: the page's copy block, run as
     written by /bin/sh with this environment's ``plcstack`` first on PATH, makes the folder

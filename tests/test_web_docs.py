@@ -59,6 +59,7 @@ def background() -> Iterator[list[subprocess.Popen[str]]]:
             proc.wait()
 
 
+@pytest.mark.slow  # several seconds: run by the slow run
 def test_web_quickstart_runs(tmp_path: Path, background: list[subprocess.Popen[str]]) -> None:
     if shutil.which("curl") is None:
         pytest.fail("the quickstart uses curl, which is not installed")
