@@ -56,6 +56,7 @@ from pathlib import Path
 from typing import Protocol, TypedDict
 
 from plcstack.checks import Table
+from plcstack.north.health import Condition, Health, several
 from plcstack.north.queue_file import DiskFailure, QueueFile, Row
 
 log = logging.getLogger("plcstack.north.buffer")
@@ -505,3 +506,16 @@ def _without(
             costs.append(m.cost)
     queue.extendleft(reversed(kept))
     return queue
+
+
+def forwarding_health(link: Condition, buffer: StoreAndForward, waiting: str) -> Health:
+    """The health of a sink that forwards through ``buffer`` over ``link`` (the MQTT sink, the
+    Influx writer): its link's problem and the disk's, each with its own since when, and how
+    many of its ``waiting`` (messages, lines) wait."""
+    problems: list[tuple[str, float | None]] = []
+    if link.problem is not None:
+        problems.append((link.problem, link.since))
+    disk = buffer.failure
+    if disk is not None:
+        problems.append((disk.describe(), disk.since))
+    return several(link.name, problems, ((f"{waiting} waiting", len(buffer)),))

@@ -39,9 +39,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
 
-from plcstack.north.buffer import Message, StoreAndForward
+from plcstack.north.buffer import Message, StoreAndForward, forwarding_health
 from plcstack.north.face import FaceBase, PlcUpdate
-from plcstack.north.health import Condition, Health, several
+from plcstack.north.health import Condition, Health
 from plcstack.north.influx import InfluxFormat
 from plcstack.north.influx_config import InfluxSettings
 from plcstack.north.supervise import Supervised, Supervisor
@@ -447,16 +447,7 @@ class InfluxSink(FaceBase):
     def health(self) -> Health:
         """Unhealthy while InfluxDB cannot be written to or the disk under ``buffer_path``
         refuses writes: since when, why, how many lines wait."""
-        waiting = (("lines waiting", len(self.buffer)),)
-        problems: list[tuple[str, float | None]] = []
-        if self.link.problem is not None:
-            problems.append((self.link.problem, self.link.since))
-        disk = self.buffer.failure
-        if disk is not None:
-            problems.append((disk.describe(), disk.since))
-        return several(self.name, problems, waiting)
-        since = min(when for _, when in problems)
-        return Health(self.name, "; ".join(text for text, _ in problems), since, waiting)
+        return forwarding_health(self.link, self.buffer, "lines")
 
     def metrics(self) -> Iterator[Metric]:
         """The writer's figures for ``/metrics`` (prometheus-client metric families)."""

@@ -43,9 +43,9 @@ from typing import TYPE_CHECKING, Any
 
 from plcstack.checks import Table
 from plcstack.errors import ConfigError, PlcError
-from plcstack.north.buffer import Message, StoreAndForward, buffer_keys
+from plcstack.north.buffer import Message, StoreAndForward, buffer_keys, forwarding_health
 from plcstack.north.face import PlcUpdate
-from plcstack.north.health import Condition, Health, several
+from plcstack.north.health import Condition, Health
 from plcstack.north.layout import (
     JsonLayout,
     MqttLayout,
@@ -336,16 +336,7 @@ class MqttSink:
     def health(self) -> Health:
         """Unhealthy while the broker is not connected (since when, why, how many messages
         wait) or the queue reports a problem of its own (a full disk)."""
-        waiting = (("messages waiting", len(self.buffer)),)
-        problems: list[tuple[str, float | None]] = []
-        if self.link.problem is not None:
-            problems.append((self.link.problem, self.link.since))
-        disk = self.buffer.failure
-        if disk is not None:
-            problems.append((disk.describe(), disk.since))
-        return several(self.name, problems, waiting)
-        since = min(when for _, when in problems)
-        return Health(self.name, "; ".join(text for text, _ in problems), since, waiting)
+        return forwarding_health(self.link, self.buffer, "messages")
 
     def announce(self) -> str | None:
         return None
